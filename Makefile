@@ -1,0 +1,47 @@
+# shadowopt: `make serve` sets everything up and serves the demo scene; `make test` sets up and tests.
+# Both are idempotent: the set-up re-runs only when requirements.lock or pyproject.toml change.
+SHELL := /bin/bash
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.shadowopt-setup
+LOG := $(VENV)/setup.log
+APT_PKGS := libllvm19 libegl1 libegl-mesa0 libgl1-mesa-dri
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+# Dr.Jit needs libLLVM >= 16 (Debian's libllvm19); 15 crashes at the first kernel, 14 is refused.
+export DRJIT_LIBLLVM_PATH ?= $(firstword $(wildcard /usr/lib/*-linux-gnu/libLLVM.so.19.1) /usr/lib/x86_64-linux-gnu/libLLVM.so.19.1)
+HOST ?= 127.0.0.1
+PORT ?= 8000
+
+.PHONY: setup serve test bench demo clean
+
+setup: $(STAMP)
+
+$(STAMP): requirements.lock pyproject.toml
+	@missing=""; for p in $(APT_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then echo "setup: apt-get install$$missing"; \
+	  $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq $$missing >/dev/null; fi
+	@[ -x $(PY) ] || { echo "setup: creating $(VENV)"; python3 -m venv $(VENV); }
+	@echo "setup: installing pinned Python dependencies into $(VENV) (first time: a few minutes)"
+	@$(PY) -m pip install -q --upgrade pip >>$(LOG) 2>&1 || { cat $(LOG); exit 1; }
+	@# The CPU build of torch, asked for by its local version; TORCH_FIND_LINKS may name a folder of wheels.
+	@$(PY) -m pip install -q $(if $(TORCH_FIND_LINKS),--find-links $(TORCH_FIND_LINKS)) \
+	  $(if $(wildcard /opt/wheels),--find-links /opt/wheels) "torch==2.13.0+cpu" >>$(LOG) 2>&1 || { cat $(LOG); exit 1; }
+	@$(PY) -m pip install -q -r requirements.lock >>$(LOG) 2>&1 || { cat $(LOG); exit 1; }
+	@$(PY) -m pip install -q --no-deps -e . >>$(LOG) 2>&1 || { cat $(LOG); exit 1; }
+	@touch $(STAMP)
+	@echo "setup: done"
+
+serve: setup
+	$(VENV)/bin/shadowopt serve --host $(HOST) --port $(PORT)
+
+test: setup
+	$(PY) -m pytest -q
+
+bench: setup
+	$(VENV)/bin/shadowopt bench coarse
+
+demo: setup
+	$(VENV)/bin/shadowopt coarse configs/demo_scene.usda --rig configs/demo_rig.json --out out/demo
+
+clean:
+	rm -rf $(VENV) out .pytest_cache

@@ -1,0 +1,240 @@
+"""The `shadowopt` command line. Bad input exits with code 2 and a one-line reason, never a traceback."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+EXIT_USAGE = 2
+DEMO_SCENE = Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda"
+DEMO_RIG = Path(__file__).resolve().parents[1] / "configs" / "demo_rig.json"
+
+
+class CliError(Exception):
+    def __init__(self, message: str, code: int = EXIT_USAGE):
+        super().__init__(message)
+        self.code = code
+
+
+def _parse_wxh(text: str) -> list[int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+        if w <= 0 or h <= 0:
+            raise ValueError
+        return [w, h]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxH with positive integers, got {text!r}") from None
+
+
+def load_rig(path: str | None, args=None) -> dict:
+    """Read a rig JSON file, apply CLI overrides to rig.shadow, validate, return the validated dict."""
+    from pydantic import ValidationError
+
+    from .schemas import Rig, format_validation_error
+
+    if path is None:
+        raise CliError("--rig: a rig JSON file is required (see configs/demo_rig.json)")
+    try:
+        raw = json.loads(Path(path).read_text())
+    except OSError as e:
+        raise CliError(f"--rig: cannot read {path!r}: {e.strerror}") from e
+    except json.JSONDecodeError as e:
+        raise CliError(f"--rig: {path} is not valid JSON: {e.msg} at line {e.lineno} column {e.colno}") from e
+    if not isinstance(raw, dict):
+        raise CliError(f"--rig: {path} must hold a JSON object")
+    shadow = raw.setdefault("shadow", {}) if isinstance(raw.get("shadow", {}), dict) else raw.get("shadow")
+    if args is not None and isinstance(shadow, dict):
+        if getattr(args, "shadow_resolution", None):
+            shadow["resolution"] = args.shadow_resolution
+            shadow.pop("texel_budget", None)
+        if getattr(args, "texel_budget", None):
+            shadow["texel_budget"] = args.texel_budget
+            shadow.pop("resolution", None)
+        if getattr(args, "cascades", None):
+            shadow["cascades"] = args.cascades if args.cascades == "auto" else _int_arg("--cascades", args.cascades)
+        if getattr(args, "splits", None):
+            shadow["splits"] = args.splits
+        if getattr(args, "split_lambda", None) is not None:
+            shadow["lambda"] = args.split_lambda
+    try:
+        return Rig.model_validate(raw).model_dump(by_alias=True)
+    except ValidationError as e:
+        raise CliError(f"rig {path}: {format_validation_error(e)}") from e
+
+
+def _int_arg(name: str, text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise CliError(f"{name}: expected an integer or 'auto', got {text!r}") from None
+
+
+def _scene_options(args) -> dict:
+    opts = {"time_code": args.time, "asset_root": args.asset_root}
+    if args.asset_root and not Path(args.asset_root).is_dir():
+        raise CliError(f"--asset-root: {args.asset_root!r} is not a directory")
+    return opts
+
+
+def cmd_scene_info(args) -> int:
+    from ..service.pipeline import scene_entry
+
+    entry = scene_entry(args.scene, **_scene_options(args))
+    info = entry.loaded.info()
+    info["build_s"] = round(entry.build_s, 4)
+    if args.json:
+        print(json.dumps(info, indent=2))
+    else:
+        lo, hi = info["bounds"]["min"], info["bounds"]["max"]
+        print(f"{info['source']}: {info['triangles']} triangles in {info['prims']} prims, "
+              f"loaded in {info['load_s']:.2f} s")
+        print(f"  stage: upAxis {info['frame']['stage_up_axis']}, metersPerUnit "
+              f"{info['frame']['stage_meters_per_unit']} -> world: {info['frame']['world']}")
+        print(f"  bounds (m): min {[round(v, 3) for v in lo]} max {[round(v, 3) for v in hi]}")
+        for c in info["cameras"]:
+            print(f"  camera {c['usd_path']}: fov_y {c['fov_y_deg']:.1f} deg, clip [{c['near']:.3g}, {c['far']:.3g}] m")
+        for lt in info["lights"]:
+            print(f"  light  {lt['usd_path']}: {lt['usd_type']} -> {lt['type']}" + (f" ({lt['note']})" if lt.get("note") else ""))
+        for w in info["warnings"]:
+            print(f"  warning: {w}")
+    return 0
+
+
+def cmd_coarse(args) -> int:
+    from ..service.pipeline import coarse_pass, scene_entry
+
+    rig = load_rig(args.rig, args)
+    if args.long_side:
+        rig["coarse_long_side"] = args.long_side
+    entry = scene_entry(args.scene, **_scene_options(args))
+    resolved, buffers = coarse_pass(entry, rig, boundary_radius=args.boundary_radius)
+    files = buffers.save(args.out)
+    summary = {"out": str(args.out), "width": buffers.width, "height": buffers.height,
+               "hit_pixels": int(buffers.hit.sum()),
+               "lights": [{"lit_pixels": int(lb.lit.sum()), "boundary_pixels": int(lb.boundary.sum()),
+                           "facing_pixels": int(lb.facing.sum())} for lb in buffers.lights],
+               "timings_ms": {k: round(v, 3) for k, v in buffers.timings_ms.items()}, "files": sorted(files)}
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(f"wrote {len(files)} files to {args.out} ({buffers.width}x{buffers.height}, "
+              f"{summary['hit_pixels']} hit pixels, {buffers.timings_ms['total']:.1f} ms)")
+    return 0
+
+
+def validate_rig(raw: dict) -> dict:
+    from .schemas import Rig
+
+    return Rig.model_validate(raw).model_dump(by_alias=True)
+
+
+def cmd_bench(args) -> int:
+    from ..service import benchmarks
+
+    if args.bench == "coarse":
+        result = benchmarks.bench_coarse(validate_rig, runs=args.runs, scenes=args.scenes, write=not args.no_write)
+    else:  # argparse restricts choices
+        raise CliError(f"unknown benchmark {args.bench!r}")
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print(result["table"])
+    return 0
+
+
+def cmd_serve(args) -> int:
+    from .server import serve
+
+    return serve(host=args.host, port=args.port, scenes=args.scene or [str(DEMO_SCENE)])
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="shadowopt", description="Scene-optimized shadow-map parameters.")
+
+    p.add_argument("--version", action="version", version=f"shadowopt {_version()}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def scene_args(sp):
+        sp.add_argument("scene", help="a .usd, .usda, .usdc or .usdz file")
+        sp.add_argument("--time", type=float, default=None, help="time code to read attributes at (default: the stage's default)")
+        sp.add_argument("--asset-root", default=None, help="refuse assets that resolve outside this folder")
+
+    sp = sub.add_parser("scene-info", help="print what the loader found in a scene")
+    scene_args(sp)
+    sp.add_argument("--json", action="store_true")
+    sp.set_defaults(func=cmd_scene_info)
+
+    sp = sub.add_parser("coarse", help="render the coarse buffers for a rig and write them to a folder")
+    scene_args(sp)
+    sp.add_argument("--rig", required=True, help="rig JSON file (see configs/demo_rig.json)")
+    sp.add_argument("--out", required=True, help="output folder for .npy buffers and PNG previews")
+    sp.add_argument("--long-side", type=int, default=None, help="coarse buffer's long side in px (default 180)")
+    sp.add_argument("--boundary-radius", type=int, default=1, help="dilation of the shadow-boundary mask, px")
+    sp.add_argument("--shadow-resolution", type=_parse_wxh, default=None, metavar="WxH", help="overrides rig.shadow.resolution")
+    sp.add_argument("--texel-budget", type=int, default=None, help="overrides rig.shadow.texel_budget")
+    sp.add_argument("--cascades", default=None, help="overrides rig.shadow.cascades (K or auto)")
+    sp.add_argument("--splits", choices=["practical", "log", "uniform", "optimized"], default=None)
+    sp.add_argument("--lambda", dest="split_lambda", type=float, default=None, help="practical split weight")
+    sp.add_argument("--json", action="store_true")
+    sp.set_defaults(func=cmd_coarse)
+
+    sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
+    sp.add_argument("bench", choices=["coarse"])
+    sp.add_argument("--runs", type=int, default=20, help="warm runs per scene (median reported)")
+    sp.add_argument("--scenes", default=None, help="comma-separated scene names from configs/benchmarks.json")
+    sp.add_argument("--no-write", action="store_true", help="do not update BENCHMARKS.md")
+    sp.add_argument("--json", action="store_true", help="print the results as one JSON object")
+    sp.set_defaults(func=cmd_bench)
+
+    sp = sub.add_parser("serve", help="start the REST service")
+    sp.add_argument("--host", default="127.0.0.1")
+    sp.add_argument("--port", type=int, default=8000)
+    sp.add_argument("--scene", action="append", default=None, help="scene to preload (repeatable; default: the demo)")
+    sp.set_defaults(func=cmd_serve)
+    return p
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("shadowopt")
+    except Exception:
+        return "0+unknown"
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from ..renderers.mitsuba_setup import RendererUnavailable
+    from ..renderers.scene_data import SceneError
+    from ..service.rigs import RigError
+
+    try:
+        return int(args.func(args) or 0)
+    except CliError as e:
+        print(f"shadowopt: error: {e}", file=sys.stderr)
+        return e.code
+    except SceneError as e:
+        print(f"shadowopt: error: scene: {e.message} [{e.code}]", file=sys.stderr)
+        return EXIT_USAGE
+    except RigError as e:
+        print(f"shadowopt: error: rig: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    except RendererUnavailable as e:
+        print(f"shadowopt: error: renderer unavailable: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    except Exception as e:  # an internal error: say what, keep the traceback for debugging on request
+        if os.environ.get("SHADOWOPT_DEBUG"):
+            raise
+        print(f"shadowopt: internal error: {type(e).__name__}: {e} (set SHADOWOPT_DEBUG=1 for a traceback)",
+              file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

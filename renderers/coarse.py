@@ -1,0 +1,205 @@
+"""Coarse buffers: what the camera sees at ~180 px, and what each light sees of it.
+
+One Dr.Jit pass: camera rays generated from opaque camera parameters (a new camera does not
+recompile the kernel), `ray_intersect_preliminary` for hit distance and primitive, the geometric
+normal gathered from the merged mesh, one `ray_test` shadow ray per pixel and light, and a single
+evaluation before the NumPy conversion. Neighbour tests (shadow boundaries) run in NumPy.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..solvers.cameras import Camera
+from ..solvers.lights import DirectionalLight, Light, PointLight, SpotLight
+from .mitsuba_setup import mitsuba
+from .ray_scene import RayScene
+
+DEFAULT_LONG_SIDE = 180
+DEFAULT_BOUNDARY_RADIUS = 1  # coarse pixels the shadow-boundary mask is dilated by
+DEPTH_CONTINUITY = 0.05  # neighbours whose view depths differ by more than this fraction are on different surfaces
+SHADOW_RAY_EPSILON = 2e-5  # shadow-ray origin offset along the normal, times (1 + max |p|), in scene units
+
+
+@dataclass
+class LightBuffers:
+    """Per-light coarse buffers, all (h, w) bool."""
+
+    visible: np.ndarray  # the shadow ray from the surface point reaches the light (exact, ray-traced)
+    facing: np.ndarray  # the camera-facing side of the surface faces the light (n . to_light > 0)
+    in_light: np.ndarray  # inside the light's cone (spot) / everywhere (directional, point)
+    boundary: np.ndarray  # lit state differs from a 4-neighbour's on the same surface, dilated
+
+    @property
+    def lit(self) -> np.ndarray:
+        return self.visible & self.facing & self.in_light
+
+
+@dataclass
+class CoarseBuffers:
+    camera: Camera
+    width: int
+    height: int
+    hit: np.ndarray  # (h, w) bool
+    position: np.ndarray  # (h, w, 3) float64 world; NaN where no hit
+    normal: np.ndarray  # (h, w, 3) float32 geometric normal, turned towards the camera; 0 where no hit
+    depth: np.ndarray  # (h, w) float32 view depth (along the camera's forward axis); inf where no hit
+    prim_id: np.ndarray  # (h, w) int32 index into SceneGeometry.prim_paths; -1 where no hit
+    lights: list[LightBuffers] = field(default_factory=list)
+    timings_ms: dict = field(default_factory=dict)
+
+    def save(self, out_dir) -> list[str]:
+        """Write every buffer as .npy and PNG previews into out_dir. Returns the written file names."""
+        from .previews import save_previews
+
+        import json
+        import pathlib
+
+        out = pathlib.Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        arrays = {"hit": self.hit, "position": self.position, "normal": self.normal, "depth": self.depth,
+                  "prim_id": self.prim_id}
+        for k, lb in enumerate(self.lights):
+            for name in ("visible", "facing", "in_light", "boundary"):
+                arrays[f"light{k}_{name}"] = getattr(lb, name)
+            arrays[f"light{k}_lit"] = lb.lit
+        written = []
+        for name, arr in arrays.items():
+            np.save(out / f"{name}.npy", arr)
+            written.append(f"{name}.npy")
+        written += save_previews(self, out)
+        meta = {"width": self.width, "height": self.height, "lights": len(self.lights),
+                "hit_pixels": int(self.hit.sum()), "timings_ms": self.timings_ms,
+                "files": sorted(written)}
+        (out / "coarse.json").write_text(json.dumps(meta, indent=2))
+        written.append("coarse.json")
+        return written
+
+
+def _opaque3(mi, dr, cls, v):
+    """A 3-vector as an opaque Dr.Jit value: its numbers are kernel inputs, not baked literals."""
+    return cls(*(dr.opaque(mi.Float, float(x)) for x in np.asarray(v).reshape(3)))
+
+
+def _camera_rays(mi, dr, camera: Camera, width: int, height: int, origin: np.ndarray):
+    """Rays through coarse pixel centres (same convention as Camera.ray_directions)."""
+    th = camera.tan_half_fov_y
+    tw = th * camera.aspect
+    o = _opaque3(mi, dr, mi.Point3f, (camera.position - origin))
+    fwd = _opaque3(mi, dr, mi.Vector3f, camera.forward)
+    right = _opaque3(mi, dr, mi.Vector3f, (camera.right * tw))
+    up = _opaque3(mi, dr, mi.Vector3f, (camera.up * th))
+    idx = dr.arange(mi.UInt32, width * height)
+    j = idx // width
+    i = idx - j * width
+    x = (mi.Float(i) + 0.5) * (2.0 / width) - 1.0
+    y = 1.0 - (mi.Float(j) + 0.5) * (2.0 / height)
+    d = dr.normalize(fwd + x * right + y * up)
+    return mi.Ray3f(o, d), fwd
+
+
+def _geometric_normal(mi, dr, rs: RayScene, prim, active):
+    f = mi.Vector3u(*(dr.gather(mi.UInt32, rs.faces, prim * 3 + k, active) for k in range(3)))
+    p = [mi.Point3f(*(dr.gather(mi.Float, rs.vertices, f[v] * 3 + k, active) for k in range(3)))
+         for v in range(3)]
+    return dr.normalize(dr.cross(p[1] - p[0], p[2] - p[0]))
+
+
+def _light_test(mi, dr, rs: RayScene, light: Light, p, n, active):
+    """Returns (visible, facing, in_light) Dr.Jit masks for one light."""
+    if isinstance(light, DirectionalLight):
+        to_light = _opaque3(mi, dr, mi.Vector3f, (-light.direction))
+        dist = mi.Float(dr.inf)
+        in_light = mi.Bool(True)
+    else:
+        lp = _opaque3(mi, dr, mi.Point3f, (light.position - rs.origin))
+        v = lp - p
+        dist = dr.norm(v)
+        to_light = v / dist
+        if isinstance(light, SpotLight):
+            axis = _opaque3(mi, dr, mi.Vector3f, light.direction)
+            cos_cone = dr.opaque(mi.Float, float(np.cos(np.radians(light.cone_deg))))
+            in_light = dr.dot(-to_light, axis) >= cos_cone
+        else:
+            in_light = mi.Bool(True)
+    cos_l = dr.dot(n, to_light)
+    facing = cos_l > 0
+    # Offset the origin to the light's side of the surface (Mitsuba's spawn_ray rule, scaled).
+    eps = (1.0 + dr.max(dr.abs(p))) * SHADOW_RAY_EPSILON
+    o = p + n * dr.select(facing, eps, -eps)
+    ray = mi.Ray3f(o, to_light, dist * (1.0 - 1e-5))
+    occluded = rs.scene.ray_test(ray, active)
+    return active & ~occluded, active & facing, active & in_light
+
+
+def boundary_mask(lit: np.ndarray, hit: np.ndarray, depth: np.ndarray, radius: int = DEFAULT_BOUNDARY_RADIUS,
+                  continuity: float = DEPTH_CONTINUITY) -> np.ndarray:
+    """Pixels whose lit state differs from a 4-neighbour's on the same surface, dilated by `radius`.
+
+    Two neighbours are on the same surface when both are hits and their view depths differ by less
+    than `continuity` times the nearer depth.
+    """
+    h, w = lit.shape
+    edge = np.zeros((h, w), dtype=bool)
+    d = np.where(hit, depth, np.float32(3e38)).astype(np.float64)
+    for axis in (0, 1):
+        a = (slice(None, -1), slice(None)) if axis == 0 else (slice(None), slice(None, -1))
+        b = (slice(1, None), slice(None)) if axis == 0 else (slice(None), slice(1, None))
+        same = hit[a] & hit[b] & (np.abs(d[a] - d[b]) < continuity * np.minimum(d[a], d[b]))
+        diff = same & (lit[a] != lit[b])
+        edge[a] |= diff
+        edge[b] |= diff
+    if radius > 0 and edge.any():
+        grown = edge.copy()
+        for dy in range(-radius, radius + 1):
+            for dx in range(-radius, radius + 1):
+                if dy == 0 and dx == 0:
+                    continue
+                src = edge[max(0, -dy):h - max(0, dy), max(0, -dx):w - max(0, dx)]
+                grown[max(0, dy):h - max(0, -dy), max(0, dx):w - max(0, -dx)] |= src
+        edge = grown & hit
+    return edge
+
+
+def render_coarse(rs: RayScene, camera: Camera, lights: list[Light], long_side: int = DEFAULT_LONG_SIDE,
+                  boundary_radius: int = DEFAULT_BOUNDARY_RADIUS) -> CoarseBuffers:
+    """Cast one camera ray per coarse pixel and one shadow ray per hit and light."""
+    mi = mitsuba()
+    import drjit as dr
+
+    t0 = time.perf_counter()
+    width, height = camera.coarse_resolution(long_side)
+    ray, fwd = _camera_rays(mi, dr, camera, width, height, rs.origin)
+    pi = rs.scene.ray_intersect_preliminary(ray, coherent=True)
+    hit = pi.is_valid()
+    t = dr.select(hit, pi.t, 0.0)
+    p = ray.o + t * ray.d
+    n = _geometric_normal(mi, dr, rs, pi.prim_index, hit)
+    n = dr.select(dr.dot(n, ray.d) > 0, -n, n)  # turned towards the camera
+    depth = dr.select(hit, t * dr.dot(ray.d, fwd), dr.inf)
+    prim = dr.gather(mi.UInt32, rs.face_prim, pi.prim_index, hit)
+    masks = [_light_test(mi, dr, rs, light, p, n, hit) for light in lights]
+    flat = [hit, p, n, depth, prim] + [m for ms in masks for m in ms]
+    dr.eval(*flat)
+    t1 = time.perf_counter()
+    shape = (height, width)
+    hit_np = np.array(hit, dtype=bool).reshape(shape)
+    pos = np.array(p, dtype=np.float64).T.reshape(height, width, 3) + rs.origin
+    pos[~hit_np] = np.nan
+    nrm = np.array(n, dtype=np.float32).T.reshape(height, width, 3)
+    nrm[~hit_np] = 0.0
+    depth_np = np.array(depth, dtype=np.float32).reshape(shape)
+    prim_np = np.where(hit_np, np.array(prim, dtype=np.int64).reshape(shape), -1).astype(np.int32)
+    light_bufs = []
+    for vis, fac, inl in masks:
+        vis_np = np.array(vis, dtype=bool).reshape(shape)
+        fac_np = np.array(fac, dtype=bool).reshape(shape)
+        inl_np = np.array(inl, dtype=bool).reshape(shape)
+        lit = vis_np & fac_np & inl_np
+        light_bufs.append(LightBuffers(vis_np, fac_np, inl_np,
+                                       boundary_mask(lit, hit_np, depth_np, boundary_radius)))
+    t2 = time.perf_counter()
+    return CoarseBuffers(camera, width, height, hit_np, pos, nrm, depth_np, prim_np, light_bufs,
+                         {"trace": (t1 - t0) * 1e3, "convert": (t2 - t1) * 1e3, "total": (t2 - t0) * 1e3})
