@@ -1,41 +1,15 @@
-"""Choose Mitsuba's LLVM variant with a libLLVM that works (>= 16), once per process."""
+"""Mitsuba's LLVM variant, set once per process (libLLVM choice: solvers.jit)."""
 from __future__ import annotations
 
-import glob
-import os
-import re
+from ..solvers.jit import JitUnavailable, ensure_llvm
 
 VARIANT = "llvm_ad_rgb"
-_LLVM_CANDIDATES = ("/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1", "/usr/lib/x86_64-linux-gnu/libLLVM-19.so",
-                    "/usr/lib/aarch64-linux-gnu/libLLVM.so.19.1", "/usr/lib/aarch64-linux-gnu/libLLVM-19.so")
-
-
-class RendererUnavailable(RuntimeError):
-    pass
-
-
-def _pick_llvm() -> str | None:
-    """DRJIT_LIBLLVM_PATH if set, else the newest system libLLVM of version >= 16 (15 crashes, 14 is refused)."""
-    if os.environ.get("DRJIT_LIBLLVM_PATH"):
-        return os.environ["DRJIT_LIBLLVM_PATH"]
-    for c in _LLVM_CANDIDATES:
-        if os.path.exists(c):
-            return c
-    found = []
-    for c in glob.glob("/usr/lib/*/libLLVM*.so*"):
-        m = re.search(r"libLLVM(?:-|\.so\.)(\d+)", os.path.basename(c))
-        if m and int(m.group(1)) >= 16:
-            found.append((int(m.group(1)), c))
-    return max(found)[1] if found else None
+RendererUnavailable = JitUnavailable
 
 
 def mitsuba():
     """Import Mitsuba with the LLVM variant set. Raises RendererUnavailable with a fix when it cannot."""
-    path = _pick_llvm()
-    if path is None:
-        raise RendererUnavailable(
-            "no libLLVM >= 16 found: install Debian's libllvm19 (make setup does) or set DRJIT_LIBLLVM_PATH")
-    os.environ["DRJIT_LIBLLVM_PATH"] = path
+    path = ensure_llvm()
     import mitsuba as mi
 
     if mi.variant() != VARIANT:

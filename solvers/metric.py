@@ -1,0 +1,174 @@
+"""The one error metric (DESIGN.md, "Metric"): used by the optimizer (with gradients), the
+prediction in every response, the heatmap and the benchmark.
+
+Per sample X seen by full-resolution pixel x, with map texel coordinates u = (s * width, t' * height):
+  J = du/dx (2x2, texels per pixel) = (du/dX) (dX/dx), du/dX from the 4x4 matrix P analytically
+      (Chong & Gortler 2007 eq. 8 in our notation), dX/dx from solvers.samples.pixel_derivatives;
+  F = J^-1 (the texel's footprint in pixels; columns ds, dt);
+  h = ||F||_F^2 = sum of squares / det(J)^2       (Chong & Gortler 2007 eqs. 6 and 9);
+  m = max(|ds + dt|, |ds - dt|)                   (Lloyd et al. 2007 eq. 85: the longer diagonal).
+The objective is the weighted mean of h. Written once in Dr.Jit (float64) so that AD gives exact
+gradients with respect to P; a NumPy entry point wraps it for prediction and pictures.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .jit import llvm_ad
+from .samples import Samples
+from .shadow_map import ShadowMap, map_for_depth
+
+DET_FLOOR = 1e-18  # |det J| below this counts as degenerate (the sample sees no texel change)
+W_FLOOR = 1e-12  # clip w below this: the point is behind a perspective light's centre of projection
+ERROR_FIELDS = ("objective", "mean_m", "median_m", "p95_m", "max_m", "frac_m_gt_1", "samples")
+
+
+class DeviceSamples:
+    """Samples uploaded once as Dr.Jit float64 arrays, re-centred on `origin` for conditioning."""
+
+    def __init__(self, samples: Samples, origin: np.ndarray | None = None):
+        ad = llvm_ad()
+        self.origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
+        self.count = len(samples)
+        rel = samples.position - self.origin
+        self.X = ad.Array3f64(*(rel[:, k] for k in range(3)))
+        self.dx = ad.Array3f64(*(samples.dx[:, k] for k in range(3)))
+        self.dy = ad.Array3f64(*(samples.dy[:, k] for k in range(3)))
+        self.w = ad.Float64(samples.weight)
+
+
+def recentre(matrix: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """P acting on points relative to `origin`: P @ T(origin)."""
+    t = np.eye(4)
+    t[:3, 3] = origin
+    return matrix @ t
+
+
+def footprint(P, resolution, log_warp, ds: DeviceSamples):
+    """Per-sample (h, m, valid) as Dr.Jit Float64 arrays.
+
+    P: 16 Dr.Jit Float64 values, row-major, acting on re-centred points (may carry gradients).
+    log_warp: (c0, c1, c2) as Dr.Jit Float64 or None.
+    """
+    ad = llvm_ad()
+    import drjit as dr
+
+    X = ds.X
+    rows = [ad.Array3f64(P[4 * i], P[4 * i + 1], P[4 * i + 2]) for i in range(4)]
+    c = [dr.dot(rows[i], X) + P[4 * i + 3] for i in range(4)]
+    cw = c[3]
+    valid = cw > W_FLOOR
+    cw = dr.select(valid, cw, W_FLOOR)
+    inv_w2 = 1.0 / (cw * cw)
+    # d(c_i / c_w)/dX = (row_i c_w - c_i row_w) / c_w^2; s = (x_ndc + 1)/2 -> u = s * width.
+    gs = (rows[0] * cw - c[0] * rows[3]) * (inv_w2 * 0.5 * resolution[0])
+    gt = (rows[1] * cw - c[1] * rows[3]) * (inv_w2 * 0.5 * resolution[1])
+    if log_warp is not None:
+        c0, c1, c2 = log_warp
+        t = (c[1] / cw + 1.0) * 0.5
+        arg = c1 * t + c2
+        valid &= arg > 0
+        gt = gt * (c0 * c1 / dr.select(arg > 0, arg, 1.0))
+    j00, j01 = dr.dot(gs, ds.dx), dr.dot(gs, ds.dy)
+    j10, j11 = dr.dot(gt, ds.dx), dr.dot(gt, ds.dy)
+    det = j00 * j11 - j01 * j10
+    valid &= dr.abs(det) > DET_FLOOR
+    det = dr.select(dr.abs(det) > DET_FLOOR, det, DET_FLOOR)
+    inv_det = 1.0 / det
+    # F = J^-1: ds = (j11, -j10)/det, dt = (-j01, j00)/det.
+    h = (j00 * j00 + j01 * j01 + j10 * j10 + j11 * j11) * inv_det * inv_det
+    a = dr.sqrt(dr.square(j11 - j01) + dr.square(j00 - j10)) * dr.abs(inv_det)  # |ds + dt|
+    b = dr.sqrt(dr.square(j11 + j01) + dr.square(-j10 - j00)) * dr.abs(inv_det)  # |ds - dt|
+    return h, dr.maximum(a, b), valid
+
+
+def matrix_to_device(matrix: np.ndarray):
+    ad = llvm_ad()
+    import drjit as dr
+
+    return [dr.opaque(ad.Float64, float(v)) for v in np.asarray(matrix, dtype=np.float64).ravel()]
+
+
+def log_to_device(smap: ShadowMap):
+    if smap.log_warp is None:
+        return None
+    ad = llvm_ad()
+    import drjit as dr
+
+    lw = smap.log_warp
+    return tuple(dr.opaque(ad.Float64, float(v)) for v in (lw.c0, lw.c1, lw.c2))
+
+
+def per_sample(smap: ShadowMap, ds: DeviceSamples):
+    """NumPy (h, m, valid) for one map over device samples."""
+    P = matrix_to_device(recentre(smap.matrix, ds.origin))
+    h, m, valid = footprint(P, smap.resolution, log_to_device(smap), ds)
+    return np.array(h), np.array(m), np.array(valid, dtype=bool)
+
+
+def per_sample_maps(maps: list[ShadowMap], samples: Samples, origin: np.ndarray | None = None):
+    """Per-sample h, m for a set of cascades: each sample is scored on the map serving its view depth.
+
+    Returns (h, m, map_index); samples no map serves get h = m = inf and index -1.
+    """
+    n = len(samples)
+    h = np.full(n, np.inf)
+    m = np.full(n, np.inf)
+    idx = map_for_depth(maps, samples.view_depth) if maps and maps[0].face is None else _cube_index(maps, samples)
+    for k, smap in enumerate(maps):
+        sel = idx == k
+        if not sel.any():
+            continue
+        ds = DeviceSamples(samples.subset(sel), origin)
+        hk, mk, ok = per_sample(smap, ds)
+        hk[~ok] = np.inf
+        mk[~ok] = np.inf
+        h[sel], m[sel] = hk, mk
+    return h, m, idx
+
+
+def _cube_index(maps: list[ShadowMap], samples: Samples) -> np.ndarray:
+    """For cube faces: the face whose map contains the sample (first match)."""
+    idx = np.full(len(samples), -1, dtype=np.int64)
+    for k in range(len(maps) - 1, -1, -1):
+        s, t, z, w = maps[k].map_coords(samples.position)
+        inside = (w > 0) & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1)
+        idx[inside] = k
+    return idx
+
+
+def error_stats(h: np.ndarray, m: np.ndarray, weight: np.ndarray | None = None) -> dict:
+    """The predicted_error / measured_error fields. `objective` is the weighted mean of h."""
+    n = int(len(m))
+    if n == 0:
+        return {"objective": 0.0, "mean_m": 0.0, "median_m": 0.0, "p95_m": 0.0, "max_m": 0.0,
+                "frac_m_gt_1": 0.0, "samples": 0}
+    w = np.ones(n) if weight is None else np.asarray(weight, dtype=np.float64)
+    finite = np.isfinite(h) & np.isfinite(m)
+    out = {
+        "objective": float(np.sum(w * h) / np.sum(w)) if finite.all() else float("inf"),
+        "mean_m": float(np.mean(m)) if finite.all() else float("inf"),
+        "median_m": float(np.median(m)),
+        "p95_m": float(np.percentile(m, 95)),
+        "max_m": float(np.max(m)),
+        "frac_m_gt_1": float(np.mean(m > 1.0)),
+        "samples": n,
+    }
+    return out
+
+
+def predicted_error(maps: list[ShadowMap], samples: Samples, origin: np.ndarray | None = None) -> dict:
+    """`predicted_error` of a solution's maps for one light's samples."""
+    h, m, idx = per_sample_maps(maps, samples, origin)
+    stats = error_stats(h, m, samples.weight)
+    stats["unserved_samples"] = int(np.sum(idx < 0))
+    return stats
+
+
+def objective(P, resolution, log_warp, ds: DeviceSamples):
+    """Weighted mean h as a Dr.Jit Float64 (differentiable with respect to P and log_warp)."""
+    import drjit as dr
+
+    h, _, valid = footprint(P, resolution, log_warp, ds)
+    w = dr.select(valid, ds.w, 0.0)
+    return dr.sum(w * h) / dr.maximum(dr.sum(w), 1e-300)
