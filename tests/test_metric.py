@@ -1,0 +1,172 @@
+"""The metric against closed forms and an independent finite-difference path."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shadowopt.solvers.cameras import Camera
+from shadowopt.solvers.lights import DirectionalLight, SpotLight
+from shadowopt.solvers.metric import DeviceSamples, matrix_to_device, objective, per_sample_maps, predicted_error, recentre
+from shadowopt.solvers.samples import GRAZING_LIGHT_DEG, Samples, pixel_derivatives, select_samples
+from shadowopt.solvers.shadow_map import LogWarp, ShadowMap
+
+
+def look_down_view(center, dir_=(0.0, -1.0, 0.0), up=(0.0, 0.0, 1.0)):
+    f = np.asarray(dir_, float) / np.linalg.norm(dir_)
+    r = np.cross(f, up)
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    v = np.eye(4)
+    v[0, :3], v[1, :3], v[2, :3] = r, u, -f
+    v[:3, 3] = -v[:3, :3] @ np.asarray(center, float)
+    return v
+
+
+def ortho(half_w, half_h, near, far):
+    p = np.diag([1 / half_w, 1 / half_h, -2 / (far - near), 1.0])
+    p[2, 3] = -(far + near) / (far - near)
+    return p
+
+
+def frustum(half_w, half_h, near, far):
+    p = np.zeros((4, 4))
+    p[0, 0], p[1, 1] = near / half_w, near / half_h
+    p[2, 2], p[2, 3] = -(far + near) / (far - near), -2 * far * near / (far - near)
+    p[3, 2] = -1.0
+    return p
+
+
+def samples_on_plane(cam, pts, normal):
+    n = np.broadcast_to(np.asarray(normal, float), pts.shape).copy()
+    dx, dy, d = pixel_derivatives(cam, pts, n)
+    return Samples(pts, n, dx, dy, d, np.ones(len(pts)), np.zeros((len(pts), 2), int), "boundary")
+
+
+@pytest.mark.parametrize("texels", [500, 1000, 4000])
+def test_overhead_camera_and_light_closed_form(texels):
+    # Camera 10 m above the ground looking straight down, 90 deg fov, 1000 px: a pixel is 0.02 m.
+    # An ortho light straight down over 20 m with `texels` texels: a texel is 20/texels m.
+    cam = Camera.look([0, 10, 0], [0, -1, 0], up=[0, 0, 1], fov_y_deg=90, resolution=(1000, 1000))
+    sm = ShadowMap(look_down_view([0, 20, 0]), ortho(10, 10, 1, 50), (texels, texels))
+    err = predicted_error([sm], samples_on_plane(cam, np.array([[0.0, 0, 0]]), [0, 1, 0]))
+    a = (20 / texels) / 0.02  # texel size in pixels
+    assert err["objective"] == pytest.approx(2 * a * a, rel=1e-9)  # |F|_F^2 of a*I
+    assert err["max_m"] == pytest.approx(np.sqrt(2) * a, rel=1e-9)  # longer diagonal of an a x a square
+    assert err["frac_m_gt_1"] == (1.0 if np.sqrt(2) * a > 1 else 0.0)
+
+
+def _fd_jacobian(cam, sm, pixel, plane_point, plane_normal, eps=1e-3):
+    """Texels per pixel by central differences of map coordinates of ray-plane hits (NumPy only)."""
+    w, h = cam.resolution
+    th = cam.tan_half_fov_y
+    tw = th * cam.aspect
+
+    def hit(px, py):
+        a = ((px + 0.5) / w * 2 - 1) * tw
+        b = (1 - (py + 0.5) / h * 2) * th
+        d = cam.forward + a * cam.right + b * cam.up
+        t = np.dot(plane_normal, plane_point - cam.position) / np.dot(plane_normal, d)
+        s, tt, _, _ = sm.map_coords((cam.position + t * d)[None])
+        return np.array([s[0] * sm.resolution[0], tt[0] * sm.resolution[1]])
+
+    px, py = pixel
+    jx = (hit(px + eps, py) - hit(px - eps, py)) / (2 * eps)
+    jy = (hit(px, py + eps) - hit(px, py - eps)) / (2 * eps)
+    return np.stack([jx, jy], axis=1), hit(px, py)
+
+
+@pytest.mark.parametrize("case", ["ortho", "perspective", "log", "tilted"])
+def test_analytic_jacobian_matches_finite_differences(case):
+    cam = Camera.look_at([0, 2, 0], [3, 0, 25], fov_y_deg=50, resolution=(1280, 720))
+    plane_n = np.array([0.0, 1.0, 0.0])
+    if case == "tilted":
+        plane_n = np.array([0.3, 1.0, -0.2]) / np.linalg.norm([0.3, 1.0, -0.2])
+    plane_p = np.array([0.0, 0.0, 10.0])
+    if case in ("ortho", "tilted"):
+        sm = ShadowMap(look_down_view([2, 30, 15], [-0.3, -1, 0.4]), ortho(25, 20, 1, 80), (2048, 1024))
+    else:
+        sm = ShadowMap(look_down_view([0, 30, 15], [0.1, -1, 0.2]), frustum(1.2, 1.0, 1, 80), (2048, 2048))
+        if case == "log":
+            sm.log_warp = LogWarp(-1 / np.log(1 / 3), -(2 / 3), 1.0)  # y0=1, y1=3, a=0 (Lloyd eq. 78)
+    pixels = [(100, 500), (640, 400), (1100, 650), (300, 380)]
+    pts = []
+    for px, py in pixels:
+        a = ((px + 0.5) / 1280 * 2 - 1) * cam.tan_half_fov_y * cam.aspect
+        b = (1 - (py + 0.5) / 720 * 2) * cam.tan_half_fov_y
+        d = cam.forward + a * cam.right + b * cam.up
+        t = np.dot(plane_n, plane_p - cam.position) / np.dot(plane_n, d)
+        pts.append(cam.position + t * d)
+    s = samples_on_plane(cam, np.array(pts), plane_n)
+    h, m, _ = per_sample_maps([sm], s)
+    for k, px in enumerate(pixels):
+        J, _ = _fd_jacobian(cam, sm, px, plane_p, plane_n)
+        F = np.linalg.inv(J)
+        ds, dt = F[:, 0], F[:, 1]
+        assert h[k] == pytest.approx(np.sum(F * F), rel=1e-4)
+        assert m[k] == pytest.approx(max(np.linalg.norm(ds + dt), np.linalg.norm(ds - dt)), rel=1e-4)
+
+
+def test_gradient_by_ad_matches_finite_differences():
+    import drjit as dr
+
+    cam = Camera.look_at([0, 2, 0], [3, 0, 25], fov_y_deg=50, resolution=(1280, 720))
+    rng = np.random.default_rng(1)
+    pts = np.column_stack([rng.uniform(-8, 8, 200), np.zeros(200), rng.uniform(5, 40, 200)])
+    s = samples_on_plane(cam, pts, [0, 1, 0])
+    sm = ShadowMap(look_down_view([0, 30, 15], [0.1, -1, 0.2]), frustum(1.2, 1.0, 1, 80), (1024, 1024))
+    ds = DeviceSamples(s, cam.position)
+    P0 = recentre(sm.matrix, cam.position)
+    P = matrix_to_device(P0)
+    for v in P:
+        dr.enable_grad(v)
+    f = objective(P, sm.resolution, None, ds)
+    dr.backward(f)
+    grad = np.array([dr.grad(v)[0] for v in P])
+
+    def value(Pn):
+        return float(objective(matrix_to_device(Pn), sm.resolution, None, ds)[0])
+
+    for idx in [0, 1, 5, 12, 13, 14]:  # affine rows and the projective (4th) row
+        e = 1e-6 * max(1.0, abs(P0.flat[idx]))
+        Pp, Pm = P0.copy(), P0.copy()
+        Pp.flat[idx] += e
+        Pm.flat[idx] -= e
+        fd = (value(Pp) - value(Pm)) / (2 * e)
+        assert grad[idx] == pytest.approx(fd, rel=1e-4, abs=1e-9 * abs(float(f[0])))
+
+
+def test_grazing_light_samples_stay_finite():
+    # Light 0.5 degrees above the ground: projection aliasing is huge but the rule keeps it finite.
+    cam = Camera.look_at([0, 2, 0], [0, 0, 20], resolution=(640, 480))
+    el = np.radians(0.5)
+    light = DirectionalLight.make([0, -np.sin(el), np.cos(el)])
+    hgt, wdt = 4, 4
+    pos = np.zeros((hgt, wdt, 3))
+    pos[..., 0] = np.linspace(-1, 1, wdt)[None, :]
+    pos[..., 2] = np.linspace(8, 12, hgt)[:, None]
+    normal = np.broadcast_to([0.0, 1.0, 0.0], pos.shape).astype(np.float32)
+    ones = np.ones((hgt, wdt), bool)
+    s = select_samples(cam, light, pos, normal, ones, ones, ones)
+    ang = np.degrees(np.arccos(s.normal @ -light.direction))
+    assert np.all(ang <= GRAZING_LIGHT_DEG + 1e-9)
+    sm = ShadowMap(look_down_view([0, 5, -50], light.direction, up=[0, 1, 0]), ortho(5, 5, 1, 200), (1024, 1024))
+    err = predicted_error([sm], s)
+    assert np.isfinite(err["objective"]) and np.isfinite(err["max_m"]) and err["samples"] == 16
+
+
+def test_samples_prefer_boundaries_and_fall_back_to_all_facing():
+    cam = Camera.look_at([0, 2, 0], [0, 0, 20], resolution=(640, 480))
+    light = SpotLight.make([0, 10, 10], [0, -1, 0], 45)
+    pos = np.zeros((3, 3, 3))
+    pos[..., 2] = 10
+    nrm = np.broadcast_to([0.0, 1.0, 0.0], pos.shape).astype(np.float32)
+    hit = np.ones((3, 3), bool)
+    boundary = np.zeros((3, 3), bool)
+    boundary[1, 1] = True
+    s = select_samples(cam, light, pos, nrm, hit, hit, boundary)
+    assert s.kind == "boundary" and len(s) == 1 and s.pixel.tolist() == [[1, 1]]
+    s = select_samples(cam, light, pos, nrm, hit, hit, np.zeros((3, 3), bool))
+    assert s.kind == "all_facing" and len(s) == 9
+    s = select_samples(cam, light, pos, nrm, hit, np.zeros((3, 3), bool), boundary)
+    assert s.kind == "none" and len(s) == 0
+    assert predicted_error([], s)["samples"] == 0
