@@ -1,0 +1,139 @@
+"""Compute a shadow setup for a scene and rig, and express it as the solution schema.
+
+scene (cached) -> rig -> coarse buffers -> per light: samples + receivers -> maps (a baseline now,
+the optimizer later) -> predicted error (solvers.metric, the one metric) -> JSON in the requested
+matrix convention, layout and frame.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..renderers.coarse import CoarseBuffers
+from ..solvers.baselines import baseline
+from ..solvers.conventions import export_matrices
+from ..solvers.metric import per_sample_maps, error_stats
+from ..solvers.samples import Samples, select_samples
+from ..solvers.shadow_map import ShadowMap
+from .pipeline import coarse_pass
+from .rigs import ResolvedRig
+from .scenes import SceneEntry
+
+BASELINE_METHODS = ("uniform", "focused", "lispsm", "logpsm")
+SCHEMA_VERSION = 1
+
+
+@dataclass
+class LightProblem:
+    """What the solvers see of one light: the metric's samples and every visible receiver."""
+
+    light: object
+    samples: Samples
+    receivers: np.ndarray  # (N, 3) world positions of visible receivers that could be in shadow
+
+
+def light_problems(resolved: ResolvedRig, buffers: CoarseBuffers) -> list[LightProblem]:
+    out = []
+    for light, lb in zip(resolved.lights, buffers.lights):
+        samples = select_samples(resolved.camera, light, buffers.position, buffers.normal, buffers.hit,
+                                 lb.facing, lb.boundary, lb.in_light)
+        recv = buffers.position[buffers.hit & lb.facing & lb.in_light]
+        out.append(LightProblem(light, samples, recv))
+    return out
+
+
+def maps_error(maps: list[ShadowMap], samples: Samples, origin) -> tuple[dict, list[dict]]:
+    """predicted_error for the whole light and for each map (over the samples it serves)."""
+    h, m, idx = per_sample_maps(maps, samples, origin)
+    total = error_stats(h, m, samples.weight)
+    total["unserved_samples"] = int(np.sum(idx < 0))
+    per_map = [error_stats(h[idx == k], m[idx == k], samples.weight[idx == k]) for k in range(len(maps))]
+    return total, per_map
+
+
+def solution_json(entry: SceneEntry, resolved: ResolvedRig, method: str, per_light: list[dict],
+                  timings: dict, settings: dict) -> dict:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        ver = version("shadowopt")
+    except PackageNotFoundError:
+        ver = "0+unknown"
+    out = resolved.output
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "method": method,
+        "convention": {"api": out.get("convention", "opengl"), "layout": out.get("layout", "column_major"),
+                       "frame": out.get("frame", "world"),
+                       "world_frame": "right-handed, +Y up, meters; matrices act on column vectors"},
+        "lights": per_light,
+        "timings_ms": {k: round(v, 3) for k, v in timings.items()},
+        "provenance": {"scene_hash": entry.loaded.scene_hash, "software": f"shadowopt {ver}",
+                       "settings": settings, "seed": settings.get("seed", 0)},
+    }
+
+
+def light_json(light, maps: list[ShadowMap], total: dict, per_map: list[dict], output: dict,
+               stage_to_world: np.ndarray, samples: Samples) -> dict:
+    cascades = []
+    for smap, err in zip(maps, per_map):
+        d = smap.to_json()
+        d.update(export_matrices(smap.view, smap.projection, output.get("convention", "opengl"),
+                                 output.get("layout", "column_major"), output.get("frame", "world"),
+                                 stage_to_world))
+        d["predicted_error"] = err
+        # Exact (world, column-vector, canonical OpenGL) matrices so `evaluate` reads back what was chosen.
+        d["internal"] = {"view": smap.view.tolist(), "projection": smap.projection.tolist()}
+        cascades.append(d)
+    return {"type": light.kind, "usd_path": light.usd_path, "samples_kind": samples.kind,
+            "cascades": cascades, "predicted_error": total}
+
+
+def solve(entry: SceneEntry, rig: dict, method: str = "focused", **options) -> dict:
+    """The solution for `method` (a baseline name) on a scene entry and validated rig dict."""
+    if method not in BASELINE_METHODS:
+        raise ValueError(f"method: unknown method {method!r} (known: {', '.join(BASELINE_METHODS)})")
+    t0 = time.perf_counter()
+    resolved, buffers = coarse_pass(entry, rig)
+    t1 = time.perf_counter()
+    shadow = resolved.shadow
+    lo, hi = entry.loaded.geometry.bounds()
+    per_light = []
+    for prob in light_problems(resolved, buffers):
+        maps = baseline(method, resolved.camera, prob.light, prob.receivers, (lo, hi),
+                        resolution=tuple(shadow.get("resolution") or (2048, 2048)),
+                        cascades=shadow.get("cascades") if isinstance(shadow.get("cascades"), int) else 1,
+                        splits=shadow.get("splits", "practical") if shadow.get("splits") != "optimized" else "practical",
+                        split_lambda=shadow.get("lambda", 0.5), texel_budget=shadow.get("texel_budget"),
+                        allow_log=bool(resolved.output.get("allow_log_warp", False)) or method == "logpsm")
+        total, per_map = maps_error(maps, prob.samples, resolved.camera.position)
+        per_light.append(light_json(prob.light, maps, total, per_map, resolved.output,
+                                    entry.loaded.stage_to_world, prob.samples))
+    t2 = time.perf_counter()
+    timings = {"coarse": (t1 - t0) * 1e3, "optimize": (t2 - t1) * 1e3, "total": (t2 - t0) * 1e3}
+    settings = {"method": method, "coarse_long_side": resolved.coarse_long_side, "shadow": _jsonable(shadow)}
+    return solution_json(entry, resolved, method, per_light, timings, settings)
+
+
+def _jsonable(d):
+    if isinstance(d, dict):
+        return {k: _jsonable(v) for k, v in d.items()}
+    if isinstance(d, (list, tuple)):
+        return [_jsonable(v) for v in d]
+    return d
+
+
+def maps_from_solution(solution: dict) -> list[list[ShadowMap]]:
+    """Per light, the maps of a solution JSON (reads the exact internal matrices)."""
+    out = []
+    for light in solution["lights"]:
+        maps = []
+        for c in light["cascades"]:
+            d = dict(c)
+            d["view_matrix"] = c["internal"]["view"]
+            d["projection_matrix"] = c["internal"]["projection"]
+            maps.append(ShadowMap.from_json(d))
+        out.append(maps)
+    return out
