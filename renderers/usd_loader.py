@@ -376,7 +376,7 @@ def load_scene(path, *, time_code: float | None = None, asset_root: str | None =
     except SceneError:
         raise
     except Tf.ErrorException as e:
-        msg = str(e).strip().splitlines()[-1] if str(e).strip() else "unreadable"
+        msg = _usd_error_text(str(e))
         raise SceneError("corrupt", f"{path}: USD could not read the file: {msg[:300]}") from e
     except (RuntimeError, ValueError, OSError, zipfile.BadZipFile) as e:
         raise SceneError("corrupt", f"{path}: {type(e).__name__}: {str(e)[:300]}") from e
@@ -387,6 +387,16 @@ def load_scene(path, *, time_code: float | None = None, asset_root: str | None =
     scene.load_s = time.perf_counter() - t_start
     del keep
     return scene
+
+
+def _usd_error_text(text: str) -> str:
+    """The useful part of a Tf error: drop the C++ location and namespaces."""
+    text = text.strip().strip("'")
+    m = re.search(r" : '(.*)'?$", text, re.S)
+    if m:
+        text = m.group(1)
+    text = re.sub(r"pxrInternal_v\w+::", "", text).strip().strip("'")
+    return text or "unreadable"
 
 
 def _scene_hash(stage, path, keep) -> str:
