@@ -77,7 +77,7 @@ def _usdz(path, entries: dict[str, str]):
 def test_sandboxed_usdz_reads_its_own_entries_only(tmp_path):
     (tmp_path / "poison.usda").write_text(POISON)
     root = ('#usda 1.0\n(\n metersPerUnit = 1\n)\ndef Cube "Own" {\n double size = 1\n}\n'
-            'def Xform "Inside" (\n references = @geo/box.usda@\n) {\n}\n'
+            'def "Inside" (\n references = @geo/box.usda@\n) {\n}\n'
             'def Xform "Climb" (\n references = @../poison.usda@\n) {\n}\n'
             'def Xform "Abs" (\n references = @' + str(tmp_path / "poison.usda") + '@\n) {\n}\n')
     arc = _usdz(tmp_path / "upload.usdz", {"root.usda": root, "geo/box.usda": CUBE.format(name="Box") .replace(
