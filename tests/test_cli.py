@@ -1,0 +1,88 @@
+"""The `shadowopt` command line, run as a user runs it (a subprocess of the installed script)."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+DEMO = REPO / "configs" / "demo_scene.usda"
+DEMO_RIG = REPO / "configs" / "demo_rig.json"
+
+
+def run(*args, check=None):
+    exe = Path(sys.executable).with_name("shadowopt")
+    p = subprocess.run([str(exe), *map(str, args)], capture_output=True, text=True, timeout=300, cwd=REPO)
+    if check is not None:
+        assert p.returncode == check, (p.returncode, p.stdout, p.stderr)
+    return p
+
+
+def test_scene_info_json_on_the_demo_scene():
+    info = json.loads(run("scene-info", DEMO, "--json", check=0).stdout)
+    assert info["triangles"] > 1000 and info["warnings"] == []
+    assert [c["usd_path"] for c in info["cameras"]] == ["/World/Camera"]
+    assert info["lights"][0]["usd_path"] == "/World/Sun" and info["lights"][0]["type"] == "directional"
+    assert info["cameras"][0]["position"] == pytest.approx([0, 1.7, 0])  # eye height
+    assert info["frame"]["world"].startswith("right-handed, +Y up, meters")
+
+
+def test_coarse_writes_buffers_and_previews(tmp_path):
+    out = tmp_path / "buffers"
+    summary = json.loads(run("coarse", DEMO, "--rig", DEMO_RIG, "--out", out, "--json", check=0).stdout)
+    assert (summary["width"], summary["height"]) == (180, 101)  # the rig's 1280x720 aspect at 180 px
+    hit = np.load(out / "hit.npy")
+    pos = np.load(out / "position.npy")
+    assert hit.shape == (101, 180) and pos.shape == (101, 180, 3)
+    assert np.allclose(pos[hit][:, 1].min(), 0.0, atol=1e-3)  # the ground is y = 0
+    assert summary["lights"][0]["boundary_pixels"] == int(np.load(out / "light0_boundary.npy").sum()) > 0
+    for png in ("depth.png", "normal.png", "light0_lit.png"):
+        assert (out / png).stat().st_size > 100
+
+
+def test_cli_flags_override_the_rig_and_bad_flags_exit_2(tmp_path):
+    p = run("coarse", DEMO, "--rig", DEMO_RIG, "--out", tmp_path, "--cascades", "x", check=2)
+    assert "--cascades" in p.stderr and "Traceback" not in p.stderr
+    p = run("coarse", DEMO, "--rig", DEMO_RIG, "--out", tmp_path, "--lambda", "2", check=2)
+    assert "shadow.lambda" in p.stderr
+
+
+@pytest.mark.parametrize("content, words", [
+    ("not json", "not valid JSON"),
+    ('{"camera": {"position": [0, 1, 0], "target": [0, 0, 5]}, "lights": [{"type": "sun"}]}', "lights.0.type"),
+    ('{"camera": {"usd_path": "/World/NoCam"}, "lights": [{"usd_path": "/World/Sun"}]}', "camera.usd_path"),
+])
+def test_bad_rigs_exit_2_naming_the_field(tmp_path, content, words):
+    rig = tmp_path / "rig.json"
+    rig.write_text(content)
+    p = run("coarse", DEMO, "--rig", rig, "--out", tmp_path / "o", check=2)
+    assert words in p.stderr and "Traceback" not in p.stderr
+
+
+def test_malformed_scene_exits_2(tmp_path):
+    bad = tmp_path / "bad.usdc"
+    bad.write_bytes(b"PXR-USDC" + b"\0" * 40)
+    p = run("scene-info", bad, check=2)
+    assert "bad.usdc" in p.stderr and "[corrupt]" in p.stderr and "Traceback" not in p.stderr
+    p = run("scene-info", tmp_path / "missing.usda", check=2)
+    assert "No such file" in p.stderr and "[not_found]" in p.stderr
+
+
+def test_bench_coarse_json_on_the_demo_scene():
+    res = json.loads(run("bench", "coarse", "--scenes", "demo", "--runs", "3", "--no-write", "--json", check=0).stdout)
+    demo = res["scenes"]["demo"]
+    assert demo["triangles"] > 1000 and demo["runs"] == 3 and demo["coarse_ms_p50"] > 0
+    assert "| demo |" in res["table"]
+
+
+def test_demo_scene_is_what_the_generator_writes(tmp_path):
+    from shadowopt.renderers.demo_scene import write_demo_scene
+
+    out = tmp_path / "demo.usda"
+    write_demo_scene(str(out))
+    assert out.read_text() == DEMO.read_text()
