@@ -1,0 +1,451 @@
+"""Ground truth (DESIGN.md, "Ground truth"): score any shadow setup against ray-traced shadows.
+
+`evaluate(rs, camera, light, maps)` does what an engine does with the maps, but with rays:
+
+1. Screen. One camera ray per full-resolution pixel (`screen`, or the camera's own resolution)
+   through the coarse pass's helpers; hit, world position, geometric normal (turned towards the
+   camera), view depth, prim. Positions are refined in float64 by intersecting the exact pixel ray
+   with the plane of the hit triangle (the triangle is what Embree found), so finite differences
+   between neighbouring pixels are smooth. Receivers: hits whose camera-facing side faces the light
+   (n . to_light > 0) and, for spot lights, inside the cone.
+2. Exact visibility: one shadow ray per receiver (`coarse._light_test`).
+3. Each map is "rendered" by casting one ray per texel centre along the light ray that texel is
+   (`ShadowMap.texel_rays`: the segment between z_ndc = -1 and +1, i.e. clipped to the light's depth
+   range as a rasterizer clips; warped and log parameterizations alike). The map stores
+   d_occluder = distance (m) from the texel's near point to the first hit, +inf when none.
+   Pancaking (directional lights only, as engines clamp casters with GL_DEPTH_CLAMP / "shadow
+   pancaking"): a caster between the light and the near plane is clamped to the near plane,
+   d_occluder = 0. Pass `pancake=False` for a strict rasterizer clip.
+4. Shadow test, as an engine does it: the cascade serving the pixel's view depth
+   (`map_for_depth`; for cube faces, the first face whose map contains the point), nearest texel
+   (no filtering), d_receiver = distance of X along that texel's ray from its near point, and
+
+       THE BIAS RULE (one rule for every method; units are metres along the light ray):
+       shadowed  iff  d_receiver > d_occluder + bias["constant"] + bias["slope"] * tan(psi)
+                      + NUMERIC_TOLERANCE * (scene extent)
+       psi = angle between the surface normal and the direction to the light, tan(psi) clamped
+       at TAN_PSI_MAX = 10. The last term (1e-6 of the scene's diagonal) only absorbs float32 ray
+       casting noise; it is far below any texel.
+
+   Receivers outside the map that serves them (s or t outside [0, 1], z_ndc outside [-1, 1], clip
+   w <= 0, or a view depth no cascade's split covers) count as `outside_pixels` and are treated as
+   lit, as an engine's clamp-to-border sampler with border depth 1 would: where they are exactly
+   shadowed they are also misclassified. A receiver lost by its cascade counts as outside even if
+   another cascade happens to cover it (the engine would not look there).
+5. misclassified = map result != exact visibility over receivers; boundary_pixels = receivers on
+   the boundaries of exact visibility (`coarse.boundary_mask` at full resolution, radius 0).
+6. measured_error: per pixel, the serving map's texel coordinates u = (s * width, t * height)
+   (log warp applied) of the refined hit points of the pixel and its 4 neighbours; J = du/dx by
+   central differences where both neighbours are on the same surface (both hits, same prim, view
+   depths within coarse.DEPTH_CONTINUITY, normals within SAME_SURFACE_DEG), one-sided where only
+   one is; pixels with no usable neighbour along x or y are left out. F = J^-1,
+   m = max(|ds + dt|, |ds - dt|) (Lloyd et al. 2007 eq. 85), h = ||F||_F^2. Statistics via
+   `solvers.metric.error_stats` over light-facing receivers on exact shadow boundaries (all
+   light-facing receivers when there are none). Independent of the analytic Jacobian.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..solvers.cameras import Camera
+from ..solvers.lights import DirectionalLight, Light, PointLight, SpotLight
+from ..solvers.metric import DET_FLOOR, error_stats
+from ..solvers.shadow_map import ShadowMap, map_for_depth
+from .coarse import DEPTH_CONTINUITY, _camera_rays, _geometric_normal, _light_test, boundary_mask
+from .mitsuba_setup import mitsuba
+from .ray_scene import RayScene
+
+TAN_PSI_MAX = 10.0  # slope-bias clamp: tan(psi) of grazing receivers is limited to this
+NUMERIC_TOLERANCE = 1e-6  # times the scene's diagonal, added to every bias (float32 ray casting noise)
+SAME_SURFACE_DEG = 10.0  # neighbours whose normals differ by more are on different surfaces
+RAY_CHUNK = 1 << 21  # texel rays per Dr.Jit launch
+
+
+@dataclass
+class ScreenBuffers:
+    width: int
+    height: int
+    hit: np.ndarray  # (h, w) bool
+    position: np.ndarray  # (h, w, 3) float64 world (refined); NaN where no hit
+    normal: np.ndarray  # (h, w, 3) float64 unit, towards the camera; 0 where no hit
+    depth: np.ndarray  # (h, w) float64 view depth; inf where no hit
+    prim: np.ndarray  # (h, w) int64 prim index; -1 where no hit
+    visible: np.ndarray  # (h, w) bool exact: the shadow ray reaches the light
+    facing: np.ndarray
+    in_light: np.ndarray
+
+    @property
+    def receivers(self) -> np.ndarray:
+        return self.hit & self.facing & self.in_light
+
+
+@dataclass
+class GroundTruth:
+    """Per-pixel results of `evaluate_buffers`, (h, w) arrays."""
+
+    screen: ScreenBuffers
+    receivers: np.ndarray  # bool
+    exact_shadowed: np.ndarray  # bool, receivers only
+    map_shadowed: np.ndarray  # bool, receivers only
+    misclassified: np.ndarray  # bool
+    boundary: np.ndarray  # bool, receivers on exact-visibility boundaries (radius 0)
+    outside: np.ndarray  # bool, receivers outside the map that serves them
+    map_index: np.ndarray  # int, serving map (-1: none)
+    texel_uv: np.ndarray  # (h, w, 2) serving map's texel coordinates; NaN where none
+    m: np.ndarray  # float, measured Lloyd m (NaN where not measurable)
+    h: np.ndarray  # float, measured ||F||_F^2
+    sample_mask: np.ndarray  # bool, the pixels measured_error is computed over
+    sample_kind: str
+    result: dict
+
+
+def screen_camera(camera: Camera, screen: tuple[int, int] | None) -> Camera:
+    """The camera at the evaluation resolution. A `screen` of another aspect keeps the camera's aspect
+    (long side = max(screen)), so the field of view is never distorted."""
+    if screen is None:
+        return camera
+    w, h = int(screen[0]), int(screen[1])
+    if w <= 0 or h <= 0:
+        raise ValueError(f"screen must be positive, got {screen}")
+    if abs(w / h - camera.aspect) > 1e-3 * camera.aspect:
+        w, h = camera.coarse_resolution(max(w, h))
+    return dataclasses.replace(camera, resolution=(w, h))
+
+
+def _host_geometry(rs: RayScene):
+    """Float64 copies of the (re-centred) vertices and faces, cached on the RayScene."""
+    cached = getattr(rs, "_gt_host_geometry", None)
+    if cached is None:
+        v = np.array(rs.vertices, dtype=np.float64).reshape(-1, 3)
+        f = np.array(rs.faces, dtype=np.int64).reshape(-1, 3)
+        cached = (v, f)
+        try:
+            object.__setattr__(rs, "_gt_host_geometry", cached)
+        except Exception:  # pragma: no cover
+            pass
+    return cached
+
+
+def render_screen(rs: RayScene, camera: Camera, light: Light) -> ScreenBuffers:
+    """Full-resolution camera pass at camera.resolution (the coarse pass's helpers at full size)."""
+    mi = mitsuba()
+    import drjit as dr
+
+    width, height = camera.resolution
+    ray, fwd = _camera_rays(mi, dr, camera, width, height, rs.origin)
+    pi = rs.scene.ray_intersect_preliminary(ray, coherent=True)
+    hit = pi.is_valid()
+    t = dr.select(hit, pi.t, 0.0)
+    p = ray.o + t * ray.d
+    n = _geometric_normal(mi, dr, rs, pi.prim_index, hit)
+    n = dr.select(dr.dot(n, ray.d) > 0, -n, n)
+    vis, fac, inl = _light_test(mi, dr, rs, light, p, n, hit)
+    tri = pi.prim_index
+    dr.eval(hit, tri, vis, fac, inl)
+    shape = (height, width)
+    hit_np = np.array(hit, dtype=bool).reshape(shape)
+    tri_np = np.array(tri, dtype=np.int64).reshape(shape)
+    vis_np = np.array(vis, dtype=bool).reshape(shape)
+    fac_np = np.array(fac, dtype=bool).reshape(shape)
+    inl_np = np.array(inl, dtype=bool).reshape(shape)
+
+    # Float64 refinement: the exact pixel ray against the plane of the triangle Embree hit.
+    verts, faces = _host_geometry(rs)
+    prim_all = np.array(rs.face_prim, dtype=np.int64)
+    d = camera.ray_directions(width, height)[hit_np]
+    tris = tri_np[hit_np]
+    fv = faces[tris]
+    v0, v1, v2 = verts[fv[:, 0]], verts[fv[:, 1]], verts[fv[:, 2]]
+    nrm = np.cross(v1 - v0, v2 - v0)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-300)
+    o = camera.position - rs.origin
+    nd = np.sum(nrm * d, axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tt = np.sum(nrm * (v0 - o), axis=-1) / nd
+    bad = ~np.isfinite(tt) | (tt <= 0)
+    if bad.any():  # edge-on triangles: keep the float32 hit distance
+        t_np = np.array(t, dtype=np.float64).reshape(shape)[hit_np]
+        tt = np.where(bad, t_np, tt)
+    rel = o + tt[:, None] * d
+    nrm = np.where((nd > 0)[:, None], -nrm, nrm)
+    position = np.full((height, width, 3), np.nan)
+    position[hit_np] = rel + rs.origin
+    normal = np.zeros((height, width, 3))
+    normal[hit_np] = nrm
+    depth = np.full(shape, np.inf)
+    depth[hit_np] = tt * (d @ camera.forward)
+    prim = np.full(shape, -1, dtype=np.int64)
+    prim[hit_np] = prim_all[tris]
+    return ScreenBuffers(width, height, hit_np, position, normal, depth, prim, vis_np, fac_np, inl_np)
+
+
+def _texel_grid(smap: ShadowMap, rows: slice | None = None):
+    w, h = smap.resolution
+    j0, j1 = (0, h) if rows is None else (rows.start, rows.stop)
+    jj, ii = np.meshgrid(np.arange(j0, j1), np.arange(w), indexing="ij")
+    return (ii.ravel() + 0.5) / w, (jj.ravel() + 0.5) / h
+
+
+def render_map(rs: RayScene, light: Light, smap: ShadowMap, pancake: bool = True) -> np.ndarray:
+    """d_occluder (m) per texel, (height, width) float64, row j = t index (t = 0 at the bottom)."""
+    mi = mitsuba()
+    import drjit as dr
+
+    w, h = smap.resolution
+    out = np.full((h, w), np.inf)
+    centre = np.zeros(3)  # scene bounding-box centre in re-centred coordinates
+    radius = 0.5 * rs.extent * (1.0 + 1e-4) + 1e-6
+    do_pancake = pancake and isinstance(light, DirectionalLight)
+    rows_per_chunk = max(1, RAY_CHUNK // max(w, 1))
+    for j0 in range(0, h, rows_per_chunk):
+        j1 = min(h, j0 + rows_per_chunk)
+        s, t = _texel_grid(smap, slice(j0, j1))
+        near, far = smap.texel_rays(s, t)
+        near = near - rs.origin
+        far = far - rs.origin
+        seg = far - near
+        length = np.linalg.norm(seg, axis=-1)
+        ok = np.isfinite(length) & (length > 0) & np.all(np.isfinite(near), axis=-1)
+        dirn = seg / np.where(ok, length, 1.0)[:, None]
+        # Start each ray where it enters the scene's bounding sphere: nothing is hit before it, and
+        # float32 origins stay close to the (re-centred) geometry for precision.
+        proj = np.sum((centre - near) * dirn, axis=-1)
+        t0 = np.clip(proj - radius, 0.0, np.where(ok, length, 0.0))
+        t1 = np.minimum(length, proj + radius)
+        ok &= t1 > t0
+        org = near + t0[:, None] * dirn
+        maxt = np.where(ok, t1 - t0, 0.0)
+        ray = mi.Ray3f(mi.Point3f(*(mi.Float(np.ascontiguousarray(org[:, k], dtype=np.float32)) for k in range(3))),
+                       mi.Vector3f(*(mi.Float(np.ascontiguousarray(dirn[:, k], dtype=np.float32)) for k in range(3))))
+        ray.maxt = mi.Float(maxt.astype(np.float32))
+        active = mi.Bool(ok)
+        pi = rs.scene.ray_intersect_preliminary(ray, coherent=True, active=active)
+        valid = pi.is_valid() & active
+        tval = dr.select(valid, pi.t, dr.inf)
+        outs = [tval]
+        if do_pancake:
+            back_active = mi.Bool(ok & (t0 <= 0.0))
+            bray = mi.Ray3f(ray.o, -ray.d)
+            blocked = rs.scene.ray_test(bray, back_active)
+            outs.append(blocked)
+        dr.eval(*outs)
+        d_occ = np.array(tval, dtype=np.float64) + t0
+        if do_pancake:
+            d_occ = np.where(np.array(outs[1], dtype=bool), 0.0, d_occ)
+        d_occ[~ok] = np.inf
+        out[j0:j1] = d_occ.reshape(j1 - j0, w)
+    return out
+
+
+def _serving_maps(maps: list[ShadowMap], positions: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    if not maps:
+        return np.full(len(depth), -1, dtype=np.int64)
+    if maps[0].face is None:
+        return map_for_depth(maps, depth)
+    idx = np.full(len(depth), -1, dtype=np.int64)
+    for k in range(len(maps) - 1, -1, -1):
+        s, t, z, w = maps[k].map_coords(positions)
+        inside = (w > 0) & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (z >= -1) & (z <= 1)
+        idx[inside] = k
+    return idx
+
+
+def _to_light(light: Light, positions: np.ndarray) -> np.ndarray:
+    if isinstance(light, DirectionalLight):
+        return np.broadcast_to(-light.direction, positions.shape)
+    v = light.position - positions
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-300)
+
+
+def shadow_test(smap: ShadowMap, d_occ: np.ndarray, positions: np.ndarray, normals: np.ndarray,
+                light: Light, tolerance: float):
+    """Engine-style lookup for points served by `smap`. Returns (shadowed, outside)."""
+    w, h = smap.resolution
+    s, t, z, cw = smap.map_coords(positions)
+    with np.errstate(invalid="ignore"):
+        inside = (cw > 0) & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (z >= -1) & (z <= 1)
+    inside &= np.isfinite(s) & np.isfinite(t) & np.isfinite(z)
+    shadowed = np.zeros(len(positions), dtype=bool)
+    if inside.any():
+        si, ti = s[inside], t[inside]
+        i = np.clip(np.floor(si * w).astype(np.int64), 0, w - 1)
+        j = np.clip(np.floor(ti * h).astype(np.int64), 0, h - 1)
+        near, far = smap.texel_rays((i + 0.5) / w, (j + 0.5) / h)
+        dirn = far - near
+        dirn /= np.maximum(np.linalg.norm(dirn, axis=-1, keepdims=True), 1e-300)
+        X = positions[inside]
+        d_rec = np.sum((X - near) * dirn, axis=-1)
+        c = np.clip(np.sum(normals[inside] * _to_light(light, X), axis=-1), 0.0, 1.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tan_psi = np.sqrt(np.maximum(1.0 - c * c, 0.0)) / c
+        tan_psi = np.where(np.isfinite(tan_psi), np.minimum(tan_psi, TAN_PSI_MAX), TAN_PSI_MAX)
+        bias = float(smap.depth_bias.get("constant", 0.0)) + float(smap.depth_bias.get("slope", 0.0)) * tan_psi
+        shadowed[inside] = d_rec > d_occ[j, i] + bias + tolerance
+    return shadowed, ~inside
+
+
+def texel_coords(smap: ShadowMap, positions: np.ndarray) -> np.ndarray:
+    """(N, 2) texel coordinates (s * width, t * height), NaN where clip w <= 0."""
+    s, t, z, cw = smap.map_coords(positions)
+    uv = np.stack([s * smap.resolution[0], t * smap.resolution[1]], axis=-1)
+    uv[~(cw > 0)] = np.nan
+    return uv
+
+
+def _same_surface(sb: ScreenBuffers, a, b) -> np.ndarray:
+    da, db = sb.depth[a], sb.depth[b]
+    cos_max = np.cos(np.radians(SAME_SURFACE_DEG))
+    with np.errstate(invalid="ignore"):
+        return (sb.hit[a] & sb.hit[b] & (sb.prim[a] == sb.prim[b])
+                & (np.abs(da - db) < DEPTH_CONTINUITY * np.minimum(da, db))
+                & (np.sum(sb.normal[a] * sb.normal[b], axis=-1) > cos_max))
+
+
+def _derivative(U: np.ndarray, ok_fwd: np.ndarray, ok_bwd: np.ndarray, axis: int) -> np.ndarray:
+    """dU along image axis (0: y down, 1: x right); central where both neighbours usable."""
+    fwd = np.full_like(U, np.nan)
+    bwd = np.full_like(U, np.nan)
+    if axis == 1:
+        fwd[:, :-1] = U[:, 1:] - U[:, :-1]
+        bwd[:, 1:] = U[:, 1:] - U[:, :-1]
+        okf = np.zeros(U.shape[:2], bool)
+        okb = np.zeros(U.shape[:2], bool)
+        okf[:, :-1] = ok_fwd
+        okb[:, 1:] = ok_bwd
+    else:
+        fwd[:-1] = U[1:] - U[:-1]
+        bwd[1:] = U[1:] - U[:-1]
+        okf = np.zeros(U.shape[:2], bool)
+        okb = np.zeros(U.shape[:2], bool)
+        okf[:-1] = ok_fwd
+        okb[1:] = ok_bwd
+    okf &= np.all(np.isfinite(fwd), axis=-1)
+    okb &= np.all(np.isfinite(bwd), axis=-1)
+    both = okf & okb
+    out = np.full_like(U, np.nan)
+    out[both] = 0.5 * (fwd[both] + bwd[both])
+    only_f = okf & ~okb
+    only_b = okb & ~okf
+    out[only_f] = fwd[only_f]
+    out[only_b] = bwd[only_b]
+    return out
+
+
+def measure_m(sb: ScreenBuffers, maps: list[ShadowMap], map_index: np.ndarray):
+    """Per-pixel (h, m, texel_uv) by finite differences of the serving map's texel coordinates."""
+    H, W = sb.hit.shape
+    same_x = _same_surface(sb, (slice(None), slice(None, -1)), (slice(None), slice(1, None)))
+    same_y = _same_surface(sb, (slice(None, -1), slice(None)), (slice(1, None), slice(None)))
+    m = np.full((H, W), np.nan)
+    hh = np.full((H, W), np.nan)
+    uv_serving = np.full((H, W, 2), np.nan)
+    for k, smap in enumerate(maps):
+        served = map_index == k
+        if not served.any():
+            continue
+        # The map's coordinates of every hit pixel (neighbours are measured in the same map).
+        U = np.full((H, W, 2), np.nan)
+        U[sb.hit] = texel_coords(smap, sb.position[sb.hit])
+        uv_serving[served] = U[served]
+        dx = _derivative(U, same_x, same_x, axis=1)[served]
+        dy = _derivative(U, same_y, same_y, axis=0)[served]
+        j00, j10 = dx[:, 0], dx[:, 1]  # du/dx, dv/dx
+        j01, j11 = dy[:, 0], dy[:, 1]  # du/dy, dv/dy
+        det = j00 * j11 - j01 * j10
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / np.abs(det)
+            hk = (j00 ** 2 + j01 ** 2 + j10 ** 2 + j11 ** 2) * inv * inv
+            a = np.sqrt((j11 - j01) ** 2 + (j00 - j10) ** 2) * inv  # |ds + dt|
+            b = np.sqrt((j11 + j01) ** 2 + (j10 + j00) ** 2) * inv  # |ds - dt|
+        mk = np.maximum(a, b)
+        degenerate = np.isfinite(det) & (np.abs(det) <= DET_FLOOR)
+        mk[degenerate] = np.inf
+        hk[degenerate] = np.inf
+        m[served] = mk
+        hh[served] = hk
+    return hh, m, uv_serving
+
+
+def evaluate_buffers(rs: RayScene, camera: Camera, light: Light, maps: list[ShadowMap],
+                     screen: tuple[int, int] | None = None, pancake: bool = True) -> GroundTruth:
+    """Everything `evaluate` computes, with the per-pixel buffers (for heatmaps and reports)."""
+    t0 = time.perf_counter()
+    cam = screen_camera(camera, screen)
+    sb = render_screen(rs, cam, light)
+    t1 = time.perf_counter()
+    d_occ = [render_map(rs, light, smap, pancake) for smap in maps]
+    t2 = time.perf_counter()
+
+    receivers = sb.receivers
+    exact_shadowed = receivers & ~sb.visible
+    H, W = receivers.shape
+    rec_pos = sb.position[receivers]
+    rec_idx = _serving_maps(maps, rec_pos, sb.depth[receivers])
+    rec_shadow = np.zeros(len(rec_pos), dtype=bool)
+    rec_outside = rec_idx < 0
+    tol = NUMERIC_TOLERANCE * max(rs.extent, 1e-3)
+    rec_nrm = sb.normal[receivers]
+    for k, smap in enumerate(maps):
+        sel = rec_idx == k
+        if sel.any():
+            sh, out = shadow_test(smap, d_occ[k], rec_pos[sel], rec_nrm[sel], light, tol)
+            rec_shadow[sel] = sh & ~out  # outside: clamp-to-border, lit
+            rec_outside[sel] = out
+    map_shadowed = np.zeros((H, W), dtype=bool)
+    map_shadowed[receivers] = rec_shadow
+    outside = np.zeros((H, W), dtype=bool)
+    outside[receivers] = rec_outside
+    misclassified = receivers & (map_shadowed != exact_shadowed)
+    lit = sb.visible & receivers
+    boundary = boundary_mask(lit, sb.hit, sb.depth.astype(np.float32), radius=0) & receivers
+    t3 = time.perf_counter()
+
+    # Serving map of every hit pixel (for the metric and the grid overlay).
+    map_index = np.full((H, W), -1, dtype=np.int64)
+    map_index[sb.hit] = _serving_maps(maps, sb.position[sb.hit], sb.depth[sb.hit])
+    hh, m, uv = measure_m(sb, maps, map_index)
+    sample_mask, kind = receivers & boundary, "boundary"
+    if not sample_mask.any():
+        sample_mask, kind = receivers.copy(), "all_facing"
+    sample_mask &= np.isfinite(hh) | np.isinf(hh)  # measurable pixels (NaN: no usable neighbour)
+    sample_mask &= ~np.isnan(m)
+    if not sample_mask.any():
+        kind = "none"
+    stats = error_stats(hh[sample_mask], m[sample_mask])
+    stats["sample_kind"] = kind
+    t4 = time.perf_counter()
+
+    n_rec = int(receivers.sum())
+    result = {
+        "misclassified_pixels": int(misclassified.sum()),
+        "receiver_pixels": n_rec,
+        "boundary_pixels": int(boundary.sum()),
+        "outside_pixels": int(outside.sum()),
+        "misclassified_fraction": float(misclassified.sum() / n_rec) if n_rec else 0.0,
+        "measured_error": stats,
+        "screen": [sb.width, sb.height],
+        "timings_ms": {"screen": (t1 - t0) * 1e3, "maps": (t2 - t1) * 1e3, "shadow_test": (t3 - t2) * 1e3,
+                       "measure": (t4 - t3) * 1e3, "total": (t4 - t0) * 1e3,
+                       "map_rays": int(sum(mp.resolution[0] * mp.resolution[1] for mp in maps))},
+    }
+    return GroundTruth(sb, receivers, exact_shadowed, map_shadowed, misclassified, boundary, outside,
+                       map_index, uv, m, hh, sample_mask, kind, result)
+
+
+def evaluate(rs: RayScene, camera: Camera, light: Light, maps: list[ShadowMap],
+             screen: tuple[int, int] | None = None, heatmap_path: str | None = None,
+             grid_every: int | None = None, pancake: bool = True) -> dict:
+    """Score `maps` (one light's cascades or cube faces) against ray-traced shadows. See the module doc."""
+    gt = evaluate_buffers(rs, camera, light, maps, screen, pancake)
+    if heatmap_path is not None:
+        from .heatmap import ground_truth_heatmap
+
+        t0 = time.perf_counter()
+        ground_truth_heatmap(gt, grid_every).save(heatmap_path)
+        gt.result["timings_ms"]["heatmap"] = (time.perf_counter() - t0) * 1e3
+        gt.result["timings_ms"]["total"] += gt.result["timings_ms"]["heatmap"]
+    return gt.result
