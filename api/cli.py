@@ -144,6 +144,78 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def _write_or_print(obj: dict, out: str | None, as_json: bool, summary: str) -> None:
+    text = json.dumps(obj, indent=2)
+    if out:
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        Path(out).write_text(text)
+    if as_json:
+        print(text)
+    else:
+        print(summary + (f" (written to {out})" if out else ""))
+
+
+def cmd_optimize(args) -> int:
+    from ..service.pipeline import scene_entry
+    from ..service.solve import solve
+
+    rig = load_rig(args.rig, args)
+    entry = scene_entry(args.scene, **_scene_options(args))
+    sol = solve(entry, rig, method=args.method)
+    errs = [l["predicted_error"] for l in sol["lights"]]
+    summary = "; ".join(f"light {k}: {len(l['cascades'])} map(s), predicted p95 m {e['p95_m']:.3g}, "
+                        f"median m {e['median_m']:.3g} over {e['samples']} samples"
+                        for k, (l, e) in enumerate(zip(sol["lights"], errs)))
+    _write_or_print(sol, args.out, args.json, f"{args.method}: {summary}; {sol['timings_ms']['total']:.1f} ms")
+    return 0
+
+
+def _read_json(path: str, flag: str) -> dict:
+    try:
+        return json.loads(Path(path).read_text())
+    except OSError as e:
+        raise CliError(f"{flag}: cannot read {path!r}: {e.strerror}") from e
+    except json.JSONDecodeError as e:
+        raise CliError(f"{flag}: {path} is not valid JSON: {e.msg} at line {e.lineno}") from e
+
+
+def cmd_evaluate(args) -> int:
+    from ..service.evaluation import evaluate_solution
+    from ..service.pipeline import scene_entry
+
+    rig = load_rig(args.rig, args)
+    solution = _read_json(args.solution, "--solution")
+    entry = scene_entry(args.scene, **_scene_options(args))
+    res = evaluate_solution(entry, rig, solution, screen=args.screen, heatmap_path=args.heatmap,
+                            grid_every=args.grid)
+    if args.json:
+        print(json.dumps(res, indent=2))
+    else:
+        print(f"misclassified {res.get('misclassified_pixels')} of {res.get('receiver_pixels')} receiver pixels "
+              f"({100 * (res.get('misclassified_fraction') or 0):.3f}%), outside {res.get('outside_pixels')}, "
+              f"measured p95 m {res.get('measured_error', {}).get('p95_m', float('nan')):.3g}")
+    return 0
+
+
+def cmd_analyze(args) -> int:
+    from ..solvers.analysis import analyze
+
+    for name, v, lo, hi in (("--f-over-n", args.f_over_n, 1.0, 1e9), ("--theta-deg", args.theta_deg, 0.0, 90.0),
+                            ("--gamma-deg", args.gamma_deg, 0.0, 180.0)):
+        if not (lo <= v <= hi) or (name != "--gamma-deg" and v == lo):
+            raise CliError(f"{name}: {v} is outside ({lo:g}, {hi:g}]" if name != "--gamma-deg"
+                           else f"{name}: {v} is outside [0, 180]")
+    if args.partitions < 1:
+        raise CliError(f"--partitions: must be at least 1, got {args.partitions}")
+    res = analyze(args.f_over_n, args.theta_deg, args.gamma_deg, args.method, partitions=args.partitions)
+    res = {k: float(v) for k, v in res.items()}
+    if args.json:
+        print(json.dumps(res, indent=2))
+    else:
+        print(f"R_s = {res['R_s']:.4g}, R_t = {res['R_t']:.4g}, S = {res['S']:.4g}")
+    return 0
+
+
 def cmd_serve(args) -> int:
     from .server import serve
 
@@ -166,19 +238,49 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_scene_info)
 
+    def rig_args(sp):
+        sp.add_argument("--rig", required=True, help="rig JSON file (see configs/demo_rig.json)")
+        sp.add_argument("--shadow-resolution", type=_parse_wxh, default=None, metavar="WxH", help="overrides rig.shadow.resolution")
+        sp.add_argument("--texel-budget", type=int, default=None, help="overrides rig.shadow.texel_budget")
+        sp.add_argument("--cascades", default=None, help="overrides rig.shadow.cascades (K or auto)")
+        sp.add_argument("--splits", choices=["practical", "log", "uniform", "optimized"], default=None)
+        sp.add_argument("--lambda", dest="split_lambda", type=float, default=None, help="practical split weight")
+
     sp = sub.add_parser("coarse", help="render the coarse buffers for a rig and write them to a folder")
     scene_args(sp)
-    sp.add_argument("--rig", required=True, help="rig JSON file (see configs/demo_rig.json)")
+    rig_args(sp)
     sp.add_argument("--out", required=True, help="output folder for .npy buffers and PNG previews")
     sp.add_argument("--long-side", type=int, default=None, help="coarse buffer's long side in px (default 180)")
     sp.add_argument("--boundary-radius", type=int, default=1, help="dilation of the shadow-boundary mask, px")
-    sp.add_argument("--shadow-resolution", type=_parse_wxh, default=None, metavar="WxH", help="overrides rig.shadow.resolution")
-    sp.add_argument("--texel-budget", type=int, default=None, help="overrides rig.shadow.texel_budget")
-    sp.add_argument("--cascades", default=None, help="overrides rig.shadow.cascades (K or auto)")
-    sp.add_argument("--splits", choices=["practical", "log", "uniform", "optimized"], default=None)
-    sp.add_argument("--lambda", dest="split_lambda", type=float, default=None, help="practical split weight")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_coarse)
+
+    sp = sub.add_parser("optimize", help="compute a shadow setup (matrices, warp, splits) and its predicted error")
+    scene_args(sp)
+    rig_args(sp)
+    sp.add_argument("--method", choices=["uniform", "focused", "lispsm", "logpsm"], default="focused")
+    sp.add_argument("--out", default=None, help="also write the solution JSON to this file")
+    sp.add_argument("--json", action="store_true")
+    sp.set_defaults(func=cmd_optimize)
+
+    sp = sub.add_parser("evaluate", help="measure a solution against exact ray-traced shadows")
+    scene_args(sp)
+    rig_args(sp)
+    sp.add_argument("--solution", required=True, help="a solution JSON written by `optimize`")
+    sp.add_argument("--screen", type=_parse_wxh, default=None, metavar="WxH", help="screen resolution (default: the rig's)")
+    sp.add_argument("--heatmap", default=None, metavar="FILE.png", help="write the per-pixel m heatmap")
+    sp.add_argument("--grid", type=int, default=None, metavar="N", help="overlay the texel grid every N texels")
+    sp.add_argument("--json", action="store_true")
+    sp.set_defaults(func=cmd_evaluate)
+
+    sp = sub.add_parser("analyze", help="Lloyd's scene-independent critical resolution and storage factors")
+    sp.add_argument("--f-over-n", type=float, required=True)
+    sp.add_argument("--theta-deg", type=float, required=True, help="half field of view of the view frustum")
+    sp.add_argument("--gamma-deg", type=float, required=True, help="angle between light and view direction (90 = overhead)")
+    sp.add_argument("--method", choices=["uniform", "perspective", "log"], required=True)
+    sp.add_argument("--partitions", type=int, default=1, help="equal-ratio z-partitions")
+    sp.add_argument("--json", action="store_true")
+    sp.set_defaults(func=cmd_analyze)
 
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
     sp.add_argument("bench", choices=["coarse"])
@@ -210,7 +312,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     from ..renderers.mitsuba_setup import RendererUnavailable
     from ..renderers.scene_data import SceneError
-    from ..service.rigs import RigError
+    from ..service.rigs import RigError, SolutionError
 
     try:
         return int(args.func(args) or 0)
@@ -219,6 +321,9 @@ def main(argv=None) -> int:
         return e.code
     except SceneError as e:
         print(f"shadowopt: error: scene: {e.message} [{e.code}]", file=sys.stderr)
+        return EXIT_USAGE
+    except SolutionError as e:
+        print(f"shadowopt: error: {e}", file=sys.stderr)
         return EXIT_USAGE
     except RigError as e:
         print(f"shadowopt: error: rig: {e}", file=sys.stderr)

@@ -24,6 +24,16 @@ class RigError(ValueError):
         self.code = "invalid_rig"
 
 
+class SolutionError(ValueError):
+    """A solution file cannot be used with this scene and rig."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.message = message
+        self.code = "invalid_solution"
+
+
 @dataclass
 class ResolvedRig:
     camera: Camera
