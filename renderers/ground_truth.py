@@ -52,7 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..solvers.cameras import Camera
-from ..solvers.lights import DirectionalLight, Light, PointLight, SpotLight
+from ..solvers.lights import DirectionalLight, Light
 from ..solvers.metric import DET_FLOOR, error_stats
 from ..solvers.shadow_map import ShadowMap, map_for_depth
 from .coarse import DEPTH_CONTINUITY, _camera_rays, _geometric_normal, _light_test, boundary_mask
@@ -63,6 +63,10 @@ TAN_PSI_MAX = 10.0  # slope-bias clamp: tan(psi) of grazing receivers is limited
 NUMERIC_TOLERANCE = 1e-6  # times the scene's diagonal, added to every bias (float32 ray casting noise)
 SAME_SURFACE_DEG = 10.0  # neighbours whose normals differ by more are on different surfaces
 RAY_CHUNK = 1 << 21  # texel rays per Dr.Jit launch
+BIAS_RULE = ("shadowed iff d_receiver > d_occluder + depth_bias.constant + depth_bias.slope * min(tan(psi), "
+             f"{TAN_PSI_MAX:g}) + {NUMERIC_TOLERANCE:g} * scene_diagonal; distances in metres along the texel's "
+             "light ray from its near-plane point, psi = angle between the surface normal and the direction "
+             "to the light; nearest texel, no filtering; receivers outside their map are lit")
 
 
 @dataclass
@@ -223,7 +227,7 @@ def render_map(rs: RayScene, light: Light, smap: ShadowMap, pancake: bool = True
                        mi.Vector3f(*(mi.Float(np.ascontiguousarray(dirn[:, k], dtype=np.float32)) for k in range(3))))
         ray.maxt = mi.Float(maxt.astype(np.float32))
         active = mi.Bool(ok)
-        pi = rs.scene.ray_intersect_preliminary(ray, coherent=True, active=active)
+        pi = rs.scene.ray_intersect_preliminary(ray, coherent=False, active=active)
         valid = pi.is_valid() & active
         tval = dr.select(valid, pi.t, dr.inf)
         outs = [tval]
@@ -411,8 +415,7 @@ def evaluate_buffers(rs: RayScene, camera: Camera, light: Light, maps: list[Shad
     sample_mask, kind = receivers & boundary, "boundary"
     if not sample_mask.any():
         sample_mask, kind = receivers.copy(), "all_facing"
-    sample_mask &= np.isfinite(hh) | np.isinf(hh)  # measurable pixels (NaN: no usable neighbour)
-    sample_mask &= ~np.isnan(m)
+    sample_mask &= ~np.isnan(m)  # measurable pixels only (NaN: no neighbour on the same surface, or no map)
     if not sample_mask.any():
         kind = "none"
     stats = error_stats(hh[sample_mask], m[sample_mask])
@@ -428,6 +431,7 @@ def evaluate_buffers(rs: RayScene, camera: Camera, light: Light, maps: list[Shad
         "misclassified_fraction": float(misclassified.sum() / n_rec) if n_rec else 0.0,
         "measured_error": stats,
         "screen": [sb.width, sb.height],
+        "bias_rule": BIAS_RULE,
         "timings_ms": {"screen": (t1 - t0) * 1e3, "maps": (t2 - t1) * 1e3, "shadow_test": (t3 - t2) * 1e3,
                        "measure": (t4 - t3) * 1e3, "total": (t4 - t0) * 1e3,
                        "map_rays": int(sum(mp.resolution[0] * mp.resolution[1] for mp in maps))},

@@ -64,7 +64,9 @@ def heatmap_image(m: np.ndarray, receivers: np.ndarray, texel_uv: np.ndarray | N
     if outside is not None:
         img[outside & receivers] = OUTSIDE
     if grid_every and texel_uv is not None:
-        line = grid_lines(texel_uv, int(grid_every), map_index)
+        line = grid_lines(texel_uv, int(grid_every), map_index) & receivers
+        if outside is not None:
+            line &= ~outside
         blend = (1 - GRID_ALPHA) * img[line] + GRID_ALPHA * np.array(GRID, dtype=np.float64)
         img[line] = np.round(blend).astype(np.uint8)
     return Image.fromarray(img, "RGB")
