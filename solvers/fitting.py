@@ -1,0 +1,94 @@
+"""Geometric fitting steps, each a short function: convex hull, minimum-area rectangle, projections,
+light-space bounds. Projections map to the canonical OpenGL clip space (solvers.shadow_map)."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def convex_hull_2d(p: np.ndarray) -> np.ndarray:
+    """Counter-clockwise hull vertices of (N, 2) points (Andrew's monotone chain); degenerate sets ok."""
+    p = np.unique(np.asarray(p, dtype=np.float64), axis=0)
+    if len(p) <= 2:
+        return p
+    if len(p) > 64:
+        try:
+            from scipy.spatial import ConvexHull
+
+            return p[ConvexHull(p).vertices]
+        except Exception:  # collinear or otherwise degenerate: fall back to the chain below
+            pass
+
+    def half(pts):
+        out = []
+        for q in pts:
+            while len(out) >= 2 and np.cross(out[-1] - out[-2], q - out[-2]) <= 0:
+                out.pop()
+            out.append(q)
+        return out
+
+    lower, upper = half(p), half(p[::-1])
+    return np.array(lower[:-1] + upper[:-1])
+
+
+def min_area_rectangle(points2d: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """The minimum-area enclosing rectangle (one side along a hull edge, Freeman & Shapira 1975,
+    as Chong & Gortler 2007 §2.3 use). Returns (angle, lo, hi): rotating points by -angle makes the
+    rectangle axis-aligned with corners lo, hi."""
+    hull = convex_hull_2d(points2d)
+    if len(hull) < 3:
+        lo, hi = (hull.min(0), hull.max(0)) if len(hull) else (np.zeros(2), np.zeros(2))
+        return 0.0, lo, hi
+    edges = np.roll(hull, -1, axis=0) - hull
+    angles = np.unique(np.mod(np.arctan2(edges[:, 1], edges[:, 0]), np.pi / 2))
+    best = None
+    for a in angles:
+        c, s = np.cos(a), np.sin(a)
+        r = hull @ np.array([[c, -s], [s, c]])  # rotate by -a
+        lo, hi = r.min(0), r.max(0)
+        area = np.prod(hi - lo)
+        if best is None or area < best[0] - 1e-15 * abs(area):
+            best = (area, a, lo, hi)
+    return float(best[1]), best[2], best[3]
+
+
+def rotation_z(angle: float) -> np.ndarray:
+    """4x4 rotating light-view x, y by -angle (so a rectangle at `angle` becomes axis-aligned)."""
+    c, s = np.cos(angle), np.sin(angle)
+    m = np.eye(4)
+    m[0, :2] = [c, s]
+    m[1, :2] = [-s, c]
+    return m
+
+
+def ortho(l: float, r: float, b: float, t: float, n: float, f: float) -> np.ndarray:
+    """OpenGL glOrtho: view x in [l, r], y in [b, t], distance -z in [n, f] -> NDC [-1, 1]^3."""
+    m = np.eye(4)
+    m[0, 0], m[0, 3] = 2 / (r - l), -(r + l) / (r - l)
+    m[1, 1], m[1, 3] = 2 / (t - b), -(t + b) / (t - b)
+    m[2, 2], m[2, 3] = -2 / (f - n), -(f + n) / (f - n)
+    return m
+
+
+def frustum(l: float, r: float, b: float, t: float, n: float, f: float) -> np.ndarray:
+    """OpenGL glFrustum: x/(-z) in [l/n, r/n] etc., distance -z in [n, f] -> NDC [-1, 1]^3."""
+    m = np.zeros((4, 4))
+    m[0, 0], m[0, 2] = 2 * n / (r - l), (r + l) / (r - l)
+    m[1, 1], m[1, 2] = 2 * n / (t - b), (t + b) / (t - b)
+    m[2, 2], m[2, 3] = -(f + n) / (f - n), -2 * f * n / (f - n)
+    m[3, 2] = -1.0
+    return m
+
+
+def to_view(view: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    return np.asarray(pts, dtype=np.float64) @ view[:3, :3].T + view[:3, 3]
+
+
+def padded(lo: np.ndarray, hi: np.ndarray, frac: float, floor: float) -> tuple[np.ndarray, np.ndarray]:
+    """Grow a box by `frac` of its size on each side, and to at least `floor` in each dimension."""
+    size = hi - lo
+    pad = np.maximum(size * frac, (floor - size).clip(min=0) / 2 + 1e-12)
+    return lo - pad, hi + pad
+
+
+def box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
