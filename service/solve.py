@@ -34,12 +34,45 @@ class LightProblem:
     receivers: np.ndarray  # (N, 3) world positions of visible receivers that could be in shadow
 
 
-def light_problems(resolved: ResolvedRig, buffers: CoarseBuffers) -> list[LightProblem]:
+EDGE_REACH = 0.6  # coarse pixels: full-resolution pixels lie within half a coarse pixel of a coarse centre
+
+
+def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds) -> np.ndarray:
+    """Visible receivers, plus, for those on the mask's edge, where the rays through points
+    EDGE_REACH coarse pixels away meet their surface plane (exact for planes; a ray past the horizon
+    stops at the camera's far distance), clipped to the scene's bounds. Maps fit to these points also
+    cover the full-resolution pixels between and around the coarse samples."""
+    pts = buffers.position[mask]
+    if not mask.any():
+        return pts
+    padded = np.pad(mask, 1)
+    interior = padded[:-2, 1:-1] & padded[2:, 1:-1] & padded[1:-1, :-2] & padded[1:-1, 2:]
+    rows, cols = np.nonzero(mask & ~interior)
+    p = buffers.position[rows, cols]
+    n = buffers.normal[rows, cols].astype(np.float64)
+    th = camera.tan_half_fov_y
+    tw = th * camera.aspect
+    extra = []
+    for a in (-EDGE_REACH, EDGE_REACH):
+        for b in (-EDGE_REACH, EDGE_REACH):
+            x = ((cols + 0.5 + a) * (2.0 / buffers.width) - 1.0) * tw
+            y = (1.0 - (rows + 0.5 + b) * (2.0 / buffers.height)) * th
+            d = camera.forward + x[:, None] * camera.right + y[:, None] * camera.up
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            nd = np.sum(n * d, axis=1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                s = np.sum(n * (p - camera.position), axis=1) / nd
+            s = np.where(np.isfinite(s) & (s > 0), np.minimum(s, camera.far), camera.far)
+            extra.append(np.clip(camera.position + s[:, None] * d, bounds[0], bounds[1]))
+    return np.vstack([pts] + extra)
+
+
+def light_problems(resolved: ResolvedRig, buffers: CoarseBuffers, bounds) -> list[LightProblem]:
     out = []
     for light, lb in zip(resolved.lights, buffers.lights):
         samples = select_samples(resolved.camera, light, buffers.position, buffers.normal, buffers.hit,
                                  lb.facing, lb.boundary, lb.in_light)
-        recv = buffers.position[buffers.hit & lb.facing & lb.in_light]
+        recv = receiver_points(resolved.camera, buffers, buffers.hit & lb.facing & lb.in_light, bounds)
         out.append(LightProblem(light, samples, recv))
     return out
 
@@ -101,7 +134,7 @@ def solve(entry: SceneEntry, rig: dict, method: str = "focused", **options) -> d
     shadow = resolved.shadow
     lo, hi = entry.loaded.geometry.bounds()
     per_light = []
-    for prob in light_problems(resolved, buffers):
+    for prob in light_problems(resolved, buffers, (lo, hi)):
         maps = baseline(method, resolved.camera, prob.light, prob.receivers, (lo, hi),
                         resolution=tuple(shadow.get("resolution") or (2048, 2048)),
                         cascades=shadow.get("cascades") if isinstance(shadow.get("cascades"), int) else 1,

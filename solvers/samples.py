@@ -53,7 +53,7 @@ def directions_to_light(light: Light, points: np.ndarray) -> np.ndarray:
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-300)
 
 
-def _limit_angle(n: np.ndarray, toward: np.ndarray, max_deg: float) -> np.ndarray:
+def limit_angle(n: np.ndarray, toward: np.ndarray, max_deg: float) -> np.ndarray:
     """Turn unit normals n towards unit vectors `toward` until the angle between them is <= max_deg."""
     cos_max = np.cos(np.radians(max_deg))
     c = np.sum(n * toward, axis=-1)
@@ -113,8 +113,8 @@ def select_samples(camera: Camera, light: Light, position: np.ndarray, normal: n
     n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
     to_cam = camera.position - p
     to_cam /= np.maximum(np.linalg.norm(to_cam, axis=-1, keepdims=True), 1e-300)
-    n = _limit_angle(n, to_cam, GRAZING_VIEW_DEG)
-    n = _limit_angle(n, directions_to_light(light, p), GRAZING_LIGHT_DEG)
+    n = limit_angle(n, to_cam, GRAZING_VIEW_DEG)
+    n = limit_angle(n, directions_to_light(light, p), GRAZING_LIGHT_DEG)
     if len(p):
         dx, dy, depth = pixel_derivatives(camera, p, n)
     else:
