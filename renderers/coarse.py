@@ -100,6 +100,14 @@ def _camera_rays(mi, dr, camera: Camera, width: int, height: int, origin: np.nda
     return mi.Ray3f(o, d), fwd
 
 
+def _clipped_hits(mi, dr, pi, ray, fwd, camera: Camera):
+    """Hits inside the camera's [near, far] view-depth range, as a rasterizer clips them."""
+    depth = pi.t * dr.dot(ray.d, fwd)
+    near = dr.opaque(mi.Float, float(camera.near))
+    far = dr.opaque(mi.Float, float(camera.far))
+    return pi.is_valid() & (depth >= near) & (depth <= far)
+
+
 def _geometric_normal(mi, dr, rs: RayScene, prim, active):
     f = mi.Vector3u(*(dr.gather(mi.UInt32, rs.faces, prim * 3 + k, active) for k in range(3)))
     p = [mi.Point3f(*(dr.gather(mi.Float, rs.vertices, f[v] * 3 + k, active) for k in range(3)))
@@ -178,7 +186,7 @@ def render_coarse(rs: RayScene, camera: Camera, lights: list[Light], long_side: 
     width, height = camera.coarse_resolution(long_side)
     ray, fwd = _camera_rays(mi, dr, camera, width, height, rs.origin)
     pi = rs.scene.ray_intersect_preliminary(ray, coherent=False)  # measured: faster than coherent here
-    hit = pi.is_valid()
+    hit = _clipped_hits(mi, dr, pi, ray, fwd, camera)
     t = dr.select(hit, pi.t, 0.0)
     p = ray.o + t * ray.d
     n = _geometric_normal(mi, dr, rs, pi.prim_index, hit)

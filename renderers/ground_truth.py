@@ -55,7 +55,7 @@ from ..solvers.cameras import Camera
 from ..solvers.lights import DirectionalLight, Light
 from ..solvers.metric import DET_FLOOR, error_stats
 from ..solvers.shadow_map import ShadowMap, map_for_depth
-from .coarse import DEPTH_CONTINUITY, _camera_rays, _geometric_normal, _light_test, boundary_mask
+from .coarse import DEPTH_CONTINUITY, _camera_rays, _clipped_hits, _geometric_normal, _light_test, boundary_mask
 from .mitsuba_setup import mitsuba
 from .ray_scene import RayScene
 
@@ -141,8 +141,8 @@ def render_screen(rs: RayScene, camera: Camera, light: Light) -> ScreenBuffers:
 
     width, height = camera.resolution
     ray, fwd = _camera_rays(mi, dr, camera, width, height, rs.origin)
-    pi = rs.scene.ray_intersect_preliminary(ray, coherent=True)
-    hit = pi.is_valid()
+    pi = rs.scene.ray_intersect_preliminary(ray, coherent=False)
+    hit = _clipped_hits(mi, dr, pi, ray, fwd, camera)
     t = dr.select(hit, pi.t, 0.0)
     p = ray.o + t * ray.d
     n = _geometric_normal(mi, dr, rs, pi.prim_index, hit)

@@ -32,19 +32,21 @@ class LightProblem:
     light: object
     samples: Samples
     receivers: np.ndarray  # (N, 3) world positions of visible receivers that could be in shadow
+    receiver_slack: np.ndarray  # (N,) view-depth change to a neighbouring coarse pixel (cascade overlap)
 
 
-EDGE_REACH = 0.6  # coarse pixels: full-resolution pixels lie within half a coarse pixel of a coarse centre
+EDGE_REACH = 1.5  # coarse pixels: a full-resolution hit next to coarse misses can be up to ~1.4 coarse pixels (diagonally) from the nearest coarse hit
 
 
 def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds) -> np.ndarray:
     """Visible receivers, plus, for those on the mask's edge, where the rays through points
     EDGE_REACH coarse pixels away meet their surface plane (exact for planes; a ray past the horizon
-    stops at the camera's far distance), clipped to the scene's bounds. Maps fit to these points also
+    stops at the camera's far plane or where it leaves the scene's bounds). Maps fit to these points also
     cover the full-resolution pixels between and around the coarse samples."""
     pts = buffers.position[mask]
+    slack = depth_slack(buffers.depth, mask)[mask]
     if not mask.any():
-        return pts
+        return pts, slack
     padded = np.pad(mask, 1)
     interior = padded[:-2, 1:-1] & padded[2:, 1:-1] & padded[1:-1, :-2] & padded[1:-1, 2:]
     rows, cols = np.nonzero(mask & ~interior)
@@ -62,9 +64,33 @@ def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds) ->
             nd = np.sum(n * d, axis=1)
             with np.errstate(divide="ignore", invalid="ignore"):
                 s = np.sum(n * (p - camera.position), axis=1) / nd
-            s = np.where(np.isfinite(s) & (s > 0), np.minimum(s, camera.far), camera.far)
-            extra.append(np.clip(camera.position + s[:, None] * d, bounds[0], bounds[1]))
-    return np.vstack([pts] + extra)
+            s_far = camera.far / np.maximum(d @ camera.forward, 1e-6)  # where the ray meets the far plane
+            s = np.where(np.isfinite(s) & (s > 0), np.minimum(s, s_far), s_far)
+            s = np.minimum(s, _box_exit(camera.position, d, bounds))
+            extra.append(camera.position + s[:, None] * d)
+    return np.vstack([pts] + extra), np.concatenate([slack] + [np.zeros(len(p))] * len(extra))
+
+
+def _box_exit(origin: np.ndarray, d: np.ndarray, bounds) -> np.ndarray:
+    """Distance along each ray (origin + s d) to where it leaves the box (inf if the origin is outside)."""
+    lo, hi = np.asarray(bounds[0], float), np.asarray(bounds[1], float)
+    if np.any(origin < lo) or np.any(origin > hi):
+        return np.full(len(d), np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(d > 0, (hi - origin) / d, np.where(d < 0, (lo - origin) / d, np.inf))
+    return np.min(t, axis=1)
+
+
+def depth_slack(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Per pixel, the largest view-depth change to a 4-neighbour in `mask`: full-resolution pixels
+    between coarse samples have depths within this of the sample's."""
+    d = np.where(mask, depth, np.nan).astype(np.float64)
+    p = np.pad(d, 1, constant_values=np.nan)
+    with np.errstate(invalid="ignore"):
+        diffs = np.stack([np.abs(p[:-2, 1:-1] - d), np.abs(p[2:, 1:-1] - d), np.abs(p[1:-1, :-2] - d),
+                          np.abs(p[1:-1, 2:] - d)])
+    out = np.nanmax(np.where(np.isnan(diffs), -np.inf, diffs), axis=0)
+    return np.where(np.isfinite(out) & (out > 0), out, 0.0)
 
 
 def light_problems(resolved: ResolvedRig, buffers: CoarseBuffers, bounds) -> list[LightProblem]:
@@ -72,8 +98,8 @@ def light_problems(resolved: ResolvedRig, buffers: CoarseBuffers, bounds) -> lis
     for light, lb in zip(resolved.lights, buffers.lights):
         samples = select_samples(resolved.camera, light, buffers.position, buffers.normal, buffers.hit,
                                  lb.facing, lb.boundary, lb.in_light)
-        recv = receiver_points(resolved.camera, buffers, buffers.hit & lb.facing & lb.in_light, bounds)
-        out.append(LightProblem(light, samples, recv))
+        recv, slack = receiver_points(resolved.camera, buffers, buffers.hit & lb.facing & lb.in_light, bounds)
+        out.append(LightProblem(light, samples, recv, slack))
     return out
 
 
@@ -140,7 +166,8 @@ def solve(entry: SceneEntry, rig: dict, method: str = "focused", **options) -> d
                         cascades=shadow.get("cascades") if isinstance(shadow.get("cascades"), int) else 1,
                         splits=shadow.get("splits", "practical") if shadow.get("splits") != "optimized" else "practical",
                         split_lambda=shadow.get("lambda", 0.5), texel_budget=shadow.get("texel_budget"),
-                        allow_log=bool(resolved.output.get("allow_log_warp", False)) or method == "logpsm")
+                        allow_log=bool(resolved.output.get("allow_log_warp", False)) or method == "logpsm",
+                        receiver_slack=prob.receiver_slack)
         total, per_map = maps_error(maps, prob.samples, resolved.camera.position)
         per_light.append(light_json(prob.light, maps, total, per_map, resolved.output,
                                     entry.loaded.stage_to_world, prob.samples))

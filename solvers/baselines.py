@@ -247,13 +247,18 @@ def _cube_maps(light, corners: np.ndarray, receivers: np.ndarray, resolution) ->
 # ------------------------------------------------------------------ entry point
 def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_bounds=None,
              resolution=(2048, 2048), cascades: int = 1, splits: str = "practical", split_lambda: float = 0.5,
-             texel_budget: int | None = None, allow_log: bool = True) -> list[ShadowMap]:
+             texel_budget: int | None = None, allow_log: bool = True,
+             receiver_slack: np.ndarray | None = None) -> list[ShadowMap]:
     """The maps of one baseline method for one light. `receivers`: (N, 3) world points the camera
-    sees that could be in shadow; `casters_bounds`: the scene's (lo, hi)."""
+    sees that could be in shadow; `casters_bounds`: the scene's (lo, hi); `receiver_slack`: per
+    receiver, how far in view depth the surface around it reaches (a cascade fits every receiver
+    whose [depth - slack, depth + slack] meets its split, so the split boundary is covered)."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
-    receivers = receivers[np.all(np.isfinite(receivers), axis=1)]
+    slack = np.zeros(len(receivers)) if receiver_slack is None else np.asarray(receiver_slack, dtype=np.float64)
+    keep = np.all(np.isfinite(receivers), axis=1)
+    receivers, slack = receivers[keep], slack[keep]
     if casters_bounds is None:
         casters_bounds = (receivers.min(0), receivers.max(0)) if len(receivers) else (camera.position - 1, camera.position + 1)
     corners = box_corners(np.asarray(casters_bounds[0], float), np.asarray(casters_bounds[1], float))
@@ -273,7 +278,9 @@ def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_
     z = split_depths(z_lo, z_hi, k, splits, split_lambda)
     maps = []
     for i in range(k):
-        sel = (depth >= z[i] * (1 - 1e-9)) & (depth <= z[i + 1] * (1 + 1e-9)) if len(receivers) else np.zeros(0, bool)
+        lo_z = -np.inf if i == 0 else z[i]
+        hi_z = np.inf if i == k - 1 else z[i + 1]
+        sel = (depth + slack >= lo_z * (1 - 1e-9)) & (depth - slack <= hi_z * (1 + 1e-9))
         part = receivers[sel] if len(receivers) else receivers
         if len(part) == 0 and len(receivers):
             part = _frustum_slice(camera, z[i], z[i + 1])

@@ -5,6 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 
+def _cross2(a, b) -> float:
+    return float(a[0] * b[1] - a[1] * b[0])
+
+
 def convex_hull_2d(p: np.ndarray) -> np.ndarray:
     """Counter-clockwise hull vertices of (N, 2) points (Andrew's monotone chain); degenerate sets ok."""
     p = np.unique(np.asarray(p, dtype=np.float64), axis=0)
@@ -21,7 +25,7 @@ def convex_hull_2d(p: np.ndarray) -> np.ndarray:
     def half(pts):
         out = []
         for q in pts:
-            while len(out) >= 2 and np.cross(out[-1] - out[-2], q - out[-2]) <= 0:
+            while len(out) >= 2 and _cross2(out[-1] - out[-2], q - out[-2]) <= 0:
                 out.pop()
             out.append(q)
         return out
