@@ -86,3 +86,41 @@ def test_demo_scene_is_what_the_generator_writes(tmp_path):
     out = tmp_path / "demo.usda"
     write_demo_scene(str(out))
     assert out.read_text() == DEMO.read_text()
+
+
+CASCADE_FIELDS = {"split", "light_depth", "view_matrix", "projection_matrix", "texture_matrix", "resolution",
+                  "warp", "depth_bias", "predicted_error"}
+ERROR_FIELDS = {"objective", "mean_m", "median_m", "p95_m", "max_m", "frac_m_gt_1", "samples"}
+
+
+@pytest.mark.parametrize("method", ["uniform", "focused", "lispsm", "logpsm"])
+def test_optimize_writes_the_solution_schema_and_evaluate_reads_it(tmp_path, method):
+    sol_path = tmp_path / "sol.json"
+    sol = json.loads(run("optimize", DEMO, "--rig", DEMO_RIG, "--method", method, "--shadow-resolution", "512x512",
+                         "--out", sol_path, "--json", check=0).stdout)
+    assert json.loads(sol_path.read_text()) == sol
+    cas = sol["lights"][0]["cascades"][0]
+    assert CASCADE_FIELDS <= set(cas) and ERROR_FIELDS <= set(cas["predicted_error"])
+    assert len(cas["view_matrix"]) == 16 and cas["resolution"] == [512, 512]
+    assert cas["warp"]["kind"] in ("none", "perspective", "log")
+    assert {"coarse", "optimize", "total"} <= set(sol["timings_ms"])
+    assert sol["provenance"]["scene_hash"] and sol["provenance"]["software"].startswith("shadowopt")
+    heat = tmp_path / "heat.png"
+    ev = json.loads(run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, "--screen", "320x180",
+                        "--heatmap", heat, "--json", check=0).stdout)
+    assert ev["outside_pixels"] == 0 and ev["receiver_pixels"] > 10000
+    assert {"mean_m", "median_m", "p95_m", "max_m", "frac_m_gt_1", "samples"} <= set(ev["measured_error"])
+    assert heat.stat().st_size > 1000
+
+
+def test_evaluate_refuses_a_solution_for_another_scene(tmp_path):
+    sol_path = tmp_path / "sol.json"
+    run("optimize", DEMO, "--rig", DEMO_RIG, "--out", sol_path, check=0)
+    sol = json.loads(sol_path.read_text())
+    sol["provenance"]["scene_hash"] = "0" * 64
+    sol_path.write_text(json.dumps(sol))
+    p = run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, check=2)
+    assert "scene_hash" in p.stderr and "another scene" in p.stderr
+    sol_path.write_text("{}")
+    p = run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, check=2)
+    assert "not a shadowopt solution" in p.stderr
