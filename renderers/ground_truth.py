@@ -52,6 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..solvers.cameras import Camera
+from ..solvers.jit import aligned
 from ..solvers.lights import DirectionalLight, Light
 from ..solvers.metric import DET_FLOOR, error_stats
 from ..solvers.shadow_map import ShadowMap, map_for_depth
@@ -194,6 +195,11 @@ def _texel_grid(smap: ShadowMap, rows: slice | None = None):
     return (ii.ravel() + 0.5) / w, (jj.ravel() + 0.5) / h
 
 
+def _device_floats(mi, a: np.ndarray):
+    """A Dr.Jit Float from NumPy data in an aligned buffer (solvers.jit.aligned: no recompilation)."""
+    return mi.Float(aligned(np.asarray(a).ravel(), np.float32))
+
+
 def render_map(rs: RayScene, light: Light, smap: ShadowMap, pancake: bool = True) -> np.ndarray:
     """d_occluder (m) per texel, (height, width) float64, row j = t index (t = 0 at the bottom)."""
     mi = mitsuba()
@@ -223,16 +229,20 @@ def render_map(rs: RayScene, light: Light, smap: ShadowMap, pancake: bool = True
         ok &= t1 > t0
         org = near + t0[:, None] * dirn
         maxt = np.where(ok, t1 - t0, 0.0)
-        ray = mi.Ray3f(mi.Point3f(*(mi.Float(np.ascontiguousarray(org[:, k], dtype=np.float32)) for k in range(3))),
-                       mi.Vector3f(*(mi.Float(np.ascontiguousarray(dirn[:, k], dtype=np.float32)) for k in range(3))))
-        ray.maxt = mi.Float(maxt.astype(np.float32))
-        active = mi.Bool(ok)
+        ray = mi.Ray3f(mi.Point3f(*(_device_floats(mi, org[:, k]) for k in range(3))),
+                       mi.Vector3f(*(_device_floats(mi, dirn[:, k]) for k in range(3))))
+        ray.maxt = _device_floats(mi, maxt)
+        # Masks computed inside Dr.Jit from data arrays: a mask built from a constant NumPy array can
+        # become a literal, and a map whose mask happens to be all-true or all-false would then
+        # compile its own kernel.
+        zero = dr.opaque(mi.Float, 0.0)
+        active = ray.maxt > zero
         pi = rs.scene.ray_intersect_preliminary(ray, coherent=False, active=active)
         valid = pi.is_valid() & active
         tval = dr.select(valid, pi.t, dr.inf)
         outs = [tval]
         if do_pancake:
-            back_active = mi.Bool(ok & (t0 <= 0.0))
+            back_active = active & (_device_floats(mi, t0) <= zero)
             bray = mi.Ray3f(ray.o, -ray.d)
             blocked = rs.scene.ray_test(bray, back_active)
             outs.append(blocked)

@@ -43,3 +43,19 @@ def llvm_ad():
     import drjit.llvm.ad as ad
 
     return ad
+
+
+def aligned(a, dtype) -> "object":
+    """A contiguous copy of `a` in a 64-byte-aligned buffer. Dr.Jit may read NumPy memory in place,
+    and the buffer's alignment is then part of the kernel: unaligned data would compile a new kernel
+    for the same computation. Wrap every NumPy array handed to Dr.Jit in a hot path with this."""
+    import numpy as np
+
+    a = np.asarray(a, dtype=dtype)
+    flat = a.ravel()
+    item = flat.itemsize
+    raw = np.empty(flat.size + 64 // item, dtype=dtype)
+    off = (-raw.ctypes.data % 64) // item
+    buf = raw[off:off + flat.size]
+    buf[:] = flat
+    return buf.reshape(a.shape)

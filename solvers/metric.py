@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .jit import llvm_ad
+from .jit import aligned, llvm_ad
 from .samples import Samples
 from .shadow_map import ShadowMap, map_for_depth
 
@@ -31,10 +31,11 @@ class DeviceSamples:
         self.origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
         self.count = len(samples)
         rel = samples.position - self.origin
-        self.X = ad.Array3f64(*(rel[:, k] for k in range(3)))
-        self.dx = ad.Array3f64(*(samples.dx[:, k] for k in range(3)))
-        self.dy = ad.Array3f64(*(samples.dy[:, k] for k in range(3)))
-        self.w = ad.Float64(samples.weight)
+        f64 = lambda col: ad.Float64(aligned(col, np.float64))  # noqa: E731 (aligned: no recompiles)
+        self.X = ad.Array3f64(*(f64(rel[:, k]) for k in range(3)))
+        self.dx = ad.Array3f64(*(f64(samples.dx[:, k]) for k in range(3)))
+        self.dy = ad.Array3f64(*(f64(samples.dy[:, k]) for k in range(3)))
+        self.w = f64(samples.weight)
 
 
 def recentre(matrix: np.ndarray, origin: np.ndarray) -> np.ndarray:
