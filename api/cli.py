@@ -216,6 +216,27 @@ def cmd_analyze(args) -> int:
     return 0
 
 
+def cmd_compare(args) -> int:
+    from ..service.compare import compare, markdown_table
+    from ..service.pipeline import scene_entry
+
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    known = ("uniform", "focused", "lispsm", "logpsm", "optimized")
+    bad = [m for m in methods if m not in known]
+    if bad or not methods:
+        raise CliError(f"--methods: unknown {', '.join(bad) or '(none given)'} (known: {', '.join(known)})")
+    rig = load_rig(args.rig, args)
+    entry = scene_entry(args.scene, **_scene_options(args))
+    res = compare(entry, rig, methods, screen=args.screen, report_dir=args.report, grid_every=args.grid)
+    if args.json:
+        print(json.dumps(res, indent=2))
+    else:
+        print(markdown_table(res), end="")
+        if args.report:
+            print(f"report: {res['report']['heatmaps']}, {res['report']['table']}")
+    return 0
+
+
 def cmd_serve(args) -> int:
     from .server import serve
 
@@ -272,6 +293,16 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--grid", type=int, default=None, metavar="N", help="overlay the texel grid every N texels")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_evaluate)
+
+    sp = sub.add_parser("compare", help="methods side by side: predicted and measured error, time, heatmaps")
+    scene_args(sp)
+    rig_args(sp)
+    sp.add_argument("--methods", default="uniform,focused,lispsm,logpsm", help="comma-separated methods")
+    sp.add_argument("--screen", type=_parse_wxh, default=None, metavar="WxH", help="screen resolution (default: the rig's)")
+    sp.add_argument("--report", default=None, metavar="DIR", help="write heatmaps side by side (PNG) and the table (Markdown)")
+    sp.add_argument("--grid", type=int, default=None, metavar="N", help="overlay the texel grid every N texels")
+    sp.add_argument("--json", action="store_true")
+    sp.set_defaults(func=cmd_compare)
 
     sp = sub.add_parser("analyze", help="Lloyd's scene-independent critical resolution and storage factors")
     sp.add_argument("--f-over-n", type=float, required=True)
