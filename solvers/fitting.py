@@ -3,6 +3,7 @@ light-space bounds. Projections map to the canonical OpenGL clip space (solvers.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import ConvexHull
 
 
 def _cross2(a, b) -> float:
@@ -16,8 +17,6 @@ def convex_hull_2d(p: np.ndarray) -> np.ndarray:
         return p
     if len(p) > 64:
         try:
-            from scipy.spatial import ConvexHull
-
             return p[ConvexHull(p).vertices]
         except Exception:  # collinear or otherwise degenerate: fall back to the chain below
             pass
