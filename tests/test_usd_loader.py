@@ -206,3 +206,19 @@ def test_bad_meshes_are_skipped_with_a_warning_naming_them(tmp_path):
     assert sc.geometry.prim_paths == ["/Good"]
     joined = " | ".join(sc.warnings)
     assert "/OutOfRange" in joined and "/NaN" in joined and "defaultPrim 'Missing'" in joined
+
+
+def test_instanceable_prims_are_expanded(tmp_path):
+    s = new_stage(tmp_path / "inst.usda")
+    proto = UsdGeom.Xform.Define(s, "/Proto")
+    UsdGeom.Cube.Define(s, "/Proto/Box").CreateSizeAttr(1.0)
+    for k, x in enumerate((0.0, 10.0)):
+        p = UsdGeom.Xform.Define(s, f"/I{k}")
+        p.GetPrim().GetReferences().AddInternalReference("/Proto")
+        p.GetPrim().SetInstanceable(True)
+        UsdGeom.XformCommonAPI(p).SetTranslate(Gf.Vec3d(x, 0, 0))
+    s.GetRootLayer().Save()
+    g = load_scene(tmp_path / "inst.usda").geometry
+    assert sorted(g.prim_paths) == ["/I0/Box", "/I1/Box", "/Proto/Box"]
+    i1 = g.vertices[np.unique(g.faces[g.face_prim == g.prim_paths.index("/I1/Box")])]
+    assert np.allclose(i1.mean(0), [10, 0, 0])
