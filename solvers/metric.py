@@ -55,6 +55,8 @@ def footprint(P, resolution, log_warp, ds: DeviceSamples):
     import drjit as dr
 
     X = ds.X
+    if not isinstance(resolution[0], ad.Float64):  # opaque: a new map size does not recompile
+        resolution = (dr.opaque(ad.Float64, float(resolution[0])), dr.opaque(ad.Float64, float(resolution[1])))
     rows = [ad.Array3f64(P[4 * i], P[4 * i + 1], P[4 * i + 2]) for i in range(4)]
     c = [dr.dot(rows[i], X) + P[4 * i + 3] for i in range(4)]
     cw = c[3]
