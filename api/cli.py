@@ -161,7 +161,7 @@ def cmd_optimize(args) -> int:
 
     rig = load_rig(args.rig, args)
     entry = scene_entry(args.scene, **_scene_options(args))
-    sol = solve(entry, rig, method=args.method)
+    sol = solve(entry, rig, method=args.method, solver=args.solver, time_budget_ms=args.time_budget_ms)
     errs = [l["predicted_error"] for l in sol["lights"]]
     summary = "; ".join(f"light {k}: {len(l['cascades'])} map(s), predicted p95 m {e['p95_m']:.3g}, "
                         f"median m {e['median_m']:.3g} over {e['samples']} samples"
@@ -279,7 +279,11 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("optimize", help="compute a shadow setup (matrices, warp, splits) and its predicted error")
     scene_args(sp)
     rig_args(sp)
-    sp.add_argument("--method", choices=["uniform", "focused", "lispsm", "logpsm"], default="focused")
+    sp.add_argument("--method", choices=["uniform", "focused", "lispsm", "logpsm", "optimized"], default="optimized")
+    sp.add_argument("--solver", default=None, help="optimizer for --method optimized (default nlopt:LN_BOBYQA; "
+                    "gradient:linesearch, gradient:lbfgs, gradient:adam, nlopt:LN_COBYLA, nlopt:LN_SBPLX, "
+                    "nlopt:GN_DIRECT_L, nlopt:LD_MMA, nlopt:LD_LBFGS)")
+    sp.add_argument("--time-budget-ms", type=float, default=None, help="return the best so far after this long")
     sp.add_argument("--out", default=None, help="also write the solution JSON to this file")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_optimize)

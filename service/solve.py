@@ -14,7 +14,9 @@ import numpy as np
 from ..renderers.coarse import CoarseBuffers
 from ..solvers.baselines import baseline
 from ..solvers.conventions import export_matrices
-from ..solvers.metric import per_sample_maps, error_stats
+from ..solvers.metric import error_stats, per_sample_maps
+from ..solvers.optimize import DEFAULT_METHOD as DEFAULT_SOLVER
+from ..solvers.optimize import optimized_maps
 from ..solvers.samples import Samples, select_samples
 from ..solvers.shadow_map import ShadowMap
 from .pipeline import coarse_pass
@@ -22,6 +24,7 @@ from .rigs import ResolvedRig
 from .scenes import SceneEntry
 
 BASELINE_METHODS = ("uniform", "focused", "lispsm", "logpsm")
+METHODS = BASELINE_METHODS + ("optimized",)
 SCHEMA_VERSION = 1
 
 
@@ -150,31 +153,45 @@ def light_json(light, maps: list[ShadowMap], total: dict, per_map: list[dict], o
             "cascades": cascades, "predicted_error": total}
 
 
-def solve(entry: SceneEntry, rig: dict, method: str = "focused", **options) -> dict:
-    """The solution for `method` (a baseline name) on a scene entry and validated rig dict."""
-    if method not in BASELINE_METHODS:
-        raise ValueError(f"method: unknown method {method!r} (known: {', '.join(BASELINE_METHODS)})")
+def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | None = None,
+          time_budget_ms: float | None = None, **options) -> dict:
+    """The solution for `method` (a baseline name or "optimized") on a scene entry and validated rig dict."""
+    if method not in METHODS:
+        raise ValueError(f"method: unknown method {method!r} (known: {', '.join(METHODS)})")
     t0 = time.perf_counter()
     resolved, buffers = coarse_pass(entry, rig)
     t1 = time.perf_counter()
     shadow = resolved.shadow
     lo, hi = entry.loaded.geometry.bounds()
     per_light = []
+    solvers_json = []
     for prob in light_problems(resolved, buffers, (lo, hi)):
-        maps = baseline(method, resolved.camera, prob.light, prob.receivers, (lo, hi),
-                        resolution=tuple(shadow.get("resolution") or (2048, 2048)),
-                        cascades=shadow.get("cascades") if isinstance(shadow.get("cascades"), int) else 1,
-                        splits=shadow.get("splits", "practical") if shadow.get("splits") != "optimized" else "practical",
-                        split_lambda=shadow.get("lambda", 0.5), texel_budget=shadow.get("texel_budget"),
-                        allow_log=bool(resolved.output.get("allow_log_warp", False)) or method == "logpsm",
-                        receiver_slack=prob.receiver_slack)
+        common = dict(resolution=tuple(shadow.get("resolution") or (2048, 2048)),
+                      cascades=shadow.get("cascades") if isinstance(shadow.get("cascades"), int) else 1,
+                      splits=shadow.get("splits", "practical") if shadow.get("splits") != "optimized" else "practical",
+                      split_lambda=shadow.get("lambda", 0.5), texel_budget=shadow.get("texel_budget"),
+                      receiver_slack=prob.receiver_slack)
+        allow_log = bool(resolved.output.get("allow_log_warp", False))
+        if method == "optimized":
+            maps, info = optimized_maps(resolved.camera, prob.light, prob.samples, prob.receivers, (lo, hi),
+                                        allow_log=allow_log, solver=solver or DEFAULT_SOLVER,
+                                        time_budget_ms=time_budget_ms, **common)
+            solvers_json.append(info)
+        else:
+            maps = baseline(method, resolved.camera, prob.light, prob.receivers, (lo, hi),
+                            allow_log=allow_log or method == "logpsm", **common)
         total, per_map = maps_error(maps, prob.samples, resolved.camera.position)
         per_light.append(light_json(prob.light, maps, total, per_map, resolved.output,
                                     entry.loaded.stage_to_world, prob.samples))
     t2 = time.perf_counter()
     timings = {"coarse": (t1 - t0) * 1e3, "optimize": (t2 - t1) * 1e3, "total": (t2 - t0) * 1e3}
-    settings = {"method": method, "coarse_long_side": resolved.coarse_long_side, "shadow": _jsonable(shadow)}
-    return solution_json(entry, resolved, method, per_light, timings, settings)
+    settings = {"method": method, "solver": solver or (DEFAULT_SOLVER if method == "optimized" else None),
+                "time_budget_ms": time_budget_ms, "coarse_long_side": resolved.coarse_long_side,
+                "shadow": _jsonable(shadow)}
+    sol = solution_json(entry, resolved, method, per_light, timings, settings)
+    if method == "optimized":
+        sol["solver"] = solvers_json[0] if len(solvers_json) == 1 else {"lights": solvers_json}
+    return sol
 
 
 def _jsonable(d):

@@ -1,0 +1,459 @@
+"""Scene-optimized light matrices: one entry point in the spirit of scipy.optimize.minimize.
+
+Parameterization (Chong & Gortler 2007, directional light). The light position is the point at
+infinity [l, 0], so rows 1, 2 and 4 of P annihilate it: the fourth (projective) row's normal is
+perpendicular to l, which leaves two projective degrees of freedom besides the six affine ones:
+- φ, the warp axis angle in the light's image plane (rotation about l; 0 = the view direction
+  projected into the image plane, LiSPSM's axis, solvers.baselines.directional_view);
+- the warp strength u = log(1 + D/n'), n' the distance from the receivers' near end to the warp
+  centre along the axis (LiSPSM's n is one choice) and D the receivers' depth along the axis.
+  u = 0 is no warp (n' = ∞, the focused map), u > 0 a perspective warp (u ≈ D/n' for weak warps,
+  ≈ log(D/n') for strong ones), u < 0 a warp centred beyond the far end. Unlike log n' this
+  variable is smooth through the no-warp map, so a gradient step can leave the focused start.
+Given (φ, u) the six affine degrees of freedom are not searched: they are fitted (the warped-space
+box of solvers.baselines._fit_warped, written here with a warp matrix that is the identity at
+u = 0) to every receiver and every sample, so that no receiver leaves the map. The family contains
+focused (u = 0, φ = its minimum-area rectangle's angle), LiSPSM (φ = 0, n' = n_opt) and LogPSM's
+perspective part (φ = 0, n' from η); those are the starting points, and the baseline maps
+themselves are candidates, so the result is never worse than the best of them.
+
+Objective: solvers.metric.objective (the weighted mean of Chong & Gortler's h), the number the
+solution predicts. Gradient with respect to (φ, u), `gradient="ad"` (default): Dr.Jit AD gives
+df/dP exactly for the 16 entries of P (affine part fixed, as the paper does for its step); the
+refit's dependence dP/d(φ, u) comes from central differences of the NumPy fit (no metric
+evaluation), and the chain rule joins them: one metric pass per gradient. `gradient="fd"`:
+central differences of f (four metric passes). The fit is a min/max over the receivers' hull, so
+f is only piecewise smooth; both agree away from the kinks (tests/test_optimize.py).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .baselines import PAD, _min_extent, _with_bias, baseline, directional_view
+from .cameras import Camera
+from .fitting import box_corners, ortho, padded, rotation_z, to_view
+from .lights import DirectionalLight
+from .metric import DeviceSamples, matrix_to_device, objective, recentre
+from .samples import Samples
+from .shadow_map import ShadowMap
+
+PHI_MAX = math.pi / 2
+U_MIN, U_MAX = math.log(0.5), math.log1p(1e3)  # n' from -2D (centre beyond the far end) to D/1000
+METHODS = ("gradient:lbfgs", "gradient:adam", "gradient:linesearch", "nlopt:LN_BOBYQA", "nlopt:LN_COBYLA",
+           "nlopt:LN_SBPLX", "nlopt:GN_DIRECT_L", "nlopt:LD_MMA", "nlopt:LD_LBFGS", "nlopt:LD_SLSQP", "none")
+DEFAULT_METHOD = "nlopt:LN_BOBYQA"  # measured: the best time to the lowest error (BENCHMARKS.md)
+START_NAMES = ("focused", "lispsm", "logpsm-perspective")
+FIT_STEP = 1e-6  # central-difference step of the refit dP/d(φ, u) (NumPy only, no metric pass)
+FD_STEP = 1e-4  # central-difference step of f for gradient="fd"
+# Chong & Gortler 2007 §3: line search over these angles (degrees) along the negative gradient,
+# the negative one forcing exploration.
+CG07_ANGLES_DEG = (-10, 3, 5, 9, 16, 23, 30, 40, 50)
+
+
+@dataclass
+class OptimizeResult:
+    x: np.ndarray  # (φ, u)
+    fun: float  # the metric's objective (weighted mean h) of `map`
+    nit: int
+    nfev: int  # metric evaluations (values and gradient passes)
+    time_ms: float
+    success: bool
+    message: str
+    map: ShadowMap | None = None
+    start: str = ""  # the starting point the optimizer ran from (or the baseline returned)
+    starts: dict = field(default_factory=dict)  # objective of every start (baseline maps)
+    njev: int = 0
+
+    def to_json(self) -> dict:
+        return {"x": [float(v) for v in self.x], "fun": self.fun, "nit": self.nit, "nfev": self.nfev,
+                "njev": self.njev, "time_ms": round(self.time_ms, 3), "success": self.success,
+                "converged": self.success, "message": self.message, "start": self.start,
+                "starts": {k: float(v) for k, v in self.starts.items()}}
+
+
+class _Budget(Exception):
+    pass
+
+
+def _hull_points(pts: np.ndarray) -> np.ndarray:
+    """The vertices of the 3D convex hull (a projective map with w > 0 keeps hulls, so the fit's
+    min/max over them equals that over all points). Joggled for planar sets; all points if Qhull fails."""
+    if len(pts) <= 64:
+        return pts
+    from scipy.spatial import ConvexHull
+
+    try:
+        idx = ConvexHull(pts, qhull_options="QJ").vertices
+        return pts[np.unique(idx)]
+    except Exception:  # degenerate (collinear) sets: keep everything
+        return pts
+
+
+class Problem:
+    """f(φ, u) for one directional light, one map, fixed samples and receivers."""
+
+    def __init__(self, camera: Camera, light: DirectionalLight, samples: Samples, receivers: np.ndarray,
+                 casters_bounds, resolution, deadline: float | None = None, gradient: str = "ad"):
+        if gradient not in ("ad", "fd"):
+            raise ValueError(f"gradient must be 'ad' or 'fd', got {gradient!r}")
+        self.camera, self.light, self.resolution = camera, light, (int(resolution[0]), int(resolution[1]))
+        receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
+        fit = np.vstack([receivers, samples.position]) if len(samples) else receivers
+        fit = fit[np.all(np.isfinite(fit), axis=1)]
+        if len(fit) == 0:
+            raise ValueError("no receivers and no samples to fit the map to")
+        self.fit_pts = _hull_points(fit)
+        self.corners = box_corners(np.asarray(casters_bounds[0], float), np.asarray(casters_bounds[1], float))
+        self.ds = DeviceSamples(samples, camera.position)
+        self.view0 = directional_view(light, camera)
+        self.deadline = deadline
+        self.gradient_mode = gradient
+        self.nfev = 0
+        self.njev = 0
+        self.best = (math.inf, None, None)
+
+    # -------------------------------------------------------------- the family
+    def fit(self, x):
+        """(view, projection, light_depth, n') of the map with projective parameters x = (φ, u)."""
+        phi, u = float(x[0]), float(x[1])
+        view = rotation_z(phi) @ self.view0  # warp axis: +Y of the rotated frame
+        v = to_view(view, self.fit_pts)
+        y0, y1 = padded(v[:, 1].min(keepdims=True), v[:, 1].max(keepdims=True), PAD, _min_extent(v[:, 1:2]))
+        y0, y1 = float(y0[0]), float(y1[0])
+        D = y1 - y0
+        k = math.expm1(u) / D  # w' = 1 + k (y - y0): 1 at the near end, e^u at the far end
+        W = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, -y0], [0, 0, 1.0, 0], [0, k, 0, 1.0 - k * y0]])
+        # Depth extremes: the fit points and the scene corners slid along y into [y0, y1] (a caster
+        # that shadows a receiver lies on the receiver's light ray, so within that range).
+        dv = to_view(view, self.corners)
+        allp = np.vstack([v] + [np.column_stack([dv[:, 0], np.full(len(dv), y), dv[:, 2]]) for y in (y0, y1)])
+        w_all = 1.0 + k * (allp[:, 1] - y0)
+        Z = allp[:, 2] / w_all
+        wv = 1.0 + k * (v[:, 1] - y0)
+        X = v[:, 0] / wv
+        xlo, xhi = padded(X.min(keepdims=True), X.max(keepdims=True), PAD, _min_extent(X[:, None]))
+        Ylo, Yhi = 0.0, D / (1.0 + k * D)
+        near, far = float((-Z).min()), float((-Z).max())
+        span = max(far - near, 1e-9 * max(abs(near), abs(far), 1.0))
+        proj = ortho(float(xlo[0]), float(xhi[0]), Ylo, Yhi, near - 0.01 * span, far + 0.01 * span) @ W
+        d = np.concatenate([-v[:, 2], -dv[:, 2]])
+        n_prime = math.inf if abs(u) < 1e-12 else D / math.expm1(u)
+        return view, proj, (float(d.min()), float(-v[:, 2].max())), n_prime
+
+    def matrix(self, x) -> np.ndarray:
+        view, proj, _, _ = self.fit(x)
+        return recentre(proj @ view, self.ds.origin)
+
+    def map_for(self, x) -> ShadowMap:
+        view, proj, ld, n_prime = self.fit(x)
+        warped = math.isfinite(n_prime)
+        return ShadowMap(view, proj, self.resolution, light_depth=ld,
+                         warp_kind="perspective" if warped else "none", n_prime=n_prime if warped else None)
+
+    # -------------------------------------------------------------- objective and gradient
+    def _check(self):
+        if self.deadline is not None and time.perf_counter() > self.deadline:
+            raise _Budget()
+
+    def clip(self, x) -> np.ndarray:
+        return np.array([np.clip(float(x[0]), -PHI_MAX, PHI_MAX), np.clip(float(x[1]), U_MIN, U_MAX)])
+
+    def _record(self, x, f):
+        if not math.isfinite(f):
+            f = 1e300
+        if f < self.best[0]:
+            self.best = (f, np.array(x, float), None)
+        return f
+
+    def eval_matrix(self, M: np.ndarray) -> float:
+        """The metric's objective of a recentred matrix (parameters opaque: no recompiles)."""
+        self.nfev += 1
+        return float(objective(matrix_to_device(M), self.resolution, None, self.ds)[0])
+
+    def value(self, x) -> float:
+        self._check()
+        x = self.clip(x)
+        return self._record(x, self.eval_matrix(self.matrix(x)))
+
+    def value_and_grad(self, x):
+        self._check()
+        x = self.clip(x)
+        self.njev += 1
+        if self.gradient_mode == "fd":
+            f = self.value(x)
+            g = np.zeros(2)
+            for i in range(2):
+                e = np.zeros(2)
+                e[i] = FD_STEP
+                g[i] = (self.value(x + e) - self.value(x - e)) / (2 * FD_STEP)
+            return f, g
+        import drjit as dr
+
+        M = self.matrix(x)
+        P = matrix_to_device(M)
+        for p in P:
+            dr.enable_grad(p)
+        obj = objective(P, self.resolution, None, self.ds)
+        dr.backward(obj)
+        dfdM = np.array([dr.grad(p)[0] for p in P]).reshape(4, 4)
+        f = self._record(x, float(obj[0]))
+        self.nfev += 1
+        g = np.zeros(2)
+        for i in range(2):
+            e = np.zeros(2)
+            e[i] = FIT_STEP
+            dM = (self.matrix(x + e) - self.matrix(x - e)) / (2 * FIT_STEP)
+            g[i] = float(np.sum(dfdM * dM))
+        if not np.all(np.isfinite(g)):
+            g = np.zeros(2)
+        return f, g
+
+    def gradient(self, x) -> np.ndarray:
+        return self.value_and_grad(x)[1]
+
+
+# ------------------------------------------------------------------ starting points
+def _angle_of(view: np.ndarray, view0: np.ndarray, square: bool) -> float:
+    """φ with view = rotation_z(φ) @ view0 (folded by the rectangle's symmetry into the bounds)."""
+    a = math.atan2(float(view[0, :3] @ view0[1, :3]), float(view[0, :3] @ view0[0, :3]))
+    period = math.pi / 2 if square else math.pi
+    return (a + period / 2) % period - period / 2
+
+
+def start_maps(camera: Camera, light: DirectionalLight, receivers: np.ndarray, casters_bounds, resolution,
+               names=START_NAMES) -> dict:
+    """The baselines that lie in this family, as single maps: focused, LiSPSM, LogPSM's perspective part."""
+    out = {}
+    for name in names:
+        base = "logpsm" if name in ("logpsm", "logpsm-perspective") else name
+        if base not in ("focused", "lispsm", "logpsm"):
+            raise ValueError(f"starts: unknown start {name!r} (known: {', '.join(START_NAMES)})")
+        out[name] = baseline(base, camera, light, receivers, casters_bounds, resolution, allow_log=False)[0]
+    return out
+
+
+def _start_x(prob: Problem, smap: ShadowMap) -> np.ndarray:
+    square = prob.resolution[0] == prob.resolution[1]
+    if smap.n_prime is None or not math.isfinite(smap.n_prime):
+        return np.array([_angle_of(smap.view, prob.view0, square), 0.0])
+    _, _, _, _ = None, None, None, None
+    view = prob.view0
+    v = to_view(view, prob.fit_pts)[:, 1]
+    y0, y1 = padded(v.min(keepdims=True), v.max(keepdims=True), PAD, _min_extent(v[:, None]))
+    D = float(y1[0] - y0[0])
+    return prob.clip([_angle_of(smap.view, prob.view0, False), math.log1p(D / smap.n_prime)])
+
+
+# ------------------------------------------------------------------ entry point
+def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receivers: np.ndarray, casters_bounds,
+             resolution=(2048, 2048), method: str = DEFAULT_METHOD, x0=None, time_budget_ms: float | None = None,
+             starts=START_NAMES, maxiter: int = 30, gradient: str = "ad") -> OptimizeResult:
+    """Minimise the metric's objective over the light's projective parameters x = (φ, u).
+
+    Every start (and `x0`, a previous solution's x, when given) is evaluated first, even past the
+    time budget; the optimizer runs from the best one. The result is the best map seen, baseline
+    maps included. `time_budget_ms`: stop early, return the best so far with success=False."""
+    if method not in METHODS:
+        raise ValueError(f"method: unknown solver {method!r} (known: {', '.join(METHODS)})")
+    if not isinstance(light, DirectionalLight):
+        raise ValueError("minimize: only directional lights have this parameterization")
+    t0 = time.perf_counter()
+    deadline = None if time_budget_ms is None else t0 + float(time_budget_ms) / 1e3
+    prob = Problem(camera, light, samples, receivers, casters_bounds, resolution, gradient=gradient)
+    bases = start_maps(camera, light, receivers, casters_bounds, prob.resolution, starts)
+    base_vals = {name: prob.eval_matrix(recentre(m.matrix, prob.ds.origin)) for name, m in bases.items()}
+    xs = {name: _start_x(prob, m) for name, m in bases.items()}
+    if x0 is not None:
+        xs = {"warm": prob.clip(np.asarray(x0, float)), **xs}
+    fam_vals = {name: prob.value(x) for name, x in xs.items()}
+    best_start = min(fam_vals, key=fam_vals.get)
+    x = xs[best_start].copy()
+    prob.deadline = deadline
+    nit, success, message = 0, True, "converged"
+    try:
+        prob._check()
+        if len(samples) == 0:
+            message = "no samples: the best starting point is returned"
+        elif method != "none":
+            nit = _run(method, prob, x, maxiter)
+        else:
+            message = "no optimization (method 'none'): the best start"
+    except _Budget:
+        success, message = False, "time budget reached"
+    f, xb, _ = prob.best
+    smap = prob.map_for(xb)
+    bname = min(base_vals, key=base_vals.get) if base_vals else None
+    start = best_start
+    if bname is not None and base_vals[bname] < f:  # a baseline map itself is best (fit details differ)
+        f, smap, xb, start = base_vals[bname], bases[bname], _start_x(prob, bases[bname]), bname
+        if success:
+            message = f"converged; the {bname} baseline map is best"
+    smap.split = (0.0, float(camera.far))
+    if len(receivers):
+        _with_bias(smap, np.asarray(receivers, float).reshape(-1, 3), light)
+    return OptimizeResult(np.asarray(xb, float), float(f), int(nit), prob.nfev, (time.perf_counter() - t0) * 1e3,
+                          success, message, smap, start, {**base_vals, **{f"{k}@family": v for k, v in fam_vals.items()}},
+                          prob.njev)
+
+
+def _run(method: str, prob: Problem, x: np.ndarray, maxiter: int) -> int:
+    kind, name = method.split(":")
+    lo, hi = np.array([-PHI_MAX, U_MIN]), np.array([PHI_MAX, U_MAX])
+    if method == "gradient:linesearch":
+        return _cg07_linesearch(prob, x, maxiter)
+    if kind == "gradient":
+        return _torch(name, prob, x, maxiter, lo, hi)
+    import nlopt
+
+    if name == "GN_DIRECT_L":
+        n = _nlopt(nlopt.GN_DIRECT_L, prob, x, lo, hi, maxeval=max(4 * maxiter, 60))
+        # a short local polish from the best point DIRECT found (its boxes resolve slowly)
+        return n + _nlopt(nlopt.LN_BOBYQA, prob, prob.best[1], lo, hi, maxeval=2 * maxiter, step=0.05)
+    return _nlopt(getattr(nlopt, name), prob, x, lo, hi, maxeval=(2 if name.startswith("LD") else 3) * maxiter)
+
+
+def _nlopt(algo, prob: Problem, x, lo, hi, maxeval: int, step: float = 0.2) -> int:
+    import nlopt
+
+    opt = nlopt.opt(algo, 2)
+    opt.set_lower_bounds(lo.tolist())
+    opt.set_upper_bounds(hi.tolist())
+    scale = max(abs(prob.best[0]), 1e-300)  # objective normalised by the start's value
+
+    def f(v, grad):
+        if grad.size > 0:
+            fv, g = prob.value_and_grad(v)
+            grad[:] = g / scale
+            return fv / scale
+        return prob.value(v) / scale
+
+    opt.set_min_objective(f)
+    opt.set_maxeval(int(maxeval))
+    opt.set_xtol_abs([1e-4, 1e-4])
+    opt.set_ftol_rel(1e-7)
+    opt.set_initial_step([step, step])
+    try:
+        opt.optimize(np.clip(np.asarray(x, float), lo, hi).tolist())
+    except _Budget:
+        raise
+    except (nlopt.RoundoffLimited, RuntimeError, ValueError):  # the problem keeps the best value seen
+        pass
+    return int(opt.get_numevals())
+
+
+def _torch(name: str, prob: Problem, x, maxiter: int, lo, hi) -> int:
+    import torch
+
+    scale = max(abs(prob.best[0]), 1e-300)
+    p = torch.tensor(np.clip(x, lo, hi), dtype=torch.float64, requires_grad=True)
+    lo_t, hi_t = torch.tensor(lo), torch.tensor(hi)
+
+    def closure():
+        opt.zero_grad()
+        fv, g = prob.value_and_grad(p.detach().numpy())
+        inside = ((p.detach() > lo_t) & (p.detach() < hi_t)).numpy()
+        g = np.where(inside | (np.sign(g) * np.sign(p.detach().numpy() - (lo + hi) / 2) < 0), g, 0.0)
+        p.grad = torch.tensor(g / scale, dtype=torch.float64)
+        return torch.tensor(fv / scale, dtype=torch.float64)
+
+    if name == "lbfgs":
+        opt = torch.optim.LBFGS([p], lr=1.0, max_iter=maxiter, max_eval=2 * maxiter, tolerance_grad=1e-7,
+                                tolerance_change=1e-9, history_size=10, line_search_fn="strong_wolfe")
+        opt.step(closure)
+        prob.value(p.detach().numpy())
+        return int(opt.state[p].get("n_iter", 0))
+    if name == "adam":
+        opt = torch.optim.Adam([p], lr=0.05)
+        for it in range(2 * maxiter):
+            opt.step(closure)
+            with torch.no_grad():
+                p.clamp_(lo_t, hi_t)
+        prob.value(p.detach().numpy())
+        return 2 * maxiter
+    raise ValueError(f"method: unknown solver 'gradient:{name}' (known: {', '.join(METHODS)})")
+
+
+def _cg07_linesearch(prob: Problem, x: np.ndarray, maxiter: int) -> int:
+    """Chong & Gortler 2007 Algorithm 1: gradient, then a line search over fixed step sizes along the
+    negative gradient (one backwards, for forced exploration), a few iterations."""
+    fx = prob.value(x)
+    it = 0
+    for it in range(1, min(maxiter, 8) + 1):
+        g = prob.gradient(x)
+        norm = float(np.linalg.norm(g))
+        if norm == 0 or not math.isfinite(norm):
+            break
+        d = -g / norm
+        best = (fx, x)
+        for a in CG07_ANGLES_DEG:
+            step = math.radians(a) * 4  # degrees of the paper's sphere rotation, scaled to (φ, u) units
+            xn = prob.clip(x + step * d)
+            fn = prob.value(xn)
+            if fn < best[0]:
+                best = (fn, xn)
+        if best[0] >= fx * (1 - 1e-4):
+            break
+        fx, x = best
+    return it
+
+
+def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarray, casters_bounds,
+                   resolution=(2048, 2048), cascades: int = 1, splits: str = "practical", split_lambda: float = 0.5,
+                   texel_budget: int | None = None, allow_log: bool = False, solver: str = DEFAULT_METHOD,
+                   time_budget_ms: float | None = None, receiver_slack=None, x0=None):
+    """`method: optimized`: per cascade, the optimized map or the best baseline, whichever the metric
+    scores lower on that cascade's samples (so never worse than the best baseline). Returns
+    (maps, solver_json)."""
+    from .baselines import METHODS as BASELINES
+    from .metric import predicted_error
+
+    if solver not in METHODS:
+        raise ValueError(f"solver: unknown solver {solver!r} (known: {', '.join(METHODS)})")
+    t0 = time.perf_counter()
+    common = dict(resolution=resolution, cascades=cascades, splits=splits, split_lambda=split_lambda,
+                  texel_budget=texel_budget, receiver_slack=receiver_slack)
+    per_method = {m: baseline(m, camera, light, receivers, casters_bounds, allow_log=allow_log and m == "logpsm",
+                              **common) for m in BASELINES}
+    ref = per_method["focused"]
+    depth = (receivers - camera.position) @ camera.forward if len(receivers) else np.zeros(0)
+    slack = np.zeros(len(receivers)) if receiver_slack is None else np.asarray(receiver_slack, float)
+    out_maps, info = [], []
+    for k, rmap in enumerate(ref):
+        lo, hi = rmap.split
+        sel_s = (samples.view_depth >= lo) & (samples.view_depth <= hi)
+        sub = samples.subset(sel_s)
+        scores = {m: predicted_error([maps[k]], sub, camera.position)["objective"] for m, maps in per_method.items()}
+        best_name = min(scores, key=scores.get)
+        best_map, best_f = per_method[best_name][k], scores[best_name]
+        entry = {"cascade": k, "baselines": {m: float(v) for m, v in scores.items()}}
+        sel_r = np.ones(len(receivers), bool)
+        if isinstance(light, DirectionalLight) and len(sub) > 0 and len(receivers) > 0:
+            sel_r = (depth + slack >= (lo if k else -np.inf)) & (depth - slack <= (hi if k < len(ref) - 1 else np.inf))
+            left = None if time_budget_ms is None else max(1.0, time_budget_ms - (time.perf_counter() - t0) * 1e3)
+            res = minimize(camera, light, sub, receivers[sel_r], casters_bounds, rmap.resolution, solver,
+                           x0=x0[k] if x0 is not None and k < len(x0) else None, time_budget_ms=left)
+            entry["result"] = res.to_json()
+            if res.map is not None and res.fun < best_f:
+                best_map, best_f, best_name = res.map, res.fun, "optimized"
+                best_map.eta = None
+        best_map.split = rmap.split
+        if best_name == "optimized":
+            best_map.resolution = rmap.resolution
+            _with_bias(best_map, receivers[sel_r], light)
+        entry["chosen"] = best_name
+        entry["objective"] = float(best_f)
+        out_maps.append(best_map)
+        info.append(entry)
+    results = [e.get("result", {}) for e in info]
+    solver_json = {"name": solver, "time_ms": round((time.perf_counter() - t0) * 1e3, 3),
+                   "nit": int(sum(r.get("nit", 0) for r in results)), "nfev": int(sum(r.get("nfev", 0) for r in results)),
+                   "fun": float(sum(e["objective"] for e in info)),
+                   "success": all(r.get("success", True) for r in results),
+                   "converged": all(r.get("success", True) for r in results),
+                   "message": "; ".join(sorted({r.get("message", "") for r in results if r})) or "best baseline (no optimizable projective parameters)",
+                   "x": [r.get("x") for r in results], "cascades": info}
+    return out_maps, solver_json
