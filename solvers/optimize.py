@@ -35,7 +35,7 @@ import numpy as np
 
 from .baselines import PAD, _min_extent, _with_bias, baseline, directional_view
 from .cameras import Camera
-from .fitting import box_corners, ortho, padded, rotation_z, to_view
+from .fitting import box_corners, convex_hull_2d, min_area_rectangle, ortho, padded, rotation_z, to_view
 from .lights import DirectionalLight
 from .metric import DeviceSamples, matrix_to_device, objective, recentre
 from .samples import Samples
@@ -44,7 +44,8 @@ from .shadow_map import ShadowMap
 PHI_MAX = math.pi / 2
 U_MIN, U_MAX = math.log(0.5), math.log1p(1e3)  # n' from -2D (centre beyond the far end) to D/1000
 METHODS = ("gradient:lbfgs", "gradient:adam", "gradient:linesearch", "nlopt:LN_BOBYQA", "nlopt:LN_COBYLA",
-           "nlopt:LN_SBPLX", "nlopt:GN_DIRECT_L", "nlopt:LD_MMA", "nlopt:LD_LBFGS", "nlopt:LD_SLSQP", "none")
+           "nlopt:LN_SBPLX", "nlopt:GN_DIRECT_L", "nlopt:LD_MMA", "nlopt:LD_LBFGS", "nlopt:LD_SLSQP")
+EXTRA_METHODS = ("none",)  # no search: the best start (or the warm start), for temporal stability
 DEFAULT_METHOD = "nlopt:LN_BOBYQA"  # measured: the best time to the lowest error (BENCHMARKS.md)
 START_NAMES = ("focused", "lispsm", "logpsm-perspective")
 FIT_STEP = 1e-6  # central-difference step of the refit dP/d(φ, u) (NumPy only, no metric pass)
@@ -79,6 +80,16 @@ class _Budget(Exception):
     pass
 
 
+def _robust_difference(fm, f0, fp, h):
+    """Central difference, or the one-sided one with the smaller change when the two sides disagree
+    (the fit switches hull edges: the other side jumps)."""
+    dp, dm = (fp - f0) / h, (f0 - fm) / h
+    scale = max(float(np.max(np.abs(dp))), float(np.max(np.abs(dm))), 1e-300)
+    if float(np.max(np.abs(dp - dm))) <= 1e-2 * scale + 1e-12:
+        return 0.5 * (dp + dm)
+    return dp if float(np.sum(dp * dp)) < float(np.sum(dm * dm)) else dm
+
+
 def _hull_points(pts: np.ndarray) -> np.ndarray:
     """The vertices of the 3D convex hull (a projective map with w > 0 keeps hulls, so the fit's
     min/max over them equals that over all points). Joggled for planar sets; all points if Qhull fails."""
@@ -93,11 +104,62 @@ def _hull_points(pts: np.ndarray) -> np.ndarray:
         return pts
 
 
+AFFINE_FITS = ("axis", "rectangle", "parallelogram")
+
+
+def _affine_fit(q: np.ndarray, how: str, resolution) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The affine part, fitted in warped space to the points q (N, 2): a 4x4 C acting on warped
+    homogeneous coordinates (x, y only) and the box [lo, hi] the map's s, t span after it.
+    axis: the axis-aligned box (solvers.baselines._fit_warped); rectangle: the minimum-area rectangle
+    (Chong & Gortler 2007 §2.3); parallelogram: the minimum-area enclosing parallelogram (two pairs
+    of parallel lines, each flush with a hull edge), which also fits the skew: on a planar receiver
+    with the right warp the visible region is then the whole map (Chong 2003 Theorem 1)."""
+    C = np.eye(4)
+    if how == "axis" or len(q) < 3:
+        return C, q.min(0), q.max(0)
+    hull = convex_hull_2d(q)
+    if len(hull) < 3:
+        return C, q.min(0), q.max(0)
+    if how == "rectangle":
+        a, lo, hi = min_area_rectangle(hull)
+        ext = hi - lo
+        if (ext[0] < ext[1]) != (resolution[0] < resolution[1]) and resolution[0] != resolution[1]:
+            a += math.pi / 2
+        c, s = math.cos(a), math.sin(a)
+        C[:2, :2] = [[c, s], [-s, c]]
+    elif how == "parallelogram":
+        e = np.roll(hull, -1, axis=0) - hull
+        e = e[np.linalg.norm(e, axis=1) > 0]
+        n = np.column_stack([-e[:, 1], e[:, 0]]) / np.linalg.norm(e, axis=1, keepdims=True)
+        proj = hull @ n.T  # (hull, edges)
+        width = proj.max(0) - proj.min(0)
+        sin = np.abs(n[:, 0, None] * n[None, :, 1] - n[:, 1, None] * n[None, :, 0])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            area = np.where(sin > 1e-9, width[:, None] * width[None, :] / sin, np.inf)
+        i, j = np.unravel_index(int(np.argmin(area)), area.shape)
+        if not np.isfinite(area[i, j]):
+            return C, q.min(0), q.max(0)
+        a, b = n[i], n[j]
+        # Canonical order and signs (h does not change under them, the chain-rule gradient would):
+        # s along the normal nearer warped x, both rows with a positive diagonal.
+        if resolution[0] != resolution[1]:  # s along the wider normal when the map is wider
+            if (width[i] < width[j]) != (resolution[0] < resolution[1]):
+                a, b = b, a
+        elif abs(a[0]) < abs(b[0]):
+            a, b = b, a
+        C[:2, :2] = [a if a[0] >= 0 else -a, b if b[1] >= 0 else -b]
+    else:
+        raise ValueError(f"affine must be one of {', '.join(AFFINE_FITS)}, got {how!r}")
+    r = q @ C[:2, :2].T
+    return C, r.min(0), r.max(0)
+
+
 class Problem:
     """f(φ, u) for one directional light, one map, fixed samples and receivers."""
 
     def __init__(self, camera: Camera, light: DirectionalLight, samples: Samples, receivers: np.ndarray,
-                 casters_bounds, resolution, deadline: float | None = None, gradient: str = "ad"):
+                 casters_bounds, resolution, deadline: float | None = None, gradient: str = "ad",
+                 affine: str = "parallelogram"):
         if gradient not in ("ad", "fd"):
             raise ValueError(f"gradient must be 'ad' or 'fd', got {gradient!r}")
         self.camera, self.light, self.resolution = camera, light, (int(resolution[0]), int(resolution[1]))
@@ -112,6 +174,9 @@ class Problem:
         self.view0 = directional_view(light, camera)
         self.deadline = deadline
         self.gradient_mode = gradient
+        if affine not in AFFINE_FITS:
+            raise ValueError(f"affine must be one of {', '.join(AFFINE_FITS)}, got {affine!r}")
+        self.affine = affine
         self.nfev = 0
         self.njev = 0
         self.best = (math.inf, None, None)
@@ -132,14 +197,13 @@ class Problem:
         dv = to_view(view, self.corners)
         allp = np.vstack([v] + [np.column_stack([dv[:, 0], np.full(len(dv), y), dv[:, 2]]) for y in (y0, y1)])
         w_all = 1.0 + k * (allp[:, 1] - y0)
-        Z = allp[:, 2] / w_all
+        Z = allp[:, 2] / w_all  # depth: z / w' is linear along each light ray (w' is constant on it)
         wv = 1.0 + k * (v[:, 1] - y0)
-        X = v[:, 0] / wv
-        xlo, xhi = padded(X.min(keepdims=True), X.max(keepdims=True), PAD, _min_extent(X[:, None]))
-        Ylo, Yhi = 0.0, D / (1.0 + k * D)
+        C, lo, hi = _affine_fit(np.column_stack([v[:, 0] / wv, (v[:, 1] - y0) / wv]), self.affine, self.resolution)
+        lo, hi = padded(lo, hi, PAD, _min_extent(np.vstack([lo, hi])))
         near, far = float((-Z).min()), float((-Z).max())
         span = max(far - near, 1e-9 * max(abs(near), abs(far), 1.0))
-        proj = ortho(float(xlo[0]), float(xhi[0]), Ylo, Yhi, near - 0.01 * span, far + 0.01 * span) @ W
+        proj = ortho(float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), near - 0.01 * span, far + 0.01 * span) @ C @ W
         d = np.concatenate([-v[:, 2], -dv[:, 2]])
         n_prime = math.inf if abs(u) < 1e-12 else D / math.expm1(u)
         return view, proj, (float(d.min()), float(-v[:, 2].max())), n_prime
@@ -189,7 +253,7 @@ class Problem:
             for i in range(2):
                 e = np.zeros(2)
                 e[i] = FD_STEP
-                g[i] = (self.value(x + e) - self.value(x - e)) / (2 * FD_STEP)
+                g[i] = _robust_difference(self.value(x - e), f, self.value(x + e), FD_STEP)
             return f, g
         import drjit as dr
 
@@ -206,8 +270,7 @@ class Problem:
         for i in range(2):
             e = np.zeros(2)
             e[i] = FIT_STEP
-            dM = (self.matrix(x + e) - self.matrix(x - e)) / (2 * FIT_STEP)
-            g[i] = float(np.sum(dfdM * dM))
+            g[i] = float(np.sum(dfdM * _robust_difference(self.matrix(x - e), M, self.matrix(x + e), FIT_STEP)))
         if not np.all(np.isfinite(g)):
             g = np.zeros(2)
         return f, g
@@ -251,19 +314,19 @@ def _start_x(prob: Problem, smap: ShadowMap) -> np.ndarray:
 # ------------------------------------------------------------------ entry point
 def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receivers: np.ndarray, casters_bounds,
              resolution=(2048, 2048), method: str = DEFAULT_METHOD, x0=None, time_budget_ms: float | None = None,
-             starts=START_NAMES, maxiter: int = 30, gradient: str = "ad") -> OptimizeResult:
+             starts=START_NAMES, maxiter: int = 30, gradient: str = "ad", affine: str = "parallelogram") -> OptimizeResult:
     """Minimise the metric's objective over the light's projective parameters x = (φ, u).
 
     Every start (and `x0`, a previous solution's x, when given) is evaluated first, even past the
     time budget; the optimizer runs from the best one. The result is the best map seen, baseline
     maps included. `time_budget_ms`: stop early, return the best so far with success=False."""
-    if method not in METHODS:
-        raise ValueError(f"method: unknown solver {method!r} (known: {', '.join(METHODS)})")
+    if method not in METHODS + EXTRA_METHODS:
+        raise ValueError(f"method: unknown solver {method!r} (known: {', '.join(METHODS + EXTRA_METHODS)})")
     if not isinstance(light, DirectionalLight):
         raise ValueError("minimize: only directional lights have this parameterization")
     t0 = time.perf_counter()
     deadline = None if time_budget_ms is None else t0 + float(time_budget_ms) / 1e3
-    prob = Problem(camera, light, samples, receivers, casters_bounds, resolution, gradient=gradient)
+    prob = Problem(camera, light, samples, receivers, casters_bounds, resolution, gradient=gradient, affine=affine)
     bases = start_maps(camera, light, receivers, casters_bounds, prob.resolution, starts)
     base_vals = {name: prob.eval_matrix(recentre(m.matrix, prob.ds.origin)) for name, m in bases.items()}
     xs = {name: _start_x(prob, m) for name, m in bases.items()}
@@ -313,7 +376,9 @@ def _run(method: str, prob: Problem, x: np.ndarray, maxiter: int) -> int:
         n = _nlopt(nlopt.GN_DIRECT_L, prob, x, lo, hi, maxeval=max(4 * maxiter, 60))
         # a short local polish from the best point DIRECT found (its boxes resolve slowly)
         return n + _nlopt(nlopt.LN_BOBYQA, prob, prob.best[1], lo, hi, maxeval=2 * maxiter, step=0.05)
-    return _nlopt(getattr(nlopt, name), prob, x, lo, hi, maxeval=(2 if name.startswith("LD") else 3) * maxiter)
+    if name.startswith("LD"):  # φ = 0 is a symmetric tie of the affine fit (f jumps there): start beside it
+        return _nlopt(getattr(nlopt, name), prob, np.asarray(x, float) + [1e-3, 0.0], lo, hi, maxeval=2 * maxiter)
+    return _nlopt(getattr(nlopt, name), prob, x, lo, hi, maxeval=3 * maxiter)
 
 
 def _nlopt(algo, prob: Problem, x, lo, hi, maxeval: int, step: float = 0.2) -> int:
@@ -340,7 +405,7 @@ def _nlopt(algo, prob: Problem, x, lo, hi, maxeval: int, step: float = 0.2) -> i
         opt.optimize(np.clip(np.asarray(x, float), lo, hi).tolist())
     except _Budget:
         raise
-    except (nlopt.RoundoffLimited, RuntimeError, ValueError):  # the problem keeps the best value seen
+    except Exception:  # nlopt's roundoff-limited or runtime errors: the problem keeps the best value seen
         pass
     return int(opt.get_numevals())
 
@@ -349,6 +414,8 @@ def _torch(name: str, prob: Problem, x, maxiter: int, lo, hi) -> int:
     import torch
 
     scale = max(abs(prob.best[0]), 1e-300)
+    # The baselines' φ = 0 is a symmetric tie of the affine fit (f jumps there): start just beside it.
+    x = np.asarray(x, float) + [1e-3, 0.0]
     p = torch.tensor(np.clip(x, lo, hi), dtype=torch.float64, requires_grad=True)
     lo_t, hi_t = torch.tensor(lo), torch.tensor(hi)
 
@@ -361,11 +428,18 @@ def _torch(name: str, prob: Problem, x, maxiter: int, lo, hi) -> int:
         return torch.tensor(fv / scale, dtype=torch.float64)
 
     if name == "lbfgs":
-        opt = torch.optim.LBFGS([p], lr=1.0, max_iter=maxiter, max_eval=2 * maxiter, tolerance_grad=1e-7,
-                                tolerance_change=1e-9, history_size=10, line_search_fn="strong_wolfe")
-        opt.step(closure)
-        prob.value(p.detach().numpy())
-        return int(opt.state[p].get("n_iter", 0))
+        nit = 0
+        for _ in range(3):  # restarts: a kink of the fit ends a strong-Wolfe search; a fresh history goes on
+            before = prob.best[0]
+            opt = torch.optim.LBFGS([p], lr=1.0, max_iter=maxiter, max_eval=2 * maxiter, tolerance_grad=1e-7,
+                                    tolerance_change=1e-9, history_size=10, line_search_fn="strong_wolfe")
+            opt.step(closure)
+            nit += int(opt.state[p].get("n_iter", 0))
+            with torch.no_grad():
+                p.copy_(torch.tensor(prob.best[1]))
+            if prob.best[0] > before * (1 - 1e-4):
+                break
+        return nit
     if name == "adam":
         opt = torch.optim.Adam([p], lr=0.05)
         for it in range(2 * maxiter):
