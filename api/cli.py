@@ -135,6 +135,8 @@ def cmd_bench(args) -> int:
 
     if args.bench == "coarse":
         result = benchmarks.bench_coarse(validate_rig, runs=args.runs, scenes=args.scenes, write=not args.no_write)
+    elif args.bench == "quality":
+        result = benchmarks.bench_quality(validate_rig, lights=args.lights, write=not args.no_write)
     else:  # argparse restricts choices
         raise CliError(f"unknown benchmark {args.bench!r}")
     if args.json:
@@ -318,7 +320,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_analyze)
 
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
-    sp.add_argument("bench", choices=["coarse"])
+    sp.add_argument("bench", choices=["coarse", "quality"])
+    sp.add_argument("--lights", type=int, default=None, help="quality: number of light directions")
     sp.add_argument("--runs", type=int, default=20, help="warm runs per scene (median reported)")
     sp.add_argument("--scenes", default=None, help="comma-separated scene names from configs/benchmarks.json")
     sp.add_argument("--no-write", action="store_true", help="do not update BENCHMARKS.md")

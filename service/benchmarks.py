@@ -118,3 +118,77 @@ def write_section(name: str, table: str, command: str) -> None:
     else:
         text = text.rstrip("\n") + f"\n\n## {name}\n\n{body}\n"
     BENCH_FILE.write_text(text)
+
+
+def hemisphere_directions(n: int, min_elevation_deg: float, seed: int):
+    """n light directions (the way light travels) uniform on the upper hemisphere above an elevation."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    zmin = np.sin(np.radians(min_elevation_deg))
+    y = rng.uniform(zmin, 1.0, n)  # uniform in height = uniform in solid angle
+    phi = rng.uniform(0, 2 * np.pi, n)
+    r = np.sqrt(1 - y * y)
+    return np.stack([-r * np.cos(phi), -y, -r * np.sin(phi)], axis=1)
+
+
+def bench_quality(validate_rig, lights: int | None = None, write: bool = True) -> dict:
+    """Chong & Gortler 2007 §3's protocol: N light directions on the upper hemisphere, misclassified
+    pixels per method against exact ray-traced visibility; totals, the worst-10% rows, setup time."""
+    import numpy as np
+
+    from ..renderers.ground_truth import evaluate_buffers
+    from ..service.rigs import resolve_rig
+    from ..service.scenes import SceneCache
+    from ..service.solve import maps_from_solution, solve
+
+    spec = definitions()["quality"]
+    n = lights or spec["lights"]
+    entry = SceneCache().get(ROOT / spec["scene"])
+    dirs = hemisphere_directions(n, spec["min_elevation_deg"], spec["seed"])
+    methods = spec["methods"]
+    mis = {m: [] for m in methods}
+    setup = {m: [] for m in methods}
+    bar = _progress(n * len(methods), "quality")
+    for d in dirs:
+        rig = validate_rig({"camera": {**spec["camera"], "resolution": spec["screen"]},
+                            "lights": [{"type": "directional", "direction": d.tolist()}],
+                            "shadow": {"resolution": spec["map"], "cascades": 1}})
+        resolved = resolve_rig(rig, entry.loaded)
+        for m in methods:
+            t0 = time.perf_counter()
+            sol = solve(entry, rig, method=m)
+            setup[m].append(sol["timings_ms"]["optimize"])
+            gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps_from_solution(sol)[0])
+            mis[m].append(gt.result["misclassified_pixels"])
+            bar.update(1)
+            del t0
+    bar.close()
+    arr = {m: np.array(v) for m, v in mis.items()}
+    ref = "optimized" if "optimized" in methods else methods[0]
+    k = max(1, n // 10)
+    rows = [("All %d" % n, np.arange(n))]
+    for m in methods:
+        rows.append((f"worst 10% by {m}", np.argsort(-arr[m])[:k]))
+    table_rows = []
+    for name, idx in rows:
+        cells = []
+        base = arr[ref][idx].sum()
+        for m in methods:
+            tot = int(arr[m][idx].sum())
+            cells.append(f"{tot}" if m == ref else f"{tot} ({100 * (tot - base) / max(base, 1):+.1f}%)")
+        table_rows.append((name, cells))
+    lines = ["| lights | " + " | ".join(methods) + " |", "|---|" + "---:|" * len(methods)]
+    lines += [f"| {name} | " + " | ".join(c) + " |" for name, c in table_rows]
+    lines.append("| setup ms (median) | " + " | ".join(f"{statistics.median(setup[m]):.1f}" for m in methods) + " |")
+    table = "\n".join(lines)
+    out = {"benchmark": "quality", "machine": machine(), "lights": n, "screen": spec["screen"], "map": spec["map"],
+           "scene": spec["scene"], "misclassified": {m: [int(v) for v in arr[m]] for m in methods},
+           "totals": {m: int(arr[m].sum()) for m in methods},
+           "setup_ms_p50": {m: statistics.median(setup[m]) for m in methods}, "table": table}
+    if write:
+        write_section("quality", f"Scene {spec['scene']}, screen {spec['screen'][0]}x{spec['screen'][1]}, "
+                      f"one {spec['map'][0]}x{spec['map'][1]} map, {n} sun directions uniform on the hemisphere "
+                      f"above {spec['min_elevation_deg']} deg; misclassified pixels (percent more than {ref}).\n\n"
+                      + table, f"shadowopt bench quality --lights {n}")
+    return out
