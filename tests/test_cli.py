@@ -124,3 +124,19 @@ def test_evaluate_refuses_a_solution_for_another_scene(tmp_path):
     sol_path.write_text("{}")
     p = run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, check=2)
     assert "not a shadowopt solution" in p.stderr
+
+
+def test_bench_quality_json_small_run():
+    res = json.loads(run("bench", "quality", "--lights", "2", "--no-write", "--json", check=0).stdout)
+    assert res["lights"] == 2 and set(res["totals"]) == {"uniform", "focused", "lispsm", "logpsm", "optimized"}
+    assert all(len(v) == 2 for v in res["misclassified"].values())
+    assert res["totals"]["uniform"] > res["totals"]["lispsm"]  # the classic ordering holds on the demo
+
+
+def test_hemisphere_directions_point_down_above_the_elevation():
+    from shadowopt.service.benchmarks import hemisphere_directions
+
+    d = hemisphere_directions(500, 5.0, 1)
+    assert np.allclose(np.linalg.norm(d, axis=1), 1.0)
+    assert np.all(-d[:, 1] >= np.sin(np.radians(5.0)) - 1e-12)
+    assert abs(np.mean(-d[:, 1]) - (1 + np.sin(np.radians(5))) / 2) < 0.05  # uniform in height
