@@ -172,17 +172,29 @@ def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | N
                       split_lambda=shadow.get("lambda", 0.5), texel_budget=shadow.get("texel_budget"),
                       receiver_slack=prob.receiver_slack)
         allow_log = bool(resolved.output.get("allow_log_warp", False))
-        if method == "optimized":
-            maps, info = optimized_maps(resolved.camera, prob.light, prob.samples, prob.receivers, (lo, hi),
-                                        allow_log=allow_log, solver=solver or DEFAULT_SOLVER,
-                                        time_budget_ms=time_budget_ms, **common)
-            solvers_json.append(info)
+
+        def maps_for(k: int):
+            opts = {**common, "cascades": k}
+            if method == "optimized":
+                return optimized_maps(resolved.camera, prob.light, prob.samples, prob.receivers, (lo, hi),
+                                      allow_log=allow_log, solver=solver or DEFAULT_SOLVER,
+                                      time_budget_ms=time_budget_ms, **opts)
+            return baseline(method, resolved.camera, prob.light, prob.receivers, (lo, hi),
+                            allow_log=allow_log or method == "logpsm", **opts), None
+
+        if shadow.get("cascades") == "auto":
+            maps, info, auto = auto_cascades(maps_for, prob, resolved.camera.position, shadow)
         else:
-            maps = baseline(method, resolved.camera, prob.light, prob.receivers, (lo, hi),
-                            allow_log=allow_log or method == "logpsm", **common)
+            (maps, info), auto = maps_for(common["cascades"]), None
+        if info is not None:
+            if auto is not None:
+                info["auto_cascades"] = auto
+            solvers_json.append(info)
         total, per_map = maps_error(maps, prob.samples, resolved.camera.position)
         per_light.append(light_json(prob.light, maps, total, per_map, resolved.output,
                                     entry.loaded.stage_to_world, prob.samples))
+        if auto is not None:
+            per_light[-1]["auto_cascades"] = auto
     t2 = time.perf_counter()
     timings = {"coarse": (t1 - t0) * 1e3, "optimize": (t2 - t1) * 1e3, "total": (t2 - t0) * 1e3}
     settings = {"method": method, "solver": solver or (DEFAULT_SOLVER if method == "optimized" else None),
@@ -192,6 +204,27 @@ def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | N
     if method == "optimized":
         sol["solver"] = solvers_json[0] if len(solvers_json) == 1 else {"lights": solvers_json}
     return sol
+
+
+def auto_cascades(maps_for, prob: LightProblem, origin, shadow: dict):
+    """`cascades: "auto"`: the smallest k up to max_cascades whose predicted p95_m meets target_p95_m;
+    without a target, the k with the least objective times texels (k maps of the same size)."""
+    target = shadow.get("target_p95_m")
+    kmax = int(shadow.get("max_cascades") or 4)
+    tried = []
+    best = None
+    for k in range(1, kmax + 1):
+        maps, info = maps_for(k)
+        err, _ = maps_error(maps, prob.samples, origin)
+        texels = sum(m.resolution[0] * m.resolution[1] for m in maps)
+        tried.append({"cascades": k, "p95_m": err["p95_m"], "objective": err["objective"], "texels": texels})
+        score = err["objective"] * texels
+        if target is not None and err["p95_m"] <= target:
+            return maps, info, {"chosen": k, "rule": f"smallest k with p95_m <= {target}", "tried": tried}
+        if best is None or score < best[0]:
+            best = (score, maps, info, k)
+    rule = "least objective x texels" if target is None else f"no k met p95_m <= {target}: least objective x texels"
+    return best[1], best[2], {"chosen": best[3], "rule": rule, "tried": tried}
 
 
 def _jsonable(d):

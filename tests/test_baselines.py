@@ -185,3 +185,17 @@ def test_texel_budget_allocation_spends_the_budget():
     total = sum(m.resolution[0] * m.resolution[1] for m in maps)
     assert 0.9 * 3 * 512 * 512 <= total <= 3 * 512 * 512
     assert maps[0].resolution[0] * maps[0].resolution[1] != maps[2].resolution[0] * maps[2].resolution[1]
+
+
+def test_auto_cascades_pick_the_smallest_k_meeting_the_target():
+    entry = scene()
+    light = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}
+    errs = [solve(entry, rig(CAM, light, cascades=k), "focused")["lights"][0]["predicted_error"]["p95_m"]
+            for k in (1, 2, 3)]
+    target = (errs[1] + errs[0]) / 2 if errs[1] < errs[0] else errs[1] * 1.01
+    r = rig(CAM, light, cascades="auto", max_cascades=3, target_p95_m=target)
+    sol = solve(entry, r, "focused")
+    auto = sol["lights"][0]["auto_cascades"]
+    expected = next(k for k, e in zip((1, 2, 3), errs) if e <= target)
+    assert auto["chosen"] == expected == len(sol["lights"][0]["cascades"])
+    assert [t["cascades"] for t in auto["tried"]] == list(range(1, expected + 1))
