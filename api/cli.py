@@ -163,7 +163,9 @@ def cmd_optimize(args) -> int:
 
     rig = load_rig(args.rig, args)
     entry = scene_entry(args.scene, **_scene_options(args))
-    sol = solve(entry, rig, method=args.method, solver=args.solver, time_budget_ms=args.time_budget_ms)
+    previous = _read_json(args.previous, "--previous") if args.previous else None
+    sol = solve(entry, rig, method=args.method, solver=args.solver, time_budget_ms=args.time_budget_ms,
+                previous=previous, hysteresis=args.hysteresis)
     errs = [l["predicted_error"] for l in sol["lights"]]
     summary = "; ".join(f"light {k}: {len(l['cascades'])} map(s), predicted p95 m {e['p95_m']:.3g}, "
                         f"median m {e['median_m']:.3g} over {e['samples']} samples"
@@ -286,6 +288,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "gradient:linesearch, gradient:lbfgs, gradient:adam, nlopt:LN_COBYLA, nlopt:LN_SBPLX, "
                     "nlopt:GN_DIRECT_L, nlopt:LD_MMA, nlopt:LD_LBFGS)")
     sp.add_argument("--time-budget-ms", type=float, default=None, help="return the best so far after this long")
+    sp.add_argument("--previous", default=None, metavar="FILE", help="the previous frame's solution: kept (refit) "
+                    "unless the new one's median h is below --hysteresis times its own (temporal stability)")
+    sp.add_argument("--hysteresis", type=float, default=0.8)
     sp.add_argument("--out", default=None, help="also write the solution JSON to this file")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_optimize)

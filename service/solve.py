@@ -154,7 +154,8 @@ def light_json(light, maps: list[ShadowMap], total: dict, per_map: list[dict], o
 
 
 def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | None = None,
-          time_budget_ms: float | None = None, **options) -> dict:
+          time_budget_ms: float | None = None, previous: dict | None = None, hysteresis: float = 0.8,
+          **options) -> dict:
     """The solution for `method` (a baseline name or "optimized") on a scene entry and validated rig dict."""
     if method not in METHODS:
         raise ValueError(f"method: unknown method {method!r} (known: {', '.join(METHODS)})")
@@ -165,7 +166,7 @@ def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | N
     lo, hi = entry.loaded.geometry.bounds()
     per_light = []
     solvers_json = []
-    for prob in light_problems(resolved, buffers, (lo, hi)):
+    for li, prob in enumerate(light_problems(resolved, buffers, (lo, hi))):
         common = dict(resolution=tuple(shadow.get("resolution") or (2048, 2048)),
                       cascades=shadow.get("cascades") if isinstance(shadow.get("cascades"), int) else 1,
                       splits=shadow.get("splits", "practical") if shadow.get("splits") != "optimized" else "practical",
@@ -178,7 +179,8 @@ def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | N
             if method == "optimized":
                 return optimized_maps(resolved.camera, prob.light, prob.samples, prob.receivers, (lo, hi),
                                       allow_log=allow_log, solver=solver or DEFAULT_SOLVER,
-                                      time_budget_ms=time_budget_ms, **opts)
+                                      time_budget_ms=time_budget_ms, previous_x=_previous_x(previous, li),
+                                      hysteresis=hysteresis, **opts)
             return baseline(method, resolved.camera, prob.light, prob.receivers, (lo, hi),
                             allow_log=allow_log or method == "logpsm", **opts), None
 
@@ -204,6 +206,17 @@ def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | N
     if method == "optimized":
         sol["solver"] = solvers_json[0] if len(solvers_json) == 1 else {"lights": solvers_json}
     return sol
+
+
+def _previous_x(previous: dict | None, light_index: int):
+    """The projective parameters per cascade of a previous `optimized` solution for one light."""
+    if not previous or "solver" not in previous:
+        return None
+    s = previous["solver"]
+    s = s["lights"][light_index] if "lights" in s else (s if light_index == 0 else None)
+    if not s:
+        return None
+    return [x if x else None for x in s.get("x", [])]
 
 
 def auto_cascades(maps_for, prob: LightProblem, origin, shadow: dict):

@@ -478,12 +478,17 @@ def _cg07_linesearch(prob: Problem, x: np.ndarray, maxiter: int) -> int:
 def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarray, casters_bounds,
                    resolution=(2048, 2048), cascades: int = 1, splits: str = "practical", split_lambda: float = 0.5,
                    texel_budget: int | None = None, allow_log: bool = False, solver: str = DEFAULT_METHOD,
-                   time_budget_ms: float | None = None, receiver_slack=None, x0=None):
+                   time_budget_ms: float | None = None, receiver_slack=None, x0=None, previous_x=None,
+                   hysteresis: float = 0.8):
     """`method: optimized`: per cascade, the optimized map or the best baseline, whichever the metric
     scores lower on that cascade's samples (so never worse than the best baseline). Returns
-    (maps, solver_json)."""
+    (maps, solver_json).
+
+    Temporal stability (Chong & Gortler 2007 §3): with `previous_x` (the previous solution's x per
+    cascade), the previous projective parameters are refit to the current receivers and kept unless
+    the new map's median h is below `hysteresis` x the refit one's."""
     from .baselines import METHODS as BASELINES
-    from .metric import predicted_error
+    from .metric import per_sample_maps, predicted_error
 
     if solver not in METHODS:
         raise ValueError(f"solver: unknown solver {solver!r} (known: {', '.join(METHODS)})")
@@ -514,6 +519,21 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
             if res.map is not None and res.fun < best_f:
                 best_map, best_f, best_name = res.map, res.fun, "optimized"
                 best_map.eta = None
+        prev = previous_x[k] if previous_x is not None and k < len(previous_x) else None
+        if prev is not None and isinstance(light, DirectionalLight) and len(sub) > 0 and len(receivers) > 0:
+            refit = Problem(camera, light, sub, receivers[sel_r], casters_bounds, rmap.resolution).map_for(
+                np.asarray(prev, dtype=np.float64))
+            h_new, _, _ = per_sample_maps([best_map], sub, camera.position)
+            h_old, _, _ = per_sample_maps([refit], sub, camera.position)
+            med_new, med_old = float(np.median(h_new)), float(np.median(h_old))
+            keep = not (med_new < hysteresis * med_old)
+            entry["temporal"] = {"previous_x": [float(v) for v in prev], "median_h_new": med_new,
+                                 "median_h_previous_refit": med_old, "hysteresis": hysteresis, "kept_previous": keep}
+            if keep:
+                best_map, best_name = refit, "optimized"
+                best_f = float(predicted_error([refit], sub, camera.position)["objective"])
+                if "result" in entry:
+                    entry["result"]["x"] = [float(v) for v in prev]
         best_map.split = rmap.split
         if best_name == "optimized":
             best_map.resolution = rmap.resolution

@@ -180,3 +180,28 @@ def test_oblique_light_on_a_short_plane():
     assert m.max() / m.mean() <= 1.1
     _, mf, _ = per_sample(baseline("focused", cam, light, pts, BOUNDS)[0], DeviceSamples(s, cam.position))
     assert mf.max() / mf.mean() > 2
+
+
+def test_temporal_stability_keeps_the_previous_setup_unless_clearly_better():
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("tb", Path(__file__).with_name("test_baselines.py"))
+    tb = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tb)
+    entry = tb.scene()
+    light = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}
+    from shadowopt.service.solve import solve
+
+    first = tb.solve(entry, tb.rig(tb.CAM, light), "optimized")
+    # The camera moves a little: the refit previous setup is kept (no jump) ...
+    moved = {**tb.CAM, "position": (0.05, 1.7, 0.05)}
+    again = solve(entry, tb.rig(moved, light), "optimized", previous=first)
+    t = again["solver"]["cascades"][0].get("temporal")
+    if first["solver"]["x"][0]:
+        assert t is not None and t["kept_previous"] == (t["median_h_new"] >= 0.8 * t["median_h_previous_refit"])
+    # ... and a previous setup that is far off (no warp at all) is replaced by a clearly better one.
+    bad = {"solver": {"x": [[0.0, 0.0]]}}
+    fresh = solve(entry, tb.rig(tb.CAM, {"type": "directional", "direction": (0.0, -1.0, 0.0)}), "optimized", previous=bad)
+    tt = fresh["solver"]["cascades"][0]["temporal"]
+    assert tt["median_h_new"] < 0.8 * tt["median_h_previous_refit"] and not tt["kept_previous"]
