@@ -1,4 +1,4 @@
-"""Lloyd et al. 2007 scene-independent analysis against the paper's Table 3."""
+"""Lloyd et al. 2007 scene-independent analysis against the paper's Table 3 and hand-derived closed forms."""
 from __future__ import annotations
 
 import json
@@ -9,12 +9,15 @@ from pathlib import Path
 
 import pytest
 
-from shadowopt.solvers.analysis import analyze
-from shadowopt.solvers.warp import eta_shaping, n_prime_from_eta
+from shadowopt.solvers import warp
+from shadowopt.solvers.analysis import analyze, n_prime_from_eta
+from shadowopt.solvers.warp import eta_shaping
 
-# Table 3 minima (f/n = 1000, θ = 30°, γ = 90°), S without the 1/cos²θ factor.
+# Table 3 minima (f/n = 1000, θ = 30°, at γ = 90°), S without the 1/cos²θ factor. The ZP5+P row's
+# max/mean are inconsistent in the source (digest); its minimum 12.9 is what is tested.
 TABLE3 = [("uniform", 1, 8.65e5), ("perspective", 1, 865), ("log", 1, 5.98), ("uniform", 5, 51.4),
-          ("perspective", 5, 12.9), ("uniform", 7, 27.4), ("perspective", 7, 10.2), ("log", 5, 5.98), ("log", 7, 5.98)]
+          ("perspective", 5, 12.9), ("uniform", 7, 27.4), ("perspective", 7, 10.2),
+          ("log", 5, 5.98), ("log", 7, 5.98)]
 
 
 @pytest.mark.parametrize("method, k, expected", TABLE3)
@@ -22,32 +25,100 @@ def test_table3_minima(method, k, expected):
     assert analyze(1000, 30, 90, method, k)["S"] == pytest.approx(expected, rel=0.005)
 
 
-def test_closed_form_critical_factors_at_overhead():
+def test_table3_minima_are_x_over_2_tan_theta():
+    # digest B5 note: minima = X / (2 tan θ); check the exact closed forms, another f/n and θ too
+    for a, th_deg in ((1000.0, 30.0), (50.0, 45.0)):
+        d = 2 * math.tan(math.radians(th_deg))
+        r5 = a ** 0.2
+        assert analyze(a, th_deg, 90, "uniform")["S"] == pytest.approx(a * (a - 1) / d, rel=1e-9)
+        assert analyze(a, th_deg, 90, "perspective")["S"] == pytest.approx((a - 1) / d, rel=1e-9)
+        assert analyze(a, th_deg, 90, "log")["S"] == pytest.approx(math.log(a) / d, rel=1e-9)
+        assert analyze(a, th_deg, 90, "uniform", 5)["S"] == pytest.approx(5 * r5 * (r5 - 1) / d, rel=1e-9)
+        assert analyze(a, th_deg, 90, "perspective", 5)["S"] == pytest.approx(5 * (r5 - 1) / d, rel=1e-9)
+
+
+def test_whole_frustum_critical_factors_at_overhead():
+    # uniform map over the frustum seen from above: W_ly = f - n, W_lx = 2 f tan θ, δ_b = 2 sin θ d_e
     a, th = 1000.0, math.radians(30)
-    assert analyze(a, 30, 90, "uniform")["R_t"] == pytest.approx((a - 1) / math.sin(2 * th))
-    assert analyze(a, 30, 90, "log")["R_t"] == pytest.approx(math.log(a) / math.sin(2 * th))
+    u = analyze(a, 30, 90, "uniform")
+    assert u["R_t"] == pytest.approx((a - 1) / (2 * math.sin(th)))
+    assert u["R_s"] == pytest.approx(a / math.cos(th))
+    lg = analyze(a, 30, 90, "log")
+    assert lg["R_t"] == pytest.approx(math.log(a) / (2 * math.sin(th)))
+    assert lg["R_s"] == pytest.approx(1 / math.cos(th))
+    p = analyze(a, 30, 90, "perspective")  # LiSPSM's n' = n + sqrt(nf): both ends of t balanced
+    assert p["R_t"] == pytest.approx((a - 1) / (2 * math.sin(th) * math.sqrt(a)))
+    assert p["R_s"] == pytest.approx(math.sqrt(a) / math.cos(th))
+    for r in (u, lg, p):  # S is R_s R_t without the 1/cos²θ factor
+        assert r["S"] == pytest.approx(r["R_s"] * r["R_t"] * math.cos(th) ** 2)
 
 
-def test_ordering_and_finiteness_over_all_light_angles():
+def test_partitions_add_storage_and_take_max_factors():
+    one = analyze(1000, 30, 60, "log", 1)
+    k3 = analyze(1000, 30, 60, "log", 3)
+    parts = [analyze(10.0, 30, 60, "log", 1)] * 3  # equal ratio partitions: each f/n = 10, scale free
+    assert k3["S"] == pytest.approx(sum(p["S"] for p in parts), rel=1e-9)
+    assert k3["R_t"] == pytest.approx(parts[0]["R_t"], rel=1e-9)
+    assert k3["S"] < one["S"]
+
+
+def test_ordering_at_overhead_and_warps_off_near_the_view_axis():
     s = {m: analyze(1000, 30, 90, m)["S"] for m in ("uniform", "perspective", "log")}
     assert s["log"] < s["perspective"] < s["uniform"]
-    for g in (0, 0.5, 1, 30, 60, 120, 179, 179.5, 180):
-        for m in ("uniform", "perspective", "log"):
-            r = analyze(1000, 30, g, m, 3)
-            assert all(math.isfinite(v) and v > 0 for v in r.values()), (g, m, r)
+    for g in (0, 5, 175, 180):  # η = -1 there (eq. 79): every method is the uniform map
+        u = analyze(1000, 30, g, "uniform")["S"]
+        assert analyze(1000, 30, g, "perspective")["S"] == pytest.approx(u)
+        assert analyze(1000, 30, g, "log")["S"] == pytest.approx(u)
+    # light along the view axis: the map covers the far face, W_lx = W_ly = 2 f tan θ, and the central
+    # ray enters at the near plane (d_min = n): R_s = R_t = (f/n)/cos θ, so S (without 1/cos²θ) = (f/n)²
+    assert analyze(1000, 30, 0, "uniform")["S"] == pytest.approx(1000.0 ** 2, rel=1e-9)
 
 
-def test_eta_conversion_and_shaping_corner_values():
+def test_table3_standard_maximum_over_light_directions():
+    # Table 3 "Max S" of the Standard row: 2.00e6, reached for a light along the view axis over a frustum edge
+    worst = max(analyze(1000, 30, g, "uniform", azimuth_deg=45)["S"] for g in (0, 10, 30, 60, 90, 180))
+    assert worst == pytest.approx(2.00e6, rel=0.005)
+
+
+@pytest.mark.parametrize("gamma", [0, 1e-6, 0.5, 1, 30, 60, 120, 179, 179.5, 180 - 1e-6, 180])
+@pytest.mark.parametrize("method", ["uniform", "perspective", "log"])
+def test_finite_over_all_light_angles(gamma, method):
+    for k in (1, 3):
+        for a in (1000, 1e5):
+            r = analyze(a, 30, gamma, method, k)
+            assert set(r) == {"R_s", "R_t", "S"}
+            assert all(math.isfinite(v) and v > 0 for v in r.values()), (gamma, method, k, a, r)
+
+
+def test_rejects_bad_input():
+    for args in ((1.0, 30, 90, "log"), (1000, 0, 90, "log"), (1000, 30, 181, "log"), (1000, 30, -1, "log"),
+                 (1000, 30, 90, "lispsm")):
+        with pytest.raises(ValueError):
+            analyze(*args)
+    with pytest.raises(ValueError, match="partitions"):
+        analyze(1000, 30, 90, "log", 0)
+
+
+def test_n_prime_from_eta_corner_values():
     n, f = 1.0, 100.0
-    assert n_prime_from_eta(-1, n, f) == math.inf
+    inf = n_prime_from_eta(-1, n, f)
+    assert inf == math.inf or inf > 1e12
     assert n_prime_from_eta(0, n, f) == pytest.approx(n + math.sqrt(n * f))
-    assert n_prime_from_eta(1, n, f) == pytest.approx(n)
-    assert n_prime_from_eta(-0.5, n, f) > n_prime_from_eta(0, n, f)
+    assert n_prime_from_eta(1, n, f, W_ly=f - n) == pytest.approx(n)
+    assert n_prime_from_eta(1, 2.0, 50.0) == pytest.approx(2.0)
+    assert n_prime_from_eta(-0.5, n, f) > n_prime_from_eta(0, n, f) > n_prime_from_eta(0.5, n, f)
+    # eq. 120 is linear in W_ly, and the analysis uses the same function as the baselines
+    assert n_prime_from_eta(0.3, n, f, W_ly=2 * (f - n)) == pytest.approx(2 * n_prime_from_eta(0.3, n, f))
+    assert n_prime_from_eta(0.3, n, f, W_ly=7.0) == warp.n_prime_from_eta(0.3, n, f, 7.0)
+
+
+def test_eta_shaping_corner_values():
     th = 30.0
     assert eta_shaping(th / 2 - 1, th) == -1.0
     assert eta_shaping(th, th) == pytest.approx(-0.2)
     assert eta_shaping(th + 0.4 * (90 - th), th) == pytest.approx(1.0)
     assert eta_shaping(90, th) == 1.0 and eta_shaping(180 - 5, th) == -1.0  # folded: light behind
+    assert eta_shaping(90, th, "p") == 0.0
 
 
 def test_cli_analyze_json():

@@ -4,10 +4,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shadowopt.solvers.conventions import (clip_from_canonical, export_matrices, from_layout, texture_matrix,
-                                           to_layout)
-from shadowopt.solvers.fitting import ortho
+from shadowopt.solvers.conventions import (CONVENTIONS, clip_from_canonical, export_matrices, from_layout,
+                                           projection_for, texture_from_clip, texture_matrix, to_layout,
+                                           to_stage_frame)
+from shadowopt.solvers.fitting import frustum, ortho
 from shadowopt.solvers.frames import stage_to_world
+from shadowopt.solvers.shadow_map import ShadowMap
 
 
 def project(m, p):
@@ -15,7 +17,11 @@ def project(m, p):
     return h[:3] / h[3]
 
 
-def test_each_convention_clip_space():
+# Light 10 m above the origin looking straight down (-Y): light view (x, y, z) = (x, -z, y - 10).
+LIGHT_DOWN = np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, -10], [0, 0, 0, 1]])
+
+
+def test_each_convention_clip_space_ortho():
     P = ortho(-2, 2, -1, 1, 1, 11)  # x in [-2,2], y in [-1,1], distance in [1, 11]
     near_top_right = np.array([2.0, 1.0, -1.0])
     far_bottom_left = np.array([-2.0, -1.0, -11.0])
@@ -24,6 +30,31 @@ def test_each_convention_clip_space():
     assert np.allclose(project(d3d, near_top_right), [1, 1, 0]) and np.allclose(project(d3d, far_bottom_left), [-1, -1, 1])
     vk = clip_from_canonical("vulkan") @ P
     assert np.allclose(project(vk, near_top_right), [1, -1, 0]) and np.allclose(project(vk, far_bottom_left), [-1, 1, 1])
+    assert np.array_equal(clip_from_canonical("opengl"), np.eye(4))
+
+
+def test_each_convention_ndc_of_a_perspective_point():
+    # glFrustum(-1, 1, -1, 1, 1, 3); view point (0.5, 0.25, -2), w = 2:
+    # x = 0.5/2 = 0.25, y = 0.25/2 = 0.125, z = (-(3+1)/(3-1) * -2 - 2*3*1/(3-1)) / 2 = (4 - 3)/2 = 0.5
+    P = frustum(-1, 1, -1, 1, 1, 3)
+    p = np.array([0.5, 0.25, -2.0])
+    expected = {"opengl": [0.25, 0.125, 0.5],
+                "d3d": [0.25, 0.125, 0.75],      # depth (z + 1)/2
+                "vulkan": [0.25, -0.125, 0.75]}  # depth (z + 1)/2 and y flipped
+    for conv, ndc in expected.items():
+        assert np.allclose(project(projection_for(P, conv), p), ndc), conv
+    # texture (s, t, depth): opengl t = (y+1)/2, depth (z+1)/2; d3d and vulkan t = (1 - y_gl)/2, depth z_d3d
+    tex = {"opengl": [0.625, 0.5625, 0.75], "d3d": [0.625, 0.4375, 0.75], "vulkan": [0.625, 0.4375, 0.75]}
+    for conv, st in tex.items():
+        assert np.allclose(project(texture_matrix(np.eye(4), P, conv), p), st), conv
+
+
+@pytest.mark.parametrize("conv", CONVENTIONS)
+def test_depth_range_near_and_far_planes(conv):
+    P = frustum(-1, 1, -1, 1, 1, 3)
+    lo = -1.0 if conv == "opengl" else 0.0
+    assert project(projection_for(P, conv), [0.0, 0.0, -1.0])[2] == pytest.approx(lo)
+    assert project(projection_for(P, conv), [0.0, 0.0, -3.0])[2] == pytest.approx(1.0)
 
 
 @pytest.mark.parametrize("conv, top_right_st, bottom_left_st", [
@@ -32,13 +63,33 @@ def test_each_convention_clip_space():
     ("vulkan", (1, 0), (0, 1)),  # NDC y down: origin top-left
 ])
 def test_texture_matrix_maps_frustum_corners(conv, top_right_st, bottom_left_st):
-    view = np.eye(4)
     P = ortho(-2, 2, -1, 1, 1, 11)
-    T = texture_matrix(view, P, conv)
-    tr = project(T, np.array([2.0, 1.0, -1.0]))
-    bl = project(T, np.array([-2.0, -1.0, -11.0]))
+    T = texture_matrix(LIGHT_DOWN, P, conv)
+    # world points of the light frustum: light-view (2, 1, -1) is world (2, 9, -1); (-2, -1, -11) is (-2, -1, 1)
+    tr = project(T, np.array([2.0, 9.0, -1.0]))
+    bl = project(T, np.array([-2.0, -1.0, 1.0]))
+    mid = project(T, np.array([0.0, 4.0, 0.0]))
     assert np.allclose(tr[:2], top_right_st) and np.allclose(bl[:2], bottom_left_st)
     assert tr[2] == pytest.approx(0.0) and bl[2] == pytest.approx(1.0)  # depth in [0, 1] near to far
+    assert np.allclose(mid, [0.5, 0.5, 0.5])
+    # the chain is exactly S · C · P · V
+    assert np.allclose(T, texture_from_clip(conv) @ clip_from_canonical(conv) @ P @ LIGHT_DOWN)
+
+
+@pytest.mark.parametrize("conv", CONVENTIONS)
+def test_texture_coordinates_agree_with_the_internal_map(conv):
+    # ShadowMap.map_coords is the internal (OpenGL) s, t; top-left conventions see t mirrored
+    rng = np.random.default_rng(3)
+    P = frustum(-0.7, 0.4, -0.5, 0.6, 2, 40)
+    view = LIGHT_DOWN
+    sm = ShadowMap(view, P, (512, 512))
+    pts = np.column_stack([rng.uniform(-3, 3, 50), rng.uniform(-25, 5, 50), rng.uniform(-3, 3, 50)])
+    s, t, z, _ = sm.map_coords(pts)
+    T = texture_matrix(view, P, conv)
+    got = np.array([project(T, p) for p in pts])
+    assert np.allclose(got[:, 0], s)
+    assert np.allclose(got[:, 1], t if conv == "opengl" else 1.0 - t)
+    assert np.allclose(got[:, 2], (z + 1) / 2)  # depth in [0, 1] in every convention
 
 
 def test_layout_round_trip_and_memory_order():
@@ -49,19 +100,49 @@ def test_layout_round_trip_and_memory_order():
         assert np.array_equal(from_layout(to_layout(m, lay), lay), m)
     with pytest.raises(ValueError, match="layout"):
         to_layout(m, "diagonal")
+    with pytest.raises(ValueError, match="16"):
+        from_layout(list(range(12)), "row_major")
+    # an OpenGL ortho's translation sits at memory indices 12, 13, 14 in column-major (glUniformMatrix4fv)
+    P = ortho(0, 4, 0, 2, 1, 11)
+    flat = to_layout(P, "column_major")
+    assert flat[12:15] == pytest.approx([-1.0, -1.0, -1.2]) and flat[3] == 0.0
+    assert to_layout(P, "row_major")[3] == pytest.approx(-1.0)
 
 
-def test_stage_frame_matrices_act_on_stage_coordinates():
+def test_export_matrices_layout_and_convention():
+    P = frustum(-1, 1, -1, 1, 1, 3)
+    out = export_matrices(LIGHT_DOWN, P, "vulkan", "row_major", "world")
+    assert set(out) == {"view_matrix", "projection_matrix", "texture_matrix"}
+    assert all(len(v) == 16 for v in out.values())
+    assert np.allclose(from_layout(out["view_matrix"], "row_major"), LIGHT_DOWN)
+    assert np.allclose(from_layout(out["projection_matrix"], "row_major"), clip_from_canonical("vulkan") @ P)
+    col = export_matrices(LIGHT_DOWN, P, "vulkan", "column_major", "world")
+    for key in out:
+        assert np.allclose(from_layout(col[key], "column_major"), from_layout(out[key], "row_major"))
+    for bad in (dict(convention="metal"), dict(layout="diagonal"), dict(frame="camera")):
+        args = dict(convention="opengl", layout="row_major", frame="world") | bad
+        with pytest.raises(ValueError):
+            export_matrices(LIGHT_DOWN, P, **args)
+
+
+@pytest.mark.parametrize("conv", CONVENTIONS)
+def test_stage_frame_matrices_act_on_stage_coordinates(conv):
     s2w = stage_to_world("Z", 0.01)  # Z up, centimetres
-    view = np.eye(4)
-    view[:3, 3] = [1.0, -2.0, 3.0]
-    P = ortho(-5, 5, -5, 5, 0.1, 50)
-    world = export_matrices(view, P, "opengl", "row_major", "world")
-    stage = export_matrices(view, P, "opengl", "row_major", "stage", s2w)
+    view = LIGHT_DOWN.copy()
+    view[:3, 3] += [1.0, -2.0, 3.0]
+    P = frustum(-5, 5, -5, 5, 0.1, 50)
+    world = export_matrices(view, P, conv, "row_major", "world")
+    stage = export_matrices(view, P, conv, "row_major", "stage", s2w)
     p_stage = np.array([120.0, -40.0, 250.0])  # cm, Z up
-    p_world = np.array([1.2, 2.5, 0.4])  # (x, z, -y) / 100
+    p_world = np.array([1.2, 2.5, 0.4])  # (x, z, -y) / 100, by hand
+    assert np.allclose(s2w @ np.append(p_stage, 1), np.append(p_world, 1))
     for key in ("view_matrix", "texture_matrix"):
         a = from_layout(world[key], "row_major") @ np.append(p_world, 1)
         b = from_layout(stage[key], "row_major") @ np.append(p_stage, 1)
         assert np.allclose(a, b)
+    # the stage matrix differs from the world one (it really takes centimetres, Z up)
+    assert not np.allclose(world["view_matrix"], stage["view_matrix"])
     assert world["projection_matrix"] == stage["projection_matrix"]
+    # frame "stage" without a conversion: the stage is the world frame
+    assert export_matrices(view, P, conv, "row_major", "stage") == world
+    assert np.allclose(to_stage_frame(view, np.eye(4)), view)
