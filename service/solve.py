@@ -146,6 +146,13 @@ def light_json(light, maps: list[ShadowMap], total: dict, per_map: list[dict], o
                                  output.get("layout", "column_major"), output.get("frame", "world"),
                                  stage_to_world))
         d["predicted_error"] = err
+        lo_z, hi_z = smap.split
+        if smap.face is None and len(maps) > 1 and smap is not maps[-1]:
+            # Blend into the next cascade over the last 10% of this one's depth range (engines:
+            # three.js CSM, Bevy's overlap 0.2); 0 for the last cascade and for single maps.
+            d["blend_band"] = [float(hi_z - 0.1 * (hi_z - lo_z)), float(hi_z)]
+        else:
+            d["blend_band"] = None
         # Exact (world, column-vector, canonical OpenGL) matrices so `evaluate` reads back what was chosen.
         d["internal"] = {"view": smap.view.tolist(), "projection": smap.projection.tolist()}
         cascades.append(d)

@@ -205,3 +205,28 @@ def test_temporal_stability_keeps_the_previous_setup_unless_clearly_better():
     fresh = solve(entry, tb.rig(tb.CAM, {"type": "directional", "direction": (0.0, -1.0, 0.0)}), "optimized", previous=bad)
     tt = fresh["solver"]["cascades"][0]["temporal"]
     assert tt["median_h_new"] < 0.8 * tt["median_h_previous_refit"] and not tt["kept_previous"]
+
+
+def test_optimized_is_never_worse_than_any_baseline_on_random_suns():
+    """Property test on the demo scene: for random sun directions, `optimized` predicts no more
+    error than the best baseline on the same samples (the baselines are among its candidates)."""
+    import json
+    from pathlib import Path
+
+    from shadowopt.api.cli import validate_rig
+    from shadowopt.service.benchmarks import hemisphere_directions
+    from shadowopt.service.pipeline import scene_entry
+    from shadowopt.service.solve import solve
+
+    repo = Path(__file__).resolve().parents[1]
+    entry = scene_entry(repo / "configs" / "demo_scene.usda")
+    for d in hemisphere_directions(4, 10.0, seed=7):
+        rig = validate_rig({"camera": {"usd_path": "/World/Camera", "resolution": [640, 360]},
+                            "lights": [{"type": "directional", "direction": d.tolist()}],
+                            "shadow": {"resolution": [512, 512], "cascades": 2}})
+        best = min(solve(entry, rig, m)["lights"][0]["predicted_error"]["objective"]
+                   for m in ("uniform", "focused", "lispsm"))
+        opt = solve(entry, rig, "optimized")
+        assert opt["lights"][0]["predicted_error"]["objective"] <= best * (1 + 1e-9)
+        bands = [c["blend_band"] for c in opt["lights"][0]["cascades"]]
+        assert bands[-1] is None and bands[0][1] == opt["lights"][0]["cascades"][0]["split"][1]
