@@ -135,6 +135,8 @@ def cmd_bench(args) -> int:
 
     if args.bench == "coarse":
         result = benchmarks.bench_coarse(validate_rig, runs=args.runs, scenes=args.scenes, write=not args.no_write)
+    elif args.bench == "solvers":
+        result = benchmarks.bench_solvers(validate_rig, lights=args.lights or 5, write=not args.no_write)
     elif args.bench == "quality":
         result = benchmarks.bench_quality(validate_rig, lights=args.lights, write=not args.no_write)
     else:  # argparse restricts choices
@@ -325,7 +327,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_analyze)
 
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
-    sp.add_argument("bench", choices=["coarse", "quality"])
+    sp.add_argument("bench", choices=["coarse", "quality", "solvers"])
     sp.add_argument("--lights", type=int, default=None, help="quality: number of light directions")
     sp.add_argument("--runs", type=int, default=20, help="warm runs per scene (median reported)")
     sp.add_argument("--scenes", default=None, help="comma-separated scene names from configs/benchmarks.json")

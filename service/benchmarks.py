@@ -192,3 +192,53 @@ def bench_quality(validate_rig, lights: int | None = None, write: bool = True) -
                       f"above {spec['min_elevation_deg']} deg; misclassified pixels (percent more than {ref}).\n\n"
                       + table, f"shadowopt bench quality --lights {n}")
     return out
+
+
+def bench_solvers(validate_rig, lights: int = 5, write: bool = True) -> dict:
+    """Speed against error per solver (a Pareto table): optimization time (coarse buffers excluded)
+    and the objective reached relative to the best any solver reached, median over sun directions,
+    on the demo scene and the chess set (when ../shared is present)."""
+    import numpy as np
+
+    from ..service.rigs import resolve_rig
+    from ..service.scenes import SceneCache
+    from ..service.solve import light_problems
+    from ..service.pipeline import coarse_pass
+    from ..solvers.optimize import METHODS, minimize
+
+    spec = definitions()["coarse"]["scenes"]
+    results, lines = {}, []
+    for name in ("demo", "chess_set"):
+        path = (ROOT / spec[name]["path"]).resolve()
+        if not path.exists():
+            continue
+        entry = SceneCache().get(path)
+        lo, hi = entry.loaded.geometry.bounds()
+        per = {m: {"ms": [], "rel": []} for m in METHODS}
+        for d in hemisphere_directions(lights, 15.0, 3):
+            rig = validate_rig({**spec[name]["rig"], "lights": [{"type": "directional", "direction": d.tolist()}],
+                                "shadow": {"resolution": [1024, 1024], "cascades": 1}})
+            resolved, buffers = coarse_pass(entry, rig)
+            prob = light_problems(resolved, buffers, (lo, hi))[0]
+            minimize(resolved.camera, prob.light, prob.samples, prob.receivers, (lo, hi), (1024, 1024))  # warm-up
+            funs = {}
+            for m in METHODS:
+                r = minimize(resolved.camera, prob.light, prob.samples, prob.receivers, (lo, hi), (1024, 1024), m)
+                per[m]["ms"].append(r.time_ms)
+                funs[m] = r.fun
+            best = min(funs.values())
+            for m in METHODS:
+                per[m]["rel"].append(funs[m] / best)
+        results[name] = {m: {"time_ms_p50": float(np.median(v["ms"])), "objective_over_best_p50": float(np.median(v["rel"])),
+                             "objective_over_best_max": float(np.max(v["rel"]))} for m, v in per.items()}
+        lines.append(f"**{name}** ({lights} sun directions, one 1024² map):\n")
+        lines.append("| solver | time p50 (ms) | objective / best p50 | worst |")
+        lines.append("|---|---:|---:|---:|")
+        for m, r in sorted(results[name].items(), key=lambda kv: kv[1]["time_ms_p50"]):
+            lines.append(f"| {m} | {r['time_ms_p50']:.1f} | {r['objective_over_best_p50']:.3f} | {r['objective_over_best_max']:.3f} |")
+        lines.append("")
+    table = "\n".join(lines)
+    out = {"benchmark": "solvers", "machine": machine(), "scenes": results, "table": table}
+    if write:
+        write_section("solvers", table, f"shadowopt bench solvers --lights {lights}")
+    return out
