@@ -327,7 +327,8 @@ def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receiver
     t0 = time.perf_counter()
     deadline = None if time_budget_ms is None else t0 + float(time_budget_ms) / 1e3
     prob = Problem(camera, light, samples, receivers, casters_bounds, resolution, gradient=gradient, affine=affine)
-    bases = start_maps(camera, light, receivers, casters_bounds, prob.resolution, starts)
+    # The starts fit the same hull vertices as the problem: the same min/max, a fraction of the points.
+    bases = start_maps(camera, light, prob.fit_pts, casters_bounds, prob.resolution, starts)
     base_vals = {name: prob.eval_matrix(recentre(m.matrix, prob.ds.origin)) for name, m in bases.items()}
     xs = {name: _start_x(prob, m) for name, m in bases.items()}
     if x0 is not None:
