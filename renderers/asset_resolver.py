@@ -7,7 +7,10 @@
   the archive, URLs and search paths are refused, and usdz entries with traversal names are refused
   before USD opens the archive.
 Refused paths are never opened: the loader drops them from (copies of) the layers that name them.
-Decisions here are pure functions of strings and folder names; nothing is read.
+Variable expressions (`"${VAR}.usda"` in backquotes) are refused whenever a restriction applies,
+since what they resolve to is only known inside USD.
+Decisions here are pure functions of strings and folder names; nothing is read (except the zip
+directory in `unsafe_usdz_entries` / `usdz_entries`).
 """
 from __future__ import annotations
 
@@ -43,11 +46,15 @@ def check_asset_path(asset_path: str, anchor: str, mode: str, asset_root: str | 
         return False, "empty asset path"
     if mode not in ("local", "sandbox"):
         raise ValueError(f"mode must be 'local' or 'sandbox', got {mode!r}")
+    if mode == "local" and asset_root is None:
+        return True, "ok"
+    if asset_path.lstrip().startswith("`"):
+        return False, f"{asset_path!r} is a variable expression, which cannot be checked before USD evaluates it"
+    if "\x00" in asset_path:
+        return False, f"{asset_path!r} contains a NUL character"
     if _URL.match(asset_path) and not os.path.isabs(asset_path):
         return False, f"{asset_path!r} is a URL"
     if mode == "local":
-        if asset_root is None:
-            return True, "ok"
         pkg, _ = split_package_path(asset_path)
         anchor_pkg, _ = split_package_path(anchor)
         base = os.path.dirname(os.path.abspath(anchor_pkg))
@@ -70,12 +77,19 @@ def check_asset_path(asset_path: str, anchor: str, mode: str, asset_root: str | 
     return True, "ok"
 
 
+def is_unsafe_entry_name(name: str) -> bool:
+    """A zip entry name that is absolute, names a drive, or climbs out with '..'."""
+    norm = posixpath.normpath(name.replace("\\", "/"))
+    return (name.startswith(("/", "\\")) or norm == ".." or norm.startswith("../")
+            or re.match(r"^[A-Za-z]:", name) is not None or "\x00" in name)
+
+
+def usdz_entries(path: str) -> list[str]:
+    """Entry names of a .usdz (zip) archive in archive order (the first one is USD's root layer)."""
+    with zipfile.ZipFile(path) as z:
+        return z.namelist()
+
+
 def unsafe_usdz_entries(path: str) -> list[str]:
     """Entry names of a .usdz (zip) archive that are absolute or climb out with '..'."""
-    bad = []
-    with zipfile.ZipFile(path) as z:
-        for name in z.namelist():
-            norm = posixpath.normpath(name.replace("\\", "/"))
-            if name.startswith(("/", "\\")) or norm.startswith("..") or re.match(r"^[A-Za-z]:", name):
-                bad.append(name)
-    return bad
+    return [n for n in usdz_entries(path) if is_unsafe_entry_name(n)]

@@ -61,8 +61,10 @@ ZP5+Log row, digest [Src-defect]); its minimum 12.9 is what this gives. The prod
 equal Lloyd's min S_p = (f/n - 1)/sin 2θ (§5). Away from 90° the same model gives, over all γ and φ,
 a largest S cos²θ of exactly 2 (f/n)² = 2.00e6 for the standard map (at γ = 0, φ = 45°), Table 3's
 "Max S" of the Standard row; for P and Log it gives 2.00e6 too (their warps are off there), Table 3
-lists 1.99e6 for Log and 3.65e6 for P (Lloyd's P falls below uniform quality somewhere that this
-model, with the fitted warp frame above, does not reproduce). The s-direction warp keeps its centre
+lists 1.99e6 for Log and 3.65e6 for P. That P value contradicts the paper's own text next to the
+table ("in contrast to Po, our improved shaping function for the warping parameter keeps the maximum
+error of P below that of a standard shadow map"), which this model agrees with; the P and Po maxima
+(3.65e6 vs 1.99e6) look swapped in the source. Only the minima are tested. The s-direction warp keeps its centre
 at x = 0 (symmetric about the light's y axis, exact for φ = 0; slightly conservative otherwise). Note these R's are the whole-frustum factors (one map
 per frustum), not the per-face factors of eqs. 87-89 (R^side_un,t = (a - 1)/sin 2θ): those describe
 face partitioning (FP), which this function does not model.
@@ -73,24 +75,18 @@ import math
 
 import numpy as np
 
-from . import warp as _warp
 from .warp import eta_shaping
+# Lloyd et al. 2007 eq. 120 (η -> n'), defined once in solvers.warp and re-exported here: the
+# baselines (LiSPSM/LogPSM) and this analysis call the very same function. The seed prints eq. 120
+# garbled ("√(α+1)" and, for η >= 0, "√(α+1)/(η√(α+1))", which would be 1/η and infinite at η = 0);
+# used instead, the digest's reconstruction (B3), which reproduces the three anchors the paper states
+# (n'(-1) = ∞, n'(0) = n_e + sqrt(n_e f_e), n'(1) = n_e for W_ly = f_e - n_e), with α = f_e/n_e:
+#     η < 0:  n' = W_ly/(α-1) · (√α + 1 - η(α-1)) / (η + 1)
+#     η >= 0: n' = W_ly/(α-1) · (√α + 1) / (η√α + 1)
+from .warp import n_prime_from_eta  # noqa: F401  (public: analysis.n_prime_from_eta)
 
 METHODS = ("uniform", "perspective", "log")
 FACE_SAMPLES = 49  # samples per edge of each frustum face (vertices and edges included)
-
-
-def n_prime_from_eta(eta: float, n_e: float, f_e: float, W_ly: float | None = None) -> float:
-    """Lloyd et al. 2007 eq. 120 (the η -> n' conversion; the seed's layout is garbled, this is the
-    digest's reconstruction, B3): with α = f_e/n_e and W = W_ly (default f_e - n_e, the overhead light)
-        η < 0:  n' = W/(α-1) · (√α + 1 - η(α-1)) / (η + 1)
-        η >= 0: n' = W/(α-1) · (√α + 1) / (η√α + 1)
-    η = -1 -> ∞ (uniform), η = 0 -> n_e + sqrt(n_e f_e) (LiSPSM), η = 1 -> n_e (PSM-like), for W = f_e - n_e.
-
-    The formula lives once, in solvers.warp.n_prime_from_eta (the baselines use it too); this is the
-    same function under the analysis API's argument names.
-    """
-    return _warp.n_prime_from_eta(eta, n_e, f_e, W_ly)
 
 
 def _frustum_corners(n: float, f: float, tan_t: float) -> np.ndarray:

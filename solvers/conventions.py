@@ -11,6 +11,9 @@ with t = 0 at the bottom. Each step an engine needs is one small function:
                                "Hardware Shadow Mapping" chain S · P_light · V_light)
     to_layout / from_layout    4x4 <-> 16 floats in row- or column-major memory order
     to_stage_frame(M, s2w)     M · stage_to_world: the same map, acting on the stage's own coordinates
+    from_stage_frame(M', s2w)  M' · stage_to_world⁻¹: its inverse (back to a matrix acting on world points)
+    stage_from(M, s2w)         (M · stage_to_world)⁻¹: the inverse for points, X (light view, clip or
+                               texture coordinates, homogeneous) -> stage coordinates
     export_matrices(...)       all of the above, as the service returns them
 
 Conventions:
@@ -117,6 +120,19 @@ def to_stage_frame(m_world: np.ndarray, stage_to_world: np.ndarray) -> np.ndarra
     (solvers.frames.stage_to_world(up_axis, meters_per_unit)). Only matrices whose input is a world
     point change: view and texture matrices, not the projection (its input is light view space)."""
     return _mat4(m_world) @ _mat4(stage_to_world, "stage_to_world")
+
+
+def from_stage_frame(m_stage: np.ndarray, stage_to_world: np.ndarray) -> np.ndarray:
+    """Inverse of to_stage_frame: a stage -> X matrix back to world -> X, m_stage @ inv(stage_to_world)."""
+    return _mat4(m_stage) @ np.linalg.inv(_mat4(stage_to_world, "stage_to_world"))
+
+
+def stage_from(m_world: np.ndarray, stage_to_world: np.ndarray) -> np.ndarray:
+    """The inverse for points: X -> stage coordinates, inv(m_world @ stage_to_world)
+    = inv(stage_to_world) @ inv(m_world). For a view matrix X is light view space (affine: w stays 1);
+    for a projection or texture chain feed homogeneous X and divide the result by its w
+    (e.g. texel centre (s, t, depth, 1) -> the stage point it samples)."""
+    return np.linalg.inv(to_stage_frame(m_world, stage_to_world))
 
 
 def export_matrices(view: np.ndarray, proj_canonical: np.ndarray, convention: str = "opengl",

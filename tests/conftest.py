@@ -7,17 +7,19 @@ from pathlib import Path
 
 import pytest
 
-os.environ.setdefault("DRJIT_LIBLLVM_PATH", "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1") if os.path.exists(
-    "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1") else None
+_LLVM = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
+if os.path.exists(_LLVM):
+    os.environ.setdefault("DRJIT_LIBLLVM_PATH", _LLVM)
 
 REPO = Path(__file__).resolve().parents[1]
-USD_ASSETS = REPO.parent / "shared" / "usd-assets"
+USD_ASSETS = Path(__file__).resolve().parents[2] / "shared" / "usd-assets"
 
 
 @pytest.fixture(scope="session")
 def usd_assets() -> Path:
     if not USD_ASSETS.is_dir():
-        pytest.skip(f"{USD_ASSETS} is absent: these tests read the USD working group's assets from ../shared/usd-assets")
+        pytest.skip(f"../shared/usd-assets is absent: these tests read the USD working group's assets from "
+                    f"{USD_ASSETS} (next to the repository; they are never copied into it)")
     return USD_ASSETS
 
 

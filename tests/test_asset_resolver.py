@@ -6,7 +6,8 @@ import zipfile
 import pytest
 from pxr import Usd, UsdGeom
 
-from shadowopt.renderers.asset_resolver import check_asset_path, unsafe_usdz_entries
+from shadowopt.renderers.asset_resolver import check_asset_path, is_unsafe_entry_name, unsafe_usdz_entries
+from shadowopt.renderers.scene_data import SceneError
 from shadowopt.renderers.usd_loader import load_scene
 
 # A layer that USD could not parse: if it were ever read, a parse error would appear in the warnings.
@@ -32,10 +33,17 @@ def test_decisions_are_pure_and_name_the_reason(tmp_path):
     assert check_asset_path("sub/x.usda", anchor, "local", asset_root=str(tmp_path))[0]
     ok, why = check_asset_path("x.usda", anchor, "sandbox")
     assert not ok and "single-file" in why
+    ok, why = check_asset_path('`"${X}.usda"`', anchor, "local", asset_root=str(tmp_path))
+    assert not ok and "expression" in why
     arc = str(tmp_path / "up.usdz")
     assert check_asset_path("geo/x.usda", arc + "[root.usda]", "sandbox", archive=arc)[0]
+    assert check_asset_path("../x.usda", arc + "[geo/root.usda]", "sandbox", archive=arc)[0]  # still inside
+    for name, bad in [("a/b.usda", False), ("../a.usda", True), ("/abs.usda", True), ("a/../../b", True),
+                      ("C:/x.usda", True), ("..", True), ("..foo.usda", False)]:
+        assert is_unsafe_entry_name(name) is bad, name
     for bad, reason in [("/etc/passwd", "absolute"), ("../evil.usda", "leaves"), ("geo/../../e.usda", "leaves"),
-                        ("http://host/x.usda", "URL")]:
+                        ("http://host/x.usda", "URL"), ('`"${X}.usda"`', "expression"),
+                        ("C:/Windows/x.usda", "URL"), ("sub/x.usdz[y.usda]", "package")]:
         ok, why = check_asset_path(bad, arc + "[root.usda]", "sandbox", archive=arc)
         assert not ok and reason in why, (bad, why)
 
@@ -54,17 +62,85 @@ def test_local_mode_follows_parent_folders_unless_an_asset_root_says_no(tmp_path
 
 
 def test_sandboxed_single_file_opens_nothing_else(tmp_path):
+    up = tmp_path / "upload"
+    up.mkdir()
     (tmp_path / "poison.usda").write_text(POISON)
-    (tmp_path / "sibling.usda").write_text(CUBE.format(name="Sibling"))
-    scene = scene_with_refs(tmp_path / "up" / "scene.usda" if False else tmp_path / "scene.usda",
-                            ["./sibling.usda", "../poison.usda", str(tmp_path / "poison.usda")])
+    (tmp_path / "outside.usda").write_text(CUBE.format(name="Outside"))
+    (up / "sibling.usda").write_text(CUBE.format(name="Sibling"))
+    (up / "payload.usda").write_text(CUBE.format(name="Payload"))
+    scene = scene_with_refs(up / "scene.usda", ["./sibling.usda", "../poison.usda", "../outside.usda",
+                                                 str(tmp_path / "outside.usda"), "/etc/passwd"])
+    stage = Usd.Stage.Open(str(scene))
+    stage.GetRootLayer().subLayerPaths.append("../outside.usda")
+    stage.DefinePrim("/Pay").GetPayloads().AddPayload("./payload.usda")
+    stage.GetRootLayer().Save()
+    del stage
     sc = load_scene(scene, sandbox=True)
-    assert sc.geometry.prim_paths == ["/Own"]
+    assert sc.geometry.prim_paths == ["/Own"]  # none of the other files' geometry
     text = " | ".join(sc.warnings)
-    assert "sibling.usda" in text and "poison.usda" in text and "was not read" in text
-    assert "parse error" not in text  # the poisoned layer was never opened
-    # Without the sandbox the same file does read its sibling (and chokes on the poison).
-    assert "/Ref0" in load_scene(scene).geometry.prim_paths
+    for name in ("./sibling.usda", "../poison.usda", "../outside.usda", "/etc/passwd", "./payload.usda"):
+        assert f"@{name}@" in text, name
+    assert "was not read" in text and "parse error" not in text  # the poisoned layer was never opened
+    # Control: without the sandbox the same file does read them (and chokes on the poison).
+    free = load_scene(scene)
+    assert {"/Ref0", "/Ref2", "/Ref3", "/Outside", "/Pay"} <= set(free.geometry.prim_paths)
+    assert any("parse error" in w for w in free.warnings)
+
+
+CLIP_SCENE = """#usda 1.0
+(
+ metersPerUnit = 1
+ expressionVariables = { string WHICH = "../poison" }
+)
+def Mesh "C" (
+  clips = {
+    dictionary default = {
+      asset[] assetPaths = [@./clip.usda@]
+      string primPath = "/C"
+      double2[] active = [(0, 0)]
+    }
+  }
+) {
+  int[] faceVertexCounts = [3]
+  int[] faceVertexIndices = [0,1,2]
+}
+def Cube "Own" {
+  double size = 1
+}
+def "Expr" (
+  references = @`"${WHICH}.usda"`@
+) {
+}
+"""
+
+
+def test_sandbox_refuses_value_clips_and_variable_expressions(tmp_path):
+    d = tmp_path / "scene"
+    d.mkdir()
+    (d / "clip.usda").write_text(
+        '#usda 1.0\ndef Mesh "C" {\n point3f[] points.timeSamples = { 0: [(0,0,0),(9,0,0),(0,9,0)] }\n}\n')
+    (d / "scene.usda").write_text(CLIP_SCENE)
+    (tmp_path / "poison.usda").write_text(CUBE.format(name="Poison"))
+    free = load_scene(d / "scene.usda", time_code=0)
+    assert free.geometry.bounds()[1][0] == pytest.approx(9.0)  # control: the clip supplies the points
+    assert "/Expr" in free.geometry.prim_paths  # and the expression reaches ../poison.usda
+    sc = load_scene(d / "scene.usda", time_code=0, sandbox=True)
+    assert sc.geometry.prim_paths == ["/Own"]  # /C has no points of its own: they were in the clip
+    text = " | ".join(sc.warnings)
+    assert "clip.usda" in text and "value clip" in text and "variable expression" in text
+    # with an asset root, the clip inside it is read but the expression is refused
+    rooted = load_scene(d / "scene.usda", time_code=0, asset_root=str(d))
+    assert rooted.geometry.bounds()[1][0] == pytest.approx(9.0) and rooted.geometry.prim_paths == ["/C", "/Own"]
+    assert any("variable expression" in w for w in rooted.warnings)
+
+
+def test_asset_root_refuses_outside_folders_on_a_real_asset(usd_assets):
+    chess = usd_assets / "full_assets/OpenChessSet/chess_set.usda"
+    only_pawn = load_scene(chess, asset_root=str(usd_assets / "full_assets/OpenChessSet/assets/Pawn"))
+    assert only_pawn.geometry.prim_paths and all("/Pawn" in p for p in only_pawn.geometry.prim_paths)
+    assert any("Bishop.usd" in w and "outside the asset root" in w for w in only_pawn.warnings)
+    sub = usd_assets / "test_assets/foundation/stage_composition/subLayer"
+    assert load_scene(sub / "sublayer_parent_folder.usda", asset_root=str(sub.parent)).geometry.triangle_count > 0
 
 
 def _usdz(path, entries: dict[str, str]):
@@ -88,3 +164,22 @@ def test_sandboxed_usdz_reads_its_own_entries_only(tmp_path):
     assert "/Own" in sc.geometry.prim_paths and "/Inside" in sc.geometry.prim_paths
     assert "/Climb" not in sc.geometry.prim_paths and "/Abs" not in sc.geometry.prim_paths
     assert "unsafe names" in text and "../evil.usda" in text and "parse error" not in text
+
+
+def test_sandboxed_usdz_whose_root_entry_climbs_out_is_refused(tmp_path):
+    arc = _usdz(tmp_path / "evil.usdz", {"../root.usda": CUBE.format(name="Box")})
+    with pytest.raises(SceneError) as e:
+        load_scene(arc, sandbox=True)
+    assert e.value.code == "unsafe_archive" and "evil.usdz" in e.value.message
+
+
+def test_usdz_made_by_usd_itself_loads_in_the_sandbox(tmp_path):
+    from pxr import UsdUtils
+
+    (tmp_path / "geo").mkdir()
+    (tmp_path / "geo" / "box.usda").write_text(CUBE.format(name="Box"))
+    scene_with_refs(tmp_path / "main.usda", ["./geo/box.usda"])
+    assert UsdUtils.CreateNewUsdzPackage(str(tmp_path / "main.usda"), str(tmp_path / "pkg.usdz"))
+    sc = load_scene(tmp_path / "pkg.usdz", sandbox=True)
+    assert sorted(sc.geometry.prim_paths) == ["/Own", "/Ref0"]
+    assert not any("refused" in w for w in sc.warnings)

@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shadowopt.solvers.conventions import (CONVENTIONS, clip_from_canonical, export_matrices, from_layout,
-                                           projection_for, texture_from_clip, texture_matrix, to_layout,
-                                           to_stage_frame)
-from shadowopt.solvers.fitting import frustum, ortho
+from shadowopt.solvers import fitting
+from shadowopt.solvers.conventions import (CONVENTIONS, LAYOUTS, clip_from_canonical, export_matrices,
+                                           from_layout, from_stage_frame, projection_for, stage_from,
+                                           texture_from_clip, texture_matrix, to_layout, to_stage_frame)
 from shadowopt.solvers.frames import stage_to_world
 from shadowopt.solvers.shadow_map import ShadowMap
 
@@ -15,6 +15,86 @@ from shadowopt.solvers.shadow_map import ShadowMap
 def project(m, p):
     h = m @ np.append(p, 1.0)
     return h[:3] / h[3]
+
+
+# The canonical projections, written out from the OpenGL reference pages (glOrtho, glFrustum), so these
+# tests do not depend on the code under test or on solvers.fitting (whose agreement is checked below).
+def ortho(l, r, b, t, n, f):
+    return np.array([[2 / (r - l), 0, 0, -(r + l) / (r - l)],
+                     [0, 2 / (t - b), 0, -(t + b) / (t - b)],
+                     [0, 0, -2 / (f - n), -(f + n) / (f - n)],
+                     [0, 0, 0, 1.0]])
+
+
+def frustum(l, r, b, t, n, f):
+    return np.array([[2 * n / (r - l), 0, (r + l) / (r - l), 0],
+                     [0, 2 * n / (t - b), (t + b) / (t - b), 0],
+                     [0, 0, -(f + n) / (f - n), -2 * f * n / (f - n)],
+                     [0, 0, -1.0, 0]])
+
+
+def test_project_projections_are_the_canonical_opengl_ones():
+    # the canonical clip space the conventions start from is what solvers.fitting builds
+    assert np.allclose(fitting.ortho(-2, 3, -1, 4, 0.5, 20), ortho(-2, 3, -1, 4, 0.5, 20))
+    assert np.allclose(fitting.frustum(-0.7, 0.4, -0.5, 0.6, 2, 40), frustum(-0.7, 0.4, -0.5, 0.6, 2, 40))
+
+
+@pytest.mark.parametrize("P", [ortho(-3, 2, -1, 2, 0.5, 30), frustum(-0.7, 0.4, -0.5, 0.6, 0.2, 80)])
+def test_random_points_each_convention_ndc(P):
+    # canonical NDC (x, y, z) -> opengl (x, y, z); d3d (x, y, (z+1)/2); vulkan (x, -y, (z+1)/2)
+    rng = np.random.default_rng(11)
+    pts = np.column_stack([rng.uniform(-2, 2, 200), rng.uniform(-2, 2, 200), -rng.uniform(0.5, 30, 200)])
+    for p in pts:
+        x, y, z = project(P, p)
+        assert np.allclose(project(projection_for(P, "opengl"), p), [x, y, z])
+        assert np.allclose(project(projection_for(P, "d3d"), p), [x, y, (z + 1) / 2])
+        assert np.allclose(project(projection_for(P, "vulkan"), p), [x, -y, (z + 1) / 2])
+        # texture coordinates from the canonical NDC, by the documented formulas
+        st = {"opengl": [(x + 1) / 2, (y + 1) / 2, (z + 1) / 2],
+              "d3d": [(x + 1) / 2, (1 - y) / 2, (z + 1) / 2],
+              "vulkan": [(x + 1) / 2, (1 - y) / 2, (z + 1) / 2]}
+        for conv in CONVENTIONS:
+            assert np.allclose(project(texture_matrix(np.eye(4), P, conv), p), st[conv]), conv
+        # the w row never changes: the perspective divide is the same in every convention
+        for conv in CONVENTIONS:
+            assert np.allclose(projection_for(P, conv)[3], P[3])
+
+
+def test_clip_and_bias_matrices_by_hand():
+    assert np.array_equal(clip_from_canonical("d3d"), [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, .5, .5], [0, 0, 0, 1]])
+    assert np.array_equal(clip_from_canonical("vulkan"), [[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, .5, .5], [0, 0, 0, 1]])
+    assert np.array_equal(texture_from_clip("opengl"), [[.5, 0, 0, .5], [0, .5, 0, .5], [0, 0, .5, .5], [0, 0, 0, 1]])
+    assert np.array_equal(texture_from_clip("d3d"), [[.5, 0, 0, .5], [0, -.5, 0, .5], [0, 0, 1, 0], [0, 0, 0, 1]])
+    assert np.array_equal(texture_from_clip("vulkan"), [[.5, 0, 0, .5], [0, .5, 0, .5], [0, 0, 1, 0], [0, 0, 0, 1]])
+    for bad in ("metal", "OpenGL", ""):
+        with pytest.raises(ValueError, match="convention"):
+            clip_from_canonical(bad)
+        with pytest.raises(ValueError, match="convention"):
+            texture_from_clip(bad)
+
+
+# (plane of the light's ortho frustum, which texture coordinate, its value per convention)
+_PLANES = [("left", 0, {"opengl": 0, "d3d": 0, "vulkan": 0}), ("right", 0, {"opengl": 1, "d3d": 1, "vulkan": 1}),
+           ("bottom", 1, {"opengl": 0, "d3d": 1, "vulkan": 1}), ("top", 1, {"opengl": 1, "d3d": 0, "vulkan": 0}),
+           ("near", 2, {"opengl": 0, "d3d": 0, "vulkan": 0}), ("far", 2, {"opengl": 1, "d3d": 1, "vulkan": 1})]
+
+
+@pytest.mark.parametrize("conv", CONVENTIONS)
+@pytest.mark.parametrize("plane, axis, value", _PLANES)
+def test_texture_matrix_on_light_frustum_planes(conv, plane, axis, value):
+    # light 10 m above the origin looking down; ortho x in [-2, 2], y in [-1, 1], distance in [1, 11]:
+    # light view (x, y, z) is world (x, 10 + z, -y). Random points on each plane of that box.
+    P = ortho(-2, 2, -1, 1, 1, 11)
+    rng = np.random.default_rng(5)
+    x, y, d = rng.uniform(-2, 2, 30), rng.uniform(-1, 1, 30), rng.uniform(1, 11, 30)
+    x = {"left": np.full(30, -2.0), "right": np.full(30, 2.0)}.get(plane, x)
+    y = {"bottom": np.full(30, -1.0), "top": np.full(30, 1.0)}.get(plane, y)
+    d = {"near": np.full(30, 1.0), "far": np.full(30, 11.0)}.get(plane, d)
+    world = np.column_stack([x, 10.0 - d, -y])
+    T = texture_matrix(LIGHT_DOWN, P, conv)
+    got = np.array([project(T, p) for p in world])
+    assert np.allclose(got[:, axis], value[conv])
+    assert np.all((got > -1e-12) & (got < 1 + 1e-12))  # inside the box: everything in [0, 1]
 
 
 # Light 10 m above the origin looking straight down (-Y): light view (x, y, z) = (x, -z, y - 10).
@@ -146,3 +226,33 @@ def test_stage_frame_matrices_act_on_stage_coordinates(conv):
     # frame "stage" without a conversion: the stage is the world frame
     assert export_matrices(view, P, conv, "row_major", "stage") == world
     assert np.allclose(to_stage_frame(view, np.eye(4)), view)
+
+
+def test_stage_frame_inverses():
+    s2w = stage_to_world("Z", 0.01)  # world = 0.01 (x, z, -y) of the stage point
+    view = LIGHT_DOWN.copy()
+    view[:3, 3] += [1.0, -2.0, 3.0]  # light view = (x + 1, -z - 2, y - 7)
+    st = to_stage_frame(view, s2w)
+    assert np.allclose(from_stage_frame(st, s2w), view)
+    # by hand: the light sits at world (-1, 7, -2); light view (0, 0, -1) is world (-1, 6, -2), i.e. the
+    # stage point 100 (x, -z, y) = (-100, 200, 600) cm
+    assert np.allclose(view @ np.array([-1.0, 7.0, -2.0, 1.0]), [0, 0, 0, 1])
+    assert np.allclose(stage_from(view, s2w) @ np.array([0.0, 0.0, -1.0, 1.0]), [-100, 200, 600, 1])
+    assert np.allclose(stage_from(view, s2w) @ st, np.eye(4))
+    # the texture chain's inverse for a point: the centre texel at depth 0.75 (NDC z 0.5 -> distance 2 for
+    # glFrustum n = 1, f = 3: (2d - 3)/d = 0.5) is light view (0, 0, -2) = world (-1, 5, -2) = stage
+    # (-100, 200, 500); homogeneous, so divide by w
+    P = frustum(-1, 1, -1, 1, 1, 3)
+    for conv in CONVENTIONS:
+        h = stage_from(texture_matrix(view, P, conv), s2w) @ np.array([0.5, 0.5, 0.75, 1.0])
+        assert np.allclose(h[:3] / h[3], [-100, 200, 500]), conv
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_layout_round_trip_random(layout):
+    m = np.random.default_rng(2).normal(size=(4, 4))
+    flat = to_layout(m, layout)
+    assert isinstance(flat, list) and len(flat) == 16 and all(isinstance(v, float) for v in flat)
+    assert np.array_equal(from_layout(flat, layout), m)
+    other = "column_major" if layout == "row_major" else "row_major"
+    assert np.array_equal(from_layout(flat, other), m.T)  # reading in the wrong order transposes
