@@ -13,10 +13,16 @@
    (`ShadowMap.texel_rays`: the segment between z_ndc = -1 and +1, i.e. clipped to the light's depth
    range as a rasterizer clips; warped and log parameterizations alike). The map stores
    d_occluder = distance (m) from the texel's near point to the first hit, +inf when none.
+   The texel-centre rays are generated inside Dr.Jit (float64 inverse of P V with the RayScene's
+   re-centring folded in, the log warp inverted on t; the same math as `ShadowMap.texel_rays`, which
+   tests/test_ground_truth.py checks), RAY_CHUNK rays per launch, all changing numbers opaque: one
+   compiled kernel serves every map and camera (a 2048^2 map is ~0.2 s on 2 cores).
    Pancaking (directional lights only, as engines clamp casters with GL_DEPTH_CLAMP / "shadow
    pancaking"): a caster between the light and the near plane is clamped to the near plane,
    d_occluder = 0. Pass `pancake=False` for a strict rasterizer clip.
-4. Shadow test, as an engine does it: the cascade serving the pixel's view depth
+4. Shadow test (in Dr.Jit float64 for every hit pixel and map: `ShadowMap.map_coords`, nearest texel,
+   that texel's ray, the map's d_occluder gathered on the device; `shadow_test` is the NumPy
+   reference it is tested against), as an engine does it: the cascade serving the pixel's view depth
    (`map_for_depth`; for cube faces, the first face whose map contains the point), nearest texel
    (no filtering), d_receiver = distance of X along that texel's ray from its near point, and
 
@@ -52,8 +58,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..solvers.cameras import Camera
-from ..solvers.jit import aligned
 from ..solvers.lights import DirectionalLight, Light
+from ..solvers.jit import aligned
 from ..solvers.metric import DET_FLOOR, error_stats
 from ..solvers.shadow_map import ShadowMap, map_for_depth
 from .coarse import DEPTH_CONTINUITY, _camera_rays, _clipped_hits, _geometric_normal, _light_test, boundary_mask
@@ -188,71 +194,180 @@ def render_screen(rs: RayScene, camera: Camera, light: Light) -> ScreenBuffers:
     return ScreenBuffers(width, height, hit_np, position, normal, depth, prim, vis_np, fac_np, inl_np)
 
 
-def _texel_grid(smap: ShadowMap, rows: slice | None = None):
+def _recentre(origin: np.ndarray) -> np.ndarray:
+    """Re-centred -> world: x_world = x + origin (4x4)."""
+    m = np.eye(4)
+    m[:3, 3] = np.asarray(origin, dtype=np.float64)
+    return m
+
+
+def _opaque_matrix(mi, dr, m: np.ndarray):
+    return [[dr.opaque(mi.Float64, float(m[r, c])) for c in range(4)] for r in range(4)]
+
+
+def _device_rays_through(mi, dr, smap: ShadowMap, A, s, t):
+    """`ShadowMap.texel_rays` in Dr.Jit Float64: the light ray through map coordinates (s, t) (log
+    warp inverted), between z_ndc = -1 and +1. A = inverse of the re-centred world -> clip matrix.
+    Returns (near, direction, length) in re-centred coordinates."""
+    F64 = mi.Float64
+    if smap.log_warp is not None:
+        lw = smap.log_warp
+        c0, c1, c2 = (dr.opaque(F64, float(c)) for c in (lw.c0, lw.c1, lw.c2))
+        t = (dr.exp(t / c0) - c2) / c1
+    x = 2.0 * s - 1.0
+    y = 2.0 * t - 1.0
+    # h(z) = A @ (x, y, z, 1) = base + z * A[:, 2]
+    base = [A[r][0] * x + A[r][1] * y + A[r][3] for r in range(4)]
+    near_h = [base[r] - A[r][2] for r in range(4)]
+    far_h = [base[r] + A[r][2] for r in range(4)]
+    near = [near_h[r] / near_h[3] for r in range(3)]
+    far = [far_h[r] / far_h[3] for r in range(3)]
+    seg = [far[r] - near[r] for r in range(3)]
+    length = dr.sqrt(seg[0] * seg[0] + seg[1] * seg[1] + seg[2] * seg[2])
+    inv_len = dr.select(length > 0, 1.0 / length, 0.0)
+    dirn = [seg[r] * inv_len for r in range(3)]
+    return near, dirn, length
+
+
+def _inverse_matrix(smap: ShadowMap, origin: np.ndarray) -> np.ndarray:
+    """NDC (x, y, z, 1) -> homogeneous re-centred point: inv(P V) then the re-centring (float64)."""
+    return np.linalg.inv(_recentre(origin)) @ np.linalg.inv(smap.matrix)
+
+
+def _device_texel_rays(mi, dr, smap: ShadowMap, origin: np.ndarray, first, count: int):
+    """Texel-centre rays for texels first .. first + count - 1 (row-major, row j = t index).
+    Every number that changes between maps (matrix, resolution, log warp, chunk start) is opaque:
+    one kernel serves all maps. Returns (near, direction, length, texel index)."""
+    F64 = mi.Float64
+    U32 = mi.UInt32
     w, h = smap.resolution
-    j0, j1 = (0, h) if rows is None else (rows.start, rows.stop)
-    jj, ii = np.meshgrid(np.arange(j0, j1), np.arange(w), indexing="ij")
-    return (ii.ravel() + 0.5) / w, (jj.ravel() + 0.5) / h
+    A = _opaque_matrix(mi, dr, _inverse_matrix(smap, origin))
+    idx = dr.arange(U32, count) + first
+    j = idx // dr.opaque(U32, int(w))
+    i = idx - j * dr.opaque(U32, int(w))
+    s = (F64(i) + 0.5) / dr.opaque(F64, float(w))
+    t = (F64(j) + 0.5) / dr.opaque(F64, float(h))
+    return _device_rays_through(mi, dr, smap, A, s, t) + (idx,)
 
 
-def _device_floats(mi, a: np.ndarray):
-    """A Dr.Jit Float from NumPy data in an aligned buffer (solvers.jit.aligned: no recompilation)."""
-    return mi.Float(aligned(np.asarray(a).ravel(), np.float32))
+def _device_map(rs: RayScene, light: Light, smap: ShadowMap, pancake: bool = True):
+    """d_occluder per texel as a Dr.Jit Float64 array (row-major, row j = t index).
+
+    One Dr.Jit launch per RAY_CHUNK texels: the texel-centre rays are generated on the device
+    (float64, then the ray itself in float32), started where they enter the scene's bounding sphere,
+    cast with `ray_intersect_preliminary`; for directional lights a backwards `ray_test` from the
+    near plane finds casters in front of it (pancaking)."""
+    mi = mitsuba()
+    import drjit as dr
+
+    F64 = mi.Float64
+    w, h = smap.resolution
+    n_total = int(w) * int(h)
+    radius = 0.5 * rs.extent * (1.0 + 1e-4) + 1e-6
+    do_pancake = pancake and isinstance(light, DirectionalLight)
+    chunk = max(int(w), (RAY_CHUNK // max(int(w), 1)) * int(w))
+    # Each chunk scatters into one buffer at opaque offsets (dr.concat would compile a kernel per
+    # combination of chunk sizes).
+    out = dr.full(F64, dr.inf, n_total)
+    for first in range(0, n_total, chunk):
+        count = min(chunk, n_total - first)
+        near, dirn, length, idx = _device_texel_rays(mi, dr, smap, rs.origin, dr.opaque(mi.UInt32, first), count)
+        ok = dr.isfinite(length) & (length > 0)
+        for r in range(3):
+            ok &= dr.isfinite(near[r])
+        # Start each ray where it enters the scene's bounding sphere (centred on the re-centred
+        # origin): nothing is hit before it, and float32 origins stay close to the geometry.
+        proj = -(near[0] * dirn[0] + near[1] * dirn[1] + near[2] * dirn[2])
+        rad = dr.opaque(F64, radius)
+        zero = dr.opaque(F64, 0.0)
+        safe_len = dr.select(ok, length, zero)
+        t0 = dr.clip(proj - rad, zero, safe_len)
+        t1 = dr.minimum(safe_len, proj + rad)
+        ok &= t1 > t0
+        org = mi.Point3f(*(mi.Float(near[r] + t0 * dirn[r]) for r in range(3)))
+        d32 = mi.Vector3f(*(mi.Float(dirn[r]) for r in range(3)))
+        maxt = mi.Float(dr.select(ok, t1 - t0, zero))
+        ray = mi.Ray3f(org, d32)
+        ray.maxt = maxt
+        active = ok & (maxt > 0)
+        pi = rs.scene.ray_intersect_preliminary(ray, coherent=False, active=active)
+        valid = pi.is_valid() & active
+        d_occ = dr.select(valid, F64(pi.t) + t0, dr.inf)
+        if do_pancake:
+            blocked = rs.scene.ray_test(mi.Ray3f(org, -d32), active & (t0 <= zero))
+            d_occ = dr.select(blocked, zero, d_occ)
+        d_occ = dr.select(ok, d_occ, dr.inf)
+        dr.scatter(out, d_occ, idx)
+        dr.eval(out)
+    return out
 
 
 def render_map(rs: RayScene, light: Light, smap: ShadowMap, pancake: bool = True) -> np.ndarray:
     """d_occluder (m) per texel, (height, width) float64, row j = t index (t = 0 at the bottom)."""
+    w, h = smap.resolution
+    return np.asarray(_device_map(rs, light, smap, pancake).numpy(), dtype=np.float64).reshape(h, w)
+
+
+def _device_points(mi, a: np.ndarray):
+    """(N, 3) float64 NumPy -> three Dr.Jit Float64 (aligned copies: no recompilation)."""
+    a = np.asarray(a, dtype=np.float64)
+    return [mi.Float64(aligned(a[:, k], np.float64)) for k in range(3)]
+
+
+def _device_map_coords(mi, dr, smap: ShadowMap, origin: np.ndarray, X):
+    """`ShadowMap.map_coords` in Dr.Jit Float64 for re-centred points X: (s, t, z_ndc, w)."""
+    M = _opaque_matrix(mi, dr, smap.matrix @ _recentre(origin))
+    c = [M[r][0] * X[0] + M[r][1] * X[1] + M[r][2] * X[2] + M[r][3] for r in range(4)]
+    s = (c[0] / c[3] + 1.0) * 0.5
+    t = (c[1] / c[3] + 1.0) * 0.5
+    z = c[2] / c[3]
+    if smap.log_warp is not None:
+        lw = smap.log_warp
+        c0, c1, c2 = (dr.opaque(mi.Float64, float(v)) for v in (lw.c0, lw.c1, lw.c2))
+        t = c0 * dr.log(c1 * t + c2)
+    return s, t, z, c[3]
+
+
+def _device_lookup(rs: RayScene, light: Light, smap: ShadowMap, d_occ, X, N, tolerance: float):
+    """The engine's shadow test (module doc, step 4) in Dr.Jit for re-centred points X with unit
+    normals N (lists of three Float64). Returns NumPy (shadowed, inside, u, v): u, v the texel
+    coordinates s * width, t * height (NaN where clip w <= 0)."""
     mi = mitsuba()
     import drjit as dr
 
+    F64 = mi.Float64
     w, h = smap.resolution
-    out = np.full((h, w), np.inf)
-    centre = np.zeros(3)  # scene bounding-box centre in re-centred coordinates
-    radius = 0.5 * rs.extent * (1.0 + 1e-4) + 1e-6
-    do_pancake = pancake and isinstance(light, DirectionalLight)
-    rows_per_chunk = max(1, RAY_CHUNK // max(w, 1))
-    for j0 in range(0, h, rows_per_chunk):
-        j1 = min(h, j0 + rows_per_chunk)
-        s, t = _texel_grid(smap, slice(j0, j1))
-        near, far = smap.texel_rays(s, t)
-        near = near - rs.origin
-        far = far - rs.origin
-        seg = far - near
-        length = np.linalg.norm(seg, axis=-1)
-        ok = np.isfinite(length) & (length > 0) & np.all(np.isfinite(near), axis=-1)
-        dirn = seg / np.where(ok, length, 1.0)[:, None]
-        # Start each ray where it enters the scene's bounding sphere: nothing is hit before it, and
-        # float32 origins stay close to the (re-centred) geometry for precision.
-        proj = np.sum((centre - near) * dirn, axis=-1)
-        t0 = np.clip(proj - radius, 0.0, np.where(ok, length, 0.0))
-        t1 = np.minimum(length, proj + radius)
-        ok &= t1 > t0
-        org = near + t0[:, None] * dirn
-        maxt = np.where(ok, t1 - t0, 0.0)
-        ray = mi.Ray3f(mi.Point3f(*(_device_floats(mi, org[:, k]) for k in range(3))),
-                       mi.Vector3f(*(_device_floats(mi, dirn[:, k]) for k in range(3))))
-        ray.maxt = _device_floats(mi, maxt)
-        # Masks computed inside Dr.Jit from data arrays: a mask built from a constant NumPy array can
-        # become a literal, and a map whose mask happens to be all-true or all-false would then
-        # compile its own kernel.
-        zero = dr.opaque(mi.Float, 0.0)
-        active = ray.maxt > zero
-        pi = rs.scene.ray_intersect_preliminary(ray, coherent=False, active=active)
-        valid = pi.is_valid() & active
-        tval = dr.select(valid, pi.t, dr.inf)
-        outs = [tval]
-        if do_pancake:
-            back_active = active & (_device_floats(mi, t0) <= zero)
-            bray = mi.Ray3f(ray.o, -ray.d)
-            blocked = rs.scene.ray_test(bray, back_active)
-            outs.append(blocked)
-        dr.eval(*outs)
-        d_occ = np.array(tval, dtype=np.float64) + t0
-        if do_pancake:
-            d_occ = np.where(np.array(outs[1], dtype=bool), 0.0, d_occ)
-        d_occ[~ok] = np.inf
-        out[j0:j1] = d_occ.reshape(j1 - j0, w)
-    return out
+    wf, hf = dr.opaque(F64, float(w)), dr.opaque(F64, float(h))
+    s, t, z, cw = _device_map_coords(mi, dr, smap, rs.origin, X)
+    one = dr.opaque(F64, 1.0)
+    zero = dr.opaque(F64, 0.0)
+    inside = (cw > zero) & (s >= zero) & (s <= one) & (t >= zero) & (t <= one) & (z >= -one) & (z <= one)
+    fi = dr.select(inside, dr.clip(dr.floor(s * wf), zero, wf - 1.0), zero)
+    fj = dr.select(inside, dr.clip(dr.floor(t * hf), zero, hf - 1.0), zero)
+    A = _opaque_matrix(mi, dr, _inverse_matrix(smap, rs.origin))
+    near, dirn, _ = _device_rays_through(mi, dr, smap, A, (fi + 0.5) / wf, (fj + 0.5) / hf)
+    d_rec = sum((X[r] - near[r]) * dirn[r] for r in range(3))
+    if isinstance(light, DirectionalLight):
+        to_l = [dr.opaque(F64, float(-light.direction[r])) for r in range(3)]
+    else:
+        lp = np.asarray(light.position, dtype=np.float64) - rs.origin
+        v = [dr.opaque(F64, float(lp[r])) - X[r] for r in range(3)]
+        inv = 1.0 / dr.maximum(dr.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), 1e-300)
+        to_l = [v[r] * inv for r in range(3)]
+    c = dr.clip(N[0] * to_l[0] + N[1] * to_l[1] + N[2] * to_l[2], zero, one)
+    tmax = dr.opaque(F64, TAN_PSI_MAX)
+    tan_psi = dr.sqrt(dr.maximum(one - c * c, zero)) / c
+    tan_psi = dr.select(dr.isfinite(tan_psi), dr.minimum(tan_psi, tmax), tmax)
+    bias = (dr.opaque(F64, float(smap.depth_bias.get("constant", 0.0)))
+            + dr.opaque(F64, float(smap.depth_bias.get("slope", 0.0))) * tan_psi
+            + dr.opaque(F64, float(tolerance)))
+    idx = mi.UInt32(fj) * dr.opaque(mi.UInt32, int(w)) + mi.UInt32(fi)
+    occ = dr.gather(F64, d_occ, idx, inside)
+    shadowed = inside & (d_rec > occ + bias)
+    u = dr.select(cw > zero, s * wf, dr.nan)
+    vv = dr.select(cw > zero, t * hf, dr.nan)
+    dr.eval(shadowed, inside, u, vv)
+    return shadowed.numpy().astype(bool), inside.numpy().astype(bool), u.numpy(), vv.numpy()
 
 
 def _serving_maps(maps: list[ShadowMap], positions: np.ndarray, depth: np.ndarray) -> np.ndarray:
@@ -349,8 +464,11 @@ def _derivative(U: np.ndarray, ok_fwd: np.ndarray, ok_bwd: np.ndarray, axis: int
     return out
 
 
-def measure_m(sb: ScreenBuffers, maps: list[ShadowMap], map_index: np.ndarray):
-    """Per-pixel (h, m, texel_uv) by finite differences of the serving map's texel coordinates."""
+def measure_m(sb: ScreenBuffers, maps: list[ShadowMap], map_index: np.ndarray,
+              coords: list[np.ndarray] | None = None):
+    """Per-pixel (h, m, texel_uv) by finite differences of the serving map's texel coordinates.
+    `coords[k]`: map k's texel coordinates (N_hit, 2) of the hit pixels in row-major order
+    (computed with `texel_coords` when not given)."""
     H, W = sb.hit.shape
     same_x = _same_surface(sb, (slice(None), slice(None, -1)), (slice(None), slice(1, None)))
     same_y = _same_surface(sb, (slice(None, -1), slice(None)), (slice(1, None), slice(None)))
@@ -363,7 +481,7 @@ def measure_m(sb: ScreenBuffers, maps: list[ShadowMap], map_index: np.ndarray):
             continue
         # The map's coordinates of every hit pixel (neighbours are measured in the same map).
         U = np.full((H, W, 2), np.nan)
-        U[sb.hit] = texel_coords(smap, sb.position[sb.hit])
+        U[sb.hit] = texel_coords(smap, sb.position[sb.hit]) if coords is None else coords[k]
         uv_serving[served] = U[served]
         dx = _derivative(U, same_x, same_x, axis=1)[served]
         dy = _derivative(U, same_y, same_y, axis=0)[served]
@@ -391,28 +509,48 @@ def evaluate_buffers(rs: RayScene, camera: Camera, light: Light, maps: list[Shad
     cam = screen_camera(camera, screen)
     sb = render_screen(rs, cam, light)
     t1 = time.perf_counter()
-    d_occ = [render_map(rs, light, smap, pancake) for smap in maps]
+    d_occ = [_device_map(rs, light, smap, pancake) for smap in maps]
+    if maps:
+        import drjit as dr
+
+        dr.sync_thread()  # kernels run asynchronously: wait so that "maps" is their time
     t2 = time.perf_counter()
 
     receivers = sb.receivers
     exact_shadowed = receivers & ~sb.visible
     H, W = receivers.shape
-    rec_pos = sb.position[receivers]
-    rec_idx = _serving_maps(maps, rec_pos, sb.depth[receivers])
-    rec_shadow = np.zeros(len(rec_pos), dtype=bool)
-    rec_outside = rec_idx < 0
+    hit = sb.hit
+    n_hit = int(hit.sum())
     tol = NUMERIC_TOLERANCE * max(rs.extent, 1e-3)
-    rec_nrm = sb.normal[receivers]
-    for k, smap in enumerate(maps):
-        sel = rec_idx == k
-        if sel.any():
-            sh, out = shadow_test(smap, d_occ[k], rec_pos[sel], rec_nrm[sel], light, tol)
-            rec_shadow[sel] = sh & ~out  # outside: clamp-to-border, lit
-            rec_outside[sel] = out
+    # Every map's lookup for every hit pixel, in Dr.Jit (float64, re-centred coordinates).
+    looked = []
+    if maps and n_hit:
+        mi = mitsuba()
+        X = _device_points(mi, sb.position[hit] - rs.origin)
+        N = _device_points(mi, sb.normal[hit])
+        looked = [_device_lookup(rs, light, smap, d_occ[k], X, N, tol) for k, smap in enumerate(maps)]
+    # Serving map of every hit pixel: the cascade for its view depth, or the first cube face whose
+    # map contains it.
+    hit_idx = np.full(n_hit, -1, dtype=np.int64)
+    if maps and n_hit:
+        if maps[0].face is None:
+            hit_idx = map_for_depth(maps, sb.depth[hit])
+        else:
+            for k in range(len(maps) - 1, -1, -1):
+                hit_idx[looked[k][1]] = k
+    hit_shadow = np.zeros(n_hit, dtype=bool)
+    hit_outside = hit_idx < 0
+    for k in range(len(looked)):
+        sel = hit_idx == k
+        sh, inside = looked[k][0][sel], looked[k][1][sel]
+        hit_shadow[sel] = sh & inside  # outside: clamp-to-border, lit
+        hit_outside[sel] = ~inside
     map_shadowed = np.zeros((H, W), dtype=bool)
-    map_shadowed[receivers] = rec_shadow
+    map_shadowed[hit] = hit_shadow
+    map_shadowed &= receivers
     outside = np.zeros((H, W), dtype=bool)
-    outside[receivers] = rec_outside
+    outside[hit] = hit_outside
+    outside &= receivers
     misclassified = receivers & (map_shadowed != exact_shadowed)
     lit = sb.visible & receivers
     boundary = boundary_mask(lit, sb.hit, sb.depth.astype(np.float32), radius=0) & receivers
@@ -420,8 +558,9 @@ def evaluate_buffers(rs: RayScene, camera: Camera, light: Light, maps: list[Shad
 
     # Serving map of every hit pixel (for the metric and the grid overlay).
     map_index = np.full((H, W), -1, dtype=np.int64)
-    map_index[sb.hit] = _serving_maps(maps, sb.position[sb.hit], sb.depth[sb.hit])
-    hh, m, uv = measure_m(sb, maps, map_index)
+    map_index[hit] = hit_idx
+    coords = [np.stack([lk[2], lk[3]], axis=-1) for lk in looked]
+    hh, m, uv = measure_m(sb, maps, map_index, coords if n_hit else None)
     sample_mask, kind = receivers & boundary, "boundary"
     if not sample_mask.any():
         sample_mask, kind = receivers.copy(), "all_facing"

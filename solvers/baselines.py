@@ -1,31 +1,64 @@
 """Baseline shadow setups: what engines do today, each returning per-map matrices and resolutions.
 
-- uniform  ("Normal" in Chong & Gortler 2007): the light frustum fit to the whole scene bounds.
-- focused: fit to the visible receivers by the minimum-area rectangle of their light-space convex
-  hull (Chong & Gortler 2007 §2.3); the longer side goes to the larger map dimension.
-- lispsm: Wimmer et al. 2004, n_opt = (z_n + sqrt(z_f z_n)) / sin γ over the focused body; no warp
-  when sin γ < 0.02 (Filament's guard) or when n' is so large the warp is no warp.
-- logpsm: Lloyd et al. 2007 LogP (eq. 78): the perspective warp with n' from η (eq. 79 shaping,
-  eq. 120 conversion) plus the log warp on t, returned as parameters.
-- Cascades: z-partitions over the tight view-depth range of the visible receivers (SDSM), each
-  fit with the method; resolutions per map, or Lloyd's eq. 83 allocation under a texel budget.
-- Point lights: a cube map (six 90° faces). Spot lights: a perspective frustum from the light,
-  fit to the receivers in its cone (uniform: the whole cone); a cone wider than 80° uses the cube map.
+Entry point: `baseline(method, camera, light, receivers, casters_bounds, resolution, cascades,
+splits, split_lambda, texel_budget, allow_log) -> list[ShadowMap]`.
 
-Depth range: every caster between the light and the receivers is covered: for directional lights
-light_depth.near is the nearest corner of the scene's bounds along the light, so no caster is ever
-in front of the near plane (engines that pancake may tighten it; the evaluator pancakes too).
+- uniform  ("Normal" in Chong & Gortler 2007): the light frustum fit to the whole scene bounds
+  (orthographic for a directional light, the whole cone for a spot). With cascades every cascade
+  is that same map (it does not depend on the split).
+- focused: fit to the visible receivers by the minimum-area rectangle of their light-space convex
+  hull (Chong & Gortler 2007 §2.3, solvers.fitting.min_area_rectangle); the longer side goes to
+  the larger map dimension.
+- lispsm: Wimmer et al. 2004, n_opt = (z_n + sqrt(z_f z_n)) / sin γ, z_n, z_f the receivers' (or
+  the cascade's) view-depth range, the warp along the view direction projected into the light's
+  image plane (solvers.light_frames), then an orthographic fit in warped space. No warp (the
+  focused map, eta = -1) when sin γ < 0.02 (Filament's guard, about 1°, either sign), when n'
+  exceeds 1e3 body depths (no warp in effect), or when the receivers are flat along the warp axis
+  (extent < 1e-4 of the depth range: nothing to redistribute). eta records n_opt on Lloyd's scale
+  (solvers.warp.eta_from_n_prime; 0 at γ = 90°).
+- logpsm: Lloyd et al. 2007 LogP (eq. 78): the perspective warp with n' from η (eq. 79 shaping as
+  corrected, eq. 120 conversion, θ the smaller half-angle of the view frustum, W_ly the receivers'
+  extent along the warp axis) plus the log warp on t, carried as LogWarp(c0, c1, c2), not folded.
+  allow_log=False returns the perspective part alone (warp_kind "perspective"). η = -1 -> no warp.
+- Cascades (directional lights): z-partitions over the TIGHT view-depth range of the visible
+  receivers (SDSM min/max, clamped below at the camera's near plane), `uniform`, `log` (equal
+  ratio, Lloyd eqs. 80-82) or `practical` (λ log + (1 - λ) uniform); each map's `split` is
+  [near, far] view depth (the first starts at 0, the last ends at the camera's far plane, so an
+  engine's selection covers everything) and it is fit to the receivers whose depth (± slack) meets
+  its split. Resolution: `resolution` each, or with `texel_budget` Lloyd's eq. 83 with per-map
+  critical factors R_s, R_t estimated from the receivers (solvers.cascades.critical_factors: the
+  95th percentile over its receivers of world metres per unit s (t) / world size of a
+  full-resolution pixel). Point and spot lights ignore `cascades` (one map / one cube map); a
+  budget gives a spot map sqrt(T) squared and each cube face sqrt(T/6) squared.
+- Point lights: a cube map (six 90° faces, `face` = +x, -x, +y, -y, +z, -z, OpenGL orientation),
+  so a light inside the view frustum is covered. Spot lights: a perspective frustum from the light,
+  fit to the receivers in its cone (uniform: the whole cone; receivers outside the cone are unlit,
+  so they are not fitted); a cone wider than 80° uses the cube map. Near plane of both: 1e-4 of
+  the far distance, pulled in to half the nearest receiver's depth (Lloyd §B4: casters between the
+  light and that plane are lost, the price of a light inside the view).
+
+Depth range (no pancaking needed): for directional lights light_depth.near is the scene bounds'
+nearest corner along the light, so every caster between the light and the receivers, on screen or
+off, is inside the depth range (engines that pancake, clamping casters in front of the near plane to
+it, may tighten the near plane to the receivers; the evaluator can pancake as well); far is the
+farthest receiver or bounds corner. Warped maps are clipped in warped space by planes through the
+warp centre, fit to the receivers and to the bounds' corners slid into the receivers' range along
+the warp axis, which contains every caster on a receiver's light ray.
 
 Depth bias, one rule for every method (the evaluator applies exactly this): with d the distance in
 metres along the texel's light ray, a receiver is shadowed iff
     d_receiver > d_occluder + constant + slope * min(tan ψ, 10),
 ψ the angle between the receiver normal and the direction to the light. Each map's recommended
 values come from the world-space size of its texels at its receivers (warping makes one constant
-bias wrong, Lloyd et al. §7.1): constant = 1.5 x, slope = 1 x the 95th percentile texel size.
+bias wrong, Lloyd et al. §7.1): texel size = the longer side of a texel in the plane perpendicular
+to the light (from the map's own Jacobian, warps included), its 95th percentile over the map's
+receivers; constant = 1.5 x, slope = 1 x that size (`texel_world_size` is returned beside them).
+A map with no receiver inside (an empty cube face) uses the size at the far end of its central ray.
 
-Fallbacks (documented, never an exception): no receivers -> fit to the scene bounds; light within
-about 1° of the view direction (either sign) -> no warp; degenerate extents are padded to a
-minimum size.
+Fallbacks (documented, never an exception): no receivers -> fit to the scene bounds (for any
+method; no bounds either -> a 2 m box around the camera); casters_bounds None -> the receivers'
+bounds; non-finite receivers are dropped; light within about 1° of the view direction (either
+sign) -> no warp; degenerate extents (one point, a line) are padded to a minimum size.
 """
 from __future__ import annotations
 
@@ -34,85 +67,96 @@ import math
 import numpy as np
 
 from .cameras import Camera
-from .cascades import allocate, split_depths
-from .fitting import box_corners, frustum, min_area_rectangle, ortho, padded, rotation_z, to_view
+from .cascades import allocate, critical_factors, pixel_world_size, split_depths
+from .fitting import box_corners, depth_range, frustum, min_area_rectangle, ortho, padded, rotation_z, to_view
+from .light_frames import CUBE_FACES, cube_face_views, directional_view, look_matrix, perpendicular_up, spot_view
 from .lights import DirectionalLight, PointLight, SpotLight
 from .shadow_map import ShadowMap
-from .warp import MAX_N_OVER_DEPTH, NO_WARP_SIN, eta_shaping, gamma_deg, lispsm_n, log_warp, n_prime_from_eta, warp_matrix
+from .warp import MAX_N_OVER_DEPTH, NO_WARP_SIN, eta_from_n_prime, eta_shaping, gamma_deg, lispsm_n, log_warp, n_prime_from_eta, warp_matrix
 
 METHODS = ("uniform", "focused", "lispsm", "logpsm")
 PAD = 0.005  # fraction of the fitted extent added on each side (sub-sampled receivers)
 BIAS_CONSTANT_TEXELS = 1.5
 BIAS_SLOPE_TEXELS = 1.0
 SPOT_AS_CUBE_DEG = 80.0
-CUBE_FACES = {"+x": ([1, 0, 0], [0, -1, 0]), "-x": ([-1, 0, 0], [0, -1, 0]), "+y": ([0, 1, 0], [0, 0, 1]),
-              "-y": ([0, -1, 0], [0, 0, -1]), "+z": ([0, 0, 1], [0, -1, 0]), "-z": ([0, 0, -1], [0, -1, 0])}
+FLAT_BODY = 1e-4  # no warp when the receivers' extent along the warp axis is below this x the split's depth range
 
 
-# ------------------------------------------------------------------ frames
-def _perpendicular_up(forward: np.ndarray, *hints) -> np.ndarray:
-    for h in hints:
-        u = np.asarray(h, float) - np.dot(h, forward) * forward
-        if np.linalg.norm(u) > 1e-6:
-            return u / np.linalg.norm(u)
-    a = np.array([1.0, 0, 0]) if abs(forward[0]) < 0.9 else np.array([0, 1.0, 0])
-    u = a - np.dot(a, forward) * forward
-    return u / np.linalg.norm(u)
-
-
-def look_matrix(eye: np.ndarray, forward: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """World -> view looking along `forward` (down -Z) from `eye`, +Y = up (orthonormalised)."""
-    f = forward / np.linalg.norm(forward)
-    u = _perpendicular_up(f, up)
-    r = np.cross(f, u)
-    m = np.eye(4)
-    m[0, :3], m[1, :3], m[2, :3] = r, u, -f
-    m[:3, 3] = -m[:3, :3] @ eye
-    return m
-
-
-def directional_view(light: DirectionalLight, camera: Camera) -> np.ndarray:
-    """The LiSPSM light frame: looks along the light, +Y = the view direction projected into the
-    light's image plane (camera up when the two are parallel), origin at the camera (re-centred)."""
-    return look_matrix(camera.position, light.direction,
-                       _perpendicular_up(light.direction, camera.forward, camera.up))
+# ------------------------------------------------------------------ frames (solvers.light_frames)
+_perpendicular_up = perpendicular_up  # kept for importers of the old private name
+__all__ = ["METHODS", "baseline", "texel_extents", "recommended_bias", "directional_view", "look_matrix", "CUBE_FACES"]
 
 
 # ------------------------------------------------------------------ helpers
-def _texel_world_size(smap: ShadowMap, pts: np.ndarray, light) -> float:
-    """95th percentile over `pts` of the world size of one texel, perpendicular to the light."""
-    if len(pts) == 0:
-        return 0.0
-    if len(pts) > 2000:
-        pts = pts[np.random.default_rng(0).choice(len(pts), 2000, replace=False)]
+def _light_dirs(light, pts: np.ndarray) -> np.ndarray:
     if isinstance(light, DirectionalLight):
-        ldir = np.broadcast_to(light.direction, pts.shape)
-    else:
-        v = pts - light.position
-        ldir = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
+        return np.broadcast_to(light.direction, pts.shape)
+    v = pts - light.position
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
+
+
+def texel_extents(smap: ShadowMap, pts: np.ndarray, light) -> tuple[np.ndarray, np.ndarray]:
+    """Per point: world metres per unit s and per unit t of the map, measured in the plane through
+    the point perpendicular to the light ray (the columns of the inverse of d(s, t)/d(world), by
+    central differences, so warped and log maps are measured as they are). Points outside the map
+    (or behind its centre of projection) get NaN."""
+    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        return np.zeros(0), np.zeros(0)
+    ldir = _light_dirs(light, pts)
     e1 = np.cross(ldir, [0.0, 1.0, 0.0])
     bad = np.linalg.norm(e1, axis=1) < 1e-6
     e1[bad] = np.cross(ldir[bad], [1.0, 0.0, 0.0])
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
     e2 = np.cross(ldir, e1)
-    scale = max(float(np.abs(pts).max()), 1.0)
-    eps = 1e-6 * scale
-    s0, t0, _, _ = smap.map_coords(pts)
-    w, h = smap.resolution
-    sizes = []
-    for e in (e1, e2):
-        s1, t1, _, _ = smap.map_coords(pts + eps * e)
-        texels = np.hypot((s1 - s0) * w, (t1 - t0) * h)
-        sizes.append(eps / np.maximum(texels, 1e-300))
-    size = np.maximum(sizes[0], sizes[1])
+    c = pts.mean(0)
+    extent = float(np.abs(pts - c).max()) if len(pts) > 1 else 0.0
+    eps = max(1e-6 * extent, 1e-10 * float(np.abs(pts).max()), 1e-9)
+    with np.errstate(all="ignore"):
+        s0, t0, z0, w0 = smap.map_coords(pts)
+        cols = []
+        for e in (e1, e2):
+            sp, tp, _, _ = smap.map_coords(pts + eps * e)
+            sm, tm, _, _ = smap.map_coords(pts - eps * e)
+            cols.append(np.stack([(sp - sm), (tp - tm)], axis=-1) / (2 * eps))
+        J = np.stack(cols, axis=-1)  # (N, 2, 2): d(s, t)/d(e1, e2)
+        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+        # inverse columns: d(e1, e2)/ds = (J11, -J10)/det, d(e1, e2)/dt = (-J01, J00)/det
+        per_s = np.hypot(J[:, 1, 1], J[:, 1, 0]) / np.abs(det)
+        per_t = np.hypot(J[:, 0, 1], J[:, 0, 0]) / np.abs(det)
+        inside = (w0 > 0) & (s0 >= -1e-6) & (s0 <= 1 + 1e-6) & (t0 >= -1e-6) & (t0 <= 1 + 1e-6)
+    ok = inside & np.isfinite(per_s) & np.isfinite(per_t) & (det != 0)
+    return np.where(ok, per_s, np.nan), np.where(ok, per_t, np.nan)
+
+
+def _texel_world_size(smap: ShadowMap, pts: np.ndarray, light) -> float:
+    """95th percentile over the points inside the map of the world size of one texel (its longer
+    side, perpendicular to the light); 0 when no point is inside."""
+    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+    if len(pts) > 2000:
+        pts = pts[np.random.default_rng(0).choice(len(pts), 2000, replace=False)]
+    per_s, per_t = texel_extents(smap, pts, light)
+    size = np.maximum(per_s / smap.resolution[0], per_t / smap.resolution[1])
     size = size[np.isfinite(size)]
-    return float(np.percentile(size, 95)) if len(size) else 0.0
+    if len(size):
+        return float(np.percentile(size, 95))
+    # No receiver inside this map (an empty cube face, no visible receiver): the texel size at the
+    # far end of the map's central light ray, a conservative value for whatever it may receive.
+    with np.errstate(all="ignore"):
+        near_pt, far_pt = smap.texel_rays(np.array([0.5]), np.array([0.5]))
+        per_s, per_t = texel_extents(smap, 0.999 * far_pt + 0.001 * near_pt, light)
+        size = np.maximum(per_s / smap.resolution[0], per_t / smap.resolution[1])
+    return float(size[0]) if len(size) and np.isfinite(size[0]) else 0.0
+
+
+def recommended_bias(texel_world_size: float) -> dict:
+    """{constant, slope} in metres from the receiver-side texel world size (see the module doc)."""
+    return {"constant": BIAS_CONSTANT_TEXELS * texel_world_size, "slope": BIAS_SLOPE_TEXELS * texel_world_size,
+            "texel_world_size": texel_world_size}
 
 
 def _with_bias(smap: ShadowMap, receivers: np.ndarray, light) -> ShadowMap:
-    size = _texel_world_size(smap, receivers, light)
-    smap.depth_bias = {"constant": BIAS_CONSTANT_TEXELS * size, "slope": BIAS_SLOPE_TEXELS * size,
-                       "texel_world_size": size}
+    smap.depth_bias = recommended_bias(_texel_world_size(smap, receivers, light))
     return smap
 
 
@@ -137,9 +181,7 @@ def _fit_ortho(view: np.ndarray, fit_pts: np.ndarray, depth_pts: np.ndarray, res
     v = to_view(view, fit_pts)
     lo, hi = padded(v[:, :2].min(0), v[:, :2].max(0), PAD, _min_extent(v[:, :2]))
     d = -to_view(view, depth_pts)[:, 2]
-    near, far = float(d.min()), float(d.max())
-    span = max(far - near, _min_extent(d))
-    near, far = near - 0.01 * span, far + 0.01 * span
+    near, far = depth_range(d, 0.01, _min_extent(d))
     return view, ortho(lo[0], hi[0], lo[1], hi[1], near, far), (near, far)
 
 
@@ -182,10 +224,14 @@ def _directional_map(method: str, camera: Camera, light: DirectionalLight, recei
         zn, zf = z_range
         body = to_view(view, receivers)[:, 1]
         depth_y = float(body.max() - body.min())
-        if sin_g >= NO_WARP_SIN and depth_y > 0:
+        # A receiver set (nearly) flat along the warp axis, e.g. a wall facing the camera under an
+        # overhead light, has no depth to redistribute: no warp (and eq. 120's n', proportional to
+        # the extent, would fall below the float resolution of the fit).
+        flat = depth_y <= max(_min_extent(body[:, None]), FLAT_BODY * (zf - zn))
+        if sin_g >= NO_WARP_SIN and not flat:
             if method == "lispsm":
                 warp_n = lispsm_n(zn, zf, sin_g)
-                eta = None
+                eta = eta_from_n_prime(warp_n, zn, zf, depth_y)  # LiSPSM's n_opt on Lloyd's η scale
             else:
                 theta = math.degrees(min(math.atan(camera.tan_half_fov_y),
                                          math.atan(camera.tan_half_fov_y * camera.aspect)))
@@ -208,13 +254,25 @@ def _directional_map(method: str, camera: Camera, light: DirectionalLight, recei
 
 
 # ------------------------------------------------------------------ spot and point lights
+def _near_for(depths: np.ndarray, far: float) -> float:
+    """A perspective light's near plane: 1e-4 of the far distance (at least 0.1 mm), pulled in to
+    half the nearest receiver's depth so a receiver next to the light is never clipped (floor
+    1e-7 of far). Casters between the light and the near plane are lost (Lloyd §B4: put the near
+    plane close, trading depth precision)."""
+    near = max(far * 1e-4, 1e-4)
+    d = depths[np.isfinite(depths) & (depths > 0)]
+    if len(d):
+        near = min(near, 0.5 * float(d.min()))
+    return max(near, far * 1e-7)
+
+
 def _spot_map(method: str, light: SpotLight, camera: Camera, receivers: np.ndarray, corners: np.ndarray,
               resolution) -> ShadowMap:
-    view = look_matrix(light.position, light.direction, _perpendicular_up(light.direction, camera.forward, camera.up))
+    view = spot_view(light, camera)
     far_pts = receivers if len(receivers) else corners
     d_all = -to_view(view, far_pts)[:, 2]
     far = float(max(d_all.max(), 1e-3)) * 1.01
-    near = max(far * 1e-4, 1e-4)
+    near = _near_for(d_all, far)
     tan_c = math.tan(math.radians(min(light.cone_deg, SPOT_AS_CUBE_DEG)))
     if method == "uniform" or len(receivers) < 3:
         lo, hi = np.array([-tan_c, -tan_c]), np.array([tan_c, tan_c])
@@ -225,7 +283,7 @@ def _spot_map(method: str, light: SpotLight, camera: Camera, receivers: np.ndarr
         angle, _, _ = min_area_rectangle(proj2)
         view = rotation_z(angle) @ view
         v = to_view(view, receivers)
-        proj2 = v[:, :2] / np.maximum(-v[:, 2], near)[:, None]
+        proj2 = np.clip(v[:, :2] / np.maximum(-v[:, 2], near)[:, None], -tan_c * 1.5, tan_c * 1.5)
         lo, hi = padded(proj2.min(0), proj2.max(0), PAD, 1e-4)
     return ShadowMap(view, frustum(lo[0] * near, hi[0] * near, lo[1] * near, hi[1] * near, near, far),
                      tuple(resolution), light_depth=(near, far))
@@ -234,14 +292,11 @@ def _spot_map(method: str, light: SpotLight, camera: Camera, receivers: np.ndarr
 def _cube_maps(light, corners: np.ndarray, receivers: np.ndarray, resolution) -> list[ShadowMap]:
     pts = np.vstack([corners, receivers]) if len(receivers) else corners
     far = float(np.linalg.norm(pts - light.position, axis=1).max()) * 1.01 + 1e-3
-    near = max(far * 1e-5, 1e-4)
+    cheb = np.abs(receivers - light.position).max(1) if len(receivers) else np.zeros(0)
+    near = _near_for(cheb, far)
     side = max(resolution)
-    maps = []
-    for face, (fwd, up) in CUBE_FACES.items():
-        view = look_matrix(light.position, np.array(fwd, float), np.array(up, float))
-        maps.append(ShadowMap(view, frustum(-near, near, -near, near, near, far), (side, side),
-                              light_depth=(near, far), face=face))
-    return maps
+    return [ShadowMap(view, frustum(-near, near, -near, near, near, far), (side, side), light_depth=(near, far), face=face)
+            for face, view in cube_face_views(light.position).items()]
 
 
 # ------------------------------------------------------------------ entry point
@@ -249,10 +304,22 @@ def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_
              resolution=(2048, 2048), cascades: int = 1, splits: str = "practical", split_lambda: float = 0.5,
              texel_budget: int | None = None, allow_log: bool = True,
              receiver_slack: np.ndarray | None = None) -> list[ShadowMap]:
-    """The maps of one baseline method for one light. `receivers`: (N, 3) world points the camera
-    sees that could be in shadow; `casters_bounds`: the scene's (lo, hi); `receiver_slack`: per
-    receiver, how far in view depth the surface around it reaches (a cascade fits every receiver
-    whose [depth - slack, depth + slack] meets its split, so the split boundary is covered)."""
+    """The maps of one baseline method for one light (see the module doc for every choice).
+
+    method: uniform | focused | lispsm | logpsm. receivers: (N, 3) world points the camera sees
+    that could be in shadow (all visible receiver pixels' positions, empty allowed);
+    casters_bounds: the scene's AABB (lo, hi), so the depth range covers off-screen casters;
+    resolution: (width, height) per map unless texel_budget (total texels, Lloyd eq. 83) is given;
+    cascades/splits/split_lambda: z-partitions over the receivers' tight view-depth range;
+    allow_log: False -> logpsm returns its perspective part only; receiver_slack: per receiver,
+    how far in view depth the surface around it reaches (a cascade fits every receiver whose
+    [depth - slack, depth + slack] meets its split, so the split boundary is covered).
+
+    Each map's depth_bias {constant, slope} (metres) follows the one rule the evaluator applies:
+    with d the distance along the texel's light ray, a receiver is shadowed iff
+    d_receiver > d_occluder + constant + slope * min(tan ψ, 10), ψ the angle between the receiver
+    normal and the direction to the light; constant = 1.5 x and slope = 1 x the 95th-percentile
+    world size of the map's texels at its receivers."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
@@ -263,11 +330,21 @@ def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_
         casters_bounds = (receivers.min(0), receivers.max(0)) if len(receivers) else (camera.position - 1, camera.position + 1)
     corners = box_corners(np.asarray(casters_bounds[0], float), np.asarray(casters_bounds[1], float))
     res = (int(resolution[0]), int(resolution[1]))
+    if texel_budget and not isinstance(light, DirectionalLight):
+        # one spot map gets the budget (square), a cube map's six faces share it equally
+        n_maps = 6 if isinstance(light, PointLight) or light.cone_deg > SPOT_AS_CUBE_DEG else 1
+        side = int(max(16, math.isqrt(int(texel_budget) // n_maps)))
+        res = (side, side)
     if isinstance(light, PointLight) or (isinstance(light, SpotLight) and light.cone_deg > SPOT_AS_CUBE_DEG):
         maps = _cube_maps(light, corners, receivers, res)
+    elif isinstance(light, SpotLight):
+        maps = [_spot_map(method, light, camera, receivers, corners, res)]
+    else:
+        maps = None
+    if maps is not None:
+        for m in maps:
+            m.split = (0.0, float(camera.far))
         return [_with_bias(m, receivers, light) for m in maps]
-    if isinstance(light, SpotLight):
-        return [_with_bias(_spot_map(method, light, camera, receivers, corners, res), receivers, light)]
 
     depth = (receivers - camera.position) @ camera.forward if len(receivers) else np.zeros(0)
     if len(receivers):
@@ -276,7 +353,7 @@ def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_
         z_lo, z_hi = camera.near, camera.far
     k = max(1, int(cascades))
     z = split_depths(z_lo, z_hi, k, splits, split_lambda)
-    maps = []
+    maps, parts = [], []
     for i in range(k):
         lo_z = -np.inf if i == 0 else z[i]
         hi_z = np.inf if i == k - 1 else z[i + 1]
@@ -286,10 +363,11 @@ def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_
             part = _frustum_slice(camera, z[i], z[i + 1])
         smap = _directional_map(method, camera, light, part, corners, res, allow_log, (z[i], z[i + 1]))
         smap.split = (0.0 if i == 0 else float(z[i]), float(camera.far if i == k - 1 else z[i + 1]))
-        maps.append(_with_bias(smap, part, light))
+        maps.append(smap)
+        parts.append(part)
     if texel_budget:
-        _allocate(maps, camera, receivers, depth, texel_budget)
-    return maps
+        _allocate(maps, camera, receivers, depth, texel_budget, light)
+    return [_with_bias(m, p, light) for m, p in zip(maps, parts)]
 
 
 def _frustum_slice(camera: Camera, z0: float, z1: float) -> np.ndarray:
@@ -303,29 +381,21 @@ def _frustum_slice(camera: Camera, z0: float, z1: float) -> np.ndarray:
     return np.array(pts)
 
 
-def _allocate(maps: list[ShadowMap], camera: Camera, receivers: np.ndarray, depth: np.ndarray, budget: int) -> None:
-    """Lloyd's eq. 83 with a per-map estimate of the critical resolution factors: R_s (R_t) = the map's
-    world extent along s (t) / the 5th-percentile world size of a full-resolution pixel among the
-    receivers it serves (pixel size = view depth · 2 tan(fov_y/2) / height)."""
+def _allocate(maps: list[ShadowMap], camera: Camera, receivers: np.ndarray, depth: np.ndarray, budget: int,
+              light) -> None:
+    """Lloyd's eq. 83 under the texel budget, with each map's critical resolution factors R_s, R_t
+    estimated from its receivers (solvers.cascades.critical_factors): the resolution along s (t) at
+    which its texels are no larger than a full-resolution screen pixel at 95% of its receivers."""
     R_s, R_t = [], []
     for smap in maps:
         sel = (depth >= smap.split[0]) & (depth <= smap.split[1]) if len(receivers) else np.zeros(0, bool)
         pts = receivers[sel] if sel.any() else receivers
-        if len(pts) == 0:
-            R_s.append(1.0)
-            R_t.append(1.0)
-            continue
-        pix = ((pts - camera.position) @ camera.forward) * 2 * camera.tan_half_fov_y / camera.resolution[1]
-        p5 = max(float(np.percentile(pix, 5)), 1e-9)
-        tex = smap.depth_bias.get("texel_world_size", 0.0) or 1e-9
-        # texel world size * resolution = the map's extent at its receivers
-        R_s.append(tex * smap.resolution[0] / p5)
-        R_t.append(tex * smap.resolution[1] / p5)
+        if len(pts) > 4000:
+            pts = pts[np.random.default_rng(0).choice(len(pts), 4000, replace=False)]
+        per_s, per_t = texel_extents(smap, pts, light)
+        pix = pixel_world_size(camera, pts)
+        rs, rt = critical_factors(per_s, per_t, pix)
+        R_s.append(rs)
+        R_t.append(rt)
     for smap, r in zip(maps, allocate(np.array(R_s), np.array(R_t), budget)):
-        tex = smap.depth_bias.get("texel_world_size", 0.0)
-        scale = max(smap.resolution[0] / r[0], smap.resolution[1] / r[1])
         smap.resolution = r
-        if tex:
-            size = tex * scale
-            smap.depth_bias = {"constant": BIAS_CONSTANT_TEXELS * size, "slope": BIAS_SLOPE_TEXELS * size,
-                               "texel_world_size": size}

@@ -30,16 +30,60 @@ def split_depths(z_near: float, z_far: float, k: int, kind: str = "practical", l
     return out
 
 
+def pixel_world_size(camera, pts: np.ndarray) -> np.ndarray:
+    """World size (m) of one full-resolution screen pixel at each point, perpendicular to the view
+    ray: view depth · 2 tan(fov_y / 2) / height."""
+    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+    depth = (pts - camera.position) @ camera.forward
+    return np.maximum(depth, camera.near) * 2.0 * camera.tan_half_fov_y / camera.resolution[1]
+
+
+def critical_factors(per_s: np.ndarray, per_t: np.ndarray, pixel: np.ndarray, q: float = 95.0) -> tuple[float, float]:
+    """A map's critical resolution factors (Lloyd et al. 2007 §4: the resolution along s, t at which
+    no texel is larger than a pixel) estimated from its receivers: R_s = the q-th percentile over
+    receivers of (metres per unit s) / (pixel world size), likewise R_t. The max of Lloyd's
+    definition is replaced by a high percentile (robust to a few grazing receivers) and the cosine
+    factors are dropped (receivers treated as facing the camera and the light). Non-finite entries
+    (receivers outside the map) are ignored; no receiver -> (1, 1)."""
+    per_s, per_t, pixel = (np.asarray(a, dtype=np.float64) for a in (per_s, per_t, pixel))
+    ok = np.isfinite(per_s) & np.isfinite(per_t) & np.isfinite(pixel) & (pixel > 0)
+    if not ok.any():
+        return 1.0, 1.0
+    rs = float(np.percentile(per_s[ok] / pixel[ok], q))
+    rt = float(np.percentile(per_t[ok] / pixel[ok], q))
+    return max(rs, 1e-12), max(rt, 1e-12)
+
+
 def allocate(R_s: np.ndarray, R_t: np.ndarray, budget: int) -> list[tuple[int, int]]:
     """Lloyd et al. 2007 eq. 83: partition i gets σ_i = S_i / Σ S_j of the texel budget T (S = R_s R_t),
-    with r_s = sqrt((R_s/R_t) σ T) and r_t = sqrt((R_t/R_s) σ T)."""
-    R_s = np.maximum(np.asarray(R_s, dtype=np.float64), 1e-12)
-    R_t = np.maximum(np.asarray(R_t, dtype=np.float64), 1e-12)
+    with r_s = sqrt((R_s/R_t) σ T) and r_t = sqrt((R_t/R_s) σ T).
+
+    Each side is kept in [MIN_RES, MAX_RES] (the other side then takes the partition's area, so the
+    share σ_i T is kept where it can be); when the MIN_RES floor makes the maps exceed T, the shares
+    of the unfloored maps shrink until the total is within T. Sides are rounded down."""
+    R_s = np.maximum(np.nan_to_num(np.asarray(R_s, dtype=np.float64), nan=1.0, posinf=1e12), 1e-12)
+    R_t = np.maximum(np.nan_to_num(np.asarray(R_t, dtype=np.float64), nan=1.0, posinf=1e12), 1e-12)
+    budget = max(int(budget), MIN_RES * MIN_RES * len(R_s))
     S = R_s * R_t
-    sigma = S / S.sum()
-    out = []
-    for rs, rt, sg in zip(R_s, R_t, sigma):
-        w = math.sqrt(rs / rt * sg * budget)
-        h = math.sqrt(rt / rs * sg * budget)
-        out.append((int(np.clip(math.floor(w), MIN_RES, MAX_RES)), int(np.clip(math.floor(h), MIN_RES, MAX_RES))))
-    return out
+    area = S / S.sum() * budget
+    aspect = R_s / R_t
+
+    def dims(a):
+        w = np.clip(np.sqrt(aspect * a), MIN_RES, MAX_RES)
+        h = np.clip(a / w, MIN_RES, MAX_RES)
+        w = np.clip(a / h, MIN_RES, MAX_RES)  # give the area back to w if h was clamped
+        return np.floor(w), np.floor(h)
+
+    for _ in range(20):
+        w, h = dims(area)
+        total = float(np.sum(w * h))
+        if total <= budget:
+            break
+        floored = (w * h) > area * (1 + 1e-9)  # maps held up by the MIN_RES floor
+        free = ~floored
+        if not free.any():
+            break
+        excess = total - budget
+        area[free] *= max(1.0 - excess / float(np.sum(area[free])), 0.0) * (1 - 1e-6)
+        area = np.maximum(area, MIN_RES * MIN_RES)
+    return [(int(a), int(b)) for a, b in zip(w, h)]

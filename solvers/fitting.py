@@ -95,3 +95,17 @@ def padded(lo: np.ndarray, hi: np.ndarray, frac: float, floor: float) -> tuple[n
 
 def box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+
+def depth_range(d: np.ndarray, margin: float = 0.01, floor: float | None = None) -> tuple[float, float]:
+    """[near, far] of distances `d` along the light's -Z, grown by `margin` of the span on each side
+    (the span at least `floor`, default 1e-6 of the largest |d|, so a flat set still has a range)."""
+    d = np.asarray(d, dtype=np.float64).ravel()
+    d = d[np.isfinite(d)]
+    if len(d) == 0:
+        return 0.0, 1.0
+    near, far = float(d.min()), float(d.max())
+    if floor is None:
+        floor = max(1e-6 * float(np.abs(d).max()), 1e-9)
+    span = max(far - near, floor)
+    return near - margin * span, far + margin * span

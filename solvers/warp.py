@@ -36,6 +36,21 @@ def n_prime_from_eta(eta: float, n_e: float, f_e: float, w_ly: float | None = No
     return w / (alpha - 1) * (ra + 1) / (eta * ra + 1)
 
 
+def eta_from_n_prime(n_prime: float, n_e: float, f_e: float, w_ly: float | None = None) -> float:
+    """The inverse of n_prime_from_eta (eq. 120): the η a warp distance n' corresponds to, e.g. to
+    report LiSPSM's n_opt (which is η = 0 only at γ = 90°) on Lloyd's scale. n' = ∞ -> -1."""
+    w = (f_e - n_e) if w_ly is None else w_ly
+    alpha = max(f_e / n_e, 1.0 + 1e-9)
+    ra = math.sqrt(alpha)
+    k = w / (alpha - 1)
+    if not math.isfinite(n_prime):
+        return -1.0
+    n_prime = max(float(n_prime), 1e-300)
+    if n_prime <= k * (ra + 1):
+        return (k * (ra + 1) / n_prime - 1.0) / ra
+    return (k * (ra + 1) - n_prime) / (n_prime + k * (alpha - 1))
+
+
 def eta_shaping(gamma_deg: float, theta_deg: float, kind: str = "logp") -> float:
     """Lloyd et al. 2007 eq. 79 with the digest's corrections (first branch -1, not 0; last branch
     γ > γ_c), §6.1.1 parameters: LogP γ_a = θ/2, γ_b = θ, γ_c = θ + 0.4(90° - θ), η_b = -0.2,
@@ -67,12 +82,18 @@ def warp_matrix(y_centre: float, x_centre: float = 0.0) -> np.ndarray:
     return m
 
 
+def logp_params(y0: float, y1: float, a: float) -> tuple[float, float, float]:
+    """Lloyd et al. 2007 eq. 78 (digest): c0 = -1/log((y1+a)/(y0+a)), c1 = -(y1-y0)/(y1+a), c2 = 1,
+    for a perspective t_p that is 0 at y0 and 1 at y1 with centre of projection at y = -a; then
+    c1 t_p + c2 = (y0+a)/(y+a) and t = c0 log(c1 t_p + c2) = log((y+a)/(y0+a)) / log((y1+a)/(y0+a))."""
+    return -1.0 / math.log((y1 + a) / (y0 + a)), -(y1 - y0) / (y1 + a), 1.0
+
+
 def log_warp(depth: float, n_prime: float) -> LogWarp:
     """Lloyd et al. 2007 eq. 78 with y0 = 0, y1 = W (the body's depth along the warp axis), a = n':
     c0 = -1/log((y1+a)/(y0+a)), c1 = -(y1-y0)/(y1+a), c2 = 1, so that c1 t_p + c2 = (y0+a)/(y+a)
     and t = log((y+a)/a) / log((W+a)/a)."""
-    a, w = n_prime, depth
-    return LogWarp(-1.0 / math.log((w + a) / a), -w / (w + a), 1.0)
+    return LogWarp(*logp_params(0.0, float(depth), float(n_prime)))
 
 
 def gamma_deg(view_dir: np.ndarray, light_dir: np.ndarray) -> float:

@@ -2,6 +2,7 @@
 (service solve -> ground-truth evaluation with exact ray-traced visibility)."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -14,12 +15,14 @@ from shadowopt.service.scenes import SceneEntry
 from shadowopt.service.solve import maps_from_solution, solve
 from shadowopt.solvers.baselines import baseline
 from shadowopt.solvers.cameras import Camera
-from shadowopt.solvers.cascades import allocate, split_depths
-from shadowopt.solvers.fitting import min_area_rectangle
+from shadowopt.solvers.fitting import box_corners, min_area_rectangle
 from shadowopt.solvers.frames import stage_to_world
-from shadowopt.solvers.lights import DirectionalLight
+from shadowopt.solvers.light_frames import directional_view, spot_view
+from shadowopt.solvers.lights import DirectionalLight, PointLight, SpotLight
 from shadowopt.solvers.metric import predicted_error
 from shadowopt.solvers.samples import Samples, pixel_derivatives
+from shadowopt.solvers.shadow_map import LogWarp, map_for_depth
+from shadowopt.solvers.warp import eta_from_n_prime, eta_shaping, logp_params, n_prime_from_eta
 
 METHODS = ("uniform", "focused", "lispsm", "logpsm")
 
@@ -30,7 +33,8 @@ def test_min_area_rectangle_beats_every_rotation():
         p = rng.normal(size=(200, 2)) * rng.uniform(0.1, 5, 2)
         ang, lo, hi = min_area_rectangle(p)
         area = np.prod(hi - lo)
-        for a in np.linspace(0, np.pi, 360):
+        assert area <= np.prod(p.max(0) - p.min(0)) * (1 + 1e-12)  # the axis-aligned box
+        for a in np.linspace(0, 2 * np.pi, 360, endpoint=False):
             c, s = np.cos(a), np.sin(a)
             r = p @ np.array([[c, -s], [s, c]])
             assert area <= np.prod(r.max(0) - r.min(0)) * (1 + 1e-9)
@@ -38,15 +42,6 @@ def test_min_area_rectangle_beats_every_rotation():
     corners = np.array([[-3, -1], [3, -1], [3, 1], [-3, 1.0]]) @ np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]])
     _, lo, hi = min_area_rectangle(corners)
     assert np.prod(hi - lo) == pytest.approx(12.0)
-
-
-def test_split_formulas():
-    z = split_depths(1, 1000, 3, "log")
-    assert np.allclose(z, [1, 10, 100, 1000])  # n (f/n)^(i/k), Lloyd eqs. 80-82
-    assert np.allclose(split_depths(1, 1000, 3, "practical", 0.0), [1, 334, 667, 1000])
-    assert np.allclose(split_depths(1, 1000, 3, "practical", 1.0), z)
-    r = allocate(np.array([2.0, 1.0]), np.array([1.0, 1.0]), 3 * 512 * 512)
-    assert r[0][0] * r[0][1] == pytest.approx(2 * r[1][0] * r[1][1], rel=0.01)  # σ_i ∝ S_i (eq. 83)
 
 
 def ground_samples(cam, far=150.0):
@@ -76,6 +71,7 @@ def test_lispsm_warp_distance_for_an_overhead_light_is_the_closed_form():
     depth = (pts - cam.position) @ cam.forward
     zn, zf = depth.min(), depth.max()
     assert m.warp_kind == "perspective" and m.n_prime == pytest.approx(zn + math.sqrt(zn * zf))
+    assert m.eta == pytest.approx(0.0, abs=0.02)  # on Lloyd's scale LiSPSM at γ = 90° is η = 0
 
 
 def entry_from(parts, cameras=(), lights=()) -> SceneEntry:
@@ -199,3 +195,257 @@ def test_auto_cascades_pick_the_smallest_k_meeting_the_target():
     expected = next(k for k, e in zip((1, 2, 3), errs) if e <= target)
     assert auto["chosen"] == expected == len(sol["lights"][0]["cascades"])
     assert [t["cascades"] for t in auto["tried"]] == list(range(1, expected + 1))
+
+
+# ---------------------------------------------------------------- solver level: the maps themselves
+BOUNDS = (np.array([-100.0, 0.0, -100.0]), np.array([100.0, 6.0, 100.0]))
+BOXES = [(np.array([-1.0, 0, 8]), np.array([1.0, 3, 10])), (np.array([3.0, 0, 20]), np.array([5.0, 6, 23]))]
+
+
+def visible_points(cam: Camera, off=np.zeros(3), w=80, h=45, ground=100.0, boxes=BOXES):
+    """First hits of the camera's pixel rays on a ground square (y = 0, |x|, |z| <= ground) and boxes."""
+    d = cam.ray_directions(w, h).reshape(-1, 3)
+    o = cam.position
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (off[1] - o[1]) / d[:, 1]
+        p = o + t[:, None] * d
+        best = np.where((t > 0) & (np.abs(p[:, 0] - off[0]) <= ground) & (np.abs(p[:, 2] - off[2]) <= ground), t, np.inf)
+        for lo, hi in boxes:
+            t0, t1 = (lo + off - o) / d, (hi + off - o) / d
+            tn, tf = np.minimum(t0, t1).max(1), np.maximum(t0, t1).min(1)
+            best = np.where((tn <= tf) & (tn > 0) & (tn < best), tn, best)
+    ok = np.isfinite(best) & (best <= cam.far)
+    return o + best[ok, None] * d[ok]
+
+
+def inside(m, pts):
+    s, t, z, w = m.map_coords(pts)
+    return (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (np.abs(z) <= 1) & (w > 0)
+
+
+FWD = np.array([0.0, -0.15, 1.0]) / np.linalg.norm([0.0, -0.15, 1.0])
+
+
+def _near_dir(axis, deg):
+    """A unit direction `deg` degrees from `axis`."""
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    perp = np.cross(axis, [1.0, 0, 0])
+    perp /= np.linalg.norm(perp)
+    return math.cos(math.radians(deg)) * axis + math.sin(math.radians(deg)) * perp
+
+
+def _cam(near=0.1, far=300.0, off=np.zeros(3), fwd=FWD):
+    return Camera.look(np.array([0, 1.7, 0]) + off, fwd, near=near, far=far, resolution=(1280, 720))
+
+
+SUN = DirectionalLight.make([-0.3, -0.8, 0.5])
+SOLVER_HARD = {  # name -> (camera, light, scene offset)
+    "light_along_view_0.8deg": (_cam(), DirectionalLight.make(_near_dir(FWD, 0.8)), 0.0),
+    "light_against_view_0.8deg": (_cam(), DirectionalLight.make(_near_dir(-FWD, 0.8)), 0.0),
+    "light_behind_camera": (_cam(), DirectionalLight.make([0.1, -0.5, 1.0]), 0.0),
+    "overhead": (_cam(), DirectionalLight.make([0, -1, 0]), 0.0),
+    "grazing_1deg": (_cam(), DirectionalLight.make([0.6, -math.tan(math.radians(1)), 0.8]), 0.0),
+    "point_in_view": (_cam(), PointLight.make([0.5, 4.0, 14.0]), 0.0),
+    "spot_in_view": (_cam(), SpotLight.make([0.0, 5.0, 12.0], [0.0, -1.0, 0.2], 40), 0.0),
+    "wide_spot_in_view": (_cam(), SpotLight.make([0.0, 5.0, 12.0], [0.0, -1.0, 0.2], 85), 0.0),
+    "f_over_n_10": (_cam(3.0, 30.0), SUN, 0.0),
+    "f_over_n_1e5": (_cam(0.003, 300.0), SUN, 0.0),
+    "far_from_origin_1e5": (None, SUN, 1e5),
+}
+
+
+def _lit(light, pts):
+    """Receivers a spot light can shadow: those inside its cone (the others are unlit)."""
+    if not isinstance(light, SpotLight):
+        return pts
+    v = pts - light.position
+    return pts[(v / np.linalg.norm(v, axis=1, keepdims=True)) @ light.direction >= math.cos(math.radians(light.cone_deg))]
+
+
+@pytest.mark.parametrize("cascades", [1, 3])
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("case", sorted(SOLVER_HARD))
+def test_solver_hard_cases_keep_every_receiver_inside_a_map(case, method, cascades):
+    cam, light, shift = SOLVER_HARD[case]
+    off = np.array([shift, 0.0, -shift])
+    cam = cam or _cam(off=off)
+    pts = _lit(light, visible_points(cam, off))
+    assert len(pts) > 20
+    maps = baseline(method, cam, light, pts, (BOUNDS[0] + off, BOUNDS[1] + off), resolution=(1024, 1024),
+                    cascades=cascades)
+    for m in maps:
+        assert np.all(np.isfinite(m.matrix)) and np.all(np.isfinite(m.light_depth)), (case, method)
+        assert all(np.isfinite(v) and v > 0 for v in m.depth_bias.values()), m.depth_bias
+    if isinstance(light, PointLight) or (isinstance(light, SpotLight) and light.cone_deg > 80):
+        assert [m.face for m in maps] == ["+x", "-x", "+y", "-y", "+z", "-z"]
+        assert np.all(np.any([inside(m, pts) for m in maps], axis=0))
+        return
+    if isinstance(light, SpotLight):
+        assert len(maps) == 1 and inside(maps[0], pts).all()
+        return
+    assert len(maps) == cascades
+    depth = (pts - cam.position) @ cam.forward
+    idx = map_for_depth(maps, depth)
+    assert np.all(idx >= 0)
+    for k, m in enumerate(maps):
+        assert inside(m, pts[idx == k]).all(), (case, method, k)
+    if case.startswith("light_a") and method in ("lispsm", "logpsm"):
+        assert all(m.warp_kind == "none" and m.eta == -1.0 for m in maps)  # sin γ < 0.02: no warp
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_no_receiver_falls_back_to_the_scene_bounds(method):
+    cam = _cam(fwd=[0, 1, 0.2])
+    assert len(visible_points(cam)) == 0
+    for light in (SUN, PointLight.make([0.5, 4.0, 14.0]), SpotLight.make([0.0, 5.0, 12.0], [0.0, -1.0, 0.2], 40)):
+        maps = baseline(method, cam, light, np.zeros((0, 3)), BOUNDS, cascades=2)
+        assert all(np.all(np.isfinite(m.matrix)) for m in maps)
+        if isinstance(light, DirectionalLight):
+            corners = box_corners(*BOUNDS)
+            assert all(inside(m, corners).all() for m in maps)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_one_triangle_and_degenerate_receivers(method):
+    tri = np.array([[-5, 0, 5], [5, 0, 5], [0, 0, 15.0]])
+    w = np.random.default_rng(1).dirichlet([1, 1, 1], 300)
+    sets = [w @ tri, tri, tri[:1], tri[:2], np.array([[0, 0, 10.0], [1, 0, 12], [2, 0, 14]]), np.tile(tri[:1], (4, 1))]
+    for pts in sets:
+        for bounds in ((tri.min(0), tri.max(0)), None):
+            for light in (SUN, DirectionalLight.make([0, -1, 0]), PointLight.make([0, 3, 10.0])):
+                maps = baseline(method, _cam(), light, pts, bounds)
+                assert all(np.all(np.isfinite(m.matrix)) for m in maps)
+                assert np.all(np.any([inside(m, pts) for m in maps], axis=0))
+
+
+def test_far_from_the_origin_is_the_same_map_re_centred():
+    off = np.array([1e5, 0.0, -1e5])
+    for method in METHODS:
+        a = baseline(method, _cam(), SUN, visible_points(_cam()), BOUNDS)[0]
+        b = baseline(method, _cam(off=off), SUN, visible_points(_cam(off=off), off), (BOUNDS[0] + off, BOUNDS[1] + off))[0]
+        assert np.allclose(b.view @ np.append(_cam(off=off).position, 1), [0, 0, 0, 1], atol=1e-9)  # origin at camera
+        assert np.allclose(a.projection, b.projection, rtol=1e-6, atol=1e-9)
+        assert b.light_depth == pytest.approx(a.light_depth, rel=1e-6, abs=1e-6)
+
+
+def test_depth_range_covers_every_caster_in_the_scene():
+    pts = visible_points(_cam())
+    corners = box_corners(*BOUNDS)
+    for method in METHODS:
+        for light in (SUN, DirectionalLight.make([0, -1, 0]), DirectionalLight.make([0.6, -0.02, 0.8])):
+            m = baseline(method, _cam(), light, pts, BOUNDS)[0]
+            d = -(corners @ m.view[:3, :3].T + m.view[:3, 3])[:, 2]
+            assert m.light_depth[0] <= d.min() + 1e-9  # no caster in front of the near plane: no pancaking needed
+            _, _, z, _ = m.map_coords(corners)
+            if m.warp_kind == "none":
+                assert np.all(np.abs(z) <= 1)
+
+
+def test_bias_is_the_receiver_side_texel_size():
+    # Overhead sun, focused (orthographic) map: a texel is width/res by height/res metres everywhere.
+    cam = Camera.look([0, 2, 0], [0, 0, 1], near=0.1, far=200, resolution=(1280, 720))
+    pts = visible_points(cam, boxes=[])
+    m = baseline("focused", cam, DirectionalLight.make([0, -1, 0]), pts, BOUNDS, resolution=(1024, 512))[0]
+    texel = max(2 / m.projection[0, 0] / 1024, 2 / m.projection[1, 1] / 512)
+    assert m.depth_bias["constant"] == pytest.approx(1.5 * texel, rel=1e-4)
+    assert m.depth_bias["slope"] == pytest.approx(texel, rel=1e-4)
+    # Warped maps: texels are smaller near the viewer, so the bias follows the map.
+    w = baseline("lispsm", cam, DirectionalLight.make([0, -1, 0]), pts, BOUNDS, resolution=(1024, 512))[0]
+    assert w.depth_bias["constant"] != pytest.approx(m.depth_bias["constant"], rel=0.05)
+
+
+def test_focused_rectangle_puts_the_longer_side_on_the_larger_dimension():
+    cam = Camera.look([0, 30, 0], [0, -1, 0.001], up=[1, 1, 0], near=1, far=100, resolution=(800, 800), fov_y_deg=40)
+    pts = np.random.default_rng(0).uniform([-20, 0, -2], [20, 0, 2], (500, 3))  # a long thin strip along x
+    pts = pts @ np.array([[np.cos(0.5), 0, np.sin(0.5)], [0, 1, 0], [-np.sin(0.5), 0, np.cos(0.5)]])
+    for res in ((2048, 512), (512, 2048)):
+        m = baseline("focused", cam, DirectionalLight.make([0, -1, 0]), pts, None, resolution=res)[0]
+        width, height = 2 / m.projection[0, 0], 2 / m.projection[1, 1]
+        assert (width > height) == (res[0] > res[1])
+        assert width * height < 40 * 4 * 1.1  # the rotated strip's own rectangle, not its bounding box
+
+
+# ---------------------------------------------------------------- η, n' and the log warp
+def test_eta_shaping_corner_values():
+    theta = 30.0
+    gc = theta + 0.4 * (90 - theta)
+    for g in (0.0, 5.0, 14.9):
+        assert eta_shaping(g, theta) == -1.0 and eta_shaping(180 - g, theta) == -1.0
+    assert eta_shaping(theta, theta) == pytest.approx(-0.2)
+    assert eta_shaping(theta / 2, theta) == pytest.approx(-1.0)
+    for g in (gc, gc + 1, 90.0, 180 - gc):
+        assert eta_shaping(g, theta) == pytest.approx(1.0)
+    g = np.linspace(0, 90, 181)
+    e = np.array([eta_shaping(x, theta) for x in g])
+    assert np.all(np.diff(e) >= -1e-12) and np.all(np.abs(np.diff(e)) < 0.1)  # monotone and continuous
+    assert eta_shaping(90.0, theta, kind="p") == 0.0 and eta_shaping(9.9, theta, kind="p") == -1.0
+
+
+def test_n_prime_from_eta_closed_forms():
+    for n, f in ((0.1, 100.0), (1.0, 1000.0), (2.0, 20.0)):
+        assert n_prime_from_eta(-1.0, n, f) == math.inf
+        assert n_prime_from_eta(-0.999, n, f) > 100 * (f - n)
+        assert n_prime_from_eta(0.0, n, f) == pytest.approx(n + math.sqrt(n * f))
+        assert n_prime_from_eta(1.0, n, f) == pytest.approx(n)
+        etas = np.linspace(-0.99, 1, 50)
+        nps = [n_prime_from_eta(e, n, f, 3.0) for e in etas]
+        assert np.all(np.diff(nps) < 0)  # stronger warp (smaller n') as η grows
+        assert [eta_from_n_prime(x, n, f, 3.0) for x in nps] == pytest.approx(etas, abs=1e-9)
+        assert eta_from_n_prime(math.inf, n, f) == -1.0
+
+
+def test_logpsm_log_warp_matches_eq_78():
+    cam = Camera.look([0, 2, 0], [0, 0, 1], near=0.1, far=200, resolution=(1280, 720))
+    pts = visible_points(cam, boxes=[])
+    m = baseline("logpsm", cam, DirectionalLight.make([0, -1, 0]), pts, BOUNDS)[0]
+    assert m.warp_kind == "log" and m.eta == 1.0 and m.log_warp is not None and m.n_prime > 0
+    lw, a = m.log_warp, m.n_prime
+    assert lw.c2 == 1.0
+    p = dataclasses.replace(m, log_warp=None, warp_kind="perspective")
+    _, tp, _, _ = p.map_coords(pts)
+    y = (pts @ m.view[:3, :3].T + m.view[:3, 3])[:, 1]  # light-view coordinate along the warp axis
+    # eq. 78's note: c1 t_p + c2 = (y0 + a)/(y + a), i.e. its reciprocal is linear in y with slope
+    # 1/(y0 + a), a = n' measured from the map's near end y0 (where t_p = 0 and the reciprocal is 1)
+    r = 1.0 / (lw.c1 * tp + lw.c2)
+    slope, icpt = np.polyfit(y, r, 1)
+    assert np.abs(r - (slope * y + icpt)).max() <= 1e-9 * np.abs(r).max()
+    y0 = (1.0 - icpt) / slope
+    assert 1.0 / slope == pytest.approx(a, rel=1e-9)
+    assert y0 <= y.min() and y.min() - y0 < 0.01 * np.ptp(y)  # the map starts at the receivers (padding only)
+    _, t, _, _ = m.map_coords(pts)
+    order = np.argsort(y)
+    assert np.all(np.diff(t[order]) >= -1e-12) and t.min() >= 0 and t.max() <= 1  # monotone over the receivers
+    assert t == pytest.approx(np.log((y - y0 + a) / a) * -lw.c0, abs=1e-9)  # t = log((y+a)/(y0+a)) / log((y1+a)/(y0+a))
+    # allow_log=False: the same perspective part, no log
+    q = baseline("logpsm", cam, DirectionalLight.make([0, -1, 0]), pts, BOUNDS, allow_log=False)[0]
+    assert q.warp_kind == "perspective" and q.log_warp is None and np.allclose(q.projection, m.projection)
+
+
+def test_logp_params_endpoints():
+    for y0, y1, a in ((0.0, 10.0, 0.5), (2.0, 50.0, 0.0), (1.0, 3.0, 100.0)):
+        lw = LogWarp(*logp_params(y0, y1, a))
+        tp = lambda y: (y - y0) * (y1 + a) / ((y1 - y0) * (y + a))  # eq. 75's t for centre at -a
+        assert lw.apply(tp(y0)) == pytest.approx(0.0, abs=1e-12) and lw.apply(tp(y1)) == pytest.approx(1.0)
+        y = np.linspace(y0, y1, 7)
+        assert lw.apply(tp(y)) == pytest.approx(np.log((y + a) / (y0 + a)) / np.log((y1 + a) / (y0 + a)))
+
+
+def test_cube_faces_cover_every_direction_and_light_frames_are_orthonormal():
+    light = PointLight.make([3.0, 2.0, -1.0])
+    pts = _cam().position + np.random.default_rng(2).normal(size=(3000, 3)) * 20
+    pts = np.vstack([pts, light.position + np.eye(3) * 1e-3, light.position + 0.01 * np.array([[1, 1, 1.0], [-1, 1, -1]])])
+    maps = baseline("focused", _cam(), light, pts, BOUNDS)
+    assert np.all(np.any([inside(m, pts) for m in maps], axis=0))
+    for m in maps:
+        assert m.matrix[3] @ np.append(light.position, 1) == pytest.approx(0, abs=1e-12)  # centre of projection
+    # frames: light exactly along / against the view direction, straight down, spot
+    for d in (FWD, -FWD, [0, -1, 0], [0, 1, 0]):
+        v = directional_view(DirectionalLight.make(d), _cam())
+        assert np.allclose(v[:3, :3] @ v[:3, :3].T, np.eye(3), atol=1e-12) and np.linalg.det(v[:3, :3]) > 0
+        assert v[2, :3] == pytest.approx(-np.asarray(d) / np.linalg.norm(d))  # looks down -Z along the light
+        assert v[:3, :3] @ _cam().position + v[:3, 3] == pytest.approx(np.zeros(3), abs=1e-12)
+    o = np.array([1e5, 3.0, -1e5])
+    v = directional_view(SUN, _cam(), origin=o)
+    assert v[:3, :3] @ o + v[:3, 3] == pytest.approx(np.zeros(3), abs=1e-9)
+    s = spot_view(SpotLight.make([0, 5, 0], [0, -1, 0], 30), _cam())
+    assert s @ np.array([0, 0, 0, 1.0]) == pytest.approx([0, 0, -5, 1])

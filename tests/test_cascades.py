@@ -1,0 +1,140 @@
+"""Cascades: split formulas (Lloyd eqs. 80-82, practical λ), eq. 83 allocation, and cascaded
+baselines at the solver level (tight SDSM range, coverage, error against one map)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from shadowopt.solvers.baselines import baseline
+from shadowopt.solvers.cameras import Camera
+from shadowopt.solvers.cascades import allocate, critical_factors, pixel_world_size, split_depths
+from shadowopt.solvers.lights import DirectionalLight
+from shadowopt.solvers.metric import predicted_error
+from shadowopt.solvers.samples import Samples, pixel_derivatives
+from shadowopt.solvers.shadow_map import map_for_depth
+
+SUN = DirectionalLight.make([-0.3, -0.8, 0.5])
+BOUNDS = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+
+
+def ground(cam: Camera, far=150.0, w=96, h=54):
+    """Ground-plane (y = 0) points seen by the camera's pixels, and metric samples on them."""
+    d = cam.ray_directions(w, h).reshape(-1, 3)
+    with np.errstate(divide="ignore"):
+        t = -cam.position[1] / d[:, 1]
+    ok = (t > 0) & (t < far)
+    pts = cam.position + t[ok, None] * d[ok]
+    n = np.tile([0, 1.0, 0], (len(pts), 1))
+    dx, dy, dep = pixel_derivatives(cam, pts, n)
+    return pts, Samples(pts, n, dx, dy, dep, np.ones(len(pts)), np.zeros((len(pts), 2), int), "all_facing")
+
+
+CAM = Camera.look([0, 2, 0], [0, -0.1, 1], near=0.1, far=300, resolution=(1280, 720))
+
+
+# ---------------------------------------------------------------- formulas
+def test_equal_ratio_splits():
+    for n, f, k in ((1.0, 1000.0, 3), (0.1, 50.0, 5), (2.0, 7.0, 1)):
+        z = split_depths(n, f, k, "log")
+        assert z == pytest.approx([n * (f / n) ** (i / k) for i in range(k + 1)], rel=1e-12)
+        assert np.allclose(z[1:] / z[:-1], (f / n) ** (1 / k))  # f_i / n_i the same for every partition
+
+
+def test_practical_splits_interpolate_uniform_and_log():
+    assert split_depths(1, 1000, 3, "practical", 0.0) == pytest.approx([1, 334, 667, 1000])
+    assert split_depths(1, 1000, 3, "uniform") == pytest.approx([1, 334, 667, 1000])
+    assert split_depths(1, 1000, 3, "practical", 1.0) == pytest.approx([1, 10, 100, 1000])
+    assert split_depths(1, 1000, 3, "practical", 0.25) == pytest.approx(
+        0.25 * np.array([1, 10, 100, 1000]) + 0.75 * np.array([1, 334, 667, 1000]))
+    with pytest.raises(ValueError):
+        split_depths(1, 10, 2, "nonsense")
+
+
+def test_allocation_is_eq_83():
+    R_s, R_t = np.array([400.0, 900.0, 100.0]), np.array([200.0, 900.0, 400.0])
+    T = 3 * 1024 * 1024
+    r = allocate(R_s, R_t, T)
+    S = R_s * R_t
+    for (rs, rt), a, b, sg in zip(r, R_s, R_t, S / S.sum()):
+        assert rs == pytest.approx(math.sqrt(a / b * sg * T), abs=1)
+        assert rt == pytest.approx(math.sqrt(b / a * sg * T), abs=1)
+        assert rs / a == pytest.approx(math.sqrt(T / S.sum()), rel=0.01)  # one texel/pixel ratio for all
+    assert sum(a * b for a, b in r) <= T
+
+
+def test_critical_factors_ignore_receivers_outside_the_map():
+    per_s = np.array([1.0, 2.0, np.nan, 4.0])
+    per_t = np.array([2.0, 2.0, 1.0, np.inf])
+    pix = np.array([0.01, 0.01, 0.01, 0.01])
+    assert critical_factors(per_s, per_t, pix, q=100) == pytest.approx((200.0, 200.0))
+    assert critical_factors(np.zeros(0), np.zeros(0), np.zeros(0)) == (1.0, 1.0)
+    # pixel size: view depth x 2 tan(fov_y / 2) / height
+    p = CAM.position + 10 * CAM.forward
+    assert pixel_world_size(CAM, p[None])[0] == pytest.approx(10 * 2 * math.tan(math.radians(30)) / 720)
+
+
+# ---------------------------------------------------------------- cascaded baselines
+@pytest.mark.parametrize("method", ["uniform", "focused", "lispsm", "logpsm"])
+@pytest.mark.parametrize("splits", ["uniform", "log", "practical"])
+def test_cascades_split_the_tight_receiver_range_and_keep_every_receiver(method, splits):
+    pts, _ = ground(CAM)
+    depth = (pts - CAM.position) @ CAM.forward
+    maps = baseline(method, CAM, SUN, pts, BOUNDS, cascades=4, splits=splits, split_lambda=0.7)
+    z = split_depths(depth.min(), depth.max(), 4, splits, 0.7)  # SDSM: receivers' min/max, not near/far
+    assert np.array([m.split for m in maps]).ravel() == pytest.approx([0.0, z[1], z[1], z[2], z[2], z[3], z[3], CAM.far])
+    idx = map_for_depth(maps, depth)
+    for k, m in enumerate(maps):
+        sel = idx == k
+        assert sel.any()
+        s, t, zz, w = m.map_coords(pts[sel])
+        assert np.all((s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (np.abs(zz) <= 1) & (w > 0)), (method, k)
+
+
+@pytest.mark.parametrize("method", ["focused", "lispsm", "logpsm"])
+def test_more_cascades_predict_less_error(method):
+    pts, samples = ground(CAM)
+    err = [predicted_error(baseline(method, CAM, SUN, pts, BOUNDS, resolution=(1024, 1024), cascades=k,
+                                    splits="log"), samples)["objective"] for k in (1, 2, 4)]
+    assert err[0] > err[1] > err[2]
+
+
+def test_texel_budget_equalises_the_texel_to_pixel_ratio():
+    # Focused maps are orthographic: metres per unit s is the map's width everywhere, so with eq. 83
+    # and the 95th-percentile critical factors, width / (r_s · p5 pixel size) is the same in each cascade.
+    pts, samples = ground(CAM)
+    T = 3 * 512 * 512
+    maps = baseline("focused", CAM, DirectionalLight.make([0, -1, 0]), pts, BOUNDS, cascades=3, splits="log",
+                    texel_budget=T)
+    total = sum(m.resolution[0] * m.resolution[1] for m in maps)
+    assert 0.95 * T <= total <= T
+    depth = (pts - CAM.position) @ CAM.forward
+    idx = map_for_depth(maps, depth)
+    ratios = []
+    for k, m in enumerate(maps):
+        pix = depth[idx == k] * 2 * CAM.tan_half_fov_y / CAM.resolution[1]
+        width, height = 2 / m.projection[0, 0], 2 / m.projection[1, 1]
+        ratios.append([width / m.resolution[0] / np.percentile(pix, 5), height / m.resolution[1] / np.percentile(pix, 5)])
+        assert m.depth_bias["texel_world_size"] == pytest.approx(max(width / m.resolution[0], height / m.resolution[1]),
+                                                                 rel=1e-3)  # bias follows the allocated resolution
+    ratios = np.array(ratios)
+    assert ratios.max() / ratios.min() < 1.1, ratios
+    # and the allocation is not worse than spending the budget evenly
+    even = baseline("focused", CAM, DirectionalLight.make([0, -1, 0]), pts, BOUNDS, cascades=3, splits="log",
+                    resolution=(512, 512))
+    assert predicted_error(maps, samples)["max_m"] <= predicted_error(even, samples)["max_m"]
+
+
+def test_allocation_never_exceeds_the_budget_when_a_side_hits_the_floor():
+    # A thin far cascade (R_s << R_t) would get a side below MIN_RES; flooring it must not overspend T.
+    from shadowopt.solvers.cascades import MIN_RES
+
+    for R_s, R_t, T in (([1e6, 1.0, 1.0], [1.0, 1.0, 1.0], 3 * 512 * 512), ([547.0, 54.0, 1.0], [1404.0, 305.0, 400.0], 3 * 512 * 512),
+                        ([5e4, 1e-9], [1e4, 3.0], 2 ** 20), ([1.0, 2.0, np.nan], [1.0, 1.0, np.inf], 2 ** 18)):
+        r = allocate(np.array(R_s), np.array(R_t), T)
+        assert sum(a * b for a, b in r) <= T, r
+        assert all(a >= MIN_RES and b >= MIN_RES for a, b in r)
+    pts, _ = ground(CAM)
+    maps = baseline("focused", CAM, SUN, pts, BOUNDS, cascades=3, splits="uniform", texel_budget=3 * 512 * 512)
+    assert 0.9 * 3 * 512 * 512 <= sum(m.resolution[0] * m.resolution[1] for m in maps) <= 3 * 512 * 512
