@@ -92,10 +92,13 @@ def _camera_rays(mi, dr, camera: Camera, width: int, height: int, origin: np.nda
     right = _opaque3(mi, dr, mi.Vector3f, (camera.right * tw))
     up = _opaque3(mi, dr, mi.Vector3f, (camera.up * th))
     idx = dr.arange(mi.UInt32, width * height)
-    j = idx // width
-    i = idx - j * width
-    x = (mi.Float(i) + 0.5) * (2.0 / width) - 1.0
-    y = 1.0 - (mi.Float(j) + 0.5) * (2.0 / height)
+    w_op = dr.opaque(mi.UInt32, width)
+    j = idx // w_op
+    i = idx - j * w_op
+    sx = dr.opaque(mi.Float, 2.0 / width)  # opaque: a new resolution does not recompile the kernel
+    sy = dr.opaque(mi.Float, 2.0 / height)
+    x = (mi.Float(i) + 0.5) * sx - 1.0
+    y = 1.0 - (mi.Float(j) + 0.5) * sy
     d = dr.normalize(fwd + x * right + y * up)
     return mi.Ray3f(o, d), fwd
 
