@@ -95,7 +95,7 @@ def _camera_rays(mi, dr, camera: Camera, width: int, height: int, origin: np.nda
     w_op = dr.opaque(mi.UInt32, width)
     j = idx // w_op
     i = idx - j * w_op
-    sx = dr.opaque(mi.Float, 2.0 / width)  # opaque: a new resolution does not recompile the kernel
+    sx = dr.opaque(mi.Float, 2.0 / width)  # opaque (the packed buffer sizes still make one kernel per size)
     sy = dr.opaque(mi.Float, 2.0 / height)
     x = (mi.Float(i) + 0.5) * sx - 1.0
     y = 1.0 - (mi.Float(j) + 0.5) * sy

@@ -202,9 +202,10 @@ def test_new_camera_reuses_the_compiled_kernel(box_scene):
     render_coarse(box_scene, Camera.look_at([0, 5, 0], [0, 0, 10]), [light])
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     dr.kernel_history_clear() if hasattr(dr, "kernel_history_clear") else dr.kernel_history()
-    render_coarse(box_scene, Camera.look_at([1, 4, -1], [2, 0, 12], resolution=(640, 480)),
-                  [DirectionalLight.make([0.2, -0.9, 0.1])], long_side=int(np.random.default_rng().integers(100, 170)))
+    # Same coarse size: Dr.Jit writes the packed sizes of evaluated vectors into the kernel, so each
+    # coarse resolution compiles once (measured); a camera or light change must not.
+    render_coarse(box_scene, Camera.look_at([1, 4, -1], [2, 0, 12]), [DirectionalLight.make([0.2, -0.9, 0.1])])
     hist = dr.kernel_history()
     dr.set_flag(dr.JitFlag.KernelHistory, False)
     compiled = [k for k in hist if k.get("type") == dr.KernelType.JIT and not k.get("cache_hit", True)]
-    assert compiled == [], f"{len(compiled)} kernels were compiled for a new camera, light and resolution"
+    assert compiled == [], f"{len(compiled)} kernels were compiled for a new camera and light"
