@@ -23,6 +23,7 @@ from shadowopt.solvers.metric import predicted_error
 from shadowopt.solvers.samples import Samples, pixel_derivatives
 from shadowopt.solvers.shadow_map import LogWarp, map_for_depth
 from shadowopt.solvers.warp import eta_from_n_prime, eta_shaping, logp_params, n_prime_from_eta
+from testkit import box, ground_samples, plane
 
 METHODS = ("uniform", "focused", "lispsm", "logpsm")
 
@@ -44,14 +45,6 @@ def test_min_area_rectangle_beats_every_rotation():
     assert np.prod(hi - lo) == pytest.approx(12.0)
 
 
-def ground_samples(cam, far=150.0):
-    d = cam.ray_directions(96, 54).reshape(-1, 3)
-    t = -cam.position[1] / d[:, 1]
-    ok = (t > 0) & (t < far)
-    pts = cam.position + t[ok, None] * d[ok]
-    n = np.tile([0, 1.0, 0], (len(pts), 1))
-    dx, dy, dep = pixel_derivatives(cam, pts, n)
-    return pts, Samples(pts, n, dx, dy, dep, np.ones(len(pts)), np.zeros((len(pts), 2), int), "all_facing")
 
 
 def test_classic_ordering_for_an_overhead_sun():
@@ -87,16 +80,8 @@ def entry_from(parts, cameras=(), lights=()) -> SceneEntry:
     return SceneEntry(loaded, build_ray_scene(g), 0.0, 0.0)
 
 
-def plane(size, off=(0, 0, 0)):
-    return (np.array([[-size, 0, -size], [size, 0, -size], [size, 0, size], [-size, 0, size]]) + off,
-            np.array([[0, 2, 1], [0, 3, 2]]))
 
 
-def box(lo, hi):
-    v = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])], float)
-    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
-    return v, f
 
 
 def scene(off=(0.0, 0.0, 0.0)):

@@ -14,21 +14,12 @@ from shadowopt.solvers.lights import DirectionalLight
 from shadowopt.solvers.metric import predicted_error
 from shadowopt.solvers.samples import Samples, pixel_derivatives
 from shadowopt.solvers.shadow_map import map_for_depth
+from testkit import ground_samples
 
 SUN = DirectionalLight.make([-0.3, -0.8, 0.5])
 BOUNDS = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
 
 
-def ground(cam: Camera, far=150.0, w=96, h=54):
-    """Ground-plane (y = 0) points seen by the camera's pixels, and metric samples on them."""
-    d = cam.ray_directions(w, h).reshape(-1, 3)
-    with np.errstate(divide="ignore"):
-        t = -cam.position[1] / d[:, 1]
-    ok = (t > 0) & (t < far)
-    pts = cam.position + t[ok, None] * d[ok]
-    n = np.tile([0, 1.0, 0], (len(pts), 1))
-    dx, dy, dep = pixel_derivatives(cam, pts, n)
-    return pts, Samples(pts, n, dx, dy, dep, np.ones(len(pts)), np.zeros((len(pts), 2), int), "all_facing")
 
 
 CAM = Camera.look([0, 2, 0], [0, -0.1, 1], near=0.1, far=300, resolution=(1280, 720))
@@ -79,7 +70,7 @@ def test_critical_factors_ignore_receivers_outside_the_map():
 @pytest.mark.parametrize("method", ["uniform", "focused", "lispsm", "logpsm"])
 @pytest.mark.parametrize("splits", ["uniform", "log", "practical"])
 def test_cascades_split_the_tight_receiver_range_and_keep_every_receiver(method, splits):
-    pts, _ = ground(CAM)
+    pts, _ = ground_samples(CAM)
     depth = (pts - CAM.position) @ CAM.forward
     maps = baseline(method, CAM, SUN, pts, BOUNDS, cascades=4, splits=splits, split_lambda=0.7)
     z = split_depths(depth.min(), depth.max(), 4, splits, 0.7)  # SDSM: receivers' min/max, not near/far
@@ -94,7 +85,7 @@ def test_cascades_split_the_tight_receiver_range_and_keep_every_receiver(method,
 
 @pytest.mark.parametrize("method", ["focused", "lispsm", "logpsm"])
 def test_more_cascades_predict_less_error(method):
-    pts, samples = ground(CAM)
+    pts, samples = ground_samples(CAM)
     err = [predicted_error(baseline(method, CAM, SUN, pts, BOUNDS, resolution=(1024, 1024), cascades=k,
                                     splits="log"), samples)["objective"] for k in (1, 2, 4)]
     assert err[0] > err[1] > err[2]
@@ -103,7 +94,7 @@ def test_more_cascades_predict_less_error(method):
 def test_texel_budget_equalises_the_texel_to_pixel_ratio():
     # Focused maps are orthographic: metres per unit s is the map's width everywhere, so with eq. 83
     # and the 95th-percentile critical factors, width / (r_s · p5 pixel size) is the same in each cascade.
-    pts, samples = ground(CAM)
+    pts, samples = ground_samples(CAM)
     T = 3 * 512 * 512
     maps = baseline("focused", CAM, DirectionalLight.make([0, -1, 0]), pts, BOUNDS, cascades=3, splits="log",
                     texel_budget=T)
@@ -135,6 +126,6 @@ def test_allocation_never_exceeds_the_budget_when_a_side_hits_the_floor():
         r = allocate(np.array(R_s), np.array(R_t), T)
         assert sum(a * b for a, b in r) <= T, r
         assert all(a >= MIN_RES and b >= MIN_RES for a, b in r)
-    pts, _ = ground(CAM)
+    pts, _ = ground_samples(CAM)
     maps = baseline("focused", CAM, SUN, pts, BOUNDS, cascades=3, splits="uniform", texel_budget=3 * 512 * 512)
     assert 0.9 * 3 * 512 * 512 <= sum(m.resolution[0] * m.resolution[1] for m in maps) <= 3 * 512 * 512

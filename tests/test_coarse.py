@@ -9,20 +9,13 @@ from shadowopt.renderers.ray_scene import build_ray_scene
 from shadowopt.renderers.scene_data import SceneGeometry
 from shadowopt.solvers.cameras import Camera
 from shadowopt.solvers.lights import DirectionalLight, PointLight, SpotLight
+from testkit import box, merge, plane
 
 BOX_LO, BOX_HI = np.array([-1.0, 0.5, 9.0]), np.array([1.0, 2.5, 11.0])
 
 
-def plane(size=200.0, y=0.0):
-    v = np.array([[-size, y, -size], [size, y, -size], [size, y, size], [-size, y, size]])
-    return v, np.array([[0, 2, 1], [0, 3, 2]])
 
 
-def box(lo, hi):
-    v = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])], float)
-    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
-    return v, f
 
 
 def uv_sphere(center, r, n=128):
@@ -39,15 +32,6 @@ def uv_sphere(center, r, n=128):
     return v, np.array(f)
 
 
-def merge(*parts):
-    verts, faces, prims, off = [], [], [], 0
-    for k, (v, f) in enumerate(parts):
-        verts.append(v)
-        faces.append(f + off)
-        prims.append(np.full(len(f), k))
-        off += len(v)
-    return SceneGeometry(np.vstack(verts).astype(float), np.vstack(faces).astype(np.int32),
-                         np.concatenate(prims).astype(np.int32), [f"/p{k}" for k in range(len(parts))])
 
 
 def ray_plane_truth(cam: Camera, w, h, y=0.0):

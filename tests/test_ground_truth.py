@@ -15,6 +15,7 @@ from shadowopt.solvers.lights import DirectionalLight, PointLight
 from shadowopt.solvers.metric import per_sample_maps
 from shadowopt.solvers.samples import Samples, pixel_derivatives
 from shadowopt.solvers.shadow_map import LogWarp, ShadowMap
+from testkit import box, frustum, merge, plane
 
 BOX_LO, BOX_HI = np.array([-1.0, 0.5, 9.0]), np.array([1.0, 2.5, 11.0])
 SCREEN = (320, 240)
@@ -22,27 +23,10 @@ SCREEN = (320, 240)
 
 # --- geometry helpers (as in test_coarse) -------------------------------------------------------
 
-def plane(size=200.0, y=0.0):
-    v = np.array([[-size, y, -size], [size, y, -size], [size, y, size], [-size, y, size]])
-    return v, np.array([[0, 2, 1], [0, 3, 2]])
 
 
-def box(lo, hi):
-    v = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])], float)
-    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
-    return v, f
 
 
-def merge(*parts):
-    verts, faces, prims, off = [], [], [], 0
-    for k, (v, f) in enumerate(parts):
-        verts.append(v)
-        faces.append(f + off)
-        prims.append(np.full(len(f), k))
-        off += len(v)
-    return SceneGeometry(np.vstack(verts).astype(float), np.vstack(faces).astype(np.int32),
-                         np.concatenate(prims).astype(np.int32), [f"/p{k}" for k in range(len(parts))])
 
 
 def rotate_x(v, deg, pivot):
@@ -73,12 +57,6 @@ def ortho(l, r, b, t, near, far):
     return p
 
 
-def frustum(half_w, half_h, near, far):
-    p = np.zeros((4, 4))
-    p[0, 0], p[1, 1] = near / half_w, near / half_h
-    p[2, 2], p[2, 3] = -(far + near) / (far - near), -2 * far * near / (far - near)
-    p[3, 2] = -1.0
-    return p
 
 
 def ortho_map_around(direction, points, res, bias_texels=0.0, shrink=1.0):

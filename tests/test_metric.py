@@ -9,6 +9,7 @@ from shadowopt.solvers.lights import DirectionalLight, SpotLight
 from shadowopt.solvers.metric import DeviceSamples, matrix_to_device, objective, per_sample_maps, predicted_error, recentre
 from shadowopt.solvers.samples import GRAZING_LIGHT_DEG, Samples, pixel_derivatives, select_samples
 from shadowopt.solvers.shadow_map import LogWarp, ShadowMap
+from testkit import frustum
 
 
 def look_down_view(center, dir_=(0.0, -1.0, 0.0), up=(0.0, 0.0, 1.0)):
@@ -28,12 +29,6 @@ def ortho(half_w, half_h, near, far):
     return p
 
 
-def frustum(half_w, half_h, near, far):
-    p = np.zeros((4, 4))
-    p[0, 0], p[1, 1] = near / half_w, near / half_h
-    p[2, 2], p[2, 3] = -(far + near) / (far - near), -2 * far * near / (far - near)
-    p[3, 2] = -1.0
-    return p
 
 
 def samples_on_plane(cam, pts, normal):

@@ -18,20 +18,13 @@ from shadowopt.solvers.lights import DirectionalLight
 from shadowopt.solvers.metric import DeviceSamples, per_sample, predicted_error
 from shadowopt.solvers.optimize import METHODS, OptimizeResult, Problem, _start_x, minimize, start_maps
 from shadowopt.solvers.samples import Samples, pixel_derivatives
+from testkit import ground_samples
 
 RES = (1024, 1024)
 BOUNDS = (np.array([-150, 0, -150.0]), np.array([150, 10, 150.0]))
 LIGHTS = {"overhead": [0, -1, 0], "45deg": [1, -1, 0]}
 
 
-def ground_samples(cam, far=150.0, grid=(96, 54)):
-    d = cam.ray_directions(*grid).reshape(-1, 3)
-    t = -cam.position[1] / d[:, 1]
-    ok = (t > 0) & (t < far)
-    pts = cam.position + t[ok, None] * d[ok]
-    n = np.tile([0, 1.0, 0], (len(pts), 1))
-    dx, dy, dep = pixel_derivatives(cam, pts, n)
-    return pts, Samples(pts, n, dx, dy, dep, np.ones(len(pts)), np.zeros((len(pts), 2), int), "all_facing")
 
 
 @pytest.fixture(scope="module")
