@@ -176,7 +176,7 @@ def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | N
     for li, prob in enumerate(light_problems(resolved, buffers, (lo, hi))):
         common = dict(resolution=tuple(shadow.get("resolution") or (2048, 2048)),
                       cascades=shadow.get("cascades") if isinstance(shadow.get("cascades"), int) else 1,
-                      splits=shadow.get("splits", "practical") if shadow.get("splits") != "optimized" else "practical",
+                      splits=shadow.get("splits", "practical"),
                       split_lambda=shadow.get("lambda", 0.5), texel_budget=shadow.get("texel_budget"),
                       receiver_slack=prob.receiver_slack)
         allow_log = bool(resolved.output.get("allow_log_warp", False))
@@ -188,6 +188,15 @@ def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | N
                                       allow_log=allow_log, solver=solver or DEFAULT_SOLVER,
                                       time_budget_ms=time_budget_ms, previous_x=_previous_x(previous, li),
                                       hysteresis=hysteresis, **opts)
+            if opts["splits"] == "optimized":  # a baseline method with optimized splits: the search's splits
+                opts["splits"] = "practical"
+                if opts["cascades"] > 1 and prob.light.kind == "directional":
+                    from ..solvers.split_search import optimize_splits
+
+                    opts["split_at"] = optimize_splits(
+                        resolved.camera, prob.light, prob.samples, prob.receivers, (lo, hi), opts["resolution"],
+                        opts["cascades"], texel_budget=opts["texel_budget"], receiver_slack=prob.receiver_slack,
+                        method=method if method in ("focused", "lispsm") else "lispsm").split_at
             return baseline(method, resolved.camera, prob.light, prob.receivers, (lo, hi),
                             allow_log=allow_log or method == "logpsm", **opts), None
 

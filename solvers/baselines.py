@@ -303,7 +303,7 @@ def _cube_maps(light, corners: np.ndarray, receivers: np.ndarray, resolution) ->
 def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_bounds=None,
              resolution=(2048, 2048), cascades: int = 1, splits: str = "practical", split_lambda: float = 0.5,
              texel_budget: int | None = None, allow_log: bool = True,
-             receiver_slack: np.ndarray | None = None) -> list[ShadowMap]:
+             receiver_slack: np.ndarray | None = None, split_at=None) -> list[ShadowMap]:
     """The maps of one baseline method for one light (see the module doc for every choice).
 
     method: uniform | focused | lispsm | logpsm. receivers: (N, 3) world points the camera sees
@@ -313,7 +313,8 @@ def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_
     cascades/splits/split_lambda: z-partitions over the receivers' tight view-depth range;
     allow_log: False -> logpsm returns its perspective part only; receiver_slack: per receiver,
     how far in view depth the surface around it reaches (a cascade fits every receiver whose
-    [depth - slack, depth + slack] meets its split, so the split boundary is covered).
+    [depth - slack, depth + slack] meets its split, so the split boundary is covered);
+    split_at: the k - 1 inner split depths, given explicitly (optimized splits) instead of `splits`.
 
     Each map's depth_bias {constant, slope} (metres) follows the one rule the evaluator applies:
     with d the distance along the texel's light ray, a receiver is shadowed iff
@@ -352,7 +353,12 @@ def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_
     else:
         z_lo, z_hi = camera.near, camera.far
     k = max(1, int(cascades))
-    z = split_depths(z_lo, z_hi, k, splits, split_lambda)
+    z = split_depths(z_lo, z_hi, k, "practical" if split_at is not None else splits, split_lambda)
+    if split_at is not None:
+        inner = np.sort(np.asarray(split_at, dtype=np.float64).ravel())
+        if len(inner) != k - 1 or not np.all(np.isfinite(inner)):
+            raise ValueError(f"split_at: need {k - 1} finite inner split depths, got {len(inner)}")
+        z[1:-1] = np.clip(inner, z_lo, z_hi)
     maps, parts = [], []
     for i in range(k):
         lo_z = -np.inf if i == 0 else z[i]

@@ -494,8 +494,18 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
     if solver not in METHODS:
         raise ValueError(f"solver: unknown solver {solver!r} (known: {', '.join(METHODS)})")
     t0 = time.perf_counter()
+    split_info = None
+    split_at = None
+    if splits == "optimized":
+        splits = "practical"
+        if isinstance(light, DirectionalLight) and int(cascades) > 1:
+            from .split_search import optimize_splits
+
+            sr = optimize_splits(camera, light, samples, receivers, casters_bounds, resolution, int(cascades),
+                                 texel_budget=texel_budget, receiver_slack=receiver_slack)
+            split_at, split_info = sr.split_at, sr.to_json()
     common = dict(resolution=resolution, cascades=cascades, splits=splits, split_lambda=split_lambda,
-                  texel_budget=texel_budget, receiver_slack=receiver_slack)
+                  texel_budget=texel_budget, receiver_slack=receiver_slack, split_at=split_at)
     per_method = {m: baseline(m, camera, light, receivers, casters_bounds, allow_log=allow_log and m == "logpsm",
                               **common) for m in BASELINES}
     ref = per_method["focused"]
@@ -506,13 +516,18 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
         lo, hi = rmap.split
         sel_s = (samples.view_depth >= lo) & (samples.view_depth <= hi)
         sub = samples.subset(sel_s)
+        sel_r = np.ones(len(receivers), bool)
+        if isinstance(light, DirectionalLight) and len(receivers) > 0:
+            sel_r = (depth + slack >= (lo if k else -np.inf)) & (depth - slack <= (hi if k < len(ref) - 1 else np.inf))
+        for maps in per_method.values():  # one allocation (focused's) for every candidate: the budget holds
+            if tuple(maps[k].resolution) != tuple(rmap.resolution) and maps[k].face is None:
+                maps[k].resolution = rmap.resolution
+                _with_bias(maps[k], receivers[sel_r] if sel_r.any() else receivers, light)
         scores = {m: predicted_error([maps[k]], sub, camera.position)["objective"] for m, maps in per_method.items()}
         best_name = min(scores, key=scores.get)
         best_map, best_f = per_method[best_name][k], scores[best_name]
         entry = {"cascade": k, "baselines": {m: float(v) for m, v in scores.items()}}
-        sel_r = np.ones(len(receivers), bool)
         if isinstance(light, DirectionalLight) and len(sub) > 0 and len(receivers) > 0:
-            sel_r = (depth + slack >= (lo if k else -np.inf)) & (depth - slack <= (hi if k < len(ref) - 1 else np.inf))
             left = None if time_budget_ms is None else max(1.0, time_budget_ms - (time.perf_counter() - t0) * 1e3)
             res = minimize(camera, light, sub, receivers[sel_r], casters_bounds, rmap.resolution, solver,
                            x0=x0[k] if x0 is not None and k < len(x0) else None, time_budget_ms=left)
@@ -551,4 +566,6 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
                    "converged": all(r.get("success", True) for r in results),
                    "message": "; ".join(sorted({r.get("message", "") for r in results if r})) or "best baseline (no optimizable projective parameters)",
                    "x": [r.get("x") for r in results], "cascades": info}
+    if split_info is not None:
+        solver_json["splits"] = split_info
     return out_maps, solver_json

@@ -168,6 +168,25 @@ def test_texel_budget_allocation_spends_the_budget():
     assert maps[0].resolution[0] * maps[0].resolution[1] != maps[2].resolution[0] * maps[2].resolution[1]
 
 
+def test_optimized_splits_and_budget_beat_practical_lispsm_and_cover_the_view():
+    entry = scene()
+    light = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}
+    base = rig(CAM, light, cascades=4)
+    practical = solve(entry, base, "lispsm")
+    r = rig(CAM, light, cascades=4, splits="optimized")
+    r["shadow"].pop("resolution")
+    r["shadow"]["texel_budget"] = 4 * 512 * 512
+    opt = solve(entry, r, "optimized")
+    maps = maps_from_solution(opt)[0]
+    inner = [m.split[1] for m in maps[:-1]]
+    assert inner == pytest.approx(opt["solver"]["splits"]["split_at"])
+    assert sum(m.resolution[0] * m.resolution[1] for m in maps) <= 4 * 512 * 512
+    assert opt["lights"][0]["predicted_error"]["objective"] < practical["lights"][0]["predicted_error"]["objective"]
+    res = evaluate_solution(entry, r, opt, screen=(320, 180))
+    assert res["outside_pixels"] == 0
+    assert res["misclassified_pixels"] <= evaluate_solution(entry, base, practical, screen=(320, 180))["misclassified_pixels"]
+
+
 def test_auto_cascades_pick_the_smallest_k_meeting_the_target():
     entry = scene()
     light = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}

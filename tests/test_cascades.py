@@ -129,3 +129,31 @@ def test_allocation_never_exceeds_the_budget_when_a_side_hits_the_floor():
     pts, _ = ground_samples(CAM)
     maps = baseline("focused", CAM, SUN, pts, BOUNDS, cascades=3, splits="uniform", texel_budget=3 * 512 * 512)
     assert 0.9 * 3 * 512 * 512 <= sum(m.resolution[0] * m.resolution[1] for m in maps) <= 3 * 512 * 512
+
+
+# ---------------------------------------------------------------- optimized splits
+def test_optimized_splits_beat_every_standard_split_and_keep_every_receiver():
+    from shadowopt.solvers.split_search import optimize_splits
+
+    pts, samples = ground_samples(CAM)
+    depth = (pts - CAM.position) @ CAM.forward
+    r = optimize_splits(CAM, SUN, samples, pts, BOUNDS, (512, 512), 4)
+    assert len(r.split_at) == 3 and np.all(np.diff(r.split_at) > 0)
+    assert depth.min() <= r.split_at[0] and r.split_at[-1] <= depth.max()
+    # independent recomputation: the metric on the maps at those splits, on all receivers
+    maps = baseline("lispsm", CAM, SUN, pts, BOUNDS, (512, 512), cascades=4, split_at=r.split_at)
+    opt = predicted_error(maps, samples)["objective"]
+    for kind in ("uniform", "log", "practical"):
+        std = predicted_error(baseline("lispsm", CAM, SUN, pts, BOUNDS, (512, 512), cascades=4, splits=kind),
+                              samples)["objective"]
+        assert opt <= std * 1.02, (kind, opt, std)
+    idx = map_for_depth(maps, depth)
+    for k, m in enumerate(maps):
+        s, t, _, w = m.map_coords(pts[idx == k])
+        assert np.all((s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (w > 0))
+
+
+def test_explicit_split_depths_are_checked():
+    pts, _ = ground_samples(CAM)
+    with pytest.raises(ValueError, match="split_at: need 3"):
+        baseline("focused", CAM, SUN, pts, BOUNDS, cascades=4, split_at=[5.0, 10.0])

@@ -1,0 +1,113 @@
+"""Optimized cascade splits: the k - 1 inner split depths that minimise the metric's objective.
+
+The objective is the one the solution predicts (solvers.metric: the weighted mean of Chong &
+Gortler's h over the light's samples, each sample scored on the cascade serving its view depth),
+evaluated on a cheap per-cascade map (LiSPSM, or the method given) so that a split candidate costs
+one fit and one metric pass per cascade. The objective is piecewise (a sample jumps cascade when a
+split crosses it), so the search is derivative-free: NLopt's BOBYQA from the best of the uniform,
+logarithmic and practical (λ = 0.5) splits, over s_i in [0, 1] with z_i = z_n (z_f / z_n)^(s_i)
+(Lloyd et al. 2007 eq. 80's log spacing is s_i = i / k). The optimizer of each cascade's light
+matrix then runs at the chosen splits (solvers.optimize.optimized_maps).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .baselines import baseline
+from .cascades import split_depths
+from .metric import predicted_error
+from .samples import Samples
+
+SEARCH_RECEIVERS = 1500  # receivers kept for the search's map fits (the final maps fit all of them)
+
+
+@dataclass
+class SplitResult:
+    split_at: np.ndarray  # the k - 1 inner split depths (view depth, metres)
+    fun: float  # the objective at them (search maps)
+    start: str  # which standard split the search started from
+    starts: dict  # objective of each standard split
+    nfev: int
+    time_ms: float
+
+    def to_json(self) -> dict:
+        return {"split_at": [float(z) for z in self.split_at], "fun": self.fun, "start": self.start,
+                "starts": {k: float(v) for k, v in self.starts.items()}, "nfev": self.nfev,
+                "time_ms": round(self.time_ms, 3)}
+
+
+def receiver_depth_range(camera, receivers: np.ndarray) -> tuple[float, float]:
+    """The receivers' tight view-depth range, as solvers.baselines.baseline splits it."""
+    if not len(receivers):
+        return camera.near, camera.far
+    depth = (receivers - camera.position) @ camera.forward
+    return max(float(depth.min()), camera.near), max(float(depth.max()), camera.near * 1.001)
+
+
+def _subsample(receivers: np.ndarray, slack: np.ndarray | None, n: int):
+    if len(receivers) <= n:
+        return receivers, slack
+    idx = np.random.default_rng(0).choice(len(receivers), n, replace=False)
+    # keep the extremes along each axis so the fits span what the full set spans
+    idx = np.unique(np.concatenate([idx, np.argmin(receivers, 0), np.argmax(receivers, 0)]))
+    return receivers[idx], (None if slack is None else slack[idx])
+
+
+def optimize_splits(camera, light, samples: Samples, receivers: np.ndarray, casters_bounds, resolution,
+                    cascades: int, texel_budget: int | None = None, receiver_slack=None, method: str = "lispsm",
+                    maxeval: int | None = None) -> SplitResult:
+    """The inner split depths minimising the objective of `method`'s maps (a directional light)."""
+    t0 = time.perf_counter()
+    k = int(cascades)
+    receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
+    z_lo, z_hi = receiver_depth_range(camera, receivers)
+    rec, slack = _subsample(receivers, None if receiver_slack is None else np.asarray(receiver_slack, float),
+                            SEARCH_RECEIVERS)
+    nfev = 0
+
+    def split_at(s) -> np.ndarray:
+        return z_lo * (z_hi / z_lo) ** np.sort(np.clip(np.asarray(s, float), 0.0, 1.0))
+
+    def f(s) -> float:
+        nonlocal nfev
+        nfev += 1
+        maps = baseline(method, camera, light, rec, casters_bounds, resolution, cascades=k,
+                        texel_budget=texel_budget, allow_log=False, receiver_slack=slack, split_at=split_at(s))
+        v = predicted_error(maps, samples, camera.position)["objective"]
+        return v if math.isfinite(v) else 1e300
+
+    if k < 2 or len(samples) == 0 or z_hi <= z_lo * (1 + 1e-9):
+        z = split_depths(z_lo, z_hi, k)[1:-1]
+        return SplitResult(z, math.nan, "practical", {}, 0, (time.perf_counter() - t0) * 1e3)
+    starts = {}
+    for kind in ("uniform", "log", "practical"):
+        z = split_depths(z_lo, z_hi, k, kind, 0.5)[1:-1]
+        starts[kind] = np.log(z / z_lo) / math.log(z_hi / z_lo)
+    vals = {kind: f(s) for kind, s in starts.items()}
+    best_kind = min(vals, key=vals.get)
+    best = [vals[best_kind], starts[best_kind]]
+
+    import nlopt
+
+    def g(s, grad):
+        v = f(s)
+        if v < best[0]:
+            best[0], best[1] = v, np.array(s, float)
+        return v / max(vals[best_kind], 1e-300)
+
+    opt = nlopt.opt(nlopt.LN_BOBYQA, k - 1)
+    opt.set_lower_bounds([0.0] * (k - 1))
+    opt.set_upper_bounds([1.0] * (k - 1))
+    opt.set_min_objective(g)
+    opt.set_maxeval(int(maxeval or 12 * (k - 1) + 8))
+    opt.set_xtol_abs(1e-3)
+    opt.set_initial_step(0.08)
+    try:
+        opt.optimize(np.clip(starts[best_kind], 1e-3, 1 - 1e-3).tolist())
+    except Exception:  # roundoff-limited: the best point seen is kept
+        pass
+    return SplitResult(split_at(best[1]), float(best[0]), best_kind, vals, nfev, (time.perf_counter() - t0) * 1e3)
