@@ -244,9 +244,18 @@ def cmd_compare(args) -> int:
 
 
 def cmd_serve(args) -> int:
-    from .server import serve
+    from .server import check_host, serve
+    from .settings import SettingsError, load_settings
 
-    return serve(host=args.host, port=args.port, scenes=args.scene or [str(DEMO_SCENE)])
+    try:
+        settings = load_settings(args.config, host=args.host, port=args.port, data_dir=args.data_dir,
+                                 warm_scenes=args.scene)
+    except SettingsError as e:
+        raise CliError(str(e)) from e
+    refusal = check_host(settings)
+    if refusal:
+        raise CliError(refusal)
+    return serve(settings)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -336,9 +345,12 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_bench)
 
     sp = sub.add_parser("serve", help="start the REST service")
-    sp.add_argument("--host", default="127.0.0.1")
-    sp.add_argument("--port", type=int, default=8000)
-    sp.add_argument("--scene", action="append", default=None, help="scene to preload (repeatable; default: the demo)")
+    sp.add_argument("--host", default=None, help="default 127.0.0.1; another address needs tokens configured")
+    sp.add_argument("--port", type=int, default=None, help="default 8000")
+    sp.add_argument("--data-dir", default=None, help="scene files and the SQLite database (default ./shadowopt-data)")
+    sp.add_argument("--config", default=None, help="settings file (TOML or JSON): tokens, limits, batch backend")
+    sp.add_argument("--scene", action="append", default=None, help="scene to warm up with before /healthz is 200 "
+                    "(repeatable; default: the demo)")
     sp.set_defaults(func=cmd_serve)
     return p
 

@@ -114,3 +114,194 @@ def format_validation_error(err) -> str:
     return "; ".join(lines)
 
 
+
+
+# --- REST API (issue 5): requests and responses. Field names the clients rely on are fixed by the issue. ---
+
+Method = Literal["uniform", "focused", "lispsm", "logpsm", "optimized"]
+BatchState = Literal["queued", "running", "done", "failed", "cancelled"]
+ObjectId = Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.-]+$")]
+
+
+class _Open(BaseModel):
+    """A response that may carry more fields than listed (they are additions, never renames)."""
+
+    model_config = ConfigDict(extra="allow")
+
+
+class ErrorBody(BaseModel):
+    code: str = Field(description="machine-readable, e.g. scene_not_found, invalid_request, rate_limited")
+    message: str = Field(description="what is wrong, naming the field")
+    field: str | None = Field(None, description="the request field at fault, dotted (rig.camera.resolution)")
+
+
+class ErrorResponse(BaseModel):
+    """Every 4xx and 5xx answer of the REST API."""
+
+    error: ErrorBody
+
+
+class SceneInfo(_Open):
+    """What the loader found in an uploaded scene (`LoadedScene.info()` plus its id)."""
+
+    scene_id: str
+    filename: str | None = None
+    triangles: int
+    vertices: int | None = None
+    prims: int | None = None
+    bounds: dict
+    frame: dict
+    cameras: list[dict]
+    lights: list[dict]
+    warnings: list[str]
+    scene_hash: str | None = None
+    created: bool | None = Field(None, description="false when the same file was already uploaded")
+
+
+class Health(_Open):
+    status: Literal["ok", "warming"]
+    warm_s: float | None = Field(None, description="seconds the warm-up took")
+    warm_errors: dict = Field(default_factory=dict)
+    queue_length: int = Field(0, description="batch configurations waiting or running")
+    version: str | None = None
+
+
+class SceneList(BaseModel):
+    scenes: list[dict]
+
+
+class Deleted(BaseModel):
+    deleted: bool
+
+
+class _SceneRequest(_Strict):
+    scene_id: ObjectId
+    rig: Rig
+
+
+class OptimizeRequest(_SceneRequest):
+    """A scene id and rig; the answer is the solution schema of `shadowopt optimize`."""
+
+    method: Method = "optimized"
+    solver: Annotated[str, Field(max_length=64)] | None = Field(
+        None, description="optimizer for method optimized (default nlopt:LN_BOBYQA)")
+    time_budget_ms: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = Field(
+        None, description="return the best so far after this long (capped by the server)")
+    previous: dict | None = Field(None, description="the previous frame's solution (temporal stability)")
+    hysteresis: Annotated[float, Field(gt=0, le=1)] = 0.8
+
+
+class Solution(_Open):
+    """Light matrices, warp, cascades and predicted error per light (see docs/engine-integration.md)."""
+
+    schema_version: int
+    method: str
+    convention: dict
+    lights: list[dict]
+    timings_ms: dict
+    provenance: dict
+    solver: dict | None = None
+
+
+class EvaluateRequest(_SceneRequest):
+    """Measure a solution against exact ray-traced shadows on the scene."""
+
+    solution: dict = Field(description="a solution returned by /v1/optimize for this scene and rig")
+    screen: Resolution | None = Field(None, description="screen resolution (default: the rig camera's)")
+    heatmap: bool = Field(False, description="also return the per-pixel m heatmap as PNG (base64)")
+    grid_every: Annotated[int, Field(ge=1, le=4096)] | None = Field(None, description="texel grid overlay, texels")
+
+
+class Evaluation(_Open):
+    method: str | None = None
+    timings_ms: dict
+    heatmap_png_base64: list[str] | None = Field(None, description="one PNG per light, base64")
+
+
+class CompareRequest(_SceneRequest):
+    methods: list[Method] = Field(["uniform", "focused", "lispsm", "logpsm"], min_length=1, max_length=5)
+    screen: Resolution | None = None
+
+
+class Comparison(_Open):
+    methods: dict
+
+
+class AnalyzeRequest(_Strict):
+    """Lloyd et al.'s scene-independent factors for one view frustum and light angle."""
+
+    f_over_n: Annotated[float, Field(gt=1, le=1e9, allow_inf_nan=False)]
+    theta_deg: Annotated[float, Field(gt=0, lt=90, allow_inf_nan=False)] = Field(description="half field of view")
+    gamma_deg: Annotated[float, Field(ge=0, le=180, allow_inf_nan=False)] = Field(
+        description="angle between light and view direction (90 = overhead)")
+    method: Literal["uniform", "perspective", "log"]
+    partitions: Annotated[int, Field(ge=1, le=64)] = 1
+    azimuth_deg: Annotated[float, Field(ge=-360, le=360, allow_inf_nan=False)] = 0.0
+
+
+class Analysis(BaseModel):
+    R_s: float
+    R_t: float
+    S: float
+
+
+class BatchConfiguration(_Strict):
+    rig: Rig
+
+
+class BatchCreated(_Open):
+    batch_id: str
+    state: BatchState
+    total: int
+
+
+class BatchStatus(_Open):
+    batch_id: str
+    scene_id: str
+    state: BatchState
+    done: int
+    failed: int = 0
+    total: int
+    progress: float = Field(description="(done + failed) / total")
+    errors: list[dict] = Field(default_factory=list)
+    interpolation: dict | None = Field(None, description="how to interpolate between neighbouring "
+                                       "configurations (when the batch is done)")
+
+
+class CameraPath(_Strict):
+    """Camera poses along a path: explicit `poses`, or `keyframes` (position and target or forward, optional
+    up, fov_y_deg, near, far) interpolated linearly to `samples` poses. Each pose is laid over rig.camera."""
+
+    poses: list[dict] | None = Field(None, min_length=1, max_length=100_000)
+    keyframes: list[dict] | None = Field(None, min_length=2, max_length=10_000)
+    samples: Annotated[int, Field(ge=1, le=10_000)] | None = None
+
+
+AngleRange = Annotated[float, Field(allow_inf_nan=False)] | tuple[Finite, Finite]
+
+
+class SunArc(_Strict):
+    """Sun directions from (azimuth, elevation) `from` to `to` in `samples` steps (world frame, +Y up;
+    azimuth 0 puts the sun toward +Z, 90 toward +X). Each angle is a number or [from, to] in degrees."""
+
+    azimuth_deg: AngleRange = 0.0
+    elevation_deg: AngleRange
+    samples: Annotated[int, Field(ge=1, le=10_000)] = 1
+
+
+class BatchRequest(_Strict):
+    """A scene and its configurations: an explicit list of `{"rig": RIG}`, or the camera-path form: a base
+    `rig` with a `camera_path` and/or light set (`light_directions` or `sun_arc`, replacing the rig's light
+    `light_index`); index = camera_index * n_lights + light_index."""
+
+    scene_id: ObjectId
+    configurations: list[BatchConfiguration] | None = Field(None, min_length=1, max_length=100_000)
+    rig: Rig | None = Field(None, description="the base rig of the camera-path form")
+    camera_path: CameraPath | None = None
+    light_directions: list[Vec3] | None = Field(None, min_length=1, max_length=10_000,
+                                                description="directions light travels, world frame")
+    sun_arc: SunArc | None = None
+    light_index: Annotated[int, Field(ge=0, le=15)] | None = None
+    method: Method = "optimized"
+    solver: Annotated[str, Field(max_length=64)] | None = None
+    time_budget_ms: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None

@@ -1,68 +1,833 @@
-"""The REST service (FastAPI on uvicorn). At this stage: health and scene information."""
-from __future__ import annotations
+"""The REST service (FastAPI on uvicorn): scenes, optimize, evaluate, compare, analyze, batches.
 
+Every request is authenticated by a bearer token (the tenant is the token's name), rate-limited per
+token, logged as one JSON line with its request id (echoed in X-Request-ID) and counted in /metrics.
+Every 4xx is `{"error": {"code", "message", "field"}}` and is listed in the route's OpenAPI responses.
+The solver work runs in worker threads (never on the event loop), at most `solve_threads` at a time.
+"""
+
+import asyncio
+import base64
+import contextlib
+import hmac
+import json
 import logging
+import math
+import os
 import sys
+import tempfile
 import threading
+import time
+import traceback
+import uuid
+from pathlib import Path
+from typing import Annotated
 
-from fastapi import FastAPI, HTTPException
-from fastapi.responses import JSONResponse
+from fastapi import Depends, FastAPI, Header, Query, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import ValidationError
+from starlette.concurrency import run_in_threadpool
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from . import schemas as S
+from .metrics import ServerMetrics
+from .settings import Settings, is_loopback, load_settings
 
 log = logging.getLogger("shadowopt.server")
+REPO = Path(__file__).resolve().parents[1]
+DEMO_SCENE = REPO / "configs" / "demo_scene.usda"
+DEMO_RIG = REPO / "configs" / "demo_rig.json"
+SCENE_SUFFIXES = (".usda", ".usdc", ".usdz", ".usd")
+LOCAL_TENANT = "local"  # the tenant of every request when no tokens are configured (loopback only)
+
+# --- errors -------------------------------------------------------------------------------------
+
+DESCRIPTIONS = {
+    400: "malformed request", 401: "missing or unknown bearer token", 404: "no such resource for this tenant",
+    409: "the resource is in a state that does not allow this", 413: "too large (upload size, triangles, "
+    "pixels or texels over the server's limits)", 422: "invalid request: the message names the field",
+    429: "rate limit of this token exceeded; retry after Retry-After seconds",
+    503: "busy (queue full) or warming up; retry after Retry-After seconds",
+}
+RETRY_AFTER = {"Retry-After": {"description": "seconds to wait before retrying", "schema": {"type": "integer"}}}
 
 
-def create_app(scenes: list[str]) -> FastAPI:
-    from ..service.scenes import SCENES
+def error_responses(*codes: int) -> dict:
+    """OpenAPI `responses=` for the given 4xx/5xx codes, all with the ErrorResponse body."""
+    out = {}
+    for c in codes:
+        out[c] = {"model": S.ErrorResponse, "description": DESCRIPTIONS[c]}
+        if c in (429, 503):
+            out[c]["headers"] = RETRY_AFTER
+    return out
 
-    app = FastAPI(title="shadowopt", version=_version(),
-                  description="Scene-optimized shadow-map parameters: light matrices, warp and cascades.")
-    state = {"ready": False, "scenes": {}, "errors": {}}
 
-    def warm():
-        # Load each preloaded scene once and run one coarse pass so the kernels are compiled.
-        from ..renderers.coarse import render_coarse
-        from ..service.rigs import resolve_rig
+AUTHED = (401, 429)
 
-        for path in scenes:
+
+class ApiError(StarletteHTTPException):
+    """An error answered as {"error": {"code", "message", "field"}}."""
+
+    def __init__(self, status: int, code: str, message: str, field: str | None = None,
+                 headers: dict | None = None):
+        super().__init__(status, detail=message, headers=headers)
+        self.code, self.message, self.field = code, message, field
+
+    def body(self) -> dict:
+        return {"error": {"code": self.code, "message": self.message, "field": self.field}}
+
+
+def error_json(status: int, code: str, message: str, field: str | None = None, headers=None) -> JSONResponse:
+    return JSONResponse({"error": {"code": code, "message": message, "field": field}}, status_code=status,
+                        headers=headers)
+
+
+class _Errors:
+    """Adapter so format_validation_error reads FastAPI's errors with the `body`/`query` prefix dropped."""
+
+    def __init__(self, errors: list[dict]):
+        self._errors = errors
+
+    def errors(self):
+        return self._errors
+
+
+def _strip_loc(e: dict) -> dict:
+    loc = tuple(e.get("loc", ()))
+    if len(loc) > 1 and loc[0] in ("body", "query", "path", "header"):
+        loc = loc[1:]
+    return {**e, "loc": loc}
+
+
+def validation_error_response(exc) -> JSONResponse:
+    errors = [_strip_loc(e) for e in exc.errors()]
+    if not errors:
+        return error_json(422, "invalid_request", "invalid request")
+    first = errors[0]
+    if first.get("type") == "json_invalid":
+        why = (first.get("ctx") or {}).get("error", "does not parse")
+        return error_json(422, "invalid_json", f"body: not valid JSON ({why}, at character {first['loc'][-1]})",
+                          "body")
+    field = ".".join(str(p) for p in first.get("loc", ())) or None
+    return error_json(422, "invalid_request", S.format_validation_error(_Errors(errors)), field)
+
+
+# --- JSON output --------------------------------------------------------------------------------
+
+def finite(obj):
+    """NaN/inf -> None (JSON has neither), NumPy scalars -> Python numbers, tuples -> lists."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite(v) for v in obj]
+    if obj is None or isinstance(obj, (str, int, bool)):
+        return obj
+    if hasattr(obj, "tolist"):  # numpy scalar or array
+        return finite(obj.tolist())
+    return str(obj)
+
+
+def json_response(obj, status: int = 200, headers=None) -> Response:
+    body = json.dumps(finite(obj), separators=(",", ":"), allow_nan=False)
+    return Response(body, status_code=status, media_type="application/json", headers=headers)
+
+
+# --- rate limit ---------------------------------------------------------------------------------
+
+class RateLimiter:
+    """A token bucket per tenant: `rate` requests per second, bursts up to `burst`."""
+
+    def __init__(self, rate: float, burst: int):
+        self.rate, self.burst = rate, burst
+        self._buckets: dict[str, tuple[float, float]] = {}
+        self._lock = threading.Lock()
+
+    def take(self, tenant: str) -> float:
+        """0 when the request may go ahead, else the seconds until it may."""
+        if self.rate <= 0:
+            return 0.0
+        now = time.monotonic()
+        with self._lock:
+            tokens, last = self._buckets.get(tenant, (float(self.burst), now))
+            tokens = min(float(self.burst), tokens + (now - last) * self.rate)
+            if tokens >= 1.0:
+                self._buckets[tenant] = (tokens - 1.0, now)
+                return 0.0
+            self._buckets[tenant] = (tokens, now)
+            return (1.0 - tokens) / self.rate
+
+
+# --- the service object -------------------------------------------------------------------------
+
+class Service:
+    """What the routes share: settings, store, batch runner, limits, metrics, readiness."""
+
+    def __init__(self, settings: Settings):
+        self.settings = settings
+        self.store = None
+        self.runner = None
+        self.ready = threading.Event()
+        self.warm_errors: dict[str, str] = {}
+        self.warm_s: float | None = None
+        self.limiter = RateLimiter(settings.rate_limit_per_s, settings.rate_limit_burst)
+        self.solve_slots = threading.BoundedSemaphore(settings.solve_threads)
+        self._inflight = 0
+        self._inflight_lock = threading.Lock()
+        self.metrics = ServerMetrics(self.queue_length, lambda: self._inflight)
+        self.tokens = dict(settings.tokens)
+        self.batch_lock = threading.Lock()
+
+    # lifecycle
+    def start(self) -> None:
+        from ..service.batches import BatchRunner
+        from ..service.store import Store
+
+        Path(self.settings.data_dir).mkdir(parents=True, exist_ok=True)
+        self.store = Store(self.settings.data_dir, retention_days=self.settings.retention_days,
+                           max_bytes=self.settings.max_data_bytes)
+        self.runner = BatchRunner(self.store, backend=self.settings.batch_backend,
+                                  workers=self.settings.batch_workers, ray_address=self.settings.ray_address)
+        resumed = self.runner.resume()
+        log.info("store ready", extra={"fields": {"data_dir": str(self.settings.data_dir),
+                                                  "resumed_batches": _count(resumed)}})
+        threading.Thread(target=self.warm_up, daemon=True, name="warm-up").start()
+
+    def stop(self) -> None:
+        if self.runner is not None:
+            self.runner.shutdown()
+
+    def warm_up(self) -> None:
+        """Load the warm-up scenes and run one optimize each, so the kernels are compiled before /healthz is 200."""
+        from ..service.scenes import SCENES
+        from ..service.solve import solve
+
+        t0 = time.perf_counter()
+        for path in self.settings.warm_scenes or [str(DEMO_SCENE)]:
             try:
-                entry = SCENES.get(path)
-                info = entry.loaded.info()
-                sid = info["scene_hash"][:16]
-                state["scenes"][sid] = (path, info)
-                if entry.loaded.cameras and entry.loaded.lights:
-                    rig = {"camera": {"usd_path": entry.loaded.cameras[0].usd_path, "resolution": (1280, 720)},
-                           "lights": [{"usd_path": l.usd_path} for l in entry.loaded.lights if l.type != "ignored"][:1]}
-                    if rig["lights"]:
-                        r = resolve_rig(rig, entry.loaded)
-                        render_coarse(entry.rays, r.camera, r.lights)
-            except Exception as e:  # a bad preload must not take the service down
-                state["errors"][path] = f"{type(e).__name__}: {e}"
-                log.error("could not preload %s: %s", path, e)
-        state["ready"] = True
+                entry = SCENES.get(path, sandbox=True)
+                rig = warm_rig(entry.loaded, path)
+                if rig is not None:
+                    solve(entry, rig, method="optimized")
+            except Exception as e:  # a bad warm-up scene must not take the service down
+                self.warm_errors[str(path)] = f"{type(e).__name__}: {e}"
+                log.error("warm-up failed", extra={"fields": {"scene": str(path), "error": str(e)}})
+        self.warm_s = round(time.perf_counter() - t0, 3)
+        log.info("warm", extra={"fields": {"seconds": self.warm_s}})
+        self.ready.set()
 
-    threading.Thread(target=warm, daemon=True, name="warm-up").start()
+    # limits
+    @contextlib.contextmanager
+    def heavy(self):
+        """Admission (503 when `max_inflight` requests are already in) and a solver thread slot."""
+        with self._inflight_lock:
+            if self._inflight >= self.settings.max_inflight:
+                raise ApiError(503, "busy", f"{self._inflight} solver requests in flight (limit "
+                               f"{self.settings.max_inflight}); retry shortly", headers={"Retry-After": "1"})
+            self._inflight += 1
+        try:
+            with self.solve_slots:
+                yield
+        finally:
+            with self._inflight_lock:
+                self._inflight -= 1
 
-    @app.get("/healthz", summary="Readiness: 200 once preloaded scenes and kernels are warm, else 503")
-    def healthz():
-        body = {"status": "ok" if state["ready"] else "warming", "scenes": len(state["scenes"]),
-                "preload_errors": state["errors"]}
-        return JSONResponse(body, status_code=200 if state["ready"] else 503)
+    def queue_length(self) -> int:
+        if self.store is None:
+            return 0
+        return sum(max(0, b.get("total", 0) - b.get("done", 0) - b.get("failed", 0))
+                   for b in _batch_dicts(self.store, self.store.unfinished_batches()))
 
-    @app.get("/v1/scenes", summary="Scenes this server has loaded")
-    def list_scenes():
-        return {"scenes": [{"scene_id": sid, "source": path, "triangles": info["triangles"]}
-                           for sid, (path, info) in state["scenes"].items()]}
+    def tenant_for(self, token: str | None) -> str | None:
+        if not self.tokens:
+            return LOCAL_TENANT
+        if not token:
+            return None
+        found = None
+        for name, tok in self.tokens.items():  # compare with every token: no timing hint which one matched
+            if hmac.compare_digest(tok.encode(), token.encode()):
+                found = name
+        return found
 
-    @app.get("/v1/scenes/{scene_id}", summary="What the loader found in one scene",
-             responses={404: {"description": "no such scene"}})
-    def get_scene(scene_id: str):
-        if scene_id not in state["scenes"]:
-            raise HTTPException(404, detail={"code": "scene_not_found", "message": f"no scene {scene_id!r}"})
-        path, info = state["scenes"][scene_id]
-        return {"scene_id": scene_id, **info}
 
+def _count(x) -> int:
+    try:
+        return len(x)
+    except TypeError:
+        return int(x or 0)
+
+
+def _batch_dicts(store, unfinished) -> list[dict]:
+    """store.unfinished_batches() as status dicts (it may give dicts or (tenant, batch_id) pairs)."""
+    out = []
+    for b in unfinished or []:
+        if isinstance(b, dict):
+            if "total" not in b and "batch_id" in b and "tenant" in b:
+                b = store.batch(b["tenant"], b["batch_id"]) or {}
+            out.append(b)
+        elif isinstance(b, (tuple, list)) and len(b) == 2:
+            out.append(store.batch(b[0], b[1]) or {})
+    return out
+
+
+def warm_rig(loaded, path) -> dict | None:
+    """The demo rig for the demo scene, else the scene's first camera and light at a small size."""
+    from .cli import validate_rig
+
+    if Path(path).resolve() == DEMO_SCENE.resolve():
+        return validate_rig(json.loads(DEMO_RIG.read_text()))
+    lights = [{"usd_path": l.usd_path} for l in loaded.lights if l.type != "ignored"][:1]
+    if not loaded.cameras or not lights:
+        return None
+    return validate_rig({"camera": {"usd_path": loaded.cameras[0].usd_path, "resolution": [1280, 720]},
+                         "lights": lights})
+
+
+# --- request context: request id, structured log, metrics, body size ----------------------------
+
+class RequestContext:
+    """ASGI middleware: X-Request-ID (echoed; generated when absent), a JSON log line and metrics per
+    request, and the body-size limit (413 before the body is read when Content-Length says so)."""
+
+    def __init__(self, app, service: Service):
+        self.app, self.service = app, service
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        rid = _request_id(scope)
+        scope.setdefault("state", {})["request_id"] = rid
+        t0 = time.perf_counter()
+        status = {"code": 500, "started": False}
+
+        async def send_with_id(message):
+            if message["type"] == "http.response.start":
+                status["code"], status["started"] = message["status"], True
+                message["headers"] = list(message.get("headers", [])) + [(b"x-request-id", rid.encode())]
+            await send(message)
+
+        try:
+            too_big = self._too_big(scope)
+            if too_big is not None:
+                await too_big(scope, receive, send_with_id)
+            else:
+                await self.app(scope, receive, send_with_id)
+        except Exception as e:
+            log.error("unhandled error", extra={"fields": {"request_id": rid, "error": f"{type(e).__name__}: {e}",
+                                                           "traceback": traceback.format_exc()}})
+            if not status["started"]:
+                await error_json(500, "internal_error", f"internal error ({type(e).__name__}); "
+                                 f"request id {rid}")(scope, receive, send_with_id)
+        finally:
+            self._record(scope, rid, status["code"], time.perf_counter() - t0)
+
+    def _too_big(self, scope):
+        length = dict(scope.get("headers") or []).get(b"content-length")
+        if length is None:
+            return None
+        upload = scope["method"] == "POST" and scope["path"].rstrip("/") == "/v1/scenes"
+        limit = self.service.settings.max_upload_bytes if upload else self.service.settings.max_body_bytes
+        try:
+            n = int(length)
+        except ValueError:
+            return error_json(400, "bad_content_length", "Content-Length is not an integer", "Content-Length")
+        if n > limit:
+            what = "upload" if upload else "request body"
+            return error_json(413, "upload_too_large" if upload else "body_too_large",
+                              f"{what} of {n} bytes is over the limit of {limit} bytes", "body")
+        return None
+
+    def _record(self, scope, rid: str, status: int, seconds: float) -> None:
+        route = scope.get("route")
+        template = getattr(route, "path", None) or "unmatched"
+        m = self.service.metrics
+        m.requests.inc(template, scope["method"], str(status))
+        m.latency.observe(seconds, template, scope["method"])
+        state = scope.get("state") or {}
+        log.info("request", extra={"fields": {
+            "request_id": rid, "method": scope["method"], "path": scope["path"], "route": template,
+            "status": status, "duration_ms": round(seconds * 1e3, 3), "tenant": state.get("tenant"),
+            **({"error_code": state["error_code"]} if state.get("error_code") else {})}})
+
+
+def _request_id(scope) -> str:
+    for k, v in scope.get("headers") or []:
+        if k == b"x-request-id":
+            text = v.decode("latin-1").strip()
+            if 0 < len(text) <= 128 and all(c.isalnum() or c in "-_.:" for c in text):
+                return text
+            break
+    return uuid.uuid4().hex
+
+
+class JsonLogFormatter(logging.Formatter):
+    """One JSON object per line: ts, level, logger, msg and the record's `fields`."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        out = {"ts": round(record.created, 3), "level": record.levelname, "logger": record.name,
+               "msg": record.getMessage()}
+        out.update(getattr(record, "fields", {}) or {})
+        if record.exc_info:
+            out["traceback"] = self.formatException(record.exc_info)
+        return json.dumps(finite(out), default=str)
+
+
+def configure_logging(level: str = "INFO") -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(JsonLogFormatter())
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level.upper())
+
+
+# --- the app ------------------------------------------------------------------------------------
+
+bearer = HTTPBearer(auto_error=False, description="`Authorization: Bearer <token>`; the tenant is the token's name")
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or load_settings()
+    svc = Service(settings)
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app):
+        await run_in_threadpool(svc.start)
+        try:
+            yield
+        finally:
+            await run_in_threadpool(svc.stop)
+
+    app = FastAPI(title="shadowopt", version=_version(), lifespan=lifespan,
+                  description="Scene-optimized shadow-map parameters: light matrices, warp and cascades. "
+                  "Errors are `{\"error\": {\"code\", \"message\", \"field\"}}`.")
+    app.state.service = svc
+    app.add_middleware(RequestContext, service=svc)
+    install_error_handlers(app)
+
+    async def tenant(request: Request,
+                     cred: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)] = None) -> str:
+        name = svc.tenant_for(cred.credentials if cred else None)
+        if name is None:
+            raise ApiError(401, "unauthorized", "missing bearer token" if cred is None else "unknown bearer token",
+                           "Authorization", headers={"WWW-Authenticate": "Bearer"})
+        request.state.tenant = name
+        wait = svc.limiter.take(name)
+        if wait > 0:
+            raise ApiError(429, "rate_limited", f"rate limit of {settings.rate_limit_per_s:g} requests/s "
+                           f"(burst {settings.rate_limit_burst}) exceeded for this token",
+                           headers={"Retry-After": str(max(1, math.ceil(wait)))})
+        return name
+
+    Tenant = Annotated[str, Depends(tenant)]
+    add_system_routes(app, svc)
+    add_scene_routes(app, svc, Tenant)
+    add_solve_routes(app, svc, Tenant)
+    add_batch_routes(app, svc, Tenant)
     return app
 
+
+def install_error_handlers(app: FastAPI) -> None:
+    @app.exception_handler(ApiError)
+    async def api_error(request: Request, exc: ApiError):
+        request.state.error_code = exc.code
+        return JSONResponse(exc.body(), status_code=exc.status_code, headers=exc.headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid(request: Request, exc: RequestValidationError):
+        request.state.error_code = "invalid_request"
+        return validation_error_response(exc)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException):
+        codes = {404: "not_found", 405: "method_not_allowed", 400: "bad_request", 413: "too_large"}
+        code = codes.get(exc.status_code, f"http_{exc.status_code}")
+        request.state.error_code = code
+        return error_json(exc.status_code, code, str(exc.detail), None, getattr(exc, "headers", None))
+
+
+def add_system_routes(app: FastAPI, svc: Service) -> None:
+    @app.get("/healthz", summary="Readiness: 200 once the scene cache and the Dr.Jit kernels are warm, else 503",
+             response_model=S.Health, responses=error_responses(503), tags=["system"])
+    def healthz():
+        body = {"status": "ok" if svc.ready.is_set() else "warming", "warm_s": svc.warm_s,
+                "warm_errors": svc.warm_errors, "queue_length": svc.queue_length(), "version": _version()}
+        if not svc.ready.is_set():
+            return JSONResponse({"error": {"code": "warming_up", "message": "the scene cache and kernels are "
+                                           "warming up", "field": None}, **body}, status_code=503,
+                                headers={"Retry-After": "1"})
+        return body
+
+    @app.get("/metrics", summary="Prometheus metrics: request counts and latencies per route, optimize time, "
+             "queue length", response_class=Response, tags=["system"],
+             responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}})
+    def metrics():
+        return Response(svc.metrics.render(), media_type="text/plain; version=0.0.4; charset=utf-8")
+
+
+# --- scenes -------------------------------------------------------------------------------------
+
+UPLOAD_BODY = {"requestBody": {"required": True, "description": "the USD file: the raw bytes (filename in the "
+               "`filename` query parameter or the X-Filename header) or multipart/form-data with a `file` part",
+               "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}},
+                           "multipart/form-data": {"schema": {
+                               "type": "object", "required": ["file"],
+                               "properties": {"file": {"type": "string", "format": "binary"}}}}}}}
+
+
+def add_scene_routes(app: FastAPI, svc: Service, Tenant) -> None:
+    @app.post("/v1/scenes", summary="Upload a .usda/.usdc/.usdz scene; answers what the loader found",
+              response_model=S.SceneInfo, status_code=201, openapi_extra=UPLOAD_BODY, tags=["scenes"],
+              responses={200: {"model": S.SceneInfo, "description": "the same file was uploaded before"},
+                         **error_responses(*AUTHED, 413, 422, 503)})
+    async def upload_scene(request: Request, tenant: Tenant,
+                           filename: Annotated[str | None, Query(max_length=255, description="the file's name "
+                                                                 "(its extension says the format)")] = None,
+                           x_filename: Annotated[str | None, Header(max_length=255)] = None):
+        data, name = await read_upload(request, svc.settings.max_upload_bytes, filename or x_filename)
+        info, created = await run_in_threadpool(store_and_load, svc, tenant, data, name)
+        return json_response({**info, "created": created}, status=201 if created else 200)
+
+    @app.get("/v1/scenes", summary="This tenant's scenes", response_model=S.SceneList, tags=["scenes"],
+             responses=error_responses(*AUTHED))
+    def list_scenes(tenant: Tenant):
+        return json_response({"scenes": [_scene_summary(r) for r in svc.store.list_scenes(tenant)]})
+
+    @app.get("/v1/scenes/{scene_id}", summary="What the loader found in one scene", response_model=S.SceneInfo,
+             responses=error_responses(*AUTHED, 404, 422), tags=["scenes"])
+    def get_scene(scene_id: S.ObjectId, tenant: Tenant):
+        rec = svc.store.scene_record(tenant, scene_id)
+        if rec is None:
+            raise scene_not_found(scene_id)
+        return json_response(scene_info(rec, scene_id))
+
+    @app.delete("/v1/scenes/{scene_id}", summary="Delete a scene (its file and record)", response_model=S.Deleted,
+                responses=error_responses(*AUTHED, 404, 422), tags=["scenes"])
+    def delete_scene(scene_id: S.ObjectId, tenant: Tenant):
+        if not svc.store.delete_scene(tenant, scene_id):
+            raise scene_not_found(scene_id)
+        return {"deleted": True}
+
+
+def scene_not_found(scene_id: str) -> ApiError:
+    return ApiError(404, "scene_not_found", f"scene_id: no scene {scene_id!r} for this token", "scene_id")
+
+
+def _scene_summary(rec: dict) -> dict:
+    info = rec.get("info") or {}
+    return {"scene_id": rec.get("scene_id"), "filename": rec.get("filename"), "triangles": info.get("triangles"),
+            "created_at": rec.get("created_at")}
+
+
+def scene_info(rec: dict, scene_id: str) -> dict:
+    info = dict(rec.get("info") or {})
+    info.pop("source", None)  # the server's file path is none of the caller's business
+    return {**info, "scene_id": scene_id, "filename": rec.get("filename")}
+
+
+async def read_upload(request: Request, limit: int, name: str | None) -> tuple[bytes, str]:
+    """The uploaded bytes and file name, raw or multipart; 413 past `limit` bytes."""
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limit:
+            raise ApiError(413, "upload_too_large", f"upload is over the limit of {limit} bytes", "body")
+        chunks.append(chunk)
+    body = b"".join(chunks)
+    ctype = request.headers.get("content-type", "")
+    if ctype.startswith("multipart/form-data"):
+        request._body = body  # starlette reads the form from the cached body
+        try:
+            form = await request.form(max_files=1, max_fields=4)
+        except Exception as e:
+            raise ApiError(422, "invalid_multipart", f"file: the multipart body does not parse ({e})", "file") from e
+        part = form.get("file")
+        if part is None or isinstance(part, str):
+            raise ApiError(422, "invalid_request", "file: a multipart upload needs a `file` part with the USD file",
+                           "file")
+        body, name = await part.read(), name or part.filename
+    if not name:
+        raise ApiError(422, "invalid_request", "filename: give the file name (query parameter `filename`, "
+                       "header X-Filename, or the multipart part's filename)", "filename")
+    name = os.path.basename(name.replace("\\", "/"))
+    if not name.lower().endswith(SCENE_SUFFIXES):
+        raise ApiError(422, "unsupported_format", f"filename: {name!r} is not a .usda, .usdc or .usdz file",
+                       "filename")
+    if not body:
+        raise ApiError(422, "invalid_request", "body: the upload is empty", "body")
+    return body, name
+
+
+def store_and_load(svc: Service, tenant: str, data: bytes, name: str) -> tuple[dict, bool]:
+    """Store the file, load it in upload mode (nothing outside the upload is read), record what was found."""
+    from ..renderers.scene_data import SceneError
+    from ..service.scenes import SCENES
+
+    scene_id, created = svc.store.put_scene(tenant, data, name)
+    rec = svc.store.scene_record(tenant, scene_id) or {}
+    if not created and rec.get("info"):
+        return scene_info(rec, scene_id), False
+    path = svc.store.scene_path(tenant, scene_id)
+    try:
+        with svc.heavy():
+            entry = SCENES.get(path, sandbox=svc.store.scene_sandboxed(tenant, scene_id))
+    except SceneError as e:
+        svc.store.delete_scene(tenant, scene_id)
+        raise ApiError(422, e.code, f"file: {e.message}", "file") from e
+    except ApiError:
+        svc.store.delete_scene(tenant, scene_id)
+        raise
+    info = entry.loaded.info()
+    if info["triangles"] > svc.settings.max_triangles:
+        svc.store.delete_scene(tenant, scene_id)
+        raise ApiError(413, "too_many_triangles", f"file: the scene has {info['triangles']} triangles, over the "
+                       f"limit of {svc.settings.max_triangles}", "file")
+    svc.store.set_scene_info(tenant, scene_id, finite(info))
+    return scene_info({"info": info, "filename": name}, scene_id), True
+
+
+def scene_entry_for(svc: Service, tenant: str, scene_id: str):
+    """The loaded scene (from the cache, reloaded if evicted) or 404."""
+    from ..renderers.scene_data import SceneError
+    from ..service.scenes import SCENES
+
+    path = svc.store.scene_path(tenant, scene_id)
+    if path is None:
+        raise scene_not_found(scene_id)
+    try:
+        return SCENES.get(path, sandbox=svc.store.scene_sandboxed(tenant, scene_id))
+    except SceneError as e:
+        raise ApiError(422, e.code, f"scene_id: {e.message}", "scene_id") from e
+
+
+# --- optimize, evaluate, compare, analyze -------------------------------------------------------
+
+def rig_dict(rig: S.Rig) -> dict:
+    return rig.model_dump(by_alias=True)
+
+
+@contextlib.contextmanager
+def solver_errors(previous_given: bool = False):
+    """RigError/SolutionError/SceneError and the solvers' ValueErrors -> 422 naming the field."""
+    from ..renderers.scene_data import SceneError
+    from ..service.rigs import RigError, SolutionError
+
+    try:
+        yield
+    except RigError as e:
+        raise ApiError(422, e.code, f"rig.{e.field}: {e.message}", f"rig.{e.field}") from e
+    except SolutionError as e:
+        raise ApiError(422, e.code, str(e), e.field) from e
+    except SceneError as e:
+        raise ApiError(422, e.code, f"scene_id: {e.message}", "scene_id") from e
+    except (KeyError, TypeError, IndexError) as e:
+        if not previous_given:
+            raise
+        raise ApiError(422, "invalid_previous", f"previous: not a usable solution ({type(e).__name__}: {e})",
+                       "previous") from e
+    except ValueError as e:
+        text = str(e)
+        head, sep, rest = text.partition(": ")
+        field = head if sep and head.replace(".", "").replace("_", "").isalnum() else None
+        log.warning("solver refused the input", extra={"fields": {"error": text}})
+        raise ApiError(422, "unsolvable", text, field) from e
+
+
+def check_eval_size(svc: Service, rig: dict, screen, solution: dict | None) -> None:
+    """413 when the ground truth would cast more rays than the server's limits allow."""
+    w, h = screen or rig["camera"]["resolution"]
+    limit = svc.settings.max_eval_pixels
+    if w * h > limit:
+        field = "screen" if screen else "rig.camera.resolution"
+        raise ApiError(413, "too_many_pixels", f"{field}: {w}x{h} pixels is over the limit of {limit}", field)
+    limit = svc.settings.max_eval_texels
+    for li, light in enumerate((solution or {}).get("lights") or []):
+        for ci, c in enumerate((light.get("cascades") or []) if isinstance(light, dict) else []):
+            res = c.get("resolution") if isinstance(c, dict) else None
+            if isinstance(res, (list, tuple)) and len(res) == 2 and all(isinstance(v, int) for v in res):
+                if res[0] * res[1] > limit:
+                    field = f"solution.lights.{li}.cascades.{ci}.resolution"
+                    raise ApiError(413, "too_many_texels", f"{field}: {res[0]}x{res[1]} texels is over the "
+                                   f"limit of {limit}", field)
+
+
+def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
+    from ..service.solve import solve
+
+    @app.post("/v1/optimize", summary="Shadow setup for a scene and rig: matrices, warp, cascades, predicted error",
+              response_model=S.Solution, responses=error_responses(*AUTHED, 404, 413, 422, 503), tags=["solve"])
+    def optimize(req: S.OptimizeRequest, tenant: Tenant):
+        entry = scene_entry_for(svc, tenant, req.scene_id)
+        cap = svc.settings.max_time_budget_ms
+        budget = min(req.time_budget_ms or cap, cap)
+        t0 = time.perf_counter()
+        with svc.heavy(), solver_errors(req.previous is not None):
+            sol = solve(entry, rig_dict(req.rig), method=req.method, solver=req.solver, time_budget_ms=budget,
+                        previous=req.previous, hysteresis=req.hysteresis)
+        svc.metrics.optimize.observe(time.perf_counter() - t0, req.method)
+        return json_response(sol)
+
+    @app.post("/v1/evaluate", summary="Measure a solution against exact ray-traced shadows (optional heatmap PNG)",
+              response_model=S.Evaluation, responses=error_responses(*AUTHED, 404, 413, 422, 503), tags=["solve"])
+    def evaluate(req: S.EvaluateRequest, tenant: Tenant):
+        from ..service.evaluation import evaluate_solution
+
+        entry = scene_entry_for(svc, tenant, req.scene_id)
+        rig = rig_dict(req.rig)
+        check_eval_size(svc, rig, req.screen, req.solution)
+        with tempfile.TemporaryDirectory(prefix="shadowopt-heatmap-") as tmp:
+            path = str(Path(tmp) / "heatmap.png") if req.heatmap else None
+            with svc.heavy(), solver_errors():
+                res = evaluate_solution(entry, rig, req.solution, screen=req.screen, heatmap_path=path,
+                                        grid_every=req.grid_every)
+            if path:
+                res["heatmap_png_base64"] = [base64.b64encode(p.read_bytes()).decode()
+                                             for p in sorted(Path(tmp).glob("heatmap*.png"))]
+        return json_response(res)
+
+    @app.post("/v1/compare", summary="Methods side by side: predicted and measured error, setup time",
+              response_model=S.Comparison, responses=error_responses(*AUTHED, 404, 413, 422, 503), tags=["solve"])
+    def compare(req: S.CompareRequest, tenant: Tenant):
+        from ..service.compare import compare as compare_methods
+
+        entry = scene_entry_for(svc, tenant, req.scene_id)
+        rig = rig_dict(req.rig)
+        check_eval_size(svc, rig, req.screen, {"lights": [{"cascades": [{"resolution": rig["shadow"].get(
+            "resolution")}]}]})
+        methods = list(dict.fromkeys(req.methods))
+        with svc.heavy(), solver_errors():
+            res = compare_methods(entry, rig, methods, screen=req.screen)
+        return json_response(res)
+
+    @app.post("/v1/analyze", summary="Lloyd's scene-independent critical resolution and storage factors",
+              response_model=S.Analysis, responses=error_responses(*AUTHED, 413, 422), tags=["solve"])
+    def analyze(req: S.AnalyzeRequest, tenant: Tenant):
+        from ..solvers.analysis import analyze as lloyd
+
+        with solver_errors():
+            res = lloyd(req.f_over_n, req.theta_deg, req.gamma_deg, req.method, partitions=req.partitions,
+                        azimuth_deg=req.azimuth_deg)
+        res = {k: float(v) for k, v in res.items()}
+        if not all(math.isfinite(v) for v in res.values()):
+            raise ApiError(422, "not_finite", f"f_over_n: the factors overflow for f/n = {req.f_over_n:g}",
+                           "f_over_n")
+        return res
+
+
+# --- batches ------------------------------------------------------------------------------------
+
+def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
+    @app.post("/v1/batches", summary="Precompute many camera/light configurations; answers 202 with the batch id",
+              response_model=S.BatchCreated, status_code=202, tags=["batches"],
+              responses=error_responses(*AUTHED, 404, 413, 422, 503))
+    def create_batch(req: S.BatchRequest, tenant: Tenant):
+        from ..service.batches import BatchError, expand_configurations, expansion_shape
+        from ..service.rigs import resolve_rig
+
+        entry = scene_entry_for(svc, tenant, req.scene_id)
+        body = req.model_dump(by_alias=True, exclude_none=True,
+                              exclude={"scene_id", "method", "solver", "time_budget_ms"})
+        try:
+            configs = expand_configurations(body)
+            shape = expansion_shape(body)
+        except BatchError as e:
+            raise ApiError(422, e.code, f"{e.field}: {e.message}", e.field) from e
+        configs = [validated_configuration(k, c) for k, c in enumerate(configs)]
+        for k, c in enumerate(configs):  # a rig that does not fit the scene is refused now, not per result
+            try:
+                resolve_rig(c["rig"], entry.loaded)
+            except ValueError as e:
+                field = f"configurations.{k}.rig" + (f".{e.field}" if getattr(e, "field", None) else "")
+                raise ApiError(422, "invalid_rig", f"{field}: {getattr(e, 'message', e)}", field) from e
+        limit = svc.settings.max_queue
+        if len(configs) > limit:
+            raise ApiError(413, "too_many_configurations", f"configurations: {len(configs)} configurations is "
+                           f"over the queue's capacity of {limit}", "configurations")
+        with svc.batch_lock:  # the check and the insert together: two requests cannot both take the last room
+            queued = svc.queue_length()
+            if queued + len(configs) > limit:
+                raise ApiError(503, "queue_full", f"the batch queue holds {queued} of {limit} configurations; "
+                               f"{len(configs)} more do not fit", headers={"Retry-After": str(retry_after(queued))})
+            cap = svc.settings.max_time_budget_ms
+            settings = {"method": req.method, "solver": req.solver,
+                        "time_budget_ms": min(req.time_budget_ms or cap, cap),
+                        "shape": list(shape) if shape else None}
+            batch_id = svc.store.create_batch(tenant, req.scene_id, configs, settings)
+        svc.runner.submit(tenant, batch_id)
+        return json_response({"batch_id": batch_id, "scene_id": req.scene_id, "state": "queued",
+                              "total": len(configs), "shape": settings["shape"]}, status=202)
+
+    @app.get("/v1/batches/{batch_id}", summary="State, progress and errors of a batch",
+             response_model=S.BatchStatus, responses=error_responses(*AUTHED, 404, 422), tags=["batches"])
+    def batch_status(batch_id: S.ObjectId, tenant: Tenant):
+        b = svc.store.batch(tenant, batch_id)
+        if b is None:
+            raise batch_not_found(batch_id)
+        return json_response(status_json(svc, tenant, b))
+
+    @app.get("/v1/batches/{batch_id}/results", summary="Results as JSON lines, one per configuration, in index "
+             "order from `offset`", response_class=Response, tags=["batches"],
+             responses={200: {"description": "one JSON object per line, each with its configuration `index`",
+                              "content": {"application/x-ndjson": {"schema": {"type": "string"}}}},
+                        **error_responses(*AUTHED, 404, 422)})
+    def batch_results(batch_id: S.ObjectId, tenant: Tenant,
+                      offset: Annotated[int, Query(ge=0, le=10**9, description="first index to return")] = 0,
+                      limit: Annotated[int | None, Query(ge=1, le=100_000)] = None):
+        if svc.store.batch(tenant, batch_id) is None:
+            raise batch_not_found(batch_id)
+        rows = svc.store.results(tenant, batch_id, offset=offset, limit=limit)
+        body = "".join(json.dumps(finite(r), separators=(",", ":")) + "\n" for r in rows)
+        return Response(body, media_type="application/x-ndjson")
+
+    @app.delete("/v1/batches/{batch_id}", summary="Cancel a batch (results so far are kept)",
+                response_model=S.BatchStatus, responses=error_responses(*AUTHED, 404, 422), tags=["batches"])
+    def cancel_batch(batch_id: S.ObjectId, tenant: Tenant):
+        if svc.store.batch(tenant, batch_id) is None:
+            raise batch_not_found(batch_id)
+        svc.runner.cancel(tenant, batch_id)
+        return json_response(status_json(svc, tenant, svc.store.batch(tenant, batch_id)))
+
+
+def validated_configuration(k: int, config: dict) -> dict:
+    try:
+        return S.BatchConfiguration.model_validate(config).model_dump(by_alias=True)
+    except ValidationError as e:
+        errors = [{**x, "loc": ("configurations", k) + tuple(x.get("loc", ()))} for x in e.errors()]
+        first = ".".join(str(p) for p in errors[0]["loc"])
+        raise ApiError(422, "invalid_request", S.format_validation_error(_Errors(errors)), first) from e
+
+
+def batch_not_found(batch_id: str) -> ApiError:
+    return ApiError(404, "batch_not_found", f"batch_id: no batch {batch_id!r} for this token", "batch_id")
+
+
+def retry_after(queued: int) -> int:
+    return int(min(60, max(1, queued // 10)))
+
+
+_HINTS: dict[tuple, dict] = {}
+
+
+def status_json(svc: Service, tenant: str, b: dict) -> dict:
+    out = {k: v for k, v in b.items() if k not in ("configurations", "tenant")}
+    total = int(b.get("total") or 0)
+    out["progress"] = round((int(b.get("done") or 0) + int(b.get("failed") or 0)) / total, 6) if total else 1.0
+    out.setdefault("errors", [])
+    if b.get("state") == "done" and out.get("interpolation") is None:
+        key = (tenant, b["batch_id"])
+        if key not in _HINTS:
+            from ..service.batches import interpolation_hints
+
+            shape = (b.get("settings") or {}).get("shape")
+            _HINTS[key] = interpolation_hints(svc.store.results(tenant, b["batch_id"]),
+                                              tuple(shape) if shape else None)
+        out["interpolation"] = _HINTS[key]
+    return out
+
+
+# --- serve --------------------------------------------------------------------------------------
 
 def _version() -> str:
     try:
@@ -73,11 +838,43 @@ def _version() -> str:
         return "0+unknown"
 
 
-def serve(host: str = "127.0.0.1", port: int = 8000, scenes: list[str] | None = None) -> int:
+def check_host(settings: Settings) -> str | None:
+    """Why the server must not start on this host, or None."""
+    if not settings.auth_enabled and not is_loopback(settings.host):
+        return (f"--host {settings.host}: no tokens are configured (SHADOWOPT_TOKENS or `tokens` in the config "
+                f"file), so the server only listens on 127.0.0.1; configure tokens to serve on other addresses")
+    return None
+
+
+def serve(settings: Settings) -> int:
     import uvicorn
 
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    app = create_app(scenes or [])
-    print(f"shadowopt: serving on http://{host}:{port} (health: /healthz, docs: /docs)", file=sys.stderr)
-    uvicorn.run(app, host=host, port=port, log_level="info")
+    configure_logging(settings.log_level)
+    refusal = check_host(settings)
+    if refusal:
+        print(f"shadowopt: error: {refusal}", file=sys.stderr)
+        return 2
+    if not settings.auth_enabled:
+        log.warning("no tokens configured: authentication is off and the server listens on loopback only",
+                    extra={"fields": {"host": settings.host}})
+    app = create_app(settings)
+    log.info("serving", extra={"fields": {"url": f"http://{settings.host}:{settings.port}", "health": "/healthz",
+                                          "docs": "/docs", "auth": settings.auth_enabled}})
+    uvicorn.run(app, host=settings.host, port=settings.port, log_config=None, access_log=False)
     return 0
+
+
+def openapi_document() -> dict:
+    """The OpenAPI document the app serves (independent of the settings)."""
+    return create_app(Settings()).openapi()
+
+
+def write_openapi(path: str | os.PathLike = REPO / "docs" / "openapi.json") -> Path:
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps(openapi_document(), indent=2, sort_keys=True) + "\n")
+    return p
+
+
+if __name__ == "__main__":  # python -m shadowopt.api.server [PATH]: rewrite docs/openapi.json
+    print(write_openapi(*sys.argv[1:2]))

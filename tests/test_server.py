@@ -1,63 +1,124 @@
-"""The REST service on a real uvicorn server on 127.0.0.1."""
+"""The REST service as a process: readiness, OpenAPI document, request ids, logs, metrics, settings and
+the loopback rule without tokens. A real `shadowopt serve` (uvicorn) on 127.0.0.1."""
 from __future__ import annotations
 
-import socket
+import json
+import os
+import re
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
 import pytest
+from serverkit import REPO, TINY_RIG, auth, launch, running, stop, upload, wait_ready
 
-REPO = Path(__file__).resolve().parents[1]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from shadowopt.api.settings import Settings, SettingsError, is_loopback, load_settings, parse_tokens
 
 
 @pytest.fixture(scope="module")
-def server():
-    port = free_port()
+def server(tmp_path_factory):
+    with running(tmp_path_factory.mktemp("srv") / "data") as s:
+        yield s
+
+
+def test_ready_after_warm_up(server):
+    assert server.statuses[-1] == 200 and set(server.statuses) <= {200, 503}
+    health = httpx.get(server.base + "/healthz").json()
+    assert health["status"] == "ok" and health["warm_errors"] == {} and health["warm_s"] > 0
+    assert health["queue_length"] == 0
+    # the warm-up solved the demo rig once: a first optimize on an uploaded demo needs no kernel compile
+    sid = upload(server.base, "alice").json()["scene_id"]
+    r = httpx.post(server.base + "/v1/optimize", json={"scene_id": sid, "rig": TINY_RIG, "method": "focused"},
+                   headers=auth("alice"), timeout=60)
+    assert r.status_code == 200, r.text
+
+
+def test_served_openapi_is_the_repository_document(server):
+    served = httpx.get(server.base + "/openapi.json").json()
+    kept = json.loads((REPO / "docs" / "openapi.json").read_text())
+    assert served == kept, "docs/openapi.json is stale: run `python -m shadowopt.api.server`"
+    ops = [(p, m, o) for p, item in served["paths"].items() for m, o in item.items()]
+    assert {p for p, _, _ in ops} >= {"/v1/scenes", "/v1/scenes/{scene_id}", "/v1/optimize", "/v1/evaluate",
+                                     "/v1/compare", "/v1/analyze", "/v1/batches", "/v1/batches/{batch_id}",
+                                     "/v1/batches/{batch_id}/results", "/healthz", "/metrics"}
+    for path, method, op in ops:
+        if path.startswith("/v1/"):
+            assert {"401", "429"} <= set(op["responses"]), (method, path)
+            assert op["responses"]["401"]["content"]["application/json"]["schema"]["$ref"].endswith("/ErrorResponse")
+            assert op.get("security") == [{"HTTPBearer": []}], (method, path)
+    assert "422" in served["paths"]["/v1/optimize"]["post"]["responses"]
+    assert "Retry-After" in served["paths"]["/v1/batches"]["post"]["responses"]["503"]["headers"]
+
+
+def test_request_id_is_echoed_generated_and_logged(server):
+    r = httpx.get(server.base + "/v1/scenes", headers={**auth("alice"), "X-Request-ID": "trace-42.a"})
+    assert r.status_code == 200 and r.headers["x-request-id"] == "trace-42.a"
+    generated = httpx.get(server.base + "/v1/scenes/nope", headers=auth("alice")).headers["x-request-id"]
+    assert re.fullmatch(r"[0-9a-f]{32}", generated)
+    bad = httpx.get(server.base + "/healthz", headers={"X-Request-ID": "a b\"c"}).headers["x-request-id"]
+    assert re.fullmatch(r"[0-9a-f]{32}", bad)  # an unsafe id is replaced, never copied into logs
+    lines = [json.loads(line) for line in server.log().splitlines() if line.startswith("{")]
+    mine = [e for e in lines if e.get("request_id") == "trace-42.a"]
+    assert mine and mine[0]["route"] == "/v1/scenes" and mine[0]["status"] == 200 and mine[0]["tenant"] == "alice"
+    miss = [e for e in lines if e.get("request_id") == generated]
+    assert miss and miss[0]["status"] == 404 and miss[0]["error_code"] == "scene_not_found"
+
+
+def test_metrics_count_requests_latency_optimize_and_queue(server):
+    for _ in range(3):
+        httpx.get(server.base + "/v1/scenes", headers=auth("bob"))
+    text = httpx.get(server.base + "/metrics").text
+    count = re.search(r'^shadowopt_requests_total\{route="/v1/scenes",method="GET",status="200"\} (\d+)$', text, re.M)
+    assert count and int(count.group(1)) >= 3
+    assert re.search(r'^shadowopt_request_duration_seconds_bucket\{route="/v1/scenes",method="GET",le="\+Inf"\} \d+$',
+                     text, re.M)
+    assert re.search(r'^shadowopt_optimize_seconds_count\{method="focused"\} [1-9]\d*$', text, re.M)
+    assert re.search(r"^shadowopt_batch_queue_length 0$", text, re.M)
+    assert "# TYPE shadowopt_request_duration_seconds histogram" in text
+
+
+def test_no_tokens_means_loopback_only_and_open(tmp_path):
     exe = Path(sys.executable).with_name("shadowopt")
-    proc = subprocess.Popen([str(exe), "serve", "--host", "127.0.0.1", "--port", str(port)], cwd=REPO,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    base = f"http://127.0.0.1:{port}"
-    statuses = []
+    env = {k: v for k, v in os.environ.items() if not k.startswith("SHADOWOPT_")}
+    refused = subprocess.run([str(exe), "serve", "--host", "0.0.0.0", "--data-dir", str(tmp_path / "d")],
+                             env=env, capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2
+    assert "no tokens are configured" in refused.stderr and "Traceback" not in refused.stderr
+    server = launch(tmp_path / "open", tokens=None)
     try:
-        deadline = time.time() + 120
-        while time.time() < deadline:
-            try:
-                r = httpx.get(base + "/healthz", timeout=2)
-                statuses.append(r.status_code)
-                if r.status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert proc.poll() is None, proc.stdout.read()
-            time.sleep(0.1)
-        else:
-            pytest.fail("server did not become ready in 120 s")
-        yield base, statuses
+        wait_ready(server)
+        assert httpx.get(server.base + "/v1/scenes").status_code == 200  # no token needed on loopback
+        starts = [json.loads(l) for l in server.log().splitlines() if l.startswith("{")]
+        assert any("no tokens configured" in e["msg"] and e.get("host") == "127.0.0.1" for e in starts)
     finally:
-        proc.terminate()
-        proc.wait(timeout=30)
+        stop(server)
 
 
-def test_health_scene_info_and_openapi(server):
-    base, statuses = server
-    assert statuses[-1] == 200 and set(statuses) <= {200, 503}
-    health = httpx.get(base + "/healthz").json()
-    assert health["status"] == "ok" and health["scenes"] == 1 and health["preload_errors"] == {}
-    scenes = httpx.get(base + "/v1/scenes").json()["scenes"]
-    assert len(scenes) == 1 and scenes[0]["source"].endswith("demo_scene.usda")
-    info = httpx.get(f"{base}/v1/scenes/{scenes[0]['scene_id']}").json()
-    assert info["triangles"] == scenes[0]["triangles"] > 1000
-    assert [c["usd_path"] for c in info["cameras"]] == ["/World/Camera"]
-    r = httpx.get(base + "/v1/scenes/0000")
-    assert r.status_code == 404 and r.json()["detail"]["code"] == "scene_not_found"
-    spec = httpx.get(base + "/openapi.json").json()
-    assert "/healthz" in spec["paths"] and "404" in spec["paths"]["/v1/scenes/{scene_id}"]["get"]["responses"]
+def test_settings_from_file_env_and_flags(tmp_path):
+    toml = tmp_path / "s.toml"
+    toml.write_text('data_dir = "/x"\nrate_limit_per_s = 3\n[server]\nmax_queue = 7\n[server.tokens]\nann = "ann-token-1"\n')
+    s = load_settings(toml, env={"SHADOWOPT_MAX_QUEUE": "9"}, port=9000)
+    assert (s.data_dir, s.rate_limit_per_s, s.max_queue, s.port, s.tokens) == ("/x", 3.0, 9, 9000, {"ann": "ann-token-1"})
+    js = tmp_path / "s.json"
+    js.write_text(json.dumps({"tokens": {"a": "aaaaaaaa"}, "batch_backend": "ray", "retention_days": None}))
+    assert load_settings(js, env={}).batch_backend == "ray"
+    assert load_settings(env={"SHADOWOPT_TOKENS": "a=tok-aaaa, b=tok-bbbb"}).tokens == {"a": "tok-aaaa", "b": "tok-bbbb"}
+    for env, words in [({"SHADOWOPT_TOKENS": "justatoken"}, "name=token"), ({"SHADOWOPT_MAX_QUEUE": "lots"}, "max_queue"),
+                       ({"SHADOWOPT_TOKENS": "a=short"}, "at least 8"), ({"SHADOWOPT_BATCH_BACKEND": "dask"}, "batch_backend")]:
+        with pytest.raises(SettingsError, match=words):
+            load_settings(env=env)
+    (tmp_path / "bad.toml").write_text("max_qeue = 3\n")
+    with pytest.raises(SettingsError, match="unknown setting.*max_qeue"):
+        load_settings(tmp_path / "bad.toml", env={})
+    assert parse_tokens("") == {} and not Settings().auth_enabled
+    assert is_loopback("127.0.0.1") and is_loopback("::1") and not is_loopback("0.0.0.0")
+
+
+def test_serve_bad_config_exits_2(tmp_path):
+    exe = Path(sys.executable).with_name("shadowopt")
+    (tmp_path / "c.toml").write_text("max_queue = 0\n")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("SHADOWOPT_")}
+    r = subprocess.run([str(exe), "serve", "--config", str(tmp_path / "c.toml")], env=env, capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 2 and "max_queue: must be at least 1" in r.stderr

@@ -1,0 +1,115 @@
+"""Prometheus metrics in the text exposition format (0.0.4), written by hand: counters, histograms, gauges."""
+from __future__ import annotations
+
+import bisect
+import math
+import threading
+from typing import Callable
+
+LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
+
+
+def _labels(names: tuple[str, ...], values: tuple) -> str:
+    if not names:
+        return ""
+    esc = (str(v).replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n") for v in values)
+    return "{" + ",".join(f'{n}="{v}"' for n, v in zip(names, esc)) + "}"
+
+
+def _num(v: float) -> str:
+    if math.isinf(v):
+        return "+Inf" if v > 0 else "-Inf"
+    return repr(float(v)) if not float(v).is_integer() else str(int(v))
+
+
+class Counter:
+    def __init__(self, name: str, help: str, labels: tuple[str, ...] = ()):
+        self.name, self.help, self.labels = name, help, labels
+        self._values: dict[tuple, float] = {}
+        self._lock = threading.Lock()
+
+    def inc(self, *labels, by: float = 1.0) -> None:
+        with self._lock:
+            self._values[labels] = self._values.get(labels, 0.0) + by
+
+    def render(self) -> list[str]:
+        out = [f"# HELP {self.name} {self.help}", f"# TYPE {self.name} counter"]
+        with self._lock:
+            out += [f"{self.name}{_labels(self.labels, k)} {_num(v)}" for k, v in sorted(self._values.items())]
+        return out
+
+
+class Histogram:
+    def __init__(self, name: str, help: str, labels: tuple[str, ...] = (), buckets=LATENCY_BUCKETS):
+        self.name, self.help, self.labels, self.buckets = name, help, labels, tuple(buckets)
+        self._values: dict[tuple, list] = {}  # labels -> [bucket counts..., sum, count]
+        self._lock = threading.Lock()
+
+    def observe(self, value: float, *labels) -> None:
+        i = bisect.bisect_left(self.buckets, value)
+        with self._lock:
+            v = self._values.setdefault(labels, [0] * len(self.buckets) + [0.0, 0])
+            if i < len(self.buckets):
+                v[i] += 1
+            v[-2] += value
+            v[-1] += 1
+
+    def render(self) -> list[str]:
+        out = [f"# HELP {self.name} {self.help}", f"# TYPE {self.name} histogram"]
+        names = self.labels + ("le",)
+        with self._lock:
+            for k, v in sorted(self._values.items()):
+                cum = 0
+                for b, n in zip(self.buckets, v):
+                    cum += n
+                    out.append(f"{self.name}_bucket{_labels(names, k + (_num(b),))} {cum}")
+                out.append(f"{self.name}_bucket{_labels(names, k + ('+Inf',))} {v[-1]}")
+                out.append(f"{self.name}_sum{_labels(self.labels, k)} {_num(v[-2])}")
+                out.append(f"{self.name}_count{_labels(self.labels, k)} {v[-1]}")
+        return out
+
+
+class Gauge:
+    """A value read when scraped (a callback), e.g. the batch queue length."""
+
+    def __init__(self, name: str, help: str, read: Callable[[], float]):
+        self.name, self.help, self.read = name, help, read
+
+    def render(self) -> list[str]:
+        try:
+            value = float(self.read())
+        except Exception:  # a gauge that cannot be read is left out of this scrape, never an error
+            return []
+        return [f"# HELP {self.name} {self.help}", f"# TYPE {self.name} gauge", f"{self.name} {_num(value)}"]
+
+
+class Registry:
+    def __init__(self):
+        self.metrics: list = []
+
+    def add(self, metric):
+        self.metrics.append(metric)
+        return metric
+
+    def render(self) -> str:
+        return "\n".join(line for m in self.metrics for line in m.render()) + "\n"
+
+
+class ServerMetrics:
+    """The metrics the REST service exports."""
+
+    def __init__(self, queue_length: Callable[[], float], inflight: Callable[[], float]):
+        self.registry = r = Registry()
+        self.requests = r.add(Counter("shadowopt_requests_total", "HTTP requests by route, method and status",
+                                      ("route", "method", "status")))
+        self.latency = r.add(Histogram("shadowopt_request_duration_seconds", "HTTP request latency by route",
+                                       ("route", "method")))
+        self.optimize = r.add(Histogram("shadowopt_optimize_seconds", "time spent in solve() per optimize "
+                                        "request, by method", ("method",)))
+        self.queue = r.add(Gauge("shadowopt_batch_queue_length", "batch configurations waiting or running",
+                                 queue_length))
+        self.inflight = r.add(Gauge("shadowopt_inflight_requests", "optimize/evaluate/compare requests "
+                                    "being served or waiting for a solver thread", inflight))
+
+    def render(self) -> str:
+        return self.registry.render()

@@ -1,0 +1,142 @@
+"""Server settings: defaults, then a TOML/JSON config file, then `SHADOWOPT_*` environment variables.
+
+Every field can be set in the config file under its own name (TOML: top level or a `[server]` table)
+and in the environment as `SHADOWOPT_<NAME>` (upper case). Tokens: `SHADOWOPT_TOKENS="name=token,..."`
+or a `tokens = {name = "token"}` table; the tenant of a request is the name of its token.
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+LOOPBACK_HOSTS = ("127.0.0.1", "::1", "localhost")
+
+
+class SettingsError(ValueError):
+    """A setting has a bad value; the message names it."""
+
+
+@dataclass
+class Settings:
+    data_dir: str = "shadowopt-data"
+    host: str = "127.0.0.1"
+    port: int = 8000
+    tokens: dict[str, str] = field(default_factory=dict)  # name -> token
+    max_upload_bytes: int = 64 * 1024 * 1024
+    max_body_bytes: int = 16 * 1024 * 1024  # JSON requests
+    max_triangles: int = 5_000_000
+    max_time_budget_ms: float = 10_000.0
+    max_eval_pixels: int = 3840 * 2160 * 2  # evaluate/compare: screen pixels
+    max_eval_texels: int = 8192 * 8192  # evaluate/compare: texels per shadow map
+    max_queue: int = 100_000  # configurations waiting or running over all batches
+    max_inflight: int = 64  # optimize/evaluate/compare requests at once; more wait in line up to this
+    solve_threads: int = 2  # solves running at the same time
+    rate_limit_per_s: float = 50.0  # per token; 0 turns the limit off
+    rate_limit_burst: int = 100
+    batch_backend: str = "local"
+    batch_workers: int = 2
+    ray_address: str | None = None
+    retention_days: float | None = None
+    max_data_bytes: int | None = None
+    warm_scenes: list[str] = field(default_factory=list)  # loaded and solved once before /healthz is 200
+    log_level: str = "INFO"
+
+    @property
+    def auth_enabled(self) -> bool:
+        return bool(self.tokens)
+
+    def check(self) -> "Settings":
+        for name in ("max_upload_bytes", "max_body_bytes", "max_triangles", "max_eval_pixels", "max_eval_texels",
+                     "max_queue", "max_inflight",
+                     "solve_threads", "batch_workers", "rate_limit_burst"):
+            if getattr(self, name) < 1:
+                raise SettingsError(f"{name}: must be at least 1, got {getattr(self, name)}")
+        if self.max_time_budget_ms <= 0 or self.rate_limit_per_s < 0:
+            raise SettingsError("max_time_budget_ms must be > 0 and rate_limit_per_s >= 0")
+        if self.batch_backend not in ("local", "ray"):
+            raise SettingsError(f"batch_backend: 'local' or 'ray', got {self.batch_backend!r}")
+        if not 0 < self.port < 65536:
+            raise SettingsError(f"port: must be in 1..65535, got {self.port}")
+        for name, tok in self.tokens.items():
+            if not name or not tok or len(tok) < 8:
+                raise SettingsError(f"tokens: {name or '(empty name)'!r} needs a token of at least 8 characters")
+        if len(set(self.tokens.values())) != len(self.tokens):
+            raise SettingsError("tokens: two tenants share a token")
+        return self
+
+
+def parse_tokens(text: str) -> dict[str, str]:
+    """`"name=token,name2=token2"` -> {name: token}."""
+    out = {}
+    for pair in (p.strip() for p in text.split(",")):
+        if not pair:
+            continue
+        name, eq, tok = pair.partition("=")
+        if not eq or not name.strip() or not tok.strip():
+            raise SettingsError(f"SHADOWOPT_TOKENS: expected name=token pairs separated by commas, got {pair!r}")
+        out[name.strip()] = tok.strip()
+    return out
+
+
+def read_config_file(path: str | os.PathLike) -> dict:
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as e:
+        raise SettingsError(f"--config: cannot read {str(p)!r}: {e.strerror}") from e
+    try:
+        if p.suffix.lower() == ".json":
+            data = json.loads(text)
+        else:
+            import tomllib
+
+            data = tomllib.loads(text)
+    except (ValueError, json.JSONDecodeError) as e:
+        raise SettingsError(f"--config: {p} does not parse: {e}") from e
+    if not isinstance(data, dict):
+        raise SettingsError(f"--config: {p} must hold a table/object")
+    return {**{k: v for k, v in data.items() if k != "server"}, **data.get("server", {})}
+
+
+def _coerce(name: str, value, kind):
+    kind = str(kind)
+    try:
+        if value is None or (isinstance(value, str) and value.strip().lower() in ("", "none", "null")):
+            if "None" in kind:
+                return None
+            raise ValueError("a value is required")
+        if name == "tokens":
+            return parse_tokens(value) if isinstance(value, str) else {str(k): str(v) for k, v in dict(value).items()}
+        if name == "warm_scenes":
+            return [s for s in value.split(",") if s] if isinstance(value, str) else [str(s) for s in value]
+        if kind.startswith("int"):
+            return int(value)
+        if kind.startswith("float"):
+            return float(value)
+        return str(value)
+    except (TypeError, ValueError) as e:
+        raise SettingsError(f"{name}: cannot use {value!r} ({e})") from e
+
+
+def load_settings(config: str | os.PathLike | None = None, env: dict | None = None, **overrides) -> Settings:
+    """Defaults < config file (`config` or $SHADOWOPT_CONFIG) < environment < explicit overrides (CLI flags)."""
+    env = os.environ if env is None else env
+    values: dict = {}
+    config = config or env.get("SHADOWOPT_CONFIG")
+    if config:
+        values.update(read_config_file(config))
+    known = {f.name: f.type for f in fields(Settings)}
+    unknown = sorted(set(values) - set(known))
+    if unknown:
+        raise SettingsError(f"config: unknown setting(s) {', '.join(unknown)} (known: {', '.join(known)})")
+    for name in known:
+        if f"SHADOWOPT_{name.upper()}" in env:
+            values[name] = env[f"SHADOWOPT_{name.upper()}"]
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    return Settings(**{k: _coerce(k, v, known[k]) for k, v in values.items()}).check()
+
+
+def is_loopback(host: str) -> bool:
+    return host in LOOPBACK_HOSTS or host.startswith("127.")
