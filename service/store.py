@@ -1,0 +1,442 @@
+"""Persistence: a data directory with uploaded scene files and one SQLite database.
+
+Layout: `<data_dir>/scenes/<tenant hash>/<scene_id>/<sanitised file name>` and `<data_dir>/shadowopt.db`
+(WAL mode). Tables: scenes, batches, configurations, results, errors. Every write of a configuration's
+outcome is `INSERT OR IGNORE` keyed by (batch_id, index): a result once stored is never overwritten or
+duplicated. Each thread gets its own connection, so a Store is safe to share between server threads.
+Times are stored as Unix seconds and returned as ISO 8601 UTC strings.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import shutil
+import sqlite3
+import threading
+import time
+import uuid
+from pathlib import Path
+
+STATES = ("queued", "running", "done", "failed", "cancelled")
+UNFINISHED = ("queued", "running")
+DB_NAME = "shadowopt.db"
+MAX_ERRORS_LISTED = 100
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS scenes (
+    tenant TEXT NOT NULL, scene_id TEXT NOT NULL, filename TEXT NOT NULL, bytes INTEGER NOT NULL,
+    path TEXT NOT NULL, source TEXT NOT NULL, created_at REAL NOT NULL, info TEXT,
+    PRIMARY KEY (tenant, scene_id));
+CREATE TABLE IF NOT EXISTS batches (
+    batch_id TEXT PRIMARY KEY, tenant TEXT NOT NULL, scene_id TEXT NOT NULL, state TEXT NOT NULL,
+    total INTEGER NOT NULL, settings TEXT NOT NULL, created_at REAL NOT NULL, updated_at REAL NOT NULL);
+CREATE INDEX IF NOT EXISTS batches_tenant ON batches (tenant);
+CREATE INDEX IF NOT EXISTS batches_state ON batches (state);
+CREATE TABLE IF NOT EXISTS configurations (
+    batch_id TEXT NOT NULL, idx INTEGER NOT NULL, config TEXT NOT NULL, PRIMARY KEY (batch_id, idx));
+CREATE TABLE IF NOT EXISTS results (
+    batch_id TEXT NOT NULL, idx INTEGER NOT NULL, result TEXT NOT NULL, created_at REAL NOT NULL,
+    PRIMARY KEY (batch_id, idx));
+CREATE TABLE IF NOT EXISTS errors (
+    batch_id TEXT NOT NULL, idx INTEGER NOT NULL, code TEXT NOT NULL, message TEXT NOT NULL,
+    created_at REAL NOT NULL, PRIMARY KEY (batch_id, idx));
+"""
+
+
+def iso(t: float | None) -> str | None:
+    return None if t is None else time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t))
+
+
+def tenant_dir_name(tenant: str) -> str:
+    """Tenants' folders are named by a hash: a tenant name never becomes a path."""
+    return hashlib.sha256(tenant.encode()).hexdigest()[:16]
+
+
+def scene_id_for(data: bytes, filename: str) -> str:
+    """First 16 hex digits of sha256 over the bytes followed by the lower-case extension."""
+    h = hashlib.sha256(data)
+    h.update(Path(filename).suffix.lower().encode())
+    return h.hexdigest()[:16]
+
+
+def sanitise_filename(filename: str) -> str:
+    """The basename with only [A-Za-z0-9._-] kept (others become `_`), no leading dots, extension lower-case."""
+    base = os.path.basename(filename.replace("\\", "/")) or "scene"
+    stem, ext = os.path.splitext(base)
+    stem = re.sub(r"[^A-Za-z0-9._-]", "_", stem).lstrip(".")[:100] or "scene"
+    ext = re.sub(r"[^A-Za-z0-9.]", "", ext.lower())[:10]
+    return stem + ext
+
+
+class Store:
+    """Scenes and batches of one data directory. See the module docstring for the layout."""
+
+    def __init__(self, data_dir: str | Path, retention_days: float | None = None, max_bytes: int | None = None):
+        self.data_dir = Path(data_dir)
+        self.retention_days = retention_days
+        self.max_bytes = max_bytes
+        self.scenes_dir = self.data_dir / "scenes"
+        self.scenes_dir.mkdir(parents=True, exist_ok=True)
+        self.db_path = self.data_dir / DB_NAME
+        self._local = threading.local()
+        self._conns: list[sqlite3.Connection] = []
+        self._conns_lock = threading.Lock()
+        self._write_lock = threading.Lock()  # one writer at a time within this process
+        self._init_schema()
+
+    # -- connections -----------------------------------------------------------------------------
+    def _conn(self) -> sqlite3.Connection:
+        conn = getattr(self._local, "conn", None)
+        if conn is None:
+            conn = sqlite3.connect(self.db_path, timeout=30.0, isolation_level=None, check_same_thread=False)
+            conn.row_factory = sqlite3.Row
+            conn.execute("PRAGMA journal_mode=WAL")
+            conn.execute("PRAGMA synchronous=NORMAL")  # WAL + NORMAL: durable against process crashes
+            conn.execute("PRAGMA busy_timeout=30000")
+            self._local.conn = conn
+            with self._conns_lock:
+                self._conns.append(conn)
+        return conn
+
+    def _init_schema(self) -> None:
+        conn = self._conn()
+        with self._write_lock:
+            conn.execute("PRAGMA auto_vacuum=INCREMENTAL")  # only takes effect on a new database
+            conn.executescript(_SCHEMA)
+
+    def _write(self, statements: list[tuple[str, tuple]]) -> list[int]:
+        """Run statements in one transaction; the rowcount of each."""
+        conn = self._conn()
+        counts = []
+        with self._write_lock:
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                for sql, params in statements:
+                    counts.append(conn.execute(sql, params).rowcount)
+                conn.execute("COMMIT")
+            except BaseException:
+                conn.execute("ROLLBACK")
+                raise
+        return counts
+
+    def _query(self, sql: str, params: tuple = ()) -> list[sqlite3.Row]:
+        return self._conn().execute(sql, params).fetchall()
+
+    def close(self) -> None:
+        with self._conns_lock:
+            for c in self._conns:
+                try:
+                    c.close()
+                except sqlite3.ProgrammingError:
+                    pass
+            self._conns.clear()
+        self._local = threading.local()
+
+    # -- scenes ----------------------------------------------------------------------------------
+    def put_scene(self, tenant: str, data: bytes, filename: str) -> tuple[str, bool]:
+        """Store an uploaded file; (scene_id, created). The same bytes again return the same id, created=False."""
+        scene_id = scene_id_for(data, filename)
+        if self.scene_record(tenant, scene_id) is not None:
+            return scene_id, False
+        name = sanitise_filename(filename)
+        folder = self.scenes_dir / tenant_dir_name(tenant) / scene_id
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / name
+        tmp = folder / f".{name}.{uuid.uuid4().hex}.tmp"
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+        (n,) = self._write([("INSERT OR IGNORE INTO scenes (tenant, scene_id, filename, bytes, path, source, "
+                             "created_at) VALUES (?, ?, ?, ?, ?, 'upload', ?)",
+                             (tenant, scene_id, name, len(data), str(path), time.time()))])
+        return scene_id, n == 1
+
+    def link_scene(self, tenant: str, path: str | Path) -> str:
+        """Record a scene file in place (not copied, loaded without the upload sandbox): for the CLI."""
+        p = Path(path).resolve()
+        data = p.read_bytes()
+        scene_id = scene_id_for(data, p.name)
+        self._write([("INSERT OR IGNORE INTO scenes (tenant, scene_id, filename, bytes, path, source, created_at) "
+                      "VALUES (?, ?, ?, ?, ?, 'file', ?)", (tenant, scene_id, p.name, len(data), str(p), time.time()))])
+        return scene_id
+
+    def _scene_row(self, tenant: str, scene_id: str):
+        rows = self._query("SELECT * FROM scenes WHERE tenant = ? AND scene_id = ?", (tenant, scene_id))
+        return rows[0] if rows else None
+
+    def scene_path(self, tenant: str, scene_id: str) -> Path | None:
+        row = self._scene_row(tenant, scene_id)
+        return Path(row["path"]) if row is not None else None
+
+    def scene_record(self, tenant: str, scene_id: str) -> dict | None:
+        """{scene_id, filename, bytes, created_at, info, source} or None (also for another tenant's scene)."""
+        row = self._scene_row(tenant, scene_id)
+        return _scene_dict(row) if row is not None else None
+
+    def scene_sandboxed(self, tenant: str, scene_id: str) -> bool:
+        """Uploads load in the resolver's sandbox (upload) mode; linked local files do not."""
+        row = self._scene_row(tenant, scene_id)
+        return row is None or row["source"] == "upload"
+
+    def set_scene_info(self, tenant: str, scene_id: str, info: dict) -> None:
+        self._write([("UPDATE scenes SET info = ? WHERE tenant = ? AND scene_id = ?",
+                      (json.dumps(info), tenant, scene_id))])
+
+    def delete_scene(self, tenant: str, scene_id: str) -> bool:
+        row = self._scene_row(tenant, scene_id)
+        if row is None:
+            return False
+        self._write([("DELETE FROM scenes WHERE tenant = ? AND scene_id = ?", (tenant, scene_id))])
+        if row["source"] == "upload":
+            shutil.rmtree(Path(row["path"]).parent, ignore_errors=True)
+        return True
+
+    def list_scenes(self, tenant: str) -> list[dict]:
+        rows = self._query("SELECT * FROM scenes WHERE tenant = ? ORDER BY created_at, scene_id", (tenant,))
+        return [_scene_dict(r) for r in rows]
+
+    # -- batches ---------------------------------------------------------------------------------
+    def create_batch(self, tenant: str, scene_id: str, configurations: list[dict], settings: dict) -> str:
+        """A queued batch over `configurations` (each {"rig": ...}); its id (uuid4 hex)."""
+        batch_id = uuid.uuid4().hex
+        now = time.time()
+        stmts = [("INSERT INTO batches (batch_id, tenant, scene_id, state, total, settings, created_at, updated_at) "
+                  "VALUES (?, ?, ?, 'queued', ?, ?, ?, ?)",
+                  (batch_id, tenant, scene_id, len(configurations), json.dumps(settings), now, now))]
+        stmts += [("INSERT INTO configurations (batch_id, idx, config) VALUES (?, ?, ?)", (batch_id, i, json.dumps(c)))
+                  for i, c in enumerate(configurations)]
+        self._write(stmts)
+        return batch_id
+
+    def _batch_row(self, batch_id: str, tenant: str | None = None):
+        rows = self._query("SELECT * FROM batches WHERE batch_id = ?", (batch_id,))
+        if not rows or (tenant is not None and rows[0]["tenant"] != tenant):
+            return None
+        return rows[0]
+
+    def batch(self, tenant: str, batch_id: str, max_errors: int = MAX_ERRORS_LISTED) -> dict | None:
+        """{batch_id, scene_id, state, done, failed, total, errors, created_at, updated_at, settings};
+        errors lists the first `max_errors` (by index); `failed` counts them all."""
+        row = self._batch_row(batch_id, tenant)
+        if row is None:
+            return None
+        done = self._query("SELECT COUNT(*) FROM results WHERE batch_id = ?", (batch_id,))[0][0]
+        failed = self._query("SELECT COUNT(*) FROM errors WHERE batch_id = ?", (batch_id,))[0][0]
+        errs = self._query("SELECT idx, code, message FROM errors WHERE batch_id = ? ORDER BY idx LIMIT ?",
+                           (batch_id, max_errors))
+        return {"batch_id": batch_id, "scene_id": row["scene_id"], "state": row["state"], "done": done,
+                "failed": failed, "total": row["total"],
+                "errors": [{"index": r["idx"], "code": r["code"], "message": r["message"]} for r in errs],
+                "created_at": iso(row["created_at"]), "updated_at": iso(row["updated_at"]),
+                "settings": json.loads(row["settings"])}
+
+    def batch_owner(self, batch_id: str) -> str | None:
+        row = self._batch_row(batch_id)
+        return row["tenant"] if row is not None else None
+
+    def list_batches(self, tenant: str) -> list[dict]:
+        rows = self._query("SELECT batch_id FROM batches WHERE tenant = ? ORDER BY created_at", (tenant,))
+        return [self.batch(tenant, r["batch_id"]) for r in rows]
+
+    def configurations(self, batch_id: str) -> list[dict]:
+        rows = self._query("SELECT config FROM configurations WHERE batch_id = ? ORDER BY idx", (batch_id,))
+        return [json.loads(r["config"]) for r in rows]
+
+    def _check_index(self, batch_id: str, index: int) -> None:
+        row = self._batch_row(batch_id)
+        if row is None:
+            raise KeyError(f"no batch {batch_id!r}")
+        if not 0 <= index < row["total"]:
+            raise IndexError(f"configuration index {index} outside [0, {row['total']})")
+
+    def put_result(self, batch_id: str, index: int, result: dict) -> bool:
+        """Store a configuration's result; False (and nothing changes) when one is already stored."""
+        self._check_index(batch_id, index)
+        now = time.time()
+        n, _ = self._write([
+            ("INSERT OR IGNORE INTO results (batch_id, idx, result, created_at) SELECT ?, ?, ?, ? "
+             "WHERE NOT EXISTS (SELECT 1 FROM errors WHERE batch_id = ? AND idx = ?)",
+             (batch_id, index, json.dumps(result), now, batch_id, index)),
+            ("UPDATE batches SET updated_at = ? WHERE batch_id = ?", (now, batch_id))])
+        return n == 1
+
+    def put_error(self, batch_id: str, index: int, code: str, message: str) -> bool:
+        """Record that a configuration failed; False when it already has a result or an error."""
+        self._check_index(batch_id, index)
+        now = time.time()
+        n, _ = self._write([
+            ("INSERT OR IGNORE INTO errors (batch_id, idx, code, message, created_at) SELECT ?, ?, ?, ?, ? "
+             "WHERE NOT EXISTS (SELECT 1 FROM results WHERE batch_id = ? AND idx = ?)",
+             (batch_id, index, code, message, now, batch_id, index)),
+            ("UPDATE batches SET updated_at = ? WHERE batch_id = ?", (now, batch_id))])
+        return n == 1
+
+    def _first_pending(self, batch_id: str, offset: int) -> int | None:
+        return self._query(
+            "SELECT MIN(c.idx) FROM configurations c WHERE c.batch_id = ? AND c.idx >= ? "
+            "AND NOT EXISTS (SELECT 1 FROM results r WHERE r.batch_id = c.batch_id AND r.idx = c.idx) "
+            "AND NOT EXISTS (SELECT 1 FROM errors e WHERE e.batch_id = c.batch_id AND e.idx = c.idx)",
+            (batch_id, offset))[0][0]
+
+    def results(self, tenant: str, batch_id: str, offset: int = 0, limit: int | None = None) -> list[dict]:
+        """Finished configurations with index >= offset, in index order: {"index": i, **result}, or
+        {"index": i, "error": {"code", "message"}} for one that failed. While the batch is queued or
+        running the list stops before the first unfinished index, so a reader that resumes at
+        `offset = last index + 1` never skips a configuration that finishes later."""
+        row = self._batch_row(batch_id, tenant)
+        if row is None:
+            return []
+        offset = max(0, int(offset))
+        stop = row["total"]
+        if row["state"] in UNFINISHED:
+            first = self._first_pending(batch_id, offset)
+            stop = first if first is not None else stop
+        lim = -1 if limit is None else max(0, int(limit))
+        rows = self._query(
+            "SELECT idx, result, NULL AS code, NULL AS message FROM results WHERE batch_id = ? AND idx >= ? AND idx < ? "
+            "UNION ALL SELECT idx, NULL, code, message FROM errors WHERE batch_id = ? AND idx >= ? AND idx < ? "
+            "ORDER BY idx LIMIT ?", (batch_id, offset, stop, batch_id, offset, stop, lim))
+        out = []
+        for r in rows:
+            if r["result"] is not None:
+                out.append({"index": r["idx"], **json.loads(r["result"])})
+            else:
+                out.append({"index": r["idx"], "error": {"code": r["code"], "message": r["message"]}})
+        return out
+
+    def set_state(self, batch_id: str, state: str, only_from: tuple[str, ...] | None = None) -> bool:
+        """Set a batch's state (optionally only when its current state is one of `only_from`)."""
+        if state not in STATES:
+            raise ValueError(f"state: unknown {state!r} (known: {', '.join(STATES)})")
+        sql, params = "UPDATE batches SET state = ?, updated_at = ? WHERE batch_id = ?", [state, time.time(), batch_id]
+        if only_from:
+            sql += f" AND state IN ({', '.join('?' * len(only_from))})"
+            params += list(only_from)
+        (n,) = self._write([(sql, tuple(params))])
+        return n == 1
+
+    def finish_batch(self, batch_id: str) -> str | None:
+        """When every configuration has an outcome: state done (failed if none succeeded), unless the
+        batch was cancelled meanwhile. The state it is in afterwards (None: no such batch)."""
+        row = self._batch_row(batch_id)
+        if row is None:
+            return None
+        if row["state"] in UNFINISHED and self._first_pending(batch_id, 0) is None:
+            done = self._query("SELECT COUNT(*) FROM results WHERE batch_id = ?", (batch_id,))[0][0]
+            self.set_state(batch_id, "done" if done > 0 or row["total"] == 0 else "failed", only_from=UNFINISHED)
+        return self._batch_row(batch_id)["state"]
+
+    def cancel_batch(self, tenant: str, batch_id: str) -> bool:
+        """Cancel a queued or running batch. False when the tenant has no such batch; a finished batch
+        keeps its state (True)."""
+        if self._batch_row(batch_id, tenant) is None:
+            return False
+        self.set_state(batch_id, "cancelled", only_from=UNFINISHED)
+        return True
+
+    def delete_batch(self, tenant: str, batch_id: str) -> bool:
+        """Remove a batch and its results (refused, False, while it is queued or running)."""
+        row = self._batch_row(batch_id, tenant)
+        if row is None or row["state"] in UNFINISHED:
+            return False
+        self._delete_batches([batch_id])
+        return True
+
+    def pending_indices(self, batch_id: str) -> list[int]:
+        rows = self._query(
+            "SELECT c.idx FROM configurations c WHERE c.batch_id = ? "
+            "AND NOT EXISTS (SELECT 1 FROM results r WHERE r.batch_id = c.batch_id AND r.idx = c.idx) "
+            "AND NOT EXISTS (SELECT 1 FROM errors e WHERE e.batch_id = c.batch_id AND e.idx = c.idx) ORDER BY c.idx",
+            (batch_id,))
+        return [r[0] for r in rows]
+
+    def unfinished_batches(self) -> list[tuple[str, str]]:
+        """(tenant, batch_id) of queued or running batches, oldest first: what to resume after a restart."""
+        rows = self._query("SELECT tenant, batch_id FROM batches WHERE state IN ('queued', 'running') "
+                           "ORDER BY created_at")
+        return [(r["tenant"], r["batch_id"]) for r in rows]
+
+    def queue_length(self) -> int:
+        return self._query("SELECT COUNT(*) FROM batches WHERE state IN ('queued', 'running')")[0][0]
+
+    # -- retention -------------------------------------------------------------------------------
+    def disk_bytes(self) -> int:
+        """Bytes the data directory takes (scene files and the database with its WAL)."""
+        total = 0
+        for root, _, files in os.walk(self.data_dir):
+            for f in files:
+                try:
+                    total += os.path.getsize(os.path.join(root, f))
+                except OSError:
+                    pass
+        return total
+
+    def _delete_batches(self, ids: list[str]) -> None:
+        stmts = []
+        for b in ids:
+            for table in ("results", "errors", "configurations", "batches"):
+                stmts.append((f"DELETE FROM {table} WHERE batch_id = ?", (b,)))
+        if stmts:
+            self._write(stmts)
+
+    def enforce_retention(self) -> dict:
+        """Drop finished batches and scenes older than retention_days, then the oldest until the data
+        directory is under max_bytes. Never touches a queued or running batch, nor a scene one uses.
+        Returns what was removed: {"batches": [...], "scenes": [[tenant, scene_id], ...]}."""
+        removed = {"batches": [], "scenes": []}
+        busy = {(r["tenant"], r["scene_id"]) for r in self._query(
+            "SELECT tenant, scene_id FROM batches WHERE state IN ('queued', 'running')")}
+        if self.retention_days is not None:
+            cutoff = time.time() - self.retention_days * 86400.0
+            old = [r["batch_id"] for r in self._query(
+                "SELECT batch_id FROM batches WHERE state NOT IN ('queued', 'running') AND updated_at < ?", (cutoff,))]
+            self._delete_batches(old)
+            removed["batches"] += old
+            for r in self._query("SELECT tenant, scene_id FROM scenes WHERE created_at < ?", (cutoff,)):
+                if (r["tenant"], r["scene_id"]) not in busy and self.delete_scene(r["tenant"], r["scene_id"]):
+                    removed["scenes"].append([r["tenant"], r["scene_id"]])
+        if self.max_bytes is not None:
+            self._compact()
+            size = self.disk_bytes()
+            if size > self.max_bytes:
+                for kind, key, est in self._by_age(busy):
+                    if size <= self.max_bytes:
+                        break
+                    if kind == "batch":
+                        self._delete_batches([key])
+                        removed["batches"].append(key)
+                    elif self.delete_scene(*key):
+                        removed["scenes"].append(list(key))
+                    size -= est
+                self._compact()
+        return removed
+
+    def _by_age(self, busy: set) -> list[tuple[str, object, int]]:
+        """Removable items oldest first with their estimated bytes: finished batches and idle scenes."""
+        items = []
+        for r in self._query(
+                "SELECT b.batch_id, b.updated_at, "
+                "(SELECT COALESCE(SUM(LENGTH(result)), 0) FROM results WHERE batch_id = b.batch_id) + "
+                "(SELECT COALESCE(SUM(LENGTH(config)), 0) FROM configurations WHERE batch_id = b.batch_id) AS est "
+                "FROM batches b WHERE b.state NOT IN ('queued', 'running')"):
+            items.append((r["updated_at"], "batch", r["batch_id"], int(r["est"])))
+        for r in self._query("SELECT tenant, scene_id, created_at, bytes, source FROM scenes"):
+            if (r["tenant"], r["scene_id"]) not in busy:
+                items.append((r["created_at"], "scene", (r["tenant"], r["scene_id"]),
+                              int(r["bytes"]) if r["source"] == "upload" else 0))
+        items.sort(key=lambda t: t[0])
+        return [(kind, key, est) for _, kind, key, est in items]
+
+    def _compact(self) -> None:
+        """Give freed database pages back to the file system."""
+        conn = self._conn()
+        with self._write_lock:
+            conn.execute("PRAGMA incremental_vacuum").fetchall()  # frees a page per step
+            conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+
+
+def _scene_dict(row) -> dict:
+    return {"scene_id": row["scene_id"], "filename": row["filename"], "bytes": row["bytes"],
+            "created_at": iso(row["created_at"]), "info": json.loads(row["info"]) if row["info"] else None,
+            "source": row["source"]}
