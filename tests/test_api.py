@@ -1,0 +1,218 @@
+"""The REST endpoints end to end on a real uvicorn server: upload, optimize, evaluate, compare, analyze,
+batches, and the error shape. Tiny rigs keep it fast."""
+from __future__ import annotations
+
+import base64
+import io
+import json
+import time
+
+import httpx
+import pytest
+from PIL import Image
+from serverkit import DEMO, TINY_RIG, auth, running, upload
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    with running(tmp_path_factory.mktemp("api") / "data") as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def api(server):
+    with httpx.Client(base_url=server.base, headers=auth("alice"), timeout=120) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def scene(server):
+    r = upload(server.base, "alice")
+    assert r.status_code in (200, 201), r.text
+    return r.json()
+
+
+def error_of(r: httpx.Response, status: int) -> dict:
+    assert r.status_code == status, r.text
+    err = r.json()["error"]
+    assert set(err) == {"code", "message", "field"} and err["code"] and err["message"]
+    return err
+
+
+def wait_batch(api, batch_id: str, timeout: float = 180) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        st = api.get(f"/v1/batches/{batch_id}").json()
+        if st["state"] not in ("queued", "running"):
+            return st
+        time.sleep(0.1)
+    pytest.fail(f"batch {batch_id} not finished in {timeout} s: {st}")
+
+
+def lines(r: httpx.Response) -> list[dict]:
+    assert r.status_code == 200 and r.headers["content-type"].startswith("application/x-ndjson"), r.text
+    return [json.loads(line) for line in r.text.splitlines()]
+
+
+def test_upload_answers_what_the_loader_found(api, scene):
+    assert len(scene["scene_id"]) == 16 and scene["triangles"] > 1000
+    assert [c["usd_path"] for c in scene["cameras"]] == ["/World/Camera"]
+    assert any(l["usd_path"] == "/World/Sun" for l in scene["lights"])
+    assert scene["frame"]["world"].startswith("right-handed") and scene["warnings"] == []
+    lo, hi = scene["bounds"]["min"], scene["bounds"]["max"]
+    assert all(a < b for a, b in zip(lo, hi))
+    assert "source" not in scene  # the server's file path is not disclosed
+    # the same bytes as multipart: the same id (a content hash), 200 not 201, nothing reloaded
+    again = api.post("/v1/scenes", files={"file": ("other-name.usda", DEMO.read_bytes(), "application/octet-stream")})
+    assert again.status_code == 200 and again.json()["scene_id"] == scene["scene_id"] and again.json()["created"] is False
+    got = api.get(f"/v1/scenes/{scene['scene_id']}").json()
+    assert got["triangles"] == scene["triangles"] and got["scene_hash"] == scene["scene_hash"]
+    assert scene["scene_id"] in [s["scene_id"] for s in api.get("/v1/scenes").json()["scenes"]]
+
+
+def test_upload_errors_name_the_field(api):
+    err = error_of(api.post("/v1/scenes", content=b"#usda 1.0\n", headers={"Content-Type": "application/octet-stream"}),
+                   422)
+    assert err["field"] == "filename"
+    err = error_of(api.post("/v1/scenes", params={"filename": "scene.obj"}, content=b"o x\n"), 422)
+    assert err["code"] == "unsupported_format" and "scene.obj" in err["message"]
+    err = error_of(api.post("/v1/scenes", params={"filename": "bad.usda"}, content=b"#usda 1.0\ndef Mesh \"M\" {"), 422)
+    assert err["field"] == "file"
+    err = error_of(api.post("/v1/scenes", files={"other": ("x.usda", b"#usda 1.0\n")}), 422)
+    assert err["field"] == "file"
+
+
+def test_delete_scene(api):
+    body = DEMO.read_text().replace("#usda 1.0", "#usda 1.0\n# a copy to delete", 1).encode()
+    sid = api.post("/v1/scenes", params={"filename": "copy.usda"}, content=body).json()["scene_id"]
+    assert api.delete(f"/v1/scenes/{sid}").json() == {"deleted": True}
+    assert error_of(api.get(f"/v1/scenes/{sid}"), 404)["code"] == "scene_not_found"
+    assert error_of(api.delete(f"/v1/scenes/{sid}"), 404)["field"] == "scene_id"
+
+
+def test_optimize_returns_the_solution_schema(api, scene):
+    r = api.post("/v1/optimize", json={"scene_id": scene["scene_id"], "rig": TINY_RIG, "method": "optimized"})
+    assert r.status_code == 200, r.text
+    sol = r.json()
+    assert sol["method"] == "optimized" and sol["schema_version"] == 1
+    assert sol["provenance"]["scene_hash"] == scene["scene_hash"]
+    (light,) = sol["lights"]
+    (cascade,) = light["cascades"]
+    assert len(cascade["view_matrix"]) == len(cascade["projection_matrix"]) == 16  # column-major by default
+    assert cascade["resolution"] == [256, 256]
+    assert light["predicted_error"]["samples"] > 0 and light["predicted_error"]["p95_m"] > 0
+    assert sol["timings_ms"]["total"] > 0 and "solver" in sol
+    # with the previous solution (temporal stability) the same request stays valid
+    again = api.post("/v1/optimize", json={"scene_id": scene["scene_id"], "rig": TINY_RIG, "previous": sol})
+    assert again.status_code == 200 and again.json()["lights"][0]["cascades"]
+    focused = api.post("/v1/optimize", json={"scene_id": scene["scene_id"], "rig": TINY_RIG, "method": "focused"}).json()
+    assert focused["method"] == "focused" and "solver" not in focused
+
+
+def test_optimize_errors_name_the_field(api, scene):
+    sid = scene["scene_id"]
+    bad_res = {**TINY_RIG, "camera": {**TINY_RIG["camera"], "resolution": [0, 90]}}
+    err = error_of(api.post("/v1/optimize", json={"scene_id": sid, "rig": bad_res}), 422)
+    assert err["code"] == "invalid_request" and err["field"] == "rig.camera.resolution.0"
+    assert err["message"].startswith("rig.camera.resolution.0: ")
+    err = error_of(api.post("/v1/optimize", json={"scene_id": sid, "rig": {**TINY_RIG, "lights": [{"usd_path": "/World/Moon"}]}}), 422)
+    assert err["code"] == "invalid_rig" and err["field"] == "rig.lights.0.usd_path" and "/World/Sun" in err["message"]
+    err = error_of(api.post("/v1/optimize", json={"scene_id": sid, "rig": TINY_RIG, "method": "magic"}), 422)
+    assert err["field"] == "method"
+    err = error_of(api.post("/v1/optimize", json={"scene_id": sid, "rig": TINY_RIG, "solver": "nlopt:NOPE"}), 422)
+    assert err["field"] == "solver" and "known" in err["message"]
+    err = error_of(api.post("/v1/optimize", json={"scene_id": sid, "rig": TINY_RIG, "colour": 1}), 422)
+    assert err["field"] == "colour"
+    err = error_of(api.post("/v1/optimize", json={"rig": TINY_RIG}), 422)
+    assert err["field"] == "scene_id" and "required" in err["message"].lower()
+    err = error_of(api.post("/v1/optimize", content=b'{"scene_id": ', headers={"Content-Type": "application/json"}), 422)
+    assert err["code"] == "invalid_json" and err["field"] == "body"
+    err = error_of(api.post("/v1/optimize", json={"scene_id": "0123456789abcdef", "rig": TINY_RIG}), 404)
+    assert err["code"] == "scene_not_found" and err["field"] == "scene_id"
+    err = error_of(api.post("/v1/optimize", json={"scene_id": sid, "rig": TINY_RIG, "previous": {"solver": {"x": 5}}}), 422)
+    assert err["field"] == "previous"
+    assert error_of(api.get("/v1/nowhere"), 404)["code"] == "not_found"
+
+
+def test_evaluate_with_heatmap(api, scene):
+    sid = scene["scene_id"]
+    sol = api.post("/v1/optimize", json={"scene_id": sid, "rig": TINY_RIG, "method": "lispsm"}).json()
+    r = api.post("/v1/evaluate", json={"scene_id": sid, "rig": TINY_RIG, "solution": sol, "heatmap": True})
+    assert r.status_code == 200, r.text
+    ev = r.json()
+    assert ev["method"] == "lispsm" and ev["receiver_pixels"] > 0
+    assert 0 <= ev["misclassified_pixels"] <= ev["receiver_pixels"]
+    (png,) = ev["heatmap_png_base64"]
+    assert Image.open(io.BytesIO(base64.b64decode(png))).size == (160, 90)
+    no_map = api.post("/v1/evaluate", json={"scene_id": sid, "rig": TINY_RIG, "solution": sol}).json()
+    assert no_map.get("heatmap_png_base64") is None and no_map["misclassified_pixels"] == ev["misclassified_pixels"]
+    err = error_of(api.post("/v1/evaluate", json={"scene_id": sid, "rig": TINY_RIG, "solution": {"x": 1}}), 422)
+    assert err["code"] == "invalid_solution" and err["field"] == "solution"
+    big = {**TINY_RIG, "camera": {**TINY_RIG["camera"], "resolution": [16000, 16000]}}
+    err = error_of(api.post("/v1/evaluate", json={"scene_id": sid, "rig": big, "solution": sol}), 413)
+    assert err["code"] == "too_many_pixels" and err["field"] == "rig.camera.resolution"
+
+
+def test_compare_and_analyze(api, scene):
+    r = api.post("/v1/compare", json={"scene_id": scene["scene_id"], "rig": TINY_RIG, "methods": ["uniform", "focused"]})
+    assert r.status_code == 200, r.text
+    methods = r.json()["methods"]
+    assert list(methods) == ["uniform", "focused"]
+    for m in methods.values():
+        assert m["predicted_error"]["samples"] > 0 and m["evaluation"]["receiver_pixels"] > 0
+    # Lloyd's Table 3 minima at f/n = 1000, theta = 30 deg, gamma = 90 deg: S cos^2 = 8.65e5, 865, 5.98
+    for method, s in (("uniform", 8.65e5), ("perspective", 865.0), ("log", 5.98)):
+        a = api.post("/v1/analyze", json={"f_over_n": 1000, "theta_deg": 30, "gamma_deg": 90, "method": method})
+        assert a.status_code == 200 and a.json()["S"] == pytest.approx(s, rel=2e-3), (method, a.text)
+    err = error_of(api.post("/v1/analyze", json={"f_over_n": 0.5, "theta_deg": 30, "gamma_deg": 90, "method": "log"}), 422)
+    assert err["field"] == "f_over_n"
+
+
+def test_batch_round_trip_explicit(api, scene):
+    suns = [[0.3, -1.0, 0.2], [0.35, -1.0, 0.2], [0.4, -1.0, 0.25]]
+    configs = [{"rig": {**TINY_RIG, "lights": [{"type": "directional", "direction": d}]}} for d in suns]
+    r = api.post("/v1/batches", json={"scene_id": scene["scene_id"], "configurations": configs, "method": "focused"})
+    assert r.status_code == 202, r.text
+    created = r.json()
+    assert created["total"] == 3 and created["state"] == "queued"
+    st = wait_batch(api, created["batch_id"])
+    assert (st["state"], st["done"], st["failed"], st["total"], st["progress"]) == ("done", 3, 0, 3, 1.0)
+    hints = st["interpolation"]
+    assert "lights[].cascades[].view_matrix" in hints["smooth_fields"] and hints["segments"]
+    rows = lines(api.get(f"/v1/batches/{created['batch_id']}/results"))
+    assert [x["index"] for x in rows] == [0, 1, 2]
+    assert all(x["method"] == "focused" and x["lights"][0]["predicted_error"]["samples"] > 0 for x in rows)
+    tail = lines(api.get(f"/v1/batches/{created['batch_id']}/results", params={"offset": 1}))
+    assert tail == rows[1:]
+    assert error_of(api.get(f"/v1/batches/{created['batch_id']}/results", params={"offset": -1}), 422)["field"] == "offset"
+
+
+def test_batch_camera_path_form_and_cancel(api, scene):
+    body = {"scene_id": scene["scene_id"], "rig": TINY_RIG, "method": "focused",
+            "camera_path": {"keyframes": [{"position": [0, 3, 9], "target": [0, 0, 0]},
+                                          {"position": [4, 3, 8], "target": [0, 0, 0]}], "samples": 2},
+            "sun_arc": {"azimuth_deg": [20, 60], "elevation_deg": 45, "samples": 3}}
+    r = api.post("/v1/batches", json=body)
+    assert r.status_code == 202, r.text
+    assert r.json()["total"] == 6 and r.json()["shape"] == [2, 3]
+    st = wait_batch(api, r.json()["batch_id"])
+    assert st["state"] == "done" and st["done"] == 6
+    assert "index = camera * 3 + light" in st["interpolation"]["neighbours"]
+    bad = {**body, "sun_arc": {"elevation_deg": 45, "samples": 0}}
+    assert error_of(api.post("/v1/batches", json=bad), 422)["field"].startswith("sun_arc.samples")
+    err = error_of(api.post("/v1/batches", json={"scene_id": scene["scene_id"], "configurations": [
+        {"rig": TINY_RIG}, {"rig": {**TINY_RIG, "camera": {"usd_path": "/World/Nope"}}}]}), 422)
+    assert err["field"] == "configurations.1.rig.camera.usd_path"
+    err = error_of(api.post("/v1/batches", json={"scene_id": scene["scene_id"]}), 422)
+    assert err["code"] == "invalid_batch" and err["field"] == "rig"
+    # cancel: the state says so and results so far stay readable
+    many = [{"rig": {**TINY_RIG, "lights": [{"type": "directional", "direction": [0.1 * k, -1, 0.3]}]}} for k in range(12)]
+    bid = api.post("/v1/batches", json={"scene_id": scene["scene_id"], "configurations": many}).json()["batch_id"]
+    cancelled = api.delete(f"/v1/batches/{bid}")
+    assert cancelled.status_code == 200 and cancelled.json()["state"] == "cancelled"
+    time.sleep(0.5)
+    st = api.get(f"/v1/batches/{bid}").json()
+    assert st["state"] == "cancelled" and st["done"] < 12
+    kept = lines(api.get(f"/v1/batches/{bid}/results"))
+    assert [x["index"] for x in kept] == sorted({x["index"] for x in kept}) and len(kept) == st["done"] + st["failed"]
+    assert error_of(api.get("/v1/batches/0123456789abcdef"), 404)["code"] == "batch_not_found"
