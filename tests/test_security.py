@@ -1,0 +1,163 @@
+"""Authentication, tenant isolation, the upload sandbox and the limits (413, 429, 503) on a real server
+started with small limits."""
+from __future__ import annotations
+
+import time
+
+import httpx
+import pytest
+from serverkit import DEMO, REPO, TINY_RIG, auth, running, upload
+
+LIMITS = {"SHADOWOPT_MAX_UPLOAD_BYTES": "20000", "SHADOWOPT_MAX_TRIANGLES": "1000", "SHADOWOPT_MAX_QUEUE": "6",
+          "SHADOWOPT_RATE_LIMIT_PER_S": "2", "SHADOWOPT_RATE_LIMIT_BURST": "40", "SHADOWOPT_BATCH_WORKERS": "1"}
+
+# A box on a ground plane: 14 triangles, no camera or light of its own (rigs give them explicitly).
+BOX = """#usda 1.0
+(
+    defaultPrim = "World"
+    metersPerUnit = 1
+    upAxis = "Y"
+)
+def Xform "World" {
+    def Cube "Box" {
+        double size = 1
+    }
+    def Mesh "Ground" {
+        int[] faceVertexCounts = [4]
+        int[] faceVertexIndices = [0, 3, 2, 1]
+        point3f[] points = [(-5, -0.5, -5), (5, -0.5, -5), (5, -0.5, 5), (-5, -0.5, 5)]
+    }
+%s}
+"""
+BOX_RIG = {"camera": {"position": [0, 2, 6], "target": [0, 0, 0], "resolution": [160, 90]},
+           "lights": [{"type": "directional", "direction": [0.3, -1, 0.2]}],
+           "shadow": {"resolution": [256, 256]}, "coarse_long_side": 48}
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    with running(tmp_path_factory.mktemp("sec") / "data", env=LIMITS) as s:
+        yield s
+
+
+def post_scene(base: str, who: str | None, text: str, name: str = "box.usda") -> httpx.Response:
+    headers = auth(who) if who else {}
+    return httpx.post(f"{base}/v1/scenes", params={"filename": name}, content=text.encode(), headers=headers,
+                      timeout=60)
+
+
+@pytest.fixture(scope="module")
+def alice_box(server):
+    r = post_scene(server.base, "alice", BOX % "")
+    assert r.status_code == 201, r.text
+    assert r.json()["triangles"] == 14
+    return r.json()["scene_id"]
+
+
+def error_of(r: httpx.Response, status: int) -> dict:
+    assert r.status_code == status, r.text
+    return r.json()["error"]
+
+
+def test_missing_wrong_or_malformed_token_is_401(server):
+    for headers in ({}, {"Authorization": "Bearer not-a-token"}, {"Authorization": "Basic YWxpY2U6eA=="},
+                    {"Authorization": "Bearer " + auth("alice")["Authorization"][7:] + "x"}):
+        r = httpx.get(server.base + "/v1/scenes", headers=headers)
+        err = error_of(r, 401)
+        assert err["code"] == "unauthorized" and err["field"] == "Authorization"
+        assert r.headers["www-authenticate"] == "Bearer"
+    assert error_of(post_scene(server.base, None, BOX % ""), 401)["code"] == "unauthorized"
+    assert httpx.get(server.base + "/healthz").status_code == 200  # health and metrics are open
+    assert httpx.get(server.base + "/metrics").status_code == 200
+
+
+def test_another_tenants_scene_and_batch_are_404(server, alice_box):
+    base = server.base
+    bob = auth("bob")
+    for r in (httpx.get(f"{base}/v1/scenes/{alice_box}", headers=bob),
+              httpx.delete(f"{base}/v1/scenes/{alice_box}", headers=bob),
+              httpx.post(f"{base}/v1/optimize", json={"scene_id": alice_box, "rig": BOX_RIG}, headers=bob)):
+        assert error_of(r, 404)["code"] == "scene_not_found"
+    assert alice_box not in [s["scene_id"] for s in httpx.get(f"{base}/v1/scenes", headers=bob).json()["scenes"]]
+    r = httpx.post(f"{base}/v1/batches", json={"scene_id": alice_box, "configurations": [{"rig": BOX_RIG}],
+                                               "method": "focused"}, headers=auth("alice"))
+    assert r.status_code == 202, r.text
+    bid = r.json()["batch_id"]
+    for r in (httpx.get(f"{base}/v1/batches/{bid}", headers=bob),
+              httpx.get(f"{base}/v1/batches/{bid}/results", headers=bob),
+              httpx.delete(f"{base}/v1/batches/{bid}", headers=bob)):
+        assert error_of(r, 404)["code"] == "batch_not_found"
+    # bob's tries changed nothing of alice's
+    assert httpx.get(f"{base}/v1/scenes/{alice_box}", headers=auth("alice")).status_code == 200
+    assert httpx.get(f"{base}/v1/batches/{bid}", headers=auth("alice")).json()["state"] != "cancelled"
+    # the same bytes uploaded by bob are bob's own copy, deletable without touching alice's
+    mine = post_scene(base, "bob", BOX % "")
+    assert mine.status_code == 201 and mine.json()["created"] is True
+    assert httpx.delete(f"{base}/v1/scenes/{mine.json()['scene_id']}", headers=bob).status_code == 200
+    assert httpx.get(f"{base}/v1/scenes/{alice_box}", headers=auth("alice")).status_code == 200
+
+
+def test_upload_referencing_a_file_elsewhere_is_refused_with_a_warning(server):
+    target = (REPO / "configs" / "demo_scene.usda").resolve()
+    refs = (f'    def "Stolen" (\n        prepend references = @{target}@\n    ) {{}}\n'
+            '    def "Up" (\n        prepend references = @../../../etc/shadowopt-secret.usda@\n    ) {}\n')
+    r = post_scene(server.base, "alice", BOX % refs, "evil.usda")
+    assert r.status_code == 201, r.text
+    info = r.json()
+    assert info["triangles"] == 14  # the box and ground only: the demo's 2442 triangles were not read
+    assert any(str(target) in w and "not read" in w for w in info["warnings"]), info["warnings"]
+    assert any("../../../etc/shadowopt-secret.usda" in w for w in info["warnings"]), info["warnings"]
+    assert info["cameras"] == [] and info["lights"] == []  # the demo's camera and sun stayed outside
+
+
+def test_upload_size_limit_413(server):
+    big = (BOX % "") + "#" * 25000 + "\n"
+    err = error_of(post_scene(server.base, "alice", big), 413)
+    assert err["code"] == "upload_too_large" and "20000" in err["message"]
+    # also when the size is only known while streaming (chunked, no Content-Length)
+    r = httpx.post(f"{server.base}/v1/scenes", params={"filename": "big.usda"}, headers=auth("alice"),
+                   content=iter([big.encode()[:15000], big.encode()[15000:]]))
+    assert error_of(r, 413)["code"] == "upload_too_large"
+
+
+def test_triangle_limit_413_and_nothing_kept(server):
+    r = upload(server.base, "alice", DEMO)
+    err = error_of(r, 413)
+    assert err["code"] == "too_many_triangles" and "2442" in err["message"] and err["field"] == "file"
+    listed = httpx.get(server.base + "/v1/scenes", headers=auth("alice")).json()["scenes"]
+    assert all(s["triangles"] != 2442 for s in listed)
+
+
+def test_full_batch_queue_503_with_retry_after(server, alice_box):
+    configs = [{"rig": {**BOX_RIG, "lights": [{"type": "directional", "direction": [0.1 * k, -1, 0.2]}]}}
+               for k in range(4)]
+    body = {"scene_id": alice_box, "configurations": configs, "method": "optimized"}
+    r = httpx.post(server.base + "/v1/batches", json=body, headers=auth("carol"))
+    assert error_of(r, 404)["code"] == "scene_not_found"  # alice's scene: ownership is checked first
+    body["scene_id"] = post_scene(server.base, "carol", BOX % "").json()["scene_id"]
+    # capacity 6: the second batch of 4 cannot fit while the first is queued or running (one worker)
+    statuses = [httpx.post(server.base + "/v1/batches", json=body, headers=auth("carol")) for _ in range(2)]
+    assert statuses[0].status_code == 202, statuses[0].text
+    err = error_of(statuses[1], 503)
+    assert err["code"] == "queue_full" and int(statuses[1].headers["retry-after"]) >= 1
+    too_big = {**body, "configurations": configs * 2}
+    assert error_of(httpx.post(server.base + "/v1/batches", json=too_big, headers=auth("carol")), 413)["code"] == \
+        "too_many_configurations"
+    httpx.delete(f"{server.base}/v1/batches/{statuses[0].json()['batch_id']}", headers=auth("carol"))
+
+
+def test_rate_limit_per_token_429(server):
+    codes, retry = [], None
+    with httpx.Client(base_url=server.base, headers=auth("carol")) as c:
+        for _ in range(80):
+            r = c.get("/v1/scenes/0000")
+            codes.append(r.status_code)
+            if r.status_code == 429:
+                retry = r
+    assert codes[0] == 404 and 429 in codes
+    err = retry.json()["error"]
+    assert err["code"] == "rate_limited" and int(retry.headers["retry-after"]) >= 1
+    # the limit is per token: alice is not slowed down by carol
+    assert httpx.get(server.base + "/v1/scenes", headers=auth("alice")).status_code == 200
+    time.sleep(1.1)  # two tokens back at 2/s
+    assert httpx.get(server.base + "/v1/scenes", headers=auth("carol")).status_code == 200
