@@ -139,6 +139,10 @@ def cmd_bench(args) -> int:
         result = benchmarks.bench_solvers(validate_rig, lights=args.lights or 5, write=not args.no_write)
     elif args.bench == "quality":
         result = benchmarks.bench_quality(validate_rig, lights=args.lights, write=not args.no_write)
+    elif args.bench == "load":
+        from ..service.load_benchmark import bench_load
+
+        result = bench_load(seconds=args.seconds, write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     else:  # argparse restricts choices
         raise CliError(f"unknown benchmark {args.bench!r}")
     if args.json:
@@ -336,7 +340,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_analyze)
 
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
-    sp.add_argument("bench", choices=["coarse", "quality", "solvers"])
+    sp.add_argument("bench", choices=["coarse", "quality", "solvers", "load"])
+    sp.add_argument("--seconds", type=float, default=60.0, help="load: seconds of concurrent load per workload")
     sp.add_argument("--lights", type=int, default=None, help="quality: number of light directions")
     sp.add_argument("--runs", type=int, default=20, help="warm runs per scene (median reported)")
     sp.add_argument("--scenes", default=None, help="comma-separated scene names from configs/benchmarks.json")
