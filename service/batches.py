@@ -1,0 +1,829 @@
+"""Batch precomputation: configurations from a request, their execution on a local process pool or on
+Ray, and hints for interpolating between neighbouring results.
+
+The parent process writes each configuration's outcome to the Store as it arrives (idempotent by index),
+so a crash loses at most the configurations in flight; `BatchRunner.resume()` re-queues only the
+pending indices. Workers load the scene once per process (service.scenes.SCENES) and call
+service.solve.solve. Rigs reach this module already validated (the server and the CLI use the pydantic
+Rig); this module does not import api.
+"""
+from __future__ import annotations
+
+import collections
+import copy
+import json
+import logging
+import math
+import os
+import sys
+import tempfile
+import threading
+import time
+from concurrent.futures import FIRST_COMPLETED, wait
+from dataclasses import dataclass
+from pathlib import Path
+
+from .store import UNFINISHED, Store
+
+log = logging.getLogger("shadowopt.batches")
+
+MAX_CONFIGURATIONS = 100_000
+MAX_SAMPLES = 10_000
+BACKENDS = ("local", "ray")
+DEFAULT_METHOD = "optimized"
+IN_FLIGHT_PER_WORKER = 2  # keeps workers busy while a cancel takes effect within a configuration or two
+MAX_RETRIES = 1  # a configuration in flight when a worker process dies is tried once more
+
+
+class BatchError(ValueError):
+    """A batch request is malformed. `field` is the request path at fault (e.g. `sun_arc.samples`)."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.message = message
+        self.code = "invalid_batch"
+
+
+# -- configurations ------------------------------------------------------------------------------
+
+def expand_configurations(request: dict) -> list[dict]:
+    """The configurations of a batch request, each {"rig": RIG}.
+
+    Either {"configurations": [{"rig": RIG}, ...]}, or a base {"rig": RIG} with a camera path
+    ({"camera_path": {"poses": [CameraSpec, ...]}} or {"keyframes": [...], "samples": N}: position,
+    target or forward, up, fov_y_deg, near and far interpolated linearly) crossed with light directions
+    ({"light_directions": [[x, y, z], ...]} or {"sun_arc": {"azimuth_deg", "elevation_deg", "samples"}}).
+    Index = camera_index * n_lights + light_index. A direction replaces the base rig's light
+    `light_index` (default 0) with a directional light.
+    """
+    if not isinstance(request, dict):
+        raise BatchError("(root)", "expected a JSON object")
+    if "configurations" in request:
+        extra = [k for k in ("camera_path", "light_directions", "sun_arc") if k in request]
+        if extra:
+            raise BatchError(extra[0], "give either configurations or the camera-path form, not both")
+        return _explicit(request["configurations"])
+    base = request.get("rig")
+    if not isinstance(base, dict):
+        raise BatchError("rig", "give configurations, or a base rig object with a camera_path and/or light set")
+    cameras = _camera_path(request["camera_path"], base.get("camera")) if "camera_path" in request else None
+    directions = _light_set(request, base)
+    if cameras is None and directions is None:
+        raise BatchError("camera_path", "give a camera_path, light_directions or a sun_arc with the base rig")
+    n = len(cameras or [None]) * len(directions or [None])
+    if n > MAX_CONFIGURATIONS:
+        raise BatchError("camera_path" if cameras else "light_directions",
+                         f"{n} configurations exceed the limit of {MAX_CONFIGURATIONS}")
+    slot = _light_slot(request, base) if directions is not None else None
+    out = []
+    for cam in cameras or [None]:
+        for d in directions or [None]:
+            rig = copy.deepcopy(base)
+            if cam is not None:
+                rig["camera"] = cam
+            if d is not None:
+                lights = list(rig.get("lights") or [])
+                light = {"type": "directional", "direction": d}
+                lights[slot:slot + 1] = [light]
+                rig["lights"] = lights
+            out.append({"rig": rig})
+    return out
+
+
+def expansion_shape(request: dict) -> tuple[int, int] | None:
+    """(cameras, lights) of a camera-path request (index = camera * lights + light), None for an explicit list."""
+    if not isinstance(request, dict) or "configurations" in request or not isinstance(request.get("rig"), dict):
+        return None
+    cams = len(_camera_path(request["camera_path"], request["rig"].get("camera"))) if "camera_path" in request else 1
+    dirs = _light_set(request, request["rig"])
+    return cams, len(dirs) if dirs is not None else 1
+
+
+def _explicit(configs) -> list[dict]:
+    if not isinstance(configs, list) or not configs:
+        raise BatchError("configurations", "expected a non-empty list of {\"rig\": ...} objects")
+    if len(configs) > MAX_CONFIGURATIONS:
+        raise BatchError("configurations", f"{len(configs)} configurations exceed the limit of {MAX_CONFIGURATIONS}")
+    out = []
+    for i, c in enumerate(configs):
+        if not isinstance(c, dict) or not isinstance(c.get("rig"), dict):
+            raise BatchError(f"configurations.{i}.rig", "expected an object {\"rig\": RIG}")
+        unknown = sorted(set(c) - {"rig"})
+        if unknown:
+            raise BatchError(f"configurations.{i}.{unknown[0]}", "unknown field (a configuration holds a rig)")
+        out.append({"rig": c["rig"]})
+    return out
+
+
+def _number(v, field: str, lo: float = -math.inf, hi: float = math.inf) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise BatchError(field, f"expected a finite number, got {v!r}")
+    if not lo <= v <= hi:
+        raise BatchError(field, f"{v} is outside [{lo:g}, {hi:g}]")
+    return float(v)
+
+
+def _vec3(v, field: str, nonzero: bool = False) -> list[float]:
+    if not isinstance(v, (list, tuple)) or len(v) != 3:
+        raise BatchError(field, f"expected [x, y, z], got {v!r}")
+    out = [_number(x, f"{field}.{k}") for k, x in enumerate(v)]
+    if nonzero and not any(out):
+        raise BatchError(field, "must not be the zero vector")
+    return out
+
+
+def _samples(v, field: str) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_SAMPLES:
+        raise BatchError(field, f"expected an integer in [1, {MAX_SAMPLES}], got {v!r}")
+    return v
+
+
+def _range(v, field: str, lo: float, hi: float) -> tuple[float, float]:
+    """A number (constant) or [from, to]."""
+    if isinstance(v, (list, tuple)):
+        if len(v) != 2:
+            raise BatchError(field, f"expected a number or [from, to], got {v!r}")
+        return _number(v[0], f"{field}.0", lo, hi), _number(v[1], f"{field}.1", lo, hi)
+    x = _number(v, field, lo, hi)
+    return x, x
+
+
+def _merge_pose(base_cam, pose: dict) -> dict:
+    """A pose over the base camera: a new position or usd_path replaces the base's pose entirely."""
+    cam = dict(base_cam) if isinstance(base_cam, dict) else {}
+    if "position" in pose or "usd_path" in pose:
+        for k in ("usd_path", "position", "target", "forward"):
+            cam.pop(k, None)
+    if "target" in pose:
+        cam.pop("forward", None)
+    if "forward" in pose:
+        cam.pop("target", None)
+    cam.update(pose)
+    return cam
+
+
+def _camera_path(path, base_cam) -> list[dict]:
+    if not isinstance(path, dict):
+        raise BatchError("camera_path", "expected {\"poses\": [...]} or {\"keyframes\": [...], \"samples\": N}")
+    if ("poses" in path) == ("keyframes" in path):
+        raise BatchError("camera_path", "give exactly one of poses and keyframes")
+    if "poses" in path:
+        poses = path["poses"]
+        if not isinstance(poses, list) or not poses:
+            raise BatchError("camera_path.poses", "expected a non-empty list of camera objects")
+        for i, p in enumerate(poses):
+            if not isinstance(p, dict):
+                raise BatchError(f"camera_path.poses.{i}", "expected a camera object")
+            for k in ("position", "target", "forward", "up"):
+                if k in p:
+                    _vec3(p[k], f"camera_path.poses.{i}.{k}", nonzero=k in ("forward", "up"))
+        return [_merge_pose(base_cam, p) for p in poses]
+    return _keyframes(path["keyframes"], _samples(path.get("samples"), "camera_path.samples"), base_cam)
+
+
+_LERPED = ("fov_y_deg", "near", "far")
+
+
+def _keyframes(keys, n: int, base_cam) -> list[dict]:
+    field = "camera_path.keyframes"
+    if not isinstance(keys, list) or len(keys) < 2:
+        raise BatchError(field, "expected a list of at least 2 camera keyframes")
+    aim = "target" if isinstance(keys[0], dict) and "target" in keys[0] else "forward"
+    parsed = []
+    for i, k in enumerate(keys):
+        f = f"{field}.{i}"
+        if not isinstance(k, dict):
+            raise BatchError(f, "expected a camera object")
+        if "usd_path" in k:
+            raise BatchError(f"{f}.usd_path", "keyframes need explicit position and target (or forward)")
+        if "position" not in k:
+            raise BatchError(f"{f}.position", "every keyframe needs a position")
+        if aim not in k or ("target" in k and "forward" in k):
+            raise BatchError(f"{f}.{aim}", f"every keyframe needs {aim} (as the first keyframe), not both target and forward")
+        p = {"position": _vec3(k["position"], f"{f}.position"), aim: _vec3(k[aim], f"{f}.{aim}", nonzero=aim == "forward")}
+        if "up" in k:
+            p["up"] = _vec3(k["up"], f"{f}.up", nonzero=True)
+        for name in _LERPED:
+            if name in k and k[name] is not None:
+                p[name] = _number(k[name], f"{f}.{name}", 0.0)
+        parsed.append((k, p))
+    lerped = [name for name in ("up",) + _LERPED if all(name in p for _, p in parsed)]
+    partial = [name for name in ("up",) + _LERPED if name not in lerped and any(name in p for _, p in parsed)]
+    if partial:
+        raise BatchError(f"{field}.{partial[0]}", "give it in every keyframe or in none (it is interpolated)")
+    out = []
+    for j in range(n):
+        t = 0.0 if n == 1 else j * (len(parsed) - 1) / (n - 1)
+        seg = min(int(t), len(parsed) - 2)
+        u = t - seg
+        (k0, a), (_, b) = parsed[seg], parsed[seg + 1]
+        pose = {"position": _lerp(a["position"], b["position"], u)}
+        pose[aim] = _lerp(a[aim], b[aim], u)
+        if aim == "forward":
+            pose["forward"] = _normalised(pose["forward"], a["forward"])
+        if "up" in lerped:
+            pose["up"] = _normalised(_lerp(a["up"], b["up"], u), a["up"])
+        for name in _LERPED:
+            if name in lerped:
+                pose[name] = a[name] + (b[name] - a[name]) * u
+        rest = {k: v for k, v in k0.items() if k not in pose and k not in ("position", "target", "forward", "up") + _LERPED}
+        out.append(_merge_pose(base_cam, {**rest, **pose}))
+    return out
+
+
+def _lerp(a, b, u: float) -> list[float]:
+    return [x + (y - x) * u for x, y in zip(a, b)]
+
+
+def _normalised(v, fallback) -> list[float]:
+    n = math.sqrt(sum(x * x for x in v))
+    return [x / n for x in v] if n > 1e-12 else list(fallback)
+
+
+def _light_set(request: dict, base: dict) -> list[list[float]] | None:
+    if "light_directions" in request and "sun_arc" in request:
+        raise BatchError("sun_arc", "give either light_directions or a sun_arc, not both")
+    if "light_directions" in request:
+        dirs = request["light_directions"]
+        if not isinstance(dirs, list) or not dirs:
+            raise BatchError("light_directions", "expected a non-empty list of [x, y, z] directions")
+        return [_vec3(d, f"light_directions.{i}", nonzero=True) for i, d in enumerate(dirs)]
+    if "sun_arc" in request:
+        if base.get("frame") == "stage":
+            raise BatchError("sun_arc", "sun_arc directions are in the world frame (+Y up): use rig.frame \"world\"")
+        return sun_arc(request["sun_arc"])
+    return None
+
+
+def sun_arc(arc) -> list[list[float]]:
+    """Directions light travels for a sun moving from (azimuth, elevation) `from` to `to` in `samples`
+    steps, linearly in both angles. World frame: +Y up; azimuth 0 puts the sun toward +Z, 90 toward +X."""
+    if not isinstance(arc, dict):
+        raise BatchError("sun_arc", "expected {\"azimuth_deg\", \"elevation_deg\", \"samples\"}")
+    unknown = sorted(set(arc) - {"azimuth_deg", "elevation_deg", "samples"})
+    if unknown:
+        raise BatchError(f"sun_arc.{unknown[0]}", "unknown field (known: azimuth_deg, elevation_deg, samples)")
+    az = _range(arc.get("azimuth_deg", 0.0), "sun_arc.azimuth_deg", -720.0, 720.0)
+    if "elevation_deg" not in arc:
+        raise BatchError("sun_arc.elevation_deg", "required: a number or [from, to] in degrees above the horizon")
+    el = _range(arc["elevation_deg"], "sun_arc.elevation_deg", -90.0, 90.0)
+    n = _samples(arc.get("samples", 1), "sun_arc.samples")
+    out = []
+    for j in range(n):
+        u = 0.0 if n == 1 else j / (n - 1)
+        a = math.radians(az[0] + (az[1] - az[0]) * u)
+        e = math.radians(el[0] + (el[1] - el[0]) * u)
+        to_sun = (math.cos(e) * math.sin(a), math.sin(e), math.cos(e) * math.cos(a))
+        out.append([-c for c in to_sun])
+    return out
+
+
+def _light_slot(request: dict, base: dict) -> int:
+    k = request.get("light_index", 0)
+    n = len(base.get("lights") or [])
+    if isinstance(k, bool) or not isinstance(k, int) or not 0 <= k <= max(n - 1, 0):
+        raise BatchError("light_index", f"expected an index into rig.lights (0..{max(n - 1, 0)}), got {k!r}")
+    return k
+
+
+# -- interpolation hints ---------------------------------------------------------------------------
+
+SMOOTH_FIELDS = [
+    "lights[].cascades[].view_matrix", "lights[].cascades[].projection_matrix",
+    "lights[].cascades[].texture_matrix", "lights[].cascades[].split", "lights[].cascades[].light_depth",
+    "lights[].cascades[].blend_band", "lights[].cascades[].warp.eta", "lights[].cascades[].warp.n",
+    "lights[].cascades[].warp.log.c0", "lights[].cascades[].warp.log.c1", "lights[].cascades[].warp.log.c2",
+    "lights[].cascades[].depth_bias", "lights[].cascades[].predicted_error", "lights[].predicted_error",
+]
+SWITCH_FIELDS = ["lights[].cascades (count)", "lights[].cascades[].warp.kind", "lights[].cascades[].resolution",
+                 "lights[].cascades[].face", "lights[].type", "method"]
+
+
+def _signature(result: dict) -> tuple:
+    return (result.get("method"), tuple(
+        (l.get("type"), len(l.get("cascades") or []),
+         tuple((c.get("warp") or {}).get("kind") for c in l.get("cascades") or []),
+         tuple(tuple(c.get("resolution") or ()) for c in l.get("cascades") or []),
+         tuple(c.get("face") for c in l.get("cascades") or []))
+        for l in result.get("lights") or []))
+
+
+def _switch_reasons(a: dict, b: dict) -> list[str]:
+    sa, sb = _signature(a), _signature(b)
+    if sa[0] != sb[0]:
+        return [f"method {sa[0]} -> {sb[0]}"]
+    if len(sa[1]) != len(sb[1]):
+        return [f"lights {len(sa[1])} -> {len(sb[1])}"]
+    reasons = []
+    for k, (la, lb) in enumerate(zip(sa[1], sb[1])):
+        if la[0] != lb[0]:
+            reasons.append(f"light {k}: type {la[0]} -> {lb[0]}")
+        if la[1] != lb[1]:
+            reasons.append(f"light {k}: cascades {la[1]} -> {lb[1]}")
+        elif la[2] != lb[2]:
+            reasons.append(f"light {k}: warp kind {'/'.join(map(str, la[2]))} -> {'/'.join(map(str, lb[2]))}")
+        elif la[3] != lb[3] or la[4] != lb[4]:
+            reasons.append(f"light {k}: cascade resolution or face changes")
+    return reasons
+
+
+def interpolation_hints(results: list[dict], shape: tuple[int, int] | None = None) -> dict:
+    """How an engine may interpolate between neighbouring configurations' solutions.
+
+    `results`: lines as Store.results gives them ({"index", ...solution} or {"index", "error"}).
+    Neighbours are consecutive indices; with `shape = (cameras, lights)` (a camera path crossed with
+    light directions, index = camera * lights + light) also the same light at consecutive cameras.
+    Returns {"smooth_fields", "switch_fields", "breaks": [{"between": [i, j], "reasons": [...]}],
+    "segments": [[first, last], ...]} where segments are runs of consecutive indices with no break.
+    Interpolate smooth fields element-wise within a segment, never across a break.
+    """
+    by_index = {r["index"]: r for r in results}
+    pairs = []
+    if shape is None:
+        idx = sorted(by_index)
+        pairs = [(i, i + 1) for i in range(idx[0], idx[-1])] if idx else []
+    else:
+        cams, lights = shape
+        for c in range(cams):
+            for l in range(lights):
+                i = c * lights + l
+                if l + 1 < lights:
+                    pairs.append((i, i + 1))
+                if c + 1 < cams:
+                    pairs.append((i, i + lights))
+    breaks = []
+    for i, j in pairs:
+        a, b = by_index.get(i), by_index.get(j)
+        if a is None or b is None or "error" in a or "error" in b:
+            why = [f"configuration {k} has no result" for k, r in ((i, a), (j, b)) if r is None or "error" in r]
+            breaks.append({"between": [i, j], "reasons": why})
+            continue
+        reasons = _switch_reasons(a, b)
+        if reasons:
+            breaks.append({"between": [i, j], "reasons": reasons})
+    return {"smooth_fields": SMOOTH_FIELDS, "switch_fields": SWITCH_FIELDS, "breaks": breaks,
+            "segments": _segments(sorted(k for k, r in by_index.items() if "error" not in r),
+                                  {tuple(b["between"]) for b in breaks}, shape),
+            "neighbours": "consecutive indices" if shape is None else
+            f"index = camera * {shape[1]} + light; neighbours along both axes"}
+
+
+def _segments(ok: list[int], broken: set, shape) -> list[list[int]]:
+    """Runs of consecutive successful indices along the index order (the light axis for a grid)."""
+    out = []
+    for i in ok:
+        same_row = shape is None or (i - 1) // shape[1] == i // shape[1]
+        if out and out[-1][1] == i - 1 and same_row and (i - 1, i) not in broken:
+            out[-1][1] = i
+        else:
+            out.append([i, i])
+    return out
+
+
+# -- workers ---------------------------------------------------------------------------------------
+
+def _llvm_path() -> str | None:
+    from ..solvers.jit import pick_llvm
+
+    path = pick_llvm()
+    if path:
+        os.environ.setdefault("DRJIT_LIBLLVM_PATH", path)
+    return path
+
+
+def _worker_init(llvm: str | None) -> None:
+    if llvm:
+        os.environ["DRJIT_LIBLLVM_PATH"] = llvm
+
+
+def _solve_with(get_entry, config: dict, settings: dict) -> dict:
+    """One configuration: {"result": solution} or {"error": {"code", "message"}}; never raises."""
+    from ..renderers.scene_data import SceneError
+    from .rigs import RigError, SolutionError
+
+    try:
+        from .solve import solve
+
+        rig = config["rig"]
+        entry = get_entry()
+        sol = solve(entry, rig, method=config.get("method") or settings.get("method") or DEFAULT_METHOD,
+                    solver=settings.get("solver"), time_budget_ms=settings.get("time_budget_ms"))
+        return {"result": sol}
+    except SceneError as e:
+        return {"error": {"code": e.code, "message": e.message}}
+    except (RigError, SolutionError) as e:
+        return {"error": {"code": e.code, "message": str(e)}}
+    except (KeyError, TypeError, ValueError, IndexError) as e:
+        return {"error": {"code": "invalid_configuration", "message": f"{type(e).__name__}: {e}"}}
+    except Exception as e:  # keep the batch going; the message says what broke
+        return {"error": {"code": "internal_error", "message": f"{type(e).__name__}: {e}"}}
+
+
+def solve_configuration(scene_path: str, sandbox: bool, config: dict, settings: dict) -> dict:
+    """Worker entry point (local pool): the scene is loaded once per process by the SCENES cache."""
+    from .scenes import SCENES
+
+    return _solve_with(lambda: SCENES.get(scene_path, sandbox=sandbox), config, settings)
+
+
+@dataclass
+class SceneJob:
+    path: str
+    filename: str
+    sandbox: bool
+
+
+class _LocalBackend:
+    """A spawn ProcessPoolExecutor; recreated when a worker process dies."""
+
+    def __init__(self, workers: int):
+        self.workers = workers
+        self.llvm = _llvm_path()
+        self.pool = None
+
+    def _ensure_pool(self):
+        if self.pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            self.pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                            initializer=_worker_init, initargs=(self.llvm,))
+        return self.pool
+
+    def run(self, job: SceneJob, items: list[tuple[int, dict]], settings: dict, should_stop):
+        from concurrent.futures.process import BrokenProcessPool
+
+        queue = collections.deque((i, c, 0) for i, c in items)
+        inflight = {}
+        try:
+            while queue or inflight:
+                if should_stop():
+                    return
+                pool = self._ensure_pool()
+                while queue and len(inflight) < self.workers * IN_FLIGHT_PER_WORKER:
+                    i, c, tries = queue.popleft()
+                    inflight[pool.submit(solve_configuration, job.path, job.sandbox, c, settings)] = (i, c, tries)
+                done, _ = wait(list(inflight), timeout=0.5, return_when=FIRST_COMPLETED)
+                broken = False
+                for fut in done:
+                    try:
+                        out = fut.result()
+                    except BrokenProcessPool:
+                        broken = True
+                        continue
+                    except Exception as e:
+                        out = {"error": {"code": "internal_error", "message": f"{type(e).__name__}: {e}"}}
+                    i, _, _ = inflight.pop(fut)
+                    yield i, out
+                if broken:
+                    yield from self._after_crash(inflight, queue)
+        finally:
+            for fut in inflight:
+                fut.cancel()
+
+    def _after_crash(self, inflight: dict, queue: collections.deque):
+        """A worker died: everything in flight is lost. Retry each once in a new pool, then give up on it."""
+        log.warning("a batch worker process died; restarting the pool")
+        self.pool.shutdown(wait=False, cancel_futures=True)
+        self.pool = None
+        for fut, (i, c, tries) in sorted(inflight.items(), key=lambda kv: -kv[1][0]):
+            if tries < MAX_RETRIES:
+                queue.appendleft((i, c, tries + 1))
+            else:
+                yield i, {"error": {"code": "worker_crashed",
+                                    "message": "the worker process died while solving this configuration"}}
+        inflight.clear()
+
+    def close(self, wait_workers: bool = True):
+        if self.pool is not None:
+            self.pool.shutdown(wait=wait_workers, cancel_futures=True)
+            self.pool = None
+
+
+class SceneSolver:
+    """A Ray actor body: receives the scene file's bytes once, loads it once, solves configurations."""
+
+    def __init__(self, data: bytes, path: str, filename: str, sandbox: bool, llvm: str | None):
+        _worker_init(llvm)
+        if not sandbox and os.path.isfile(path):
+            self.path = path  # same machine, a local file: keep its relative asset references working
+        else:
+            folder = tempfile.mkdtemp(prefix="shadowopt-scene-")
+            self.path = os.path.join(folder, filename)
+            Path(self.path).write_bytes(data)
+        self.sandbox = sandbox
+        self.entry = None
+
+    def _entry(self):
+        if self.entry is None:
+            from .scenes import SCENES
+
+            self.entry = SCENES.get(self.path, sandbox=self.sandbox)
+        return self.entry
+
+    def solve(self, config: dict, settings: dict) -> dict:
+        return _solve_with(self._entry, config, settings)
+
+    def pid(self) -> int:
+        return os.getpid()
+
+
+class _RayBackend:
+    """Ray actors (one per worker, each loading the shipped scene once), on `address` or a local instance."""
+
+    def __init__(self, workers: int, address: str | None):
+        import ray
+
+        self.ray = ray
+        self.workers = workers
+        self.llvm = _llvm_path()
+        self.owns = False
+        if not ray.is_initialized():
+            env = {"env_vars": {"DRJIT_LIBLLVM_PATH": self.llvm}} if self.llvm else None
+            if address:
+                ray.init(address=address, runtime_env=env, log_to_driver=False)
+            else:
+                ray.init(num_cpus=workers, include_dashboard=False, runtime_env=env, log_to_driver=False,
+                         object_store_memory=128 * 1024 * 1024)
+            self.owns = True
+        self.actor_cls = ray.remote(num_cpus=1, max_restarts=0)(SceneSolver)
+        self.actors: list = []
+        self.actors_key = None
+        self.spawn = None
+        self.last_actor_pids: list[int] = []
+
+    def _actors_for(self, job: SceneJob) -> list:
+        """One actor per worker holding this scene; kept while consecutive batches use the same file."""
+        st = os.stat(job.path)
+        key = (job.path, st.st_size, st.st_mtime_ns, job.sandbox)
+        if self.actors_key != key:
+            self._kill_actors()
+            data_ref = self.ray.put(Path(job.path).read_bytes())  # shipped once; each actor receives it once
+            self.spawn = lambda: self.actor_cls.remote(data_ref, job.path, job.filename, job.sandbox, self.llvm)
+            self.actors = [self.spawn() for _ in range(self.workers)]
+            self.actors_key = key
+        return self.actors
+
+    def _kill_actors(self) -> None:
+        for a in self.actors:
+            self.ray.kill(a)
+        self.actors, self.actors_key = [], None
+
+    def run(self, job: SceneJob, items: list[tuple[int, dict]], settings: dict, should_stop):
+        ray = self.ray
+        actors = self._actors_for(job)
+        queue = collections.deque((i, c, 0) for i, c in items)
+        inflight = {}  # ObjectRef -> (index, config, tries, actor)
+        load = {id(a): 0 for a in actors}
+        try:
+            while queue or inflight:
+                if should_stop():
+                    return
+                for a in actors:
+                    while queue and load[id(a)] < IN_FLIGHT_PER_WORKER:
+                        i, c, tries = queue.popleft()
+                        inflight[a.solve.remote(c, settings)] = (i, c, tries, a)
+                        load[id(a)] += 1
+                ready, _ = ray.wait(list(inflight), num_returns=1, timeout=0.5)
+                for ref in ready:
+                    i, c, tries, a = inflight.pop(ref)
+                    load[id(a)] -= 1
+                    try:
+                        out = ray.get(ref)
+                    except ray.exceptions.RayActorError as e:
+                        pos = next((k for k, x in enumerate(actors) if x is a), None)
+                        if pos is not None:  # replace the dead actor (once per death)
+                            actors[pos] = self.spawn()
+                            load[id(actors[pos])] = 0
+                        if tries < MAX_RETRIES:
+                            queue.appendleft((i, c, tries + 1))
+                            continue
+                        out = {"error": {"code": "worker_crashed", "message": f"Ray worker died: {e}"}}
+                    except Exception as e:
+                        out = {"error": {"code": "internal_error", "message": f"{type(e).__name__}: {e}"}}
+                    yield i, out
+            self.last_actor_pids = ray.get([a.pid.remote() for a in actors])
+        finally:
+            if inflight:  # abandoned (cancel, shutdown): do not leave work queued on the actors
+                for ref in inflight:
+                    ray.cancel(ref, force=False)
+                self._kill_actors()
+
+    def close(self, wait_workers: bool = True):
+        if self.ray.is_initialized():
+            self._kill_actors()
+        if self.owns and self.ray.is_initialized():
+            self.ray.shutdown()
+
+
+# -- the runner ------------------------------------------------------------------------------------
+
+class BatchRunner:
+    """Runs queued batches one after another on a local spawn pool or Ray, writing each outcome to the store."""
+
+    def __init__(self, store: Store, backend: str = "local", workers: int = 2, ray_address: str | None = None):
+        if backend not in BACKENDS:
+            raise BatchError("backend", f"unknown backend {backend!r} (known: {', '.join(BACKENDS)})")
+        if not isinstance(workers, int) or workers < 1:
+            raise BatchError("workers", f"expected a positive integer, got {workers!r}")
+        self.store = store
+        self.backend = backend
+        self.workers = workers
+        self.ray_address = ray_address
+        self.stats = {"submitted": 0, "results": 0, "errors": 0}
+        self._impl = None
+        self._queue: collections.deque[tuple[str, str]] = collections.deque()
+        self._cv = threading.Condition()
+        self._current: str | None = None
+        self._cancelled: set[str] = set()
+        self._stop = False
+        self._thread: threading.Thread | None = None
+
+    # public
+    def submit(self, tenant: str, batch_id: str) -> None:
+        """Queue a batch (its pending configurations) for execution."""
+        with self._cv:
+            if self._stop:
+                raise RuntimeError("the batch runner is shut down")
+            if batch_id != self._current and all(b != batch_id for _, b in self._queue):
+                self._queue.append((tenant, batch_id))
+            self._cv.notify_all()
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._loop, name="batch-runner", daemon=True)
+                self._thread.start()
+
+    def resume(self) -> list[str]:
+        """Re-queue the store's unfinished batches (after a restart): only their pending indices run."""
+        ids = []
+        for tenant, batch_id in self.store.unfinished_batches():
+            self.store.set_state(batch_id, "queued", only_from=("running",))
+            self.submit(tenant, batch_id)
+            ids.append(batch_id)
+        return ids
+
+    def cancel(self, tenant: str, batch_id: str) -> bool:
+        """Cancel a batch (False: the tenant has no such batch). Configurations in flight are abandoned."""
+        if not self.store.cancel_batch(tenant, batch_id):
+            return False
+        with self._cv:
+            self._queue = collections.deque(q for q in self._queue if q[1] != batch_id)
+            self._cancelled.add(batch_id)
+            self._cv.notify_all()
+        return True
+
+    def queue_length(self) -> int:
+        with self._cv:
+            return len(self._queue) + (self._current is not None)
+
+    def wait(self, batch_id: str, timeout: float | None = None) -> str | None:
+        """Block until the batch is no longer queued or running (or timeout); its state."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            owner = self.store.batch_owner(batch_id)
+            st = self.store.batch(owner, batch_id) if owner is not None else None
+            state = st["state"] if st else None
+            if state not in UNFINISHED:
+                return state
+            left = None if deadline is None else deadline - time.monotonic()
+            if left is not None and left <= 0:
+                return state
+            with self._cv:
+                self._cv.wait(timeout=0.5 if left is None else min(0.5, left))
+
+    def shutdown(self, wait: bool = True) -> None:
+        """Stop after the configurations in flight; unfinished batches stay queued in the store for resume()."""
+        with self._cv:
+            self._stop = True
+            self._cv.notify_all()
+        if self._thread is not None and wait:
+            self._thread.join(timeout=120)
+        if self._impl is not None:
+            self._impl.close(wait_workers=wait)
+            self._impl = None
+
+    # internals
+    def _backend(self):
+        if self._impl is None:
+            self._impl = _LocalBackend(self.workers) if self.backend == "local" else _RayBackend(self.workers, self.ray_address)
+        return self._impl
+
+    def _loop(self) -> None:
+        while True:
+            with self._cv:
+                while not self._queue and not self._stop:
+                    self._cv.wait()
+                if self._stop:
+                    return
+                tenant, batch_id = self._queue.popleft()
+                self._current = batch_id
+            try:
+                self._run(tenant, batch_id)
+            except Exception as e:
+                log.exception("batch %s failed in the runner", batch_id)
+                if not self._stop:
+                    for i in self.store.pending_indices(batch_id):
+                        self.store.put_error(batch_id, i, "runner_error", f"{type(e).__name__}: {e}")
+                    self.store.finish_batch(batch_id)
+            finally:
+                with self._cv:
+                    self._current = None
+                    self._cv.notify_all()
+
+    def _should_stop(self, batch_id: str) -> bool:
+        if self._stop or batch_id in self._cancelled:
+            return True
+        owner = self.store.batch_owner(batch_id)
+        st = self.store.batch(owner, batch_id, max_errors=0) if owner is not None else None
+        return st is None or st["state"] == "cancelled"
+
+    def _run(self, tenant: str, batch_id: str) -> None:
+        st = self.store.batch(tenant, batch_id, max_errors=0)
+        if st is None or st["state"] not in UNFINISHED:
+            return
+        if not self.store.set_state(batch_id, "running", only_from=UNFINISHED):
+            return
+        pending = self.store.pending_indices(batch_id)
+        rec = self.store.scene_record(tenant, st["scene_id"])
+        path = self.store.scene_path(tenant, st["scene_id"])
+        if rec is None or path is None or not path.is_file():
+            for i in pending:
+                self.store.put_error(batch_id, i, "scene_not_found", f"scene {st['scene_id']!r} is gone")
+            self.store.finish_batch(batch_id)
+            return
+        configs = self.store.configurations(batch_id)
+        job = SceneJob(str(path), rec["filename"], self.store.scene_sandboxed(tenant, st["scene_id"]))
+        items = [(i, configs[i]) for i in pending]
+        self.stats["submitted"] += len(items)
+        stopped_early = False
+        outcomes = self._backend().run(job, items, st["settings"], lambda: self._should_stop(batch_id))
+        for index, out in outcomes:
+            if "result" in out:
+                self.store.put_result(batch_id, index, out["result"])
+                self.stats["results"] += 1
+            else:
+                self.store.put_error(batch_id, index, out["error"]["code"], out["error"]["message"])
+                self.stats["errors"] += 1
+            with self._cv:
+                self._cv.notify_all()
+        if self._stop:
+            stopped_early = True
+        if not stopped_early:
+            self.store.finish_batch(batch_id)
+
+
+# -- the CLI's batch -------------------------------------------------------------------------------
+
+def run_batch(scene_path, configurations: list[dict], backend: str = "local", workers: int = 2,
+              out_path=None, method: str = DEFAULT_METHOD, progress: bool = True, solver: str | None = None,
+              time_budget_ms: float | None = None, ray_address: str | None = None) -> dict:
+    """Run configurations (each {"rig": validated rig}) on a scene file; write JSON lines (one per
+    configuration, in index order, each with "index"; failures as {"index", "error"}) to out_path as
+    they complete. Uses a temporary Store, so execution is the server's. Returns a summary."""
+    from ..renderers.scene_data import SceneError
+
+    if not os.path.isfile(scene_path):
+        raise SceneError("not_found", f"cannot open scene {os.fspath(scene_path)!r}: no such file")
+    settings = {"method": method, "solver": solver, "time_budget_ms": time_budget_ms}
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="shadowopt-batch-") as tmp:
+        store = Store(tmp)
+        runner = BatchRunner(store, backend=backend, workers=workers, ray_address=ray_address)
+        try:
+            scene_id = store.link_scene("local", scene_path)
+            batch_id = store.create_batch("local", scene_id, configurations, settings)
+            runner.submit("local", batch_id)
+            _stream(runner, store, batch_id, len(configurations), out_path, progress)
+            st = store.batch("local", batch_id)
+        finally:
+            runner.shutdown()
+            store.close()
+    return {"state": st["state"], "total": st["total"], "done": st["done"], "failed": st["failed"],
+            "errors": st["errors"], "seconds": round(time.perf_counter() - t0, 3), "out": str(out_path)}
+
+
+def _stream(runner: BatchRunner, store: Store, batch_id: str, total: int, out_path, show: bool) -> None:
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, desc="batch", unit="config", file=sys.stderr, disable=not show, dynamic_ncols=True)
+    out = open(out_path, "w") if out_path else None
+    next_index = 0
+    try:
+        while True:
+            state = runner.wait(batch_id, timeout=0.25)
+            st = store.batch("local", batch_id, max_errors=0)
+            bar.update(st["done"] + st["failed"] - bar.n)
+            if st["failed"]:
+                bar.set_postfix(failed=st["failed"])
+            lines = store.results("local", batch_id, offset=next_index)
+            if out is not None and lines:
+                out.writelines(json.dumps(line) + "\n" for line in lines)
+                out.flush()
+            if lines:
+                next_index = lines[-1]["index"] + 1
+            if state not in UNFINISHED:
+                break
+    finally:
+        bar.close()
+        if out is not None:
+            out.close()
