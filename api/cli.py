@@ -139,6 +139,10 @@ def cmd_bench(args) -> int:
         result = benchmarks.bench_solvers(validate_rig, lights=args.lights or 5, write=not args.no_write)
     elif args.bench == "quality":
         result = benchmarks.bench_quality(validate_rig, lights=args.lights, write=not args.no_write)
+    elif args.bench == "batch":
+        from ..service.batch_benchmark import bench_batch
+
+        result = bench_batch(validate_rig, configurations=args.lights or 20, write=not args.no_write)
     elif args.bench == "load":
         from ..service.load_benchmark import bench_load
 
@@ -247,6 +251,58 @@ def cmd_compare(args) -> int:
     return 0
 
 
+def cmd_batch(args) -> int:
+    """Precompute many configurations (explicit, or a camera path crossed with light directions)."""
+    from ..service.batches import BatchError, expand_configurations, run_batch
+    from ..service.solve import METHODS
+
+    raw = _read_json(args.configs, "--configs")
+    request = {"configurations": raw} if isinstance(raw, list) else raw
+    if not isinstance(request, dict):
+        raise CliError(f"--configs: {args.configs} must hold a JSON object or a list of configurations")
+    try:
+        configs = expand_configurations(request)
+    except BatchError as e:
+        raise CliError(f"--configs {args.configs}: {e.field}: {e.message}") from e
+    explicit = "configurations" in request
+    for i, c in enumerate(configs):
+        where = f"configurations.{i}.rig" if explicit else f"rig (configuration {i})"
+        c["rig"] = _validate_batch_rig(c["rig"], where, args.configs)
+    method = args.method or request.get("method") or "optimized"
+    if method not in METHODS:
+        raise CliError(f"--configs {args.configs}: method: unknown {method!r} (known: {', '.join(METHODS)})")
+    if args.workers < 1:
+        raise CliError(f"--workers: must be at least 1, got {args.workers}")
+    if args.backend == "ray":
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            raise CliError("--backend ray: ray is not installed (pip install 'shadowopt[ray]')") from None
+    s = run_batch(args.scene, configs, backend=args.backend, workers=args.workers, out_path=args.out,
+                  method=method, progress=not args.no_progress, solver=args.solver or request.get("solver"),
+                  time_budget_ms=args.time_budget_ms or request.get("time_budget_ms"), ray_address=args.ray_address)
+    print(f"batch: {s['total']} configurations, {s['done']} done, {s['failed']} failed in {s['seconds']:.1f} s "
+          f"({s['total'] / max(s['seconds'], 1e-9):.2f} configurations/s); results in {args.out}")
+    if s["failed"]:
+        first = s["errors"][0]
+        print(f"shadowopt: error: {s['failed']} configuration(s) failed; first: index {first['index']}: "
+              f"{first['code']}: {first['message']}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _validate_batch_rig(raw, where: str, path: str) -> dict:
+    from pydantic import ValidationError
+
+    from .schemas import format_validation_error
+
+    try:
+        return validate_rig(raw)
+    except ValidationError as e:
+        text = "; ".join(f"{where}.{part}" for part in format_validation_error(e).split("; "))
+        raise CliError(f"--configs {path}: {text}") from e
+
+
 def cmd_serve(args) -> int:
     from .server import check_host, serve
     from .settings import SettingsError, load_settings
@@ -340,7 +396,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_analyze)
 
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
-    sp.add_argument("bench", choices=["coarse", "quality", "solvers", "load"])
+    sp.add_argument("bench", choices=["coarse", "quality", "solvers", "load", "batch"])
     sp.add_argument("--seconds", type=float, default=60.0, help="load: seconds of concurrent load per workload")
     sp.add_argument("--lights", type=int, default=None, help="quality: number of light directions")
     sp.add_argument("--runs", type=int, default=20, help="warm runs per scene (median reported)")
@@ -348,6 +404,21 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--no-write", action="store_true", help="do not update BENCHMARKS.md")
     sp.add_argument("--json", action="store_true", help="print the results as one JSON object")
     sp.set_defaults(func=cmd_bench)
+
+    sp = sub.add_parser("batch", help="precompute shadow setups for many camera/light configurations")
+    sp.add_argument("scene", help="a .usd, .usda, .usdc or .usdz file")
+    sp.add_argument("--configs", required=True, help='JSON: {"configurations": [{"rig": ...}, ...]} or a base '
+                    '"rig" with "camera_path" and/or "light_directions" / "sun_arc"')
+    sp.add_argument("--out", required=True, help="JSON lines, one per configuration in index order")
+    sp.add_argument("--backend", choices=["local", "ray"], default="local")
+    sp.add_argument("--workers", type=int, default=2, help="worker processes (local) or Ray actors")
+    sp.add_argument("--ray-address", default=None, help="a Ray cluster (default: a local Ray instance)")
+    sp.add_argument("--method", choices=["uniform", "focused", "lispsm", "logpsm", "optimized"], default=None,
+                    help="default: the file's \"method\", else optimized")
+    sp.add_argument("--solver", default=None, help="optimizer for --method optimized")
+    sp.add_argument("--time-budget-ms", type=float, default=None, help="per configuration")
+    sp.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    sp.set_defaults(func=cmd_batch)
 
     sp = sub.add_parser("serve", help="start the REST service")
     sp.add_argument("--host", default=None, help="default 127.0.0.1; another address needs tokens configured")
