@@ -28,11 +28,11 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel
 
-from .schemas import Rig
+from .schemas import BatchCreated, BatchStatus, Health, Rig, SceneInfo
 
-__all__ = ["Client", "AsyncClient", "SceneInfo", "BatchStatus", "ShadowoptError", "ClientError", "AuthError",
+__all__ = ["Client", "AsyncClient", "SceneInfo", "BatchCreated", "BatchStatus", "Health", "ShadowoptError", "ClientError", "AuthError",
            "NotFoundError", "ServerError", "ConnectionFailed", "TERMINAL_STATES"]
 
 TERMINAL_STATES = ("done", "failed", "cancelled")
@@ -96,37 +96,6 @@ def error_from_response(resp: httpx.Response) -> ShadowoptError:
     return cls(status, code, message, fld, resp.headers.get("x-request-id"))
 
 
-# ---------------------------------------------------------------- typed answers
-
-class SceneInfo(BaseModel):
-    """What the loader found in an uploaded scene (`POST /v1/scenes`, `GET /v1/scenes/{id}`).
-    Fields the server adds beyond these are kept as attributes too."""
-
-    model_config = ConfigDict(extra="allow")
-    scene_id: str
-    triangles: int | None = None
-    bounds: dict | None = None
-    frame: dict | None = None
-    cameras: list[dict] = []
-    lights: list[dict] = []
-    warnings: list[Any] = []
-
-
-class BatchStatus(BaseModel):
-    """A batch's state (`queued`, `running`, `done`, `failed`, `cancelled`) and progress."""
-
-    model_config = ConfigDict(extra="allow")
-    batch_id: str | None = None
-    state: str = "queued"
-    done: int = 0
-    total: int = 0
-    errors: Any = None
-
-    @property
-    def finished(self) -> bool:
-        return self.state in TERMINAL_STATES
-
-
 # ---------------------------------------------------------------- request building (shared by both clients)
 
 @dataclass
@@ -158,6 +127,11 @@ def rig_json(rig) -> dict:
     raise TypeError(f"rig: expected a dict or shadowopt.api.schemas.Rig, got {type(rig).__name__}")
 
 
+def plain(obj):
+    """A pydantic model (e.g. a `Solution` passed back as `previous`) as JSON data; anything else as is."""
+    return obj.model_dump(mode="json", by_alias=True) if isinstance(obj, BaseModel) else obj
+
+
 def configuration_json(item) -> dict:
     """A batch configuration: `{"rig": RIG, ...}` as given, or a bare rig (dict or `Rig`) wrapped."""
     if isinstance(item, dict) and "rig" in item:
@@ -183,7 +157,7 @@ class _Calls:
 
     @staticmethod
     def health():
-        return _Call("GET", "/healthz", accept=(503,))
+        return _Call("GET", "/healthz", accept=(503,), parse=lambda r: Health.model_validate(r.json()))
 
     @staticmethod
     def upload_scene(path_or_bytes, filename):
@@ -192,7 +166,7 @@ class _Calls:
 
     @staticmethod
     def list_scenes():
-        return _Call("GET", "/v1/scenes", parse=lambda r: [SceneInfo.model_validate(s) for s in r.json()["scenes"]])
+        return _Call("GET", "/v1/scenes", parse=lambda r: r.json()["scenes"])
 
     @staticmethod
     def get_scene(scene_id):
@@ -200,17 +174,17 @@ class _Calls:
 
     @staticmethod
     def delete_scene(scene_id):
-        return _Call("DELETE", f"/v1/scenes/{scene_id}")
+        return _Call("DELETE", f"/v1/scenes/{scene_id}", parse=lambda r: bool(r.json().get("deleted")))
 
     @staticmethod
     def optimize(scene_id, rig, method, solver, time_budget_ms, previous, options):
         body = _drop_none({"scene_id": scene_id, "rig": rig_json(rig), "method": method, "solver": solver,
-                           "time_budget_ms": time_budget_ms, "previous": previous, **options})
+                           "time_budget_ms": time_budget_ms, "previous": plain(previous), **options})
         return _Call("POST", "/v1/optimize", json=body)
 
     @staticmethod
     def evaluate(scene_id, rig, solution, options):
-        body = _drop_none({"scene_id": scene_id, "rig": rig_json(rig), "solution": solution, **options})
+        body = _drop_none({"scene_id": scene_id, "rig": rig_json(rig), "solution": plain(solution), **options})
         return _Call("POST", "/v1/evaluate", json=body)
 
     @staticmethod
@@ -227,23 +201,17 @@ class _Calls:
     def submit_batch(scene_id, configurations, method, options):
         confs = None if configurations is None else [configuration_json(c) for c in configurations]
         body = _drop_none({"scene_id": scene_id, "configurations": confs, "method": method, **options})
-        return _Call("POST", "/v1/batches", json=body, parse=lambda r: BatchStatus.model_validate(r.json()),
+        return _Call("POST", "/v1/batches", json=body, parse=lambda r: BatchCreated.model_validate(r.json()),
                      idempotent=False)
 
     @staticmethod
     def batch(batch):
-        bid = batch_id_of(batch)
-
-        def parse(r):
-            st = BatchStatus.model_validate(r.json())
-            if st.batch_id is None:
-                st.batch_id = bid
-            return st
-        return _Call("GET", f"/v1/batches/{bid}", parse=parse)
+        return _Call("GET", f"/v1/batches/{batch_id_of(batch)}", parse=lambda r: BatchStatus.model_validate(r.json()))
 
     @staticmethod
     def cancel_batch(batch):
-        return _Call("DELETE", f"/v1/batches/{batch_id_of(batch)}")
+        return _Call("DELETE", f"/v1/batches/{batch_id_of(batch)}",
+                     parse=lambda r: BatchStatus.model_validate(r.json()))
 
     @staticmethod
     def results(batch, offset):
@@ -366,8 +334,8 @@ class Client(_Base):
     def _call(self, call: _Call):
         return call.parse(self._send(call))
 
-    def health(self) -> dict:
-        """`GET /healthz`: the body, also while warming (503: `{"status": "warming", ...}`)."""
+    def health(self) -> Health:
+        """`GET /healthz`: `status` "ok", or "warming" (the server answers 503 until it is warm)."""
         return self._call(_Calls.health())
 
     def wait_ready(self, timeout: float = 120.0, poll_s: float = 0.2) -> dict:
@@ -388,13 +356,13 @@ class Client(_Base):
         """Upload a .usda/.usdc/.usdz (a path or its bytes; give `filename` with bytes of another kind)."""
         return self._call(_Calls.upload_scene(path_or_bytes, filename))
 
-    def list_scenes(self) -> list[SceneInfo]:
+    def list_scenes(self) -> list[dict]:
         return self._call(_Calls.list_scenes())
 
     def get_scene(self, scene_id: str) -> SceneInfo:
         return self._call(_Calls.get_scene(scene_id))
 
-    def delete_scene(self, scene_id: str):
+    def delete_scene(self, scene_id: str) -> bool:
         return self._call(_Calls.delete_scene(scene_id))
 
     def optimize(self, scene_id: str, rig: dict | Rig, method: str = "optimized", solver: str | None = None,
@@ -418,7 +386,7 @@ class Client(_Base):
         return self._call(_Calls.analyze(options))
 
     def submit_batch(self, scene_id: str, configurations: list | None = None, method: str = "optimized",
-                     **options) -> BatchStatus:
+                     **options) -> BatchCreated:
         """`POST /v1/batches` -> 202 `{"batch_id", ...}`. `configurations`: rigs (dicts or `Rig`) or
         `{"rig": RIG, ...}` items; the camera-path form and other settings go in as keyword arguments.
         Not resent after a connection drops midway (it could create the batch twice)."""
@@ -428,7 +396,7 @@ class Client(_Base):
         """`GET /v1/batches/{id}`: state, done, total, errors."""
         return self._call(_Calls.batch(batch))
 
-    def cancel_batch(self, batch):
+    def cancel_batch(self, batch) -> BatchStatus:
         """`DELETE /v1/batches/{id}`."""
         return self._call(_Calls.cancel_batch(batch))
 
@@ -441,7 +409,7 @@ class Client(_Base):
         try:
             while True:
                 _update_bar(bar, st)
-                if st.finished:
+                if st.state in TERMINAL_STATES:
                     return st
                 if deadline is not None and time.monotonic() > deadline:
                     raise TimeoutError(f"batch {st.batch_id} still {st.state} after {timeout} s ({st.done}/{st.total})")
@@ -458,7 +426,7 @@ class Client(_Base):
         call_at = lambda off: _Calls.results(batch, off)  # noqa: E731
         nxt, failures = offset, 0
         while True:
-            final = self.batch(batch).finished if follow else True
+            final = self.batch(batch).state in TERMINAL_STATES if follow else True
             try:
                 resp = self._send(call_at(nxt), stream=True)
                 try:
@@ -526,7 +494,7 @@ class AsyncClient(_Base):
         resp = await self._send(call)
         return call.parse(resp)
 
-    async def health(self) -> dict:
+    async def health(self) -> Health:
         return await self._call(_Calls.health())
 
     async def wait_ready(self, timeout: float = 120.0, poll_s: float = 0.2) -> dict:
@@ -545,13 +513,13 @@ class AsyncClient(_Base):
     async def upload_scene(self, path_or_bytes, filename: str | None = None) -> SceneInfo:
         return await self._call(_Calls.upload_scene(path_or_bytes, filename))
 
-    async def list_scenes(self) -> list[SceneInfo]:
+    async def list_scenes(self) -> list[dict]:
         return await self._call(_Calls.list_scenes())
 
     async def get_scene(self, scene_id: str) -> SceneInfo:
         return await self._call(_Calls.get_scene(scene_id))
 
-    async def delete_scene(self, scene_id: str):
+    async def delete_scene(self, scene_id: str) -> bool:
         return await self._call(_Calls.delete_scene(scene_id))
 
     async def optimize(self, scene_id: str, rig: dict | Rig, method: str = "optimized", solver: str | None = None,
@@ -568,13 +536,13 @@ class AsyncClient(_Base):
         return await self._call(_Calls.analyze(options))
 
     async def submit_batch(self, scene_id: str, configurations: list | None = None, method: str = "optimized",
-                           **options) -> BatchStatus:
+                           **options) -> BatchCreated:
         return await self._call(_Calls.submit_batch(scene_id, configurations, method, options))
 
     async def batch(self, batch) -> BatchStatus:
         return await self._call(_Calls.batch(batch))
 
-    async def cancel_batch(self, batch):
+    async def cancel_batch(self, batch) -> BatchStatus:
         return await self._call(_Calls.cancel_batch(batch))
 
     async def wait(self, batch, progress: bool = True, poll_s: float = 0.5,
@@ -585,7 +553,7 @@ class AsyncClient(_Base):
         try:
             while True:
                 _update_bar(bar, st)
-                if st.finished:
+                if st.state in TERMINAL_STATES:
                     return st
                 if deadline is not None and time.monotonic() > deadline:
                     raise TimeoutError(f"batch {st.batch_id} still {st.state} after {timeout} s ({st.done}/{st.total})")
@@ -600,7 +568,7 @@ class AsyncClient(_Base):
         call_at = lambda off: _Calls.results(batch, off)  # noqa: E731
         nxt, failures = offset, 0
         while True:
-            final = (await self.batch(batch)).finished if follow else True
+            final = (await self.batch(batch)).state in TERMINAL_STATES if follow else True
             try:
                 resp = await self._send(call_at(nxt), stream=True)
                 try:

@@ -1,0 +1,271 @@
+"""The Python client (shadowopt.api.client) against a real uvicorn server on 127.0.0.1.
+
+The server runs as `shadowopt serve` in a subprocess with a temporary data directory and two
+tenants' tokens. Only the 503 retry and a stream cut mid-way use a tiny stand-in HTTP server:
+those are failures the real server cannot be made to show on demand.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+
+import pytest
+
+from shadowopt.api.client import (AsyncClient, AuthError, Client, ClientError, ConnectionFailed, NotFoundError,
+                                  ServerError, ShadowoptError)
+from shadowopt.api.schemas import Rig
+
+REPO = Path(__file__).resolve().parents[1]
+DEMO = REPO / "configs" / "demo_scene.usda"
+TOKENS = {"alice": "alice-token-0001", "bob": "bob-token-0002"}
+TINY_RIG = {"camera": {"usd_path": "/World/Camera", "resolution": [160, 90]},
+            "lights": [{"usd_path": "/World/Sun"}],
+            "shadow": {"resolution": [256, 256]}, "coarse_long_side": 48}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    """`shadowopt serve` on a free port; yields its base URL once /healthz answers 200."""
+    port = free_port()
+    data = tmp_path_factory.mktemp("data")
+    env = {**os.environ, "SHADOWOPT_TOKENS": ",".join(f"{n}={t}" for n, t in TOKENS.items())}
+    exe = Path(sys.executable).with_name("shadowopt")
+    log = open(data / "server.log", "w")
+    proc = subprocess.Popen([str(exe), "serve", "--host", "127.0.0.1", "--port", str(port), "--data-dir", str(data)],
+                            cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        with Client(base) as c:
+            deadline = time.monotonic() + 180
+            while True:
+                assert proc.poll() is None, (data / "server.log").read_text()
+                try:
+                    c.wait_ready(timeout=1)
+                    break
+                except TimeoutError:
+                    if time.monotonic() > deadline:
+                        pytest.fail("server not ready in 180 s:\n" + (data / "server.log").read_text())
+        yield base
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        log.close()
+
+
+@pytest.fixture(scope="module")
+def alice(server):
+    with Client(server, token=TOKENS["alice"]) as c:
+        yield c
+
+
+def test_five_line_use(alice):
+    scene = alice.upload_scene(DEMO)
+    solution = alice.optimize(scene.scene_id, TINY_RIG)
+    assert scene.triangles > 1000 and [c["usd_path"] for c in scene.cameras] == ["/World/Camera"]
+    assert alice.get_scene(scene.scene_id).scene_id == scene.scene_id
+    light = solution["lights"][0]
+    assert solution["method"] == "optimized" and len(light["cascades"]) == 1
+    err = light["predicted_error"]
+    assert err["samples"] > 0 and 0 < err["p95_m"] < float("inf")
+
+
+def test_evaluate_compare_analyze(alice):
+    scene = alice.upload_scene(DEMO)
+    sol = alice.optimize(scene.scene_id, TINY_RIG, method="focused")
+    ev = alice.evaluate(scene.scene_id, TINY_RIG, sol)
+    assert ev["method"] == "focused" and ev["receiver_pixels"] > 0
+    assert 0 <= ev["misclassified_pixels"] <= ev["receiver_pixels"]
+    cmp = alice.compare(scene.scene_id, TINY_RIG, methods=["uniform", "focused"])
+    assert set(cmp["methods"]) == {"uniform", "focused"}
+    a = alice.analyze(f_over_n=100, theta_deg=30, gamma_deg=90, method="perspective")
+    assert a["R_s"] > 0 and a["S"] > 0
+
+
+def test_error_carries_server_code_and_field(alice):
+    scene = alice.upload_scene(DEMO)
+    bad = {**TINY_RIG, "camera": {"usd_path": "/World/Camera", "resolution": [0, 90]}}
+    with pytest.raises(ClientError) as e:
+        alice.optimize(scene.scene_id, bad)
+    assert (e.value.status, e.value.code) == (422, "invalid_request")
+    assert e.value.field.startswith("rig.camera.resolution") and "greater than 0" in e.value.message, e.value
+    assert e.value.request_id  # the server's X-Request-ID, for its logs
+    with pytest.raises(NotFoundError) as e:
+        alice.optimize("0123456789abcdef", TINY_RIG)
+    assert (e.value.status, e.value.code, e.value.field) == (404, "scene_not_found", "scene_id")
+    with pytest.raises(ClientError) as e:
+        alice.optimize(scene.scene_id, {**TINY_RIG, "lights": [{"usd_path": "/World/NoSuchLight"}]})
+    assert e.value.status == 422 and e.value.field.startswith("rig.lights") and "NoSuchLight" in e.value.message
+
+
+def test_auth_and_tenants(server, alice):
+    scene = alice.upload_scene(DEMO)
+    for token in (None, "not-a-token-at-all"):
+        with Client(server, token=token) as c, pytest.raises(AuthError) as e:
+            c.get_scene(scene.scene_id)
+        assert e.value.status == 401 and e.value.code
+    with Client(server, token=TOKENS["bob"]) as bob:
+        with pytest.raises(NotFoundError):  # another tenant's scene does not exist for bob
+            bob.get_scene(scene.scene_id)
+        with pytest.raises(NotFoundError):
+            bob.delete_scene(scene.scene_id)
+    assert alice.get_scene(scene.scene_id).scene_id == scene.scene_id
+
+
+def test_async_client_with_typed_rig(server):
+    rig = Rig.model_validate(TINY_RIG)
+
+    async def run():
+        async with AsyncClient(server, token=TOKENS["alice"]) as c:
+            assert (await c.health()).status == "ok"
+            scene = await c.upload_scene(DEMO.read_bytes(), filename="demo.usda")
+            sols = await asyncio.gather(*(c.optimize(scene.scene_id, rig, method=m) for m in ("uniform", "lispsm")))
+            return scene, sols
+
+    scene, sols = asyncio.run(run())
+    assert scene.triangles > 1000
+    assert [s["method"] for s in sols] == ["uniform", "lispsm"]
+    assert all(s["lights"][0]["predicted_error"]["samples"] > 0 for s in sols)
+
+
+def sun(az_deg: float, el_deg: float = 40.0) -> list[float]:
+    import math
+
+    a, e = math.radians(az_deg), math.radians(el_deg)
+    return [-math.cos(e) * math.cos(a), -math.sin(e), -math.cos(e) * math.sin(a)]
+
+
+def test_batch_submit_wait_and_results(alice):
+    scene = alice.upload_scene(DEMO)
+    confs = [{**TINY_RIG, "lights": [{"type": "directional", "direction": sun(az)}]} for az in (0, 60, 120, 180)]
+    created = alice.submit_batch(scene.scene_id, confs, method="focused")
+    assert created.batch_id and created.total == 4
+    final = alice.wait(created, progress=False, poll_s=0.2, timeout=300)
+    assert final.state == "done" and final.done == final.total == 4, final
+    lines = list(alice.iter_results(created.batch_id))
+    assert [r["index"] for r in lines] == [0, 1, 2, 3]
+    assert all(r["method"] == "focused" and r["lights"][0]["predicted_error"]["samples"] > 0 for r in lines)
+    assert [r["index"] for r in alice.iter_results(created.batch_id, offset=2)] == [2, 3]
+    with Client(alice.base_url, token=TOKENS["bob"]) as bob, pytest.raises(NotFoundError):
+        bob.batch(created.batch_id)
+
+
+def test_batch_results_followed_while_running_and_cancel(alice):
+    scene = alice.upload_scene(DEMO)
+    confs = [{**TINY_RIG, "lights": [{"type": "directional", "direction": sun(az, 30)}]} for az in (10, 70, 130)]
+    created = alice.submit_batch(scene.scene_id, confs, method="lispsm")
+    lines = list(alice.iter_results(created, follow=True, poll_s=0.1))  # starts before the batch is done
+    assert [r["index"] for r in lines] == [0, 1, 2] and all(r["method"] == "lispsm" for r in lines)
+    assert alice.batch(created).state == "done"
+    many = [{**TINY_RIG, "lights": [{"type": "directional", "direction": sun(az, 50)}]} for az in range(0, 360, 12)]
+    big = alice.submit_batch(scene.scene_id, many, method="optimized")
+    assert alice.cancel_batch(big).state == "cancelled"
+    final = alice.wait(big, progress=False, poll_s=0.1, timeout=120)
+    assert final.state == "cancelled" and final.done < final.total == 30
+
+
+# ---------------------------------------------------------------- stand-in server for failures on demand
+
+class StandIn:
+    """A local HTTP server answering GETs from a script: each entry is (status, headers, body) or
+    "cut:<body>" (send a Content-Length larger than the body, then close the connection)."""
+
+    def __init__(self, script):
+        self.script, self.paths = list(script), []
+        outer = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_GET(self):
+                outer.paths.append(self.path)
+                step = outer.script.pop(0)
+                if isinstance(step, str) and step.startswith("cut:"):
+                    body = step[4:].encode()
+                    self.send_response(200)
+                    self.send_header("Content-Type", "application/x-ndjson")
+                    self.send_header("Content-Length", str(len(body) + 1000))
+                    self.end_headers()
+                    self.wfile.write(body)
+                    self.wfile.flush()
+                    self.close_connection = True
+                    return
+                status, headers, body = step
+                data = body.encode() if isinstance(body, str) else json.dumps(body).encode()
+                self.send_response(status)
+                for k, v in headers.items():
+                    self.send_header(k, v)
+                self.send_header("Content-Length", str(len(data)))
+                self.end_headers()
+                self.wfile.write(data)
+
+            def log_message(self, *args):
+                pass
+
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+
+    def close(self):
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+def test_retry_on_503_honours_retry_after_and_gives_up():
+    busy = (503, {"Retry-After": "1"}, {"error": {"code": "queue_full", "message": "try again"}})
+    limited = (429, {"Retry-After": "0"}, {"error": {"code": "rate_limited", "message": "slow down"}})
+    ok = (200, {"Content-Type": "application/json"},
+          {"batch_id": "b1", "scene_id": "s1", "state": "running", "done": 1, "total": 2, "progress": 0.5})
+    busy_now = (503, {"Retry-After": "0"}, {"error": {"code": "queue_full", "message": "try again"}})
+    stand_in = StandIn([busy, limited, ok] + [busy_now] * 3)
+    try:
+        with Client(stand_in.url, retries=2, backoff_s=0.01) as c:
+            t0 = time.monotonic()
+            st = c.batch("b1")
+            assert st.state == "running" and st.done == 1 and time.monotonic() - t0 >= 0.9  # waited Retry-After
+            assert len(stand_in.paths) == 3
+            with pytest.raises(ServerError) as e:  # 503 on every try: gives up after 1 + 2 retries
+                c.batch("b1")
+            assert e.value.status == 503 and e.value.code == "queue_full" and len(stand_in.paths) == 6
+    finally:
+        stand_in.close()
+
+
+def test_iter_results_resumes_after_a_cut_stream():
+    line = lambda i: json.dumps({"index": i, "solution": {}}) + "\n"  # noqa: E731
+    stand_in = StandIn(["cut:" + line(0) + line(1), (200, {}, line(2) + line(3))])
+    try:
+        with Client(stand_in.url, retries=2, backoff_s=0.01) as c:
+            assert [r["index"] for r in c.iter_results("b1")] == [0, 1, 2, 3]
+        assert stand_in.paths == ["/v1/batches/b1/results?offset=0", "/v1/batches/b1/results?offset=2"]
+    finally:
+        stand_in.close()
+
+
+def test_connection_refused_is_retried_then_raised():
+    with Client(f"http://127.0.0.1:{free_port()}", retries=2, backoff_s=0.01) as c:
+        with pytest.raises(ConnectionFailed) as e:
+            c.get_scene("abc")
+    assert isinstance(e.value, ShadowoptError) and e.value.status is None
+
+
+def test_client_import_needs_no_rendering_stack():
+    code = ("import sys, shadowopt.api.client; "
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'numpy', 'mitsuba', 'drjit', 'fastapi', "
+            "'torch', 'pxr', 'scipy'}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
