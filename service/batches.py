@@ -509,9 +509,16 @@ class SceneSolver:
         if not sandbox and os.path.isfile(path):
             self.path = path  # same machine, a local file: keep its relative asset references working
         else:
-            folder = tempfile.mkdtemp(prefix="shadowopt-scene-")
-            self.path = os.path.join(folder, filename)
-            Path(self.path).write_bytes(data)
+            import hashlib
+
+            # One copy per distinct file on this node, reused by later actors (no pile of temp folders).
+            folder = Path(tempfile.gettempdir()) / "shadowopt-ray-scenes" / hashlib.sha256(data).hexdigest()[:16]
+            folder.mkdir(parents=True, exist_ok=True)
+            self.path = str(folder / filename)
+            if not os.path.isfile(self.path) or os.path.getsize(self.path) != len(data):
+                tmp = f"{self.path}.{os.getpid()}.tmp"
+                Path(tmp).write_bytes(data)
+                os.replace(tmp, self.path)
         self.sandbox = sandbox
         self.entry = None
 

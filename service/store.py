@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
+import math
 import os
 import re
 import shutil
@@ -19,10 +21,13 @@ import time
 import uuid
 from pathlib import Path
 
+log = logging.getLogger("shadowopt.store")
+
 STATES = ("queued", "running", "done", "failed", "cancelled")
 UNFINISHED = ("queued", "running")
 DB_NAME = "shadowopt.db"
 MAX_ERRORS_LISTED = 100
+RETENTION_INTERVAL_S = 60.0  # automatic enforcement (on start, uploads, finished batches) at most this often
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS scenes (
@@ -84,7 +89,9 @@ class Store:
         self._conns: list[sqlite3.Connection] = []
         self._conns_lock = threading.Lock()
         self._write_lock = threading.Lock()  # one writer at a time within this process
+        self._last_retention = -math.inf
         self._init_schema()
+        self.auto_retention()
 
     # -- connections -----------------------------------------------------------------------------
     def _conn(self) -> sqlite3.Connection:
@@ -150,6 +157,8 @@ class Store:
         (n,) = self._write([("INSERT OR IGNORE INTO scenes (tenant, scene_id, filename, bytes, path, source, "
                              "created_at) VALUES (?, ?, ?, ?, ?, 'upload', ?)",
                              (tenant, scene_id, name, len(data), str(path), time.time()))])
+        if n == 1:
+            self.auto_retention()
         return scene_id, n == 1
 
     def link_scene(self, tenant: str, path: str | Path) -> str:
@@ -325,7 +334,9 @@ class Store:
         if row["state"] in UNFINISHED and self._first_pending(batch_id, 0) is None:
             done = self._query("SELECT COUNT(*) FROM results WHERE batch_id = ?", (batch_id,))[0][0]
             self.set_state(batch_id, "done" if done > 0 or row["total"] == 0 else "failed", only_from=UNFINISHED)
-        return self._batch_row(batch_id)["state"]
+            self.auto_retention()
+        row = self._batch_row(batch_id)
+        return row["state"] if row is not None else None
 
     def cancel_batch(self, tenant: str, batch_id: str) -> bool:
         """Cancel a queued or running batch. False when the tenant has no such batch; a finished batch
@@ -379,6 +390,21 @@ class Store:
                 stmts.append((f"DELETE FROM {table} WHERE batch_id = ?", (b,)))
         if stmts:
             self._write(stmts)
+
+    def auto_retention(self) -> None:
+        """enforce_retention() when a limit is set and RETENTION_INTERVAL_S has passed since the last run."""
+        if self.retention_days is None and self.max_bytes is None:
+            return
+        now = time.monotonic()
+        if now - self._last_retention < RETENTION_INTERVAL_S:
+            return
+        self._last_retention = now
+        try:
+            removed = self.enforce_retention()
+            if removed["batches"] or removed["scenes"]:
+                log.info("retention removed %d batches and %d scenes", len(removed["batches"]), len(removed["scenes"]))
+        except (OSError, sqlite3.Error) as e:  # retention must never fail the write that triggered it
+            log.warning("retention failed: %s", e)
 
     def enforce_retention(self) -> dict:
         """Drop finished batches and scenes older than retention_days, then the oldest until the data

@@ -196,3 +196,13 @@ def test_retention_by_size_drops_the_oldest_until_under_the_limit(tmp_path):
     assert [r["scene_id"] for r in s.list_scenes("t")] == ids[3:]
     assert s.disk_bytes() <= s.max_bytes
     s.close()
+
+
+def test_a_size_limit_is_enforced_when_the_store_opens(tmp_path):
+    s = Store(tmp_path / "d")
+    ids = [s.put_scene("t", bytes([k]) * 300_000, f"s{k}.usdc")[0] for k in range(3)]
+    s.close()
+    s = Store(tmp_path / "d", max_bytes=400_000)  # a server restarted with a tighter limit
+    assert [r["scene_id"] for r in s.list_scenes("t")] == ids[2:]
+    assert s.disk_bytes() <= 400_000
+    s.close()
