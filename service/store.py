@@ -99,6 +99,7 @@ class Store:
         if conn is None:
             conn = sqlite3.connect(self.db_path, timeout=30.0, isolation_level=None, check_same_thread=False)
             conn.row_factory = sqlite3.Row
+            conn.execute("PRAGMA auto_vacuum=INCREMENTAL")  # takes effect only on a new, empty database
             conn.execute("PRAGMA journal_mode=WAL")
             conn.execute("PRAGMA synchronous=NORMAL")  # WAL + NORMAL: durable against process crashes
             conn.execute("PRAGMA busy_timeout=30000")
@@ -110,7 +111,6 @@ class Store:
     def _init_schema(self) -> None:
         conn = self._conn()
         with self._write_lock:
-            conn.execute("PRAGMA auto_vacuum=INCREMENTAL")  # only takes effect on a new database
             conn.executescript(_SCHEMA)
 
     def _write(self, statements: list[tuple[str, tuple]]) -> list[int]:
@@ -458,7 +458,7 @@ class Store:
         """Give freed database pages back to the file system."""
         conn = self._conn()
         with self._write_lock:
-            conn.execute("PRAGMA incremental_vacuum").fetchall()  # frees a page per step
+            conn.executescript("PRAGMA incremental_vacuum;")  # executescript steps it to the end
             conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
 
 

@@ -206,3 +206,19 @@ def test_a_size_limit_is_enforced_when_the_store_opens(tmp_path):
     assert [r["scene_id"] for r in s.list_scenes("t")] == ids[2:]
     assert s.disk_bytes() <= 400_000
     s.close()
+
+
+def test_dropping_old_batches_gives_the_database_space_back(tmp_path):
+    s = Store(tmp_path / "d")
+    old = s.create_batch("t", "s", [{"rig": {}}] * 400, {})
+    for i in range(400):
+        s.put_result(old, i, {"pad": "x" * 5000})
+    s.finish_batch(old)
+    new = s.create_batch("t", "s", [{"rig": {}}], {})
+    s.put_result(new, 0, {"v": 1})
+    s.finish_batch(new)
+    assert s.disk_bytes() > 2_000_000
+    s.max_bytes = 500_000
+    assert s.enforce_retention()["batches"] == [old]
+    assert s.disk_bytes() <= 500_000 and s.results("t", new) == [{"index": 0, "v": 1}]
+    s.close()
