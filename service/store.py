@@ -458,6 +458,8 @@ class Store:
         """Give freed database pages back to the file system."""
         conn = self._conn()
         with self._write_lock:
+            if conn.execute("PRAGMA auto_vacuum").fetchone()[0] != 2:  # a database from before: convert it once
+                conn.executescript("PRAGMA auto_vacuum=INCREMENTAL; VACUUM;")
             conn.executescript("PRAGMA incremental_vacuum;")  # executescript steps it to the end
             conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
 
