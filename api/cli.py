@@ -138,7 +138,8 @@ def cmd_bench(args) -> int:
     elif args.bench == "solvers":
         result = benchmarks.bench_solvers(validate_rig, lights=args.lights or 5, write=not args.no_write)
     elif args.bench == "quality":
-        result = benchmarks.bench_quality(validate_rig, lights=args.lights, write=not args.no_write)
+        parts = ("single", "cascades") if args.part == "all" else (args.part,)
+        result = benchmarks.bench_quality(validate_rig, lights=args.lights, write=not args.no_write, parts=parts)
     elif args.bench == "batch":
         from ..service.batch_benchmark import bench_batch
 
@@ -399,6 +400,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("bench", choices=["coarse", "quality", "solvers", "load", "batch"])
     sp.add_argument("--seconds", type=float, default=60.0, help="load: seconds of concurrent load per workload")
     sp.add_argument("--lights", type=int, default=None, help="quality: number of light directions")
+    sp.add_argument("--part", choices=["single", "cascades", "all"], default="all",
+                    help="quality: one map per method, 4 cascades under one budget, or both")
     sp.add_argument("--runs", type=int, default=20, help="warm runs per scene (median reported)")
     sp.add_argument("--scenes", default=None, help="comma-separated scene names from configs/benchmarks.json")
     sp.add_argument("--no-write", action="store_true", help="do not update BENCHMARKS.md")

@@ -28,10 +28,14 @@
 
        THE BIAS RULE (one rule for every method; units are metres along the light ray):
        shadowed  iff  d_receiver > d_occluder + bias["constant"] + bias["slope"] * tan(psi)
+                      + tau * (bias["constant_texels"] + bias["slope_texels"] * tan(psi))
                       + NUMERIC_TOLERANCE * (scene extent)
        psi = angle between the surface normal and the direction to the light, tan(psi) clamped
-       at TAN_PSI_MAX = 10. The last term (1e-6 of the scene's diagonal) only absorbs float32 ray
-       casting noise; it is far below any texel.
+       at TAN_PSI_MAX = 10; tau = the world size of the serving texel at the receiver (distance
+       from the receiver's point on the texel's ray to the neighbouring texels' rays): the texel
+       units of a hardware slope-scaled depth bias or a normal-offset bias, which follow a warped
+       map's varying texel size. Missing keys are 0. The last term (1e-6 of the scene's diagonal)
+       only absorbs float32 ray casting noise; it is far below any texel.
 
    Receivers outside the map that serves them (s or t outside [0, 1], z_ndc outside [-1, 1], clip
    w <= 0, or a view depth no cascade's split covers) count as `outside_pixels` and are treated as
@@ -71,7 +75,9 @@ NUMERIC_TOLERANCE = 1e-6  # times the scene's diagonal, added to every bias (flo
 SAME_SURFACE_DEG = 10.0  # neighbours whose normals differ by more are on different surfaces
 RAY_CHUNK = 1 << 21  # texel rays per Dr.Jit launch
 BIAS_RULE = ("shadowed iff d_receiver > d_occluder + depth_bias.constant + depth_bias.slope * min(tan(psi), "
-             f"{TAN_PSI_MAX:g}) + {NUMERIC_TOLERANCE:g} * scene_diagonal; distances in metres along the texel's "
+             f"{TAN_PSI_MAX:g}) + tau * (depth_bias.constant_texels + depth_bias.slope_texels * min(tan(psi), "
+             f"{TAN_PSI_MAX:g})) + {NUMERIC_TOLERANCE:g} * scene_diagonal, tau = the serving texel's world size at "
+             "the receiver; distances in metres along the texel's "
              "light ray from its near-plane point, psi = angle between the surface normal and the direction "
              "to the light; nearest texel, no filtering; receivers outside their map are lit")
 
@@ -361,6 +367,19 @@ def _device_lookup(rs: RayScene, light: Light, smap: ShadowMap, d_occ, X, N, tol
     bias = (dr.opaque(F64, float(smap.depth_bias.get("constant", 0.0)))
             + dr.opaque(F64, float(smap.depth_bias.get("slope", 0.0))) * tan_psi
             + dr.opaque(F64, float(tolerance)))
+    kc, ks = float(smap.depth_bias.get("constant_texels", 0.0)), float(smap.depth_bias.get("slope_texels", 0.0))
+    if kc or ks:  # the texel-scaled part: tau = world size of the serving texel at X (module doc, step 4)
+        on_ray = [near[r] + d_rec * dirn[r] for r in range(3)]
+        tau = zero
+        for ds_, dt_ in ((1.0, 0.0), (0.0, 1.0)):
+            # the neighbouring texel's ray (towards the map's inside at the last row or column)
+            si = dr.select(fi + ds_ < wf, fi + ds_, fi - ds_) if ds_ else fi
+            tj = dr.select(fj + dt_ < hf, fj + dt_, fj - dt_) if dt_ else fj
+            n1, d1, _ = _device_rays_through(mi, dr, smap, A, (si + 0.5) / wf, (tj + 0.5) / hf)
+            a = sum((X[r] - n1[r]) * d1[r] for r in range(3))
+            q = [n1[r] + a * d1[r] - on_ray[r] for r in range(3)]
+            tau = dr.maximum(tau, dr.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2]))
+        bias = bias + (dr.opaque(F64, kc) + dr.opaque(F64, ks) * tan_psi) * tau
     idx = mi.UInt32(fj) * dr.opaque(mi.UInt32, int(w)) + mi.UInt32(fi)
     occ = dr.gather(F64, d_occ, idx, inside)
     shadowed = inside & (d_rec > occ + bias)
@@ -413,8 +432,27 @@ def shadow_test(smap: ShadowMap, d_occ: np.ndarray, positions: np.ndarray, norma
             tan_psi = np.sqrt(np.maximum(1.0 - c * c, 0.0)) / c
         tan_psi = np.where(np.isfinite(tan_psi), np.minimum(tan_psi, TAN_PSI_MAX), TAN_PSI_MAX)
         bias = float(smap.depth_bias.get("constant", 0.0)) + float(smap.depth_bias.get("slope", 0.0)) * tan_psi
+        kc, ks = float(smap.depth_bias.get("constant_texels", 0.0)), float(smap.depth_bias.get("slope_texels", 0.0))
+        if kc or ks:
+            bias = bias + (kc + ks * tan_psi) * texel_world_size_at(smap, i, j, X, near + d_rec[:, None] * dirn)
         shadowed[inside] = d_rec > d_occ[j, i] + bias + tolerance
     return shadowed, ~inside
+
+
+def texel_world_size_at(smap: ShadowMap, i: np.ndarray, j: np.ndarray, X: np.ndarray, on_ray: np.ndarray) -> np.ndarray:
+    """tau: the world size of texel (i, j) at the points X, the larger distance from X's point on the
+    texel's ray (`on_ray`) to the nearest point of the neighbouring texel's ray along s and along t
+    (the neighbour towards the map's inside at the last column or row)."""
+    w, h = smap.resolution
+    tau = np.zeros(len(X))
+    for di, dj in ((1, 0), (0, 1)):
+        ii = np.where(i + di < w, i + di, i - di) if di else i
+        jj = np.where(j + dj < h, j + dj, j - dj) if dj else j
+        n1, f1 = smap.texel_rays((ii + 0.5) / w, (jj + 0.5) / h)
+        d1 = (f1 - n1) / np.maximum(np.linalg.norm(f1 - n1, axis=-1, keepdims=True), 1e-300)
+        a = np.sum((X - n1) * d1, axis=-1)
+        tau = np.maximum(tau, np.linalg.norm(n1 + a[:, None] * d1 - on_ray, axis=-1))
+    return tau
 
 
 def texel_coords(smap: ShadowMap, positions: np.ndarray) -> np.ndarray:

@@ -47,12 +47,14 @@ the warp axis, which contains every caster on a receiver's light ray.
 
 Depth bias, one rule for every method (the evaluator applies exactly this): with d the distance in
 metres along the texel's light ray, a receiver is shadowed iff
-    d_receiver > d_occluder + constant + slope * min(tan ψ, 10),
-ψ the angle between the receiver normal and the direction to the light. Each map's recommended
-values come from the world-space size of its texels at its receivers (warping makes one constant
-bias wrong, Lloyd et al. §7.1): texel size = the longer side of a texel in the plane perpendicular
-to the light (from the map's own Jacobian, warps included), its 95th percentile over the map's
-receivers; constant = 1.5 x, slope = 1 x that size (`texel_world_size` is returned beside them).
+    d_receiver > d_occluder + τ (constant_texels + slope_texels min(tan ψ, 10)),
+ψ the angle between the receiver normal and the direction to the light and τ the world size of the
+serving texel at the receiver: a bias in texel units, as a hardware slope-scaled depth bias or a
+normal-offset bias is, which follows a warped map's varying texel size (one constant bias in
+metres is wrong for warped maps, Lloyd et al. §7.1); constant_texels = 1.5, slope_texels = 1.
+For engines that can only set a bias in metres, fixed_constant_m and fixed_slope_m are those units
+times the 95th percentile of the texel size (the longer side of a texel in the plane perpendicular
+to the light, from the map's own Jacobian) over the map's receivers (`texel_world_size`).
 A map with no receiver inside (an empty cube face) uses the size at the far end of its central ray.
 
 Fallbacks (documented, never an exception): no receivers -> fit to the scene bounds (for any
@@ -150,9 +152,13 @@ def _texel_world_size(smap: ShadowMap, pts: np.ndarray, light) -> float:
 
 
 def recommended_bias(texel_world_size: float) -> dict:
-    """{constant, slope} in metres from the receiver-side texel world size (see the module doc)."""
-    return {"constant": BIAS_CONSTANT_TEXELS * texel_world_size, "slope": BIAS_SLOPE_TEXELS * texel_world_size,
-            "texel_world_size": texel_world_size}
+    """The bias in texel units (constant_texels, slope_texels: scaled by the serving texel's world size
+    at each receiver, as a hardware slope-scaled or normal-offset bias is), plus, for engines that can
+    only set a fixed bias in metres, {constant, slope} = those units times the map's 95th-percentile
+    texel world size (informative: the evaluator's rule uses the texel units; see the module doc)."""
+    return {"constant_texels": BIAS_CONSTANT_TEXELS, "slope_texels": BIAS_SLOPE_TEXELS,
+            "texel_world_size": texel_world_size, "fixed_constant_m": BIAS_CONSTANT_TEXELS * texel_world_size,
+            "fixed_slope_m": BIAS_SLOPE_TEXELS * texel_world_size}
 
 
 def _with_bias(smap: ShadowMap, receivers: np.ndarray, light) -> ShadowMap:
@@ -316,11 +322,13 @@ def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_
     [depth - slack, depth + slack] meets its split, so the split boundary is covered);
     split_at: the k - 1 inner split depths, given explicitly (optimized splits) instead of `splits`.
 
-    Each map's depth_bias {constant, slope} (metres) follows the one rule the evaluator applies:
+    Each map's depth_bias follows the one rule the evaluator applies (renderers/ground_truth.py):
     with d the distance along the texel's light ray, a receiver is shadowed iff
-    d_receiver > d_occluder + constant + slope * min(tan ψ, 10), ψ the angle between the receiver
-    normal and the direction to the light; constant = 1.5 x and slope = 1 x the 95th-percentile
-    world size of the map's texels at its receivers."""
+    d_receiver > d_occluder + τ (constant_texels + slope_texels min(tan ψ, 10)), ψ the angle between
+    the receiver normal and the direction to the light and τ the serving texel's world size at the
+    receiver (a hardware slope-scaled or normal-offset bias in texel units); constant_texels = 1.5,
+    slope_texels = 1. For engines with a fixed bias in metres, fixed_constant_m and fixed_slope_m
+    are those units times the 95th-percentile texel world size of the map at its receivers."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)

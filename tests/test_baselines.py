@@ -351,11 +351,27 @@ def test_bias_is_the_receiver_side_texel_size():
     pts = visible_points(cam, boxes=[])
     m = baseline("focused", cam, DirectionalLight.make([0, -1, 0]), pts, BOUNDS, resolution=(1024, 512))[0]
     texel = max(2 / m.projection[0, 0] / 1024, 2 / m.projection[1, 1] / 512)
-    assert m.depth_bias["constant"] == pytest.approx(1.5 * texel, rel=1e-4)
-    assert m.depth_bias["slope"] == pytest.approx(texel, rel=1e-4)
-    # Warped maps: texels are smaller near the viewer, so the bias follows the map.
+    assert (m.depth_bias["constant_texels"], m.depth_bias["slope_texels"]) == (1.5, 1.0)
+    assert m.depth_bias["fixed_constant_m"] == pytest.approx(1.5 * texel, rel=1e-4)
+    assert m.depth_bias["fixed_slope_m"] == pytest.approx(texel, rel=1e-4)
+    # The evaluator's tau (texel world size at the receiver, from neighbouring texel rays) is that
+    # size everywhere on an orthographic map ...
+    from shadowopt.renderers.ground_truth import texel_world_size_at
+
+    def tau(smap, p):
+        s, t, _, _ = smap.map_coords(p)
+        i = np.clip((s * smap.resolution[0]).astype(int), 0, smap.resolution[0] - 1)
+        j = np.clip((t * smap.resolution[1]).astype(int), 0, smap.resolution[1] - 1)
+        near, far = smap.texel_rays((i + 0.5) / smap.resolution[0], (j + 0.5) / smap.resolution[1])
+        d = (far - near) / np.linalg.norm(far - near, axis=1, keepdims=True)
+        return texel_world_size_at(smap, i, j, p, near + np.sum((p - near) * d, axis=1)[:, None] * d)
+
+    assert tau(m, pts) == pytest.approx(np.full(len(pts), texel), rel=1e-6)
+    # ... and on a warped map follows it: texels are smaller near the viewer.
     w = baseline("lispsm", cam, DirectionalLight.make([0, -1, 0]), pts, BOUNDS, resolution=(1024, 512))[0]
-    assert w.depth_bias["constant"] != pytest.approx(m.depth_bias["constant"], rel=0.05)
+    depth = (pts - cam.position) @ cam.forward
+    tw = tau(w, pts)
+    assert np.median(tw[depth < np.percentile(depth, 10)]) < 0.5 * np.median(tw[depth > np.percentile(depth, 90)])
 
 
 def test_focused_rectangle_puts_the_longer_side_on_the_larger_dimension():

@@ -313,7 +313,8 @@ def _test_maps(light_dir, pts):
                      log_warp=LogWarp(-1.0 / np.log(3.0), -2.0 / 3.0, 1.0), depth_bias=sm.depth_bias)
     eye = pts.mean(axis=0) - 30.0 * np.asarray(light_dir) / np.linalg.norm(light_dir)
     persp = ShadowMap(view_matrix(eye, light_dir), frustum(0.5, 0.5, 1.0, 80.0), (400, 300),
-                      light_depth=(1.0, 80.0), warp_kind="perspective", depth_bias={"constant": 0.01, "slope": 0.01})
+                      light_depth=(1.0, 80.0), warp_kind="perspective",
+                      depth_bias={"constant": 0.001, "slope": 0.001, "constant_texels": 1.5, "slope_texels": 1.0})
     return [sm, logm, persp]
 
 
