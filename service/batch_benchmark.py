@@ -55,8 +55,11 @@ def measure(backend: str, workers: int, configs: list[dict], method: str, repeat
 def bench_batch(validate_rig, configurations: int = 20, workers: tuple[int, ...] = (1, 2),
                 backends: tuple[str, ...] = ("local", "ray"), method: str = "optimized", write: bool = True) -> dict:
     """Throughput table for each backend and worker count; Ray is skipped when it is not installed."""
+    import os
+
     configs = [{"rig": validate_rig(c["rig"])} for c in expand_configurations(sun_arc_request(configurations))]
     rows, skipped = [], {}
+    load_before = os.getloadavg()[0]
     for backend in backends:
         if backend == "ray":
             try:
@@ -67,9 +70,11 @@ def bench_batch(validate_rig, configurations: int = 20, workers: tuple[int, ...]
         for n in workers:
             print(f"bench batch: {backend}, {n} worker(s)", file=sys.stderr)
             rows.append(measure(backend, n, configs, method))
+    load = (load_before, os.getloadavg()[0])
     lines = [f"Demo scene, {configurations} configurations of a sun arc (elevation 10-80 deg), method {method}, "
              "camera 1280x720 (coarse 180 px), one 2048² map. Cold: a fresh runner (process or actor start-up, "
-             "imports, scene load, first compile) included; warm: the same batch again on that runner, best of 3.\n",
+             "imports, scene load, first compile) included; warm: the same batch again on that runner, best of 3. "
+             f"Load average {load[0]:.1f} before, {load[1]:.1f} after (other work shares these {os.cpu_count()} cores).\n",
              "| backend | workers | cold (s) | cold configs/s | warm (s) | **warm configs/s** | failed |",
              "|---|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
@@ -80,4 +85,5 @@ def bench_batch(validate_rig, configurations: int = 20, workers: tuple[int, ...]
     table = "\n".join(lines)
     if write:
         write_section("batch", table, f"shadowopt bench batch --lights {configurations}")
-    return {"benchmark": "batch", "machine": machine(), "rows": rows, "skipped": skipped, "table": table}
+    return {"benchmark": "batch", "machine": machine(), "rows": rows, "skipped": skipped, "load_average": load,
+            "table": table}

@@ -392,9 +392,17 @@ def _llvm_path() -> str | None:
     return path
 
 
-def _worker_init(llvm: str | None) -> None:
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _worker_init(llvm: str | None, threads: int | None = None) -> None:
+    """Runs first in each worker: LLVM for Dr.Jit, and its share of the cores for the math libraries
+    (as Ray does for its workers) unless the caller set them."""
     if llvm:
         os.environ["DRJIT_LIBLLVM_PATH"] = llvm
+    if threads:
+        for var in THREAD_VARS:
+            os.environ.setdefault(var, str(threads))
 
 
 def _solve_with(get_entry, config: dict, settings: dict) -> dict:
@@ -440,6 +448,7 @@ class _LocalBackend:
     def __init__(self, workers: int):
         self.workers = workers
         self.llvm = _llvm_path()
+        self.threads = max(1, (os.cpu_count() or 1) // workers)
         self.pool = None
 
     def _ensure_pool(self):
@@ -448,7 +457,7 @@ class _LocalBackend:
             from concurrent.futures import ProcessPoolExecutor
 
             self.pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                            initializer=_worker_init, initargs=(self.llvm,))
+                                            initializer=_worker_init, initargs=(self.llvm, self.threads))
         return self.pool
 
     def run(self, job: SceneJob, items: list[tuple[int, dict]], settings: dict, should_stop):
