@@ -117,13 +117,14 @@ def sun(az_deg: float, el_deg: float = 40.0) -> list[float]:
     return [-math.cos(e) * math.cos(a), -math.sin(e), -math.cos(e) * math.sin(a)]
 
 
-def test_batch_submit_wait_and_results(alice):
+def test_batch_submit_wait_and_results(alice, capsys):
     scene = alice.upload_scene(DEMO)
     confs = [{**TINY_RIG, "lights": [{"type": "directional", "direction": sun(az)}]} for az in (0, 60, 120, 180)]
     created = alice.submit_batch(scene.scene_id, confs, method="focused")
     assert created.batch_id and created.total == 4
-    final = alice.wait(created, progress=False, poll_s=0.2, timeout=300)
+    final = alice.wait(created, progress=True, poll_s=0.2, timeout=300)
     assert final.state == "done" and final.done == final.total == 4, final
+    assert "4/4" in capsys.readouterr().err  # the tqdm progress bar
     lines = list(alice.iter_results(created.batch_id))
     assert [r["index"] for r in lines] == [0, 1, 2, 3]
     assert all(r["method"] == "focused" and r["lights"][0]["predicted_error"]["samples"] > 0 for r in lines)
