@@ -70,7 +70,8 @@ import numpy as np
 
 from .cameras import Camera
 from .cascades import allocate, critical_factors, pixel_world_size, split_depths
-from .fitting import box_corners, depth_range, frustum, min_area_rectangle, ortho, padded, rotation_z, to_view
+from .fitting import (box_corners, depth_range, frustum, light_plane_hull, min_area_rectangle, ortho, padded,
+                      rotation_z, to_view)
 from .light_frames import CUBE_FACES, cube_face_views, directional_view, look_matrix, perpendicular_up, spot_view
 from .lights import DirectionalLight, PointLight, SpotLight
 from .shadow_map import ShadowMap
@@ -375,7 +376,8 @@ def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_
         part = receivers[sel] if len(receivers) else receivers
         if len(part) == 0 and len(receivers):
             part = _frustum_slice(camera, z[i], z[i + 1])
-        smap = _directional_map(method, camera, light, part, corners, res, allow_log, (z[i], z[i + 1]))
+        smap = _directional_map(method, camera, light, np.vstack(light_plane_hull(light.direction, part)),
+                                corners, res, allow_log, (z[i], z[i + 1]))
         smap.split = (0.0 if i == 0 else float(z[i]), float(camera.far if i == k - 1 else z[i + 1]))
         maps.append(smap)
         parts.append(part)

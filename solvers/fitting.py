@@ -109,3 +109,30 @@ def depth_range(d: np.ndarray, margin: float = 0.01, floor: float | None = None)
         floor = max(1e-6 * float(np.abs(d).max()), 1e-9)
     span = max(far - near, floor)
     return near - margin * span, far + margin * span
+
+
+def light_plane_hull(direction: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points a directional light's fits need, of many receivers: the vertices of their convex
+    hull in the plane perpendicular to the light (counter-clockwise in any right-handed light view
+    whose -Z is the light direction), and the two points nearest and farthest along the light.
+
+    A directional map's fit is a 2D projective map of the light-plane coordinates (a rotation about
+    the light, then a warp whose w depends on the in-plane y only), which keeps hulls and their
+    vertex order, so min/max and hull-edge fits over the vertices equal those over all points.
+    Returns (hull, depth_extremes); fewer than 3 points or a degenerate set: all points as the hull."""
+    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(direction, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    if len(pts) < 8:
+        return pts, pts[:0]
+    a = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(-d, a)  # (a, b, -d) right-handed: counter-clockwise in a view looking along d
+    xy = np.column_stack([pts @ a, pts @ b])
+    try:
+        hull = pts[ConvexHull(xy).vertices]  # Qhull: counter-clockwise for 2D input
+    except Exception:  # collinear or coincident: every point
+        return pts, pts[:0]
+    z = pts @ d
+    return hull, pts[[int(np.argmin(z)), int(np.argmax(z))]]
+

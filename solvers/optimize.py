@@ -35,7 +35,7 @@ import numpy as np
 
 from .baselines import PAD, _min_extent, _with_bias, baseline, directional_view
 from .cameras import Camera
-from .fitting import box_corners, convex_hull_2d, min_area_rectangle, ortho, padded, rotation_z, to_view
+from .fitting import box_corners, convex_hull_2d, light_plane_hull, min_area_rectangle, ortho, padded, rotation_z, to_view
 from .lights import DirectionalLight
 from .metric import DeviceSamples, matrix_to_device, objective, recentre
 from .samples import Samples
@@ -50,6 +50,7 @@ DEFAULT_METHOD = "nlopt:LN_BOBYQA"  # measured: the best time to the lowest erro
 START_NAMES = ("focused", "lispsm", "logpsm-perspective")
 FIT_STEP = 1e-6  # central-difference step of the refit dP/d(φ, u) (NumPy only, no metric pass)
 FD_STEP = 1e-4  # central-difference step of f for gradient="fd"
+XTOL, FTOL_REL = 1e-3, 1e-4  # NLopt stopping rules: (φ, u) within 1e-3, or a relative change of f below 1e-4
 # Chong & Gortler 2007 §3: line search over these angles (degrees) along the negative gradient,
 # the negative one forcing exploration.
 CG07_ANGLES_DEG = (-10, 3, 5, 9, 16, 23, 30, 40, 50)
@@ -90,24 +91,17 @@ def _robust_difference(fm, f0, fp, h):
     return dp if float(np.sum(dp * dp)) < float(np.sum(dm * dm)) else dm
 
 
-def _hull_points(pts: np.ndarray) -> np.ndarray:
-    """The vertices of the 3D convex hull (a projective map with w > 0 keeps hulls, so the fit's
-    min/max over them equals that over all points). Joggled for planar sets; all points if Qhull fails."""
-    if len(pts) <= 64:
-        return pts
-    from scipy.spatial import ConvexHull
-
-    try:
-        idx = ConvexHull(pts, qhull_options="QJ").vertices
-        return pts[np.unique(idx)]
-    except Exception:  # degenerate (collinear) sets: keep everything
-        return pts
-
-
 AFFINE_FITS = ("axis", "rectangle", "parallelogram")
 
 
-def _affine_fit(q: np.ndarray, how: str, resolution) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _ccw(hull: np.ndarray) -> np.ndarray:
+    """Hull vertices in counter-clockwise order (reversed if given clockwise)."""
+    x, y = hull[:, 0], hull[:, 1]
+    area2 = float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+    return hull if area2 >= 0 else hull[::-1]
+
+
+def _affine_fit(q: np.ndarray, how: str, resolution, is_hull: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The affine part, fitted in warped space to the points q (N, 2): a 4x4 C acting on warped
     homogeneous coordinates (x, y only) and the box [lo, hi] the map's s, t span after it.
     axis: the axis-aligned box (solvers.baselines._fit_warped); rectangle: the minimum-area rectangle
@@ -117,7 +111,7 @@ def _affine_fit(q: np.ndarray, how: str, resolution) -> tuple[np.ndarray, np.nda
     C = np.eye(4)
     if how == "axis" or len(q) < 3:
         return C, q.min(0), q.max(0)
-    hull = convex_hull_2d(q)
+    hull = _ccw(q) if is_hull else convex_hull_2d(q)  # q: hull vertices in order (light_plane_hull)
     if len(hull) < 3:
         return C, q.min(0), q.max(0)
     if how == "rectangle":
@@ -168,7 +162,9 @@ class Problem:
         fit = fit[np.all(np.isfinite(fit), axis=1)]
         if len(fit) == 0:
             raise ValueError("no receivers and no samples to fit the map to")
-        self.fit_pts = _hull_points(fit)
+        hull, extremes = light_plane_hull(light.direction, fit)
+        self.n_hull = len(hull) if len(extremes) else 0  # 0: no ordered hull (few or degenerate points)
+        self.fit_pts = np.vstack([hull, extremes])
         self.corners = box_corners(np.asarray(casters_bounds[0], float), np.asarray(casters_bounds[1], float))
         self.ds = DeviceSamples(samples, camera.position)
         self.view0 = directional_view(light, camera)
@@ -199,7 +195,8 @@ class Problem:
         w_all = 1.0 + k * (allp[:, 1] - y0)
         Z = allp[:, 2] / w_all  # depth: z / w' is linear along each light ray (w' is constant on it)
         wv = 1.0 + k * (v[:, 1] - y0)
-        C, lo, hi = _affine_fit(np.column_stack([v[:, 0] / wv, (v[:, 1] - y0) / wv]), self.affine, self.resolution)
+        q = np.column_stack([v[:, 0] / wv, (v[:, 1] - y0) / wv])
+        C, lo, hi = _affine_fit(q[:self.n_hull] if self.n_hull else q, self.affine, self.resolution, self.n_hull > 0)
         lo, hi = padded(lo, hi, PAD, _min_extent(np.vstack([lo, hi])))
         near, far = float((-Z).min()), float((-Z).max())
         span = max(far - near, 1e-9 * max(abs(near), abs(far), 1.0))
@@ -314,12 +311,15 @@ def _start_x(prob: Problem, smap: ShadowMap) -> np.ndarray:
 # ------------------------------------------------------------------ entry point
 def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receivers: np.ndarray, casters_bounds,
              resolution=(2048, 2048), method: str = DEFAULT_METHOD, x0=None, time_budget_ms: float | None = None,
-             starts=START_NAMES, maxiter: int = 30, gradient: str = "ad", affine: str = "parallelogram") -> OptimizeResult:
+             starts=START_NAMES, maxiter: int = 30, gradient: str = "ad", affine: str = "parallelogram",
+             start_maps_given: dict | None = None) -> OptimizeResult:
     """Minimise the metric's objective over the light's projective parameters x = (φ, u).
 
     Every start (and `x0`, a previous solution's x, when given) is evaluated first, even past the
     time budget; the optimizer runs from the best one. The result is the best map seen, baseline
-    maps included. `time_budget_ms`: stop early, return the best so far with success=False."""
+    maps included. `time_budget_ms`: stop early, return the best so far with success=False.
+    `start_maps_given`: {name: ShadowMap} baseline maps already fitted to these receivers (used as the
+    starts instead of fitting them again)."""
     if method not in METHODS + EXTRA_METHODS:
         raise ValueError(f"method: unknown solver {method!r} (known: {', '.join(METHODS + EXTRA_METHODS)})")
     if not isinstance(light, DirectionalLight):
@@ -328,7 +328,10 @@ def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receiver
     deadline = None if time_budget_ms is None else t0 + float(time_budget_ms) / 1e3
     prob = Problem(camera, light, samples, receivers, casters_bounds, resolution, gradient=gradient, affine=affine)
     # The starts fit the same hull vertices as the problem: the same min/max, a fraction of the points.
-    bases = start_maps(camera, light, prob.fit_pts, casters_bounds, prob.resolution, starts)
+    if start_maps_given:
+        bases = {name: m for name, m in start_maps_given.items() if m.face is None and m.log_warp is None}
+    else:
+        bases = start_maps(camera, light, prob.fit_pts, casters_bounds, prob.resolution, starts)
     base_vals = {name: prob.eval_matrix(recentre(m.matrix, prob.ds.origin)) for name, m in bases.items()}
     xs = {name: _start_x(prob, m) for name, m in bases.items()}
     if x0 is not None:
@@ -367,8 +370,8 @@ def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receiver
 def _run(method: str, prob: Problem, x: np.ndarray, maxiter: int) -> int:
     kind, name = method.split(":")
     lo, hi = np.array([-PHI_MAX, U_MIN]), np.array([PHI_MAX, U_MAX])
-    if method == "gradient:linesearch":
-        return _cg07_linesearch(prob, x, maxiter)
+    if method == "gradient:linesearch":  # beside φ = 0, the affine fit's symmetric tie (as below)
+        return _cg07_linesearch(prob, np.asarray(x, float) + [1e-3, 0.0], maxiter)
     if kind == "gradient":
         return _torch(name, prob, x, maxiter, lo, hi)
     import nlopt
@@ -399,8 +402,8 @@ def _nlopt(algo, prob: Problem, x, lo, hi, maxeval: int, step: float = 0.2) -> i
 
     opt.set_min_objective(f)
     opt.set_maxeval(int(maxeval))
-    opt.set_xtol_abs([1e-4, 1e-4])
-    opt.set_ftol_rel(1e-7)
+    opt.set_xtol_abs([XTOL, XTOL])
+    opt.set_ftol_rel(FTOL_REL)
     opt.set_initial_step([step, step])
     try:
         opt.optimize(np.clip(np.asarray(x, float), lo, hi).tolist())
@@ -454,7 +457,8 @@ def _torch(name: str, prob: Problem, x, maxiter: int, lo, hi) -> int:
 
 def _cg07_linesearch(prob: Problem, x: np.ndarray, maxiter: int) -> int:
     """Chong & Gortler 2007 Algorithm 1: gradient, then a line search over fixed step sizes along the
-    negative gradient (one backwards, for forced exploration), a few iterations."""
+    negative gradient (one backwards, for forced exploration), halving the smallest step when none of
+    them helps, a few iterations."""
     fx = prob.value(x)
     it = 0
     for it in range(1, min(maxiter, 8) + 1):
@@ -466,6 +470,15 @@ def _cg07_linesearch(prob: Problem, x: np.ndarray, maxiter: int) -> int:
         best = (fx, x)
         for a in CG07_ANGLES_DEG:
             step = math.radians(a) * 4  # degrees of the paper's sphere rotation, scaled to (φ, u) units
+            xn = prob.clip(x + step * d)
+            fn = prob.value(xn)
+            if fn < best[0]:
+                best = (fn, xn)
+        step = math.radians(min(a for a in CG07_ANGLES_DEG if a > 0)) * 4
+        for _ in range(6):  # none of the fixed steps helps: halve the smallest one (backtracking)
+            if best[0] < fx * (1 - 1e-4):
+                break
+            step *= 0.5
             xn = prob.clip(x + step * d)
             fn = prob.value(xn)
             if fn < best[0]:
@@ -530,7 +543,8 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
         if isinstance(light, DirectionalLight) and len(sub) > 0 and len(receivers) > 0:
             left = None if time_budget_ms is None else max(1.0, time_budget_ms - (time.perf_counter() - t0) * 1e3)
             res = minimize(camera, light, sub, receivers[sel_r], casters_bounds, rmap.resolution, solver,
-                           x0=x0[k] if x0 is not None and k < len(x0) else None, time_budget_ms=left)
+                           x0=x0[k] if x0 is not None and k < len(x0) else None, time_budget_ms=left,
+                           start_maps_given={m: per_method[m][k] for m in ("focused", "lispsm", "logpsm")})
             entry["result"] = res.to_json()
             if res.map is not None and res.fun < best_f:
                 best_map, best_f, best_name = res.map, res.fun, "optimized"

@@ -223,3 +223,31 @@ def test_optimized_is_never_worse_than_any_baseline_on_random_suns():
         assert opt["lights"][0]["predicted_error"]["objective"] <= best * (1 + 1e-9)
         bands = [c["blend_band"] for c in opt["lights"][0]["cascades"]]
         assert bands[-1] is None and bands[0][1] == opt["lights"][0]["cascades"][0]["split"][1]
+
+
+def test_light_plane_hull_keeps_what_the_fits_need():
+    """The reduced point set: the hull in the plane perpendicular to the light (compared with Qhull on
+    all points' plane coordinates) and the nearest and farthest points along the light."""
+    from scipy.spatial import ConvexHull
+
+    from shadowopt.solvers.fitting import light_plane_hull
+
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(5000, 3)) * [5, 1, 20]
+    d = np.array([0.3, -0.8, 0.2]) / np.linalg.norm([0.3, -0.8, 0.2])
+    hull, ext = light_plane_hull(d, pts)
+    a = np.cross(d, [1.0, 0, 0])
+    a /= np.linalg.norm(a)
+    b = np.cross(-d, a)
+    ref = pts[ConvexHull(np.column_stack([pts @ a, pts @ b])).vertices]
+    assert {tuple(p) for p in hull} == {tuple(p) for p in ref}
+    z = pts @ d
+    assert {tuple(p) for p in ext} == {tuple(pts[np.argmin(z)]), tuple(pts[np.argmax(z)])}
+    # and the optimizer's map fitted to the reduced set covers every point
+    cam = Camera.look_at([0, 2, -60], [0, 0, 0], near=0.1, far=200, resolution=(320, 180))
+    samples = Samples(pts[:50], np.tile([0, 1.0, 0], (50, 1)), *pixel_derivatives(cam, pts[:50], np.tile([0, 1.0, 0], (50, 1))),
+                      np.ones(50), np.zeros((50, 2), int), "all_facing")
+    prob = Problem(cam, DirectionalLight.make(d), samples, pts, (pts.min(0), pts.max(0)), (512, 512))
+    for x in ([0.0, 0.0], [0.3, 1.0], [-0.7, 3.0]):
+        s, t, z_, w = prob.map_for(np.array(x)).map_coords(pts)
+        assert np.all((s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (np.abs(z_) <= 1) & (w > 0)), x
