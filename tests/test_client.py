@@ -102,9 +102,13 @@ def test_async_client_with_typed_rig(server):
             assert (await c.health()).status == "ok"
             scene = await c.upload_scene(DEMO.read_bytes(), filename="demo.usda")
             sols = await asyncio.gather(*(c.optimize(scene.scene_id, rig, method=m) for m in ("uniform", "lispsm")))
-            return scene, sols
+            batch = await c.submit_batch(scene.scene_id, [rig, {"rig": rig}], method="uniform")
+            final = await c.wait(batch, progress=False, poll_s=0.1, timeout=120)
+            lines = [r async for r in c.iter_results(batch)]
+            return scene, sols, final, lines
 
-    scene, sols = asyncio.run(run())
+    scene, sols, final, lines = asyncio.run(run())
+    assert final.state == "done" and [r["index"] for r in lines] == [0, 1]
     assert scene.triangles > 1000
     assert [s["method"] for s in sols] == ["uniform", "lispsm"]
     assert all(s["lights"][0]["predicted_error"]["samples"] > 0 for s in sols)
