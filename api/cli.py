@@ -137,6 +137,8 @@ def cmd_bench(args) -> int:
         result = benchmarks.bench_coarse(validate_rig, runs=args.runs, scenes=args.scenes, write=not args.no_write)
     elif args.bench == "solvers":
         result = benchmarks.bench_solvers(validate_rig, lights=args.lights or 5, write=not args.no_write)
+    elif args.bench == "trust":
+        result = benchmarks.bench_trust(validate_rig, rigs=args.lights, write=not args.no_write)
     elif args.bench == "quality":
         parts = ("single", "cascades") if args.part == "all" else (args.part,)
         result = benchmarks.bench_quality(validate_rig, lights=args.lights, write=not args.no_write, parts=parts)
@@ -397,9 +399,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_analyze)
 
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
-    sp.add_argument("bench", choices=["coarse", "quality", "solvers", "load", "batch"])
+    sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch"])
     sp.add_argument("--seconds", type=float, default=60.0, help="load: seconds of concurrent load per workload")
-    sp.add_argument("--lights", type=int, default=None, help="quality: number of light directions")
+    sp.add_argument("--lights", type=int, default=None, help="quality, solvers, trust: number of light directions (rigs)")
     sp.add_argument("--part", choices=["single", "cascades", "all"], default="all",
                     help="quality: one map per method, 4 cascades under one budget, or both")
     sp.add_argument("--runs", type=int, default=20, help="warm runs per scene (median reported)")

@@ -218,19 +218,21 @@ def bench_quality(validate_rig, lights: int | None = None, write: bool = True, p
 
 
 def bench_solvers(validate_rig, lights: int = 5, write: bool = True) -> dict:
-    """Speed against error per solver (a Pareto table): optimization time (coarse buffers excluded)
-    and the objective reached relative to the best any solver reached, median over sun directions,
-    on the demo scene and the chess set (when ../shared is present)."""
+    """Speed against error per solver (a Pareto table and plot): optimization time (coarse buffers
+    excluded) and the objective reached relative to the best any solver reached, median over sun
+    directions, on the demo scene and the chess set (when ../shared is present). Also the default
+    solver end to end per light (`optimized_maps`: the baselines, the starts, the search and the bias;
+    sample selection excluded) for one map and for 4 cascades."""
     import numpy as np
 
-    from ..service.rigs import resolve_rig
+    from ..service.pipeline import coarse_pass
     from ..service.scenes import SceneCache
     from ..service.solve import light_problems
-    from ..service.pipeline import coarse_pass
-    from ..solvers.optimize import METHODS, minimize
+    from ..solvers.optimize import DEFAULT_METHOD, METHODS, minimize, optimized_maps
 
     spec = definitions()["coarse"]["scenes"]
     results, lines = {}, []
+    bar = _progress(lights * 2 * (len(METHODS) + 2), "solvers")
     for name in ("demo", "chess_set"):
         path = (ROOT / spec[name]["path"]).resolve()
         if not path.exists():
@@ -238,30 +240,174 @@ def bench_solvers(validate_rig, lights: int = 5, write: bool = True) -> dict:
         entry = SceneCache().get(path)
         lo, hi = entry.loaded.geometry.bounds()
         per = {m: {"ms": [], "rel": []} for m in METHODS}
+        whole = {1: [], 4: []}
         for d in hemisphere_directions(lights, 15.0, 3):
             rig = validate_rig({**spec[name]["rig"], "lights": [{"type": "directional", "direction": d.tolist()}],
                                 "shadow": {"resolution": [1024, 1024], "cascades": 1}})
             resolved, buffers = coarse_pass(entry, rig)
             prob = light_problems(resolved, buffers, (lo, hi))[0]
-            minimize(resolved.camera, prob.light, prob.samples, prob.receivers, (lo, hi), (1024, 1024))  # warm-up
+            cam = resolved.camera
+            minimize(cam, prob.light, prob.samples, prob.receivers, (lo, hi), (1024, 1024))  # warm-up
             funs = {}
             for m in METHODS:
-                r = minimize(resolved.camera, prob.light, prob.samples, prob.receivers, (lo, hi), (1024, 1024), m)
+                r = minimize(cam, prob.light, prob.samples, prob.receivers, (lo, hi), (1024, 1024), m)
                 per[m]["ms"].append(r.time_ms)
                 funs[m] = r.fun
+                bar.update(1)
             best = min(funs.values())
             for m in METHODS:
                 per[m]["rel"].append(funs[m] / best)
+            for k in (1, 4):
+                t0 = time.perf_counter()
+                optimized_maps(cam, prob.light, prob.samples, prob.receivers, (lo, hi), (1024, 1024), cascades=k,
+                               receiver_slack=prob.receiver_slack)
+                whole[k].append((time.perf_counter() - t0) * 1e3)
+                bar.update(1)
         results[name] = {m: {"time_ms_p50": float(np.median(v["ms"])), "objective_over_best_p50": float(np.median(v["rel"])),
                              "objective_over_best_max": float(np.max(v["rel"]))} for m, v in per.items()}
-        lines.append(f"**{name}** ({lights} sun directions, one 1024² map):\n")
+        results[name]["default_end_to_end_ms_p50"] = {str(k): float(np.median(v)) for k, v in whole.items()}
+        lines.append(f"**{name}** ({lights} sun directions, one 1024² map, samples {len(prob.samples)}, "
+                     f"receivers {len(prob.receivers)} for the last):\n")
         lines.append("| solver | time p50 (ms) | objective / best p50 | worst |")
         lines.append("|---|---:|---:|---:|")
-        for m, r in sorted(results[name].items(), key=lambda kv: kv[1]["time_ms_p50"]):
-            lines.append(f"| {m} | {r['time_ms_p50']:.1f} | {r['objective_over_best_p50']:.3f} | {r['objective_over_best_max']:.3f} |")
-        lines.append("")
+        rows = {m: r for m, r in results[name].items() if m in METHODS}
+        for m, r in sorted(rows.items(), key=lambda kv: kv[1]["time_ms_p50"]):
+            label = f"**{m}** (default)" if m == DEFAULT_METHOD else m
+            lines.append(f"| {label} | {r['time_ms_p50']:.1f} | {r['objective_over_best_p50']:.3f} | {r['objective_over_best_max']:.3f} |")
+        e2e = results[name]["default_end_to_end_ms_p50"]
+        lines.append(f"\nDefault solver end to end per light (baselines, starts, search, bias): one map "
+                     f"**{e2e['1']:.1f} ms**, 4 cascades **{e2e['4']:.1f} ms** (median).\n")
+    bar.close()
+    plot = ROOT / "docs" / "bench" / "solvers_pareto.png"
+    if write and results:
+        pareto_plot(results, plot)
+        lines.append(f"Plot: [docs/bench/solvers_pareto.png](docs/bench/solvers_pareto.png) (time against error, one panel per scene).")
     table = "\n".join(lines)
     out = {"benchmark": "solvers", "machine": machine(), "scenes": results, "table": table}
     if write:
         write_section("solvers", table, f"shadowopt bench solvers --lights {lights}")
+    return out
+
+
+def pareto_plot(results: dict, path: Path) -> None:
+    """Time to solution (log x) against objective / best (y) per solver, one panel per scene, with the
+    Pareto front joined (PIL only: no plotting dependency)."""
+    import math
+
+    from PIL import Image, ImageDraw, ImageFont
+
+    W, H, M = 520, 380, 60
+    font = ImageFont.load_default(size=12)
+    img = Image.new("RGB", (W * len(results), H), "white")
+    dr = ImageDraw.Draw(img)
+    palette = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
+               (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]
+    for p, (scene, res) in enumerate(results.items()):
+        pts = {m: (r["time_ms_p50"], r["objective_over_best_p50"]) for m, r in res.items() if isinstance(r, dict) and "time_ms_p50" in r}
+        x0 = p * W
+        tmin, tmax = min(t for t, _ in pts.values()), max(t for t, _ in pts.values())
+        lx0, lx1 = math.log10(tmin) - 0.1, math.log10(tmax) + 0.1
+        ymax = max(1.05, max(y for _, y in pts.values()) * 1.02)
+
+        def xy(t, y):
+            return (x0 + M + (math.log10(t) - lx0) / (lx1 - lx0) * (W - 2 * M),
+                    H - M - (y - 1.0) / (ymax - 1.0) * (H - 2 * M))
+
+        dr.rectangle([x0 + M, M, x0 + W - M, H - M], outline="black")
+        dr.text((x0 + M, 15), f"{scene}: time p50 (ms, log) vs objective / best", fill="black", font=font)
+        for e in range(math.floor(lx0), math.ceil(lx1) + 1):
+            for mant in (1, 2, 5):
+                t = mant * 10 ** e
+                if lx0 <= math.log10(t) <= lx1:
+                    X, _ = xy(t, 1.0)
+                    dr.line([X, H - M, X, H - M + 4], fill="black")
+                    dr.text((X - 8, H - M + 8), f"{t:g}", fill="black", font=font)
+        for k in range(5):
+            y = 1.0 + k * (ymax - 1.0) / 4
+            _, Y = xy(tmin, y)
+            dr.line([x0 + M - 4, Y, x0 + M, Y], fill="black")
+            dr.text((x0 + 8, Y - 6), f"{y:.3f}", fill="black", font=font)
+        front = sorted(pts.items(), key=lambda kv: kv[1][0])
+        best_y, chain = math.inf, []
+        for m, (t, y) in front:
+            if y < best_y:
+                best_y = y
+                chain.append(xy(t, y))
+        if len(chain) > 1:
+            dr.line(chain, fill=(160, 160, 160), width=2)
+        for i, (m, (t, y)) in enumerate(sorted(pts.items())):
+            X, Y = xy(t, y)
+            c = palette[i % len(palette)]
+            dr.ellipse([X - 4, Y - 4, X + 4, Y + 4], fill=c)
+            dr.text((x0 + W - M - 150, M + 8 + 13 * i), f"o {m}", fill=c, font=font)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    img.save(path)
+
+
+def spearman(a, b) -> float:
+    """Spearman's rank correlation (scipy.stats.spearmanr), NaN when a side is constant."""
+    from scipy.stats import spearmanr
+
+    r = spearmanr(a, b).statistic
+    return float(r)
+
+
+def bench_trust(validate_rig, rigs: int | None = None, write: bool = True) -> dict:
+    """Trust in the prediction: per rig (a sun direction on the demo scene), every method at several
+    map resolutions ranked by predicted `objective` and by measured misclassified pixels; the
+    within-rig Spearman correlation, its mean, and the pooled (across-rig) correlation."""
+    import numpy as np
+
+    from ..renderers.ground_truth import evaluate_buffers
+    from ..service.rigs import resolve_rig
+    from ..service.scenes import SceneCache
+    from ..service.solve import maps_from_solution, solve
+
+    spec = definitions()["trust"]
+    n = rigs or spec["rigs"]
+    entry = SceneCache().get(ROOT / spec["scene"])
+    dirs = hemisphere_directions(n, spec["min_elevation_deg"], spec["seed"])
+    per_rig, pooled = [], []
+    bar = _progress(n * len(spec["methods"]) * len(spec["resolutions"]), "trust")
+    for d in dirs:
+        pred, meas, bnd = [], [], 0
+        for res in spec["resolutions"]:
+            rig = validate_rig({"camera": {**spec["camera"], "resolution": spec["screen"]},
+                                "lights": [{"type": "directional", "direction": d.tolist()}],
+                                "shadow": {"resolution": [res, res], "cascades": 1}})
+            resolved = resolve_rig(rig, entry.loaded)
+            for m in spec["methods"]:
+                sol = solve(entry, rig, method=m)
+                gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps_from_solution(sol)[0]).result
+                pred.append(sol["lights"][0]["predicted_error"]["objective"])
+                meas.append(gt["misclassified_pixels"])
+                bnd = max(gt["boundary_pixels"], 1)
+                bar.update(1)
+        rho = spearman(pred, meas)
+        per_rig.append({"direction": [round(float(v), 4) for v in d], "spearman": rho,
+                        "predicted": pred, "misclassified": meas, "boundary_pixels": bnd})
+        pooled += [(p, m, m / bnd) for p, m in zip(pred, meas)]
+    bar.close()
+    rhos = np.array([r["spearman"] for r in per_rig], float)
+    pooled = np.array(pooled)
+    across = spearman(pooled[:, 0], pooled[:, 1])
+    across_norm = spearman(pooled[:, 0], pooled[:, 2])
+    mean_rho = float(np.nanmean(rhos))
+    configs = [f"{m}@{r}" for r in spec["resolutions"] for m in spec["methods"]]
+    table = "\n".join([
+        f"Scene {spec['scene']}, screen {spec['screen'][0]}x{spec['screen'][1]}, {n} sun directions; per rig "
+        f"{len(configs)} configurations ({', '.join(spec['methods'])} at {', '.join(map(str, spec['resolutions']))}²) "
+        "ranked by predicted objective and by measured misclassified pixels.", "",
+        "| statistic | value |", "|---|---:|",
+        f"| mean within-rig Spearman (target >= 0.8) | **{mean_rho:.3f}** |",
+        f"| median within-rig Spearman | {float(np.nanmedian(rhos)):.3f} |",
+        f"| lowest within-rig Spearman | {float(np.nanmin(rhos)):.3f} |",
+        f"| across rigs, pooled: objective vs misclassified | {across:.3f} |",
+        f"| across rigs, pooled: objective vs misclassified per boundary pixel | {across_norm:.3f} |",
+        f"| rigs | {n} |"])
+    out = {"benchmark": "trust", "machine": machine(), "rigs": per_rig, "mean_within_rig_spearman": mean_rho,
+           "across_rig_spearman": across, "across_rig_spearman_per_boundary_pixel": across_norm,
+           "configurations": configs, "table": table}
+    if write:
+        write_section("trust", table, f"shadowopt bench trust --rigs {n}")
     return out
