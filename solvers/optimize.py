@@ -36,7 +36,7 @@ import numpy as np
 from .baselines import PAD, _min_extent, _with_bias, baseline, directional_view
 from .cameras import Camera
 from .fitting import box_corners, convex_hull_2d, light_plane_hull, min_area_rectangle, ortho, padded, rotation_z, to_view
-from .lights import DirectionalLight
+from .lights import DirectionalLight, SpotLight
 from .metric import DeviceSamples, matrix_to_device, objective, recentre
 from .samples import Samples
 from .shadow_map import ShadowMap
@@ -176,6 +176,7 @@ class Problem:
         self.nfev = 0
         self.njev = 0
         self.best = (math.inf, None, None)
+        self.lower, self.upper = np.array([-PHI_MAX, U_MIN]), np.array([PHI_MAX, U_MAX])
 
     # -------------------------------------------------------------- the family
     def fit(self, x):
@@ -221,7 +222,7 @@ class Problem:
             raise _Budget()
 
     def clip(self, x) -> np.ndarray:
-        return np.array([np.clip(float(x[0]), -PHI_MAX, PHI_MAX), np.clip(float(x[1]), U_MIN, U_MAX)])
+        return np.clip(np.asarray(x, dtype=np.float64)[:2], self.lower, self.upper)
 
     def _record(self, x, f):
         if not math.isfinite(f):
@@ -276,6 +277,80 @@ class Problem:
         return self.value_and_grad(x)[1]
 
 
+class SpotProblem(Problem):
+    """f(α, β) for a spot light's single perspective map: the projective part is the optical axis p₄
+    (Chong & Gortler 2007 §2.2, a unit vector), tilted from the spot's axis a by α, β along the axis
+    frame's right and up vectors, axis = normalise(a + α r + β u). Given the axis, the affine part is
+    fitted as for directional lights (the minimum-area parallelogram of the receivers' projections
+    x/w, y/w), and near/far cover every receiver and caster in front of the light. The gradient is
+    by central differences (the fit is NumPy); an axis that leaves a receiver within MAX_OFF_AXIS_DEG
+    of the image plane is refused (f = inf)."""
+
+    MAX_OFF_AXIS_DEG = 80.0
+    TILT_MAX = 1.0  # |α|, |β| (tan of the tilt per axis)
+
+    def __init__(self, camera: Camera, light, samples: Samples, receivers: np.ndarray, casters_bounds, resolution,
+                 deadline: float | None = None, affine: str = "parallelogram", **_):
+        from .light_frames import spot_view
+
+        self.camera, self.light, self.resolution = camera, light, (int(resolution[0]), int(resolution[1]))
+        receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
+        fit = np.vstack([receivers, samples.position]) if len(samples) else receivers
+        fit = fit[np.all(np.isfinite(fit), axis=1)]
+        if len(fit) == 0:
+            raise ValueError("no receivers and no samples to fit the map to")
+        self.fit_pts = fit
+        self.corners = box_corners(np.asarray(casters_bounds[0], float), np.asarray(casters_bounds[1], float))
+        self.ds = DeviceSamples(samples, camera.position)
+        self.view0 = spot_view(light, camera)
+        self.deadline, self.gradient_mode, self.affine = deadline, "fd", affine
+        self.nfev = self.njev = 0
+        self.best = (math.inf, None, None)
+        self.lower, self.upper = np.full(2, -self.TILT_MAX), np.full(2, self.TILT_MAX)
+        self.n_hull = 0
+
+    def fit(self, x):
+        from .baselines import _near_for
+        from .fitting import frustum
+        from .light_frames import look_matrix
+
+        r0, u0, a0 = self.view0[0, :3], self.view0[1, :3], -self.view0[2, :3]
+        axis = a0 + float(x[0]) * r0 + float(x[1]) * u0
+        axis /= np.linalg.norm(axis)
+        view = look_matrix(self.light.position, axis, u0)
+        v = to_view(view, self.fit_pts)
+        d = -v[:, 2]
+        rel = self.fit_pts - self.light.position
+        cos = d / np.maximum(np.linalg.norm(rel, axis=1), 1e-300)
+        if float(cos.min()) < math.cos(math.radians(self.MAX_OFF_AXIS_DEG)):
+            return None
+        dc = -to_view(view, self.corners)[:, 2]
+        far = float(max(d.max(), dc[dc > 0].max() if (dc > 0).any() else 0.0, 1e-3)) * 1.01
+        near = _near_for(d, far)
+        q = v[:, :2] / d[:, None]
+        C, lo, hi = _affine_fit(q, self.affine, self.resolution)
+        lo, hi = padded(lo, hi, PAD, 1e-6)
+        A = np.eye(4)
+        A[:2, :2] = np.diag(2.0 / (hi - lo)) @ C[:2, :2]
+        A[:2, 3] = -2.0 * lo / (hi - lo) - 1.0
+        proj = A @ frustum(-near, near, -near, near, near, far)  # clip-space affine: NDC x, y = A (x/w, y/w)
+        return view, proj, (near, far), None
+
+    def matrix(self, x):
+        fitted = self.fit(x)
+        return None if fitted is None else recentre(fitted[1] @ fitted[0], self.ds.origin)
+
+    def map_for(self, x) -> ShadowMap:
+        view, proj, ld, _ = self.fit(x)
+        return ShadowMap(view, proj, self.resolution, light_depth=ld)
+
+    def value(self, x) -> float:
+        self._check()
+        x = self.clip(x)
+        M = self.matrix(x)
+        return self._record(x, math.inf if M is None else self.eval_matrix(M))
+
+
 # ------------------------------------------------------------------ starting points
 def _angle_of(view: np.ndarray, view0: np.ndarray, square: bool) -> float:
     """φ with view = rotation_z(φ) @ view0 (folded by the rectangle's symmetry into the bounds)."""
@@ -322,10 +397,14 @@ def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receiver
     starts instead of fitting them again)."""
     if method not in METHODS + EXTRA_METHODS:
         raise ValueError(f"method: unknown solver {method!r} (known: {', '.join(METHODS + EXTRA_METHODS)})")
-    if not isinstance(light, DirectionalLight):
-        raise ValueError("minimize: only directional lights have this parameterization")
+    if not optimizable(light):
+        raise ValueError("minimize: directional lights and spot lights (one map, cone <= 80 deg) have this "
+                         "parameterization; point lights use cube maps")
     t0 = time.perf_counter()
     deadline = None if time_budget_ms is None else t0 + float(time_budget_ms) / 1e3
+    if isinstance(light, SpotLight):
+        return _minimize_spot(camera, light, samples, receivers, casters_bounds, resolution, method, x0, deadline,
+                              maxiter, affine, t0)
     prob = Problem(camera, light, samples, receivers, casters_bounds, resolution, gradient=gradient, affine=affine)
     # The starts fit the same hull vertices as the problem: the same min/max, a fraction of the points.
     if start_maps_given:
@@ -367,9 +446,61 @@ def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receiver
                           prob.njev)
 
 
+def optimizable(light) -> bool:
+    """Lights with projective parameters to optimize: directional, and spots drawn as one map."""
+    from .baselines import SPOT_AS_CUBE_DEG
+
+    return isinstance(light, DirectionalLight) or (isinstance(light, SpotLight) and light.cone_deg <= SPOT_AS_CUBE_DEG)
+
+
+def _minimize_spot(camera, light, samples, receivers, casters_bounds, resolution, method, x0, deadline, maxiter,
+                   affine, t0) -> OptimizeResult:
+    """minimize() for a spot light: starts are the spot's own axis (the focused baseline's map, the
+    family's x = 0) and the axis through the receivers' centroid."""
+    prob = SpotProblem(camera, light, samples, receivers, casters_bounds, resolution, affine=affine)
+    base = baseline("focused", camera, light, np.asarray(receivers, float).reshape(-1, 3), casters_bounds, resolution)[0]
+    base_val = prob.eval_matrix(recentre(base.matrix, prob.ds.origin))
+    r0, u0, a0 = prob.view0[0, :3], prob.view0[1, :3], -prob.view0[2, :3]
+    c = prob.fit_pts.mean(0) - light.position
+    c /= max(np.linalg.norm(c), 1e-300)
+    xs = {"axis": np.zeros(2), "centroid": prob.clip([c @ r0 / max(c @ a0, 1e-3), c @ u0 / max(c @ a0, 1e-3)])}
+    if x0 is not None:
+        xs = {"warm": prob.clip(np.asarray(x0, float)), **xs}
+    fam_vals = {name: prob.value(x) for name, x in xs.items()}
+    best_start = min(fam_vals, key=fam_vals.get)
+    prob.deadline = deadline
+    nit, success, message = 0, True, "converged"
+    try:
+        prob._check()
+        if len(samples) == 0:
+            message = "no samples: the best starting point is returned"
+        elif method != "none":
+            kind = method.split(":")[0]
+            # derivative-free on this family (the gradient would be finite differences of the fit)
+            nit = _run(method if kind == "nlopt" and method.startswith("nlopt:LN") else DEFAULT_METHOD, prob,
+                       xs[best_start].copy(), maxiter)
+            if method != DEFAULT_METHOD and not method.startswith("nlopt:LN"):
+                message = f"converged ({DEFAULT_METHOD}: spot lights use a derivative-free solver)"
+        else:
+            message = "no optimization (method 'none'): the best start"
+    except _Budget:
+        success, message = False, "time budget reached"
+    f, xb, _ = prob.best
+    if xb is None or base_val < f:
+        f, smap, xb, start = base_val, base, np.zeros(2), "focused"
+    else:
+        smap, start = prob.map_for(xb), best_start
+    smap.split = (0.0, float(camera.far))
+    if len(receivers):
+        _with_bias(smap, np.asarray(receivers, float).reshape(-1, 3), light)
+    return OptimizeResult(np.asarray(xb, float), float(f), int(nit), prob.nfev, (time.perf_counter() - t0) * 1e3,
+                          success, message, smap, start, {"focused": base_val, **{f"{k}@family": v for k, v in fam_vals.items()}},
+                          prob.njev)
+
+
 def _run(method: str, prob: Problem, x: np.ndarray, maxiter: int) -> int:
     kind, name = method.split(":")
-    lo, hi = np.array([-PHI_MAX, U_MIN]), np.array([PHI_MAX, U_MAX])
+    lo, hi = prob.lower, prob.upper
     if method == "gradient:linesearch":  # beside φ = 0, the affine fit's symmetric tie (as below)
         return _cg07_linesearch(prob, np.asarray(x, float) + [1e-3, 0.0], maxiter)
     if kind == "gradient":
@@ -540,7 +671,7 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
         best_name = min(scores, key=scores.get)
         best_map, best_f = per_method[best_name][k], scores[best_name]
         entry = {"cascade": k, "baselines": {m: float(v) for m, v in scores.items()}}
-        if isinstance(light, DirectionalLight) and len(sub) > 0 and len(receivers) > 0:
+        if optimizable(light) and len(sub) > 0 and len(receivers) > 0:
             left = None if time_budget_ms is None else max(1.0, time_budget_ms - (time.perf_counter() - t0) * 1e3)
             res = minimize(camera, light, sub, receivers[sel_r], casters_bounds, rmap.resolution, solver,
                            x0=x0[k] if x0 is not None and k < len(x0) else None, time_budget_ms=left,
