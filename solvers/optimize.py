@@ -37,12 +37,14 @@ from .baselines import PAD, _min_extent, _with_bias, baseline, directional_view
 from .cameras import Camera
 from .fitting import box_corners, convex_hull_2d, light_plane_hull, min_area_rectangle, ortho, padded, rotation_z, to_view
 from .lights import DirectionalLight, SpotLight
-from .metric import DeviceSamples, matrix_to_device, objective, recentre
+from .metric import DeviceSamples, log_to_device, matrix_to_device, objective, recentre
 from .samples import Samples
 from .shadow_map import ShadowMap
+from .warp import log_warp
 
 PHI_MAX = math.pi / 2
 U_MIN, U_MAX = math.log(0.5), math.log1p(1e3)  # n' from -2D (centre beyond the far end) to D/1000
+U_LOG_MIN = math.log1p(1e-3)  # the log warp needs a finite n' before the receivers (n' <= 1000 D)
 METHODS = ("gradient:lbfgs", "gradient:adam", "gradient:linesearch", "nlopt:LN_BOBYQA", "nlopt:LN_COBYLA",
            "nlopt:LN_SBPLX", "nlopt:GN_DIRECT_L", "nlopt:LD_MMA", "nlopt:LD_LBFGS", "nlopt:LD_SLSQP")
 EXTRA_METHODS = ("none",)  # no search: the best start (or the warm start), for temporal stability
@@ -153,7 +155,9 @@ class Problem:
 
     def __init__(self, camera: Camera, light: DirectionalLight, samples: Samples, receivers: np.ndarray,
                  casters_bounds, resolution, deadline: float | None = None, gradient: str = "ad",
-                 affine: str = "parallelogram"):
+                 affine: str = "parallelogram", log: bool = False):
+        if log:  # LogPSM's family: t along the warp axis, the log warp on it, finite differences
+            affine, gradient = "axis", "fd"
         if gradient not in ("ad", "fd"):
             raise ValueError(f"gradient must be 'ad' or 'fd', got {gradient!r}")
         self.camera, self.light, self.resolution = camera, light, (int(resolution[0]), int(resolution[1]))
@@ -176,7 +180,8 @@ class Problem:
         self.nfev = 0
         self.njev = 0
         self.best = (math.inf, None, None)
-        self.lower, self.upper = np.array([-PHI_MAX, U_MIN]), np.array([PHI_MAX, U_MAX])
+        self.lower, self.upper = np.array([-PHI_MAX, U_LOG_MIN if log else U_MIN]), np.array([PHI_MAX, U_MAX])
+        self.log = log
 
     # -------------------------------------------------------------- the family
     def fit(self, x):
@@ -213,8 +218,18 @@ class Problem:
     def map_for(self, x) -> ShadowMap:
         view, proj, ld, n_prime = self.fit(x)
         warped = math.isfinite(n_prime)
-        return ShadowMap(view, proj, self.resolution, light_depth=ld,
+        smap = ShadowMap(view, proj, self.resolution, light_depth=ld,
                          warp_kind="perspective" if warped else "none", n_prime=n_prime if warped else None)
+        if self.log and warped:
+            smap.log_warp, smap.warp_kind = self.log_warp_for(x), "log"
+        return smap
+
+    def log_warp_for(self, x):
+        """LogPSM's log step for the perspective part with parameters x (Lloyd et al. 2007 eq. 78,
+        solvers.warp.log_warp): a = n', W = D, the receivers' depth along the warp axis."""
+        u = float(self.clip(x)[1])
+        n_prime = self.fit(x)[3]
+        return log_warp(n_prime * math.expm1(u), n_prime)
 
     # -------------------------------------------------------------- objective and gradient
     def _check(self):
@@ -236,9 +251,20 @@ class Problem:
         self.nfev += 1
         return float(objective(matrix_to_device(M), self.resolution, None, self.ds)[0])
 
+    def eval_map(self, smap: ShadowMap) -> float:
+        """The metric's objective of a map (its log warp included)."""
+        self.nfev += 1
+        M = recentre(smap.matrix, self.ds.origin)
+        return float(objective(matrix_to_device(M), smap.resolution, log_to_device(smap), self.ds)[0])
+
     def value(self, x) -> float:
         self._check()
         x = self.clip(x)
+        if self.log:
+            self.nfev += 1
+            f = float(objective(matrix_to_device(self.matrix(x)), self.resolution,
+                                log_to_device(self.map_for(x)), self.ds)[0])
+            return self._record(x, f)
         return self._record(x, self.eval_matrix(self.matrix(x)))
 
     def value_and_grad(self, x):
@@ -387,14 +413,15 @@ def _start_x(prob: Problem, smap: ShadowMap) -> np.ndarray:
 def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receivers: np.ndarray, casters_bounds,
              resolution=(2048, 2048), method: str = DEFAULT_METHOD, x0=None, time_budget_ms: float | None = None,
              starts=START_NAMES, maxiter: int = 30, gradient: str = "ad", affine: str = "parallelogram",
-             start_maps_given: dict | None = None) -> OptimizeResult:
+             start_maps_given: dict | None = None, log: bool = False) -> OptimizeResult:
     """Minimise the metric's objective over the light's projective parameters x = (φ, u).
 
     Every start (and `x0`, a previous solution's x, when given) is evaluated first, even past the
     time budget; the optimizer runs from the best one. The result is the best map seen, baseline
     maps included. `time_budget_ms`: stop early, return the best so far with success=False.
     `start_maps_given`: {name: ShadowMap} baseline maps already fitted to these receivers (used as the
-    starts instead of fitting them again)."""
+    starts instead of fitting them again). `log`: search LogPSM's family instead (the perspective
+    part's (φ, u) with the log warp on t, Lloyd et al. 2007 eq. 78; engines must apply it in a shader)."""
     if method not in METHODS + EXTRA_METHODS:
         raise ValueError(f"method: unknown solver {method!r} (known: {', '.join(METHODS + EXTRA_METHODS)})")
     if not optimizable(light):
@@ -405,13 +432,14 @@ def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receiver
     if isinstance(light, SpotLight):
         return _minimize_spot(camera, light, samples, receivers, casters_bounds, resolution, method, x0, deadline,
                               maxiter, affine, t0)
-    prob = Problem(camera, light, samples, receivers, casters_bounds, resolution, gradient=gradient, affine=affine)
+    prob = Problem(camera, light, samples, receivers, casters_bounds, resolution, gradient=gradient, affine=affine,
+                   log=log)
     # The starts fit the same hull vertices as the problem: the same min/max, a fraction of the points.
     if start_maps_given:
-        bases = {name: m for name, m in start_maps_given.items() if m.face is None and m.log_warp is None}
+        bases = {name: m for name, m in start_maps_given.items() if m.face is None and (log or m.log_warp is None)}
     else:
         bases = start_maps(camera, light, prob.fit_pts, casters_bounds, prob.resolution, starts)
-    base_vals = {name: prob.eval_matrix(recentre(m.matrix, prob.ds.origin)) for name, m in bases.items()}
+    base_vals = {name: prob.eval_map(m) for name, m in bases.items()}
     xs = {name: _start_x(prob, m) for name, m in bases.items()}
     if x0 is not None:
         xs = {"warm": prob.clip(np.asarray(x0, float)), **xs}
@@ -432,7 +460,8 @@ def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receiver
         success, message = False, "time budget reached"
     f, xb, _ = prob.best
     smap = prob.map_for(xb)
-    bname = min(base_vals, key=base_vals.get) if base_vals else None
+    same_kind = {n: v for n, v in base_vals.items() if (bases[n].log_warp is not None) == log}  # log: stay log
+    bname = min(same_kind, key=same_kind.get) if same_kind else None
     start = best_start
     if bname is not None and base_vals[bname] < f:  # a baseline map itself is best (fit details differ)
         f, smap, xb, start = base_vals[bname], bases[bname], _start_x(prob, bases[bname]), bname
@@ -677,6 +706,16 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
                            x0=x0[k] if x0 is not None and k < len(x0) else None, time_budget_ms=left,
                            start_maps_given={m: per_method[m][k] for m in ("focused", "lispsm", "logpsm")})
             entry["result"] = res.to_json()
+            if allow_log and isinstance(light, DirectionalLight):  # LogPSM's family too; the lower objective wins
+                left = None if time_budget_ms is None else max(1.0, time_budget_ms - (time.perf_counter() - t0) * 1e3)
+                res_log = minimize(camera, light, sub, receivers[sel_r], casters_bounds, rmap.resolution, solver,
+                                   time_budget_ms=left, log=True,
+                                   start_maps_given={m: per_method[m][k] for m in ("focused", "lispsm", "logpsm")})
+                entry["result_log"] = res_log.to_json()
+                if res_log.map is not None and res_log.fun < res.fun:
+                    res = res_log
+                    entry["result"], entry["result_log"] = res_log.to_json(), entry["result"]
+                    entry["result"]["warp"] = "log"
             if res.map is not None and res.fun < best_f:
                 best_map, best_f, best_name = res.map, res.fun, "optimized"
                 best_map.eta = None

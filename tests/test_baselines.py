@@ -187,6 +187,22 @@ def test_optimized_splits_and_budget_beat_practical_lispsm_and_cover_the_view():
     assert res["misclassified_pixels"] <= evaluate_solution(entry, base, practical, screen=(320, 180))["misclassified_pixels"]
 
 
+def test_optimized_with_log_warps_allowed_says_which_warp_it_chose():
+    entry = scene()
+    r = rig(CAM, {"type": "directional", "direction": (-0.3, -0.8, 0.5)})
+    r["output"]["allow_log_warp"] = True
+    sol = solve(entry, r, "optimized")
+    c = sol["lights"][0]["cascades"][0]
+    info = sol["solver"]["cascades"][0]
+    assert "result_log" in info  # both families searched
+    assert c["warp"]["kind"] in ("none", "perspective", "log")
+    assert (c["warp"]["log"] is not None) == (c["warp"]["kind"] == "log")
+    chosen = info["chosen"]
+    # never worse than the LogPSM baseline with its log step
+    assert info["objective"] <= info["baselines"]["logpsm"] * (1 + 1e-9), (chosen, info)
+    assert evaluate_solution(entry, r, sol, screen=(320, 180))["outside_pixels"] == 0
+
+
 def test_auto_cascades_pick_the_smallest_k_meeting_the_target():
     entry = scene()
     light = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}

@@ -271,3 +271,18 @@ def test_spot_light_optical_axis_is_optimized_and_keeps_every_receiver(ground):
     assert np.linalg.norm(r.x) > 0.01  # the axis moved
     s_, t_, z_, w_ = r.map.map_coords(pts_in)
     assert np.all((s_ >= 0) & (s_ <= 1) & (t_ >= 0) & (t_ <= 1) & (np.abs(z_) <= 1) & (w_ > 0))
+
+
+def test_log_warp_family_is_searched_when_allowed(ground):
+    """LogPSM's family (perspective part + log step on t): the search beats the LogPSM baseline map
+    it starts from, and its result carries the log warp the metric scored."""
+    cam, pts, s = ground
+    L = DirectionalLight.make(LIGHTS["45deg"])
+    base = baseline("logpsm", cam, L, pts, BOUNDS, RES, allow_log=True)[0]
+    assert base.warp_kind == "log"
+    r = minimize(cam, L, s, pts, BOUNDS, RES, log=True)
+    assert r.map.warp_kind == "log" and r.map.log_warp is not None
+    assert r.fun == pytest.approx(predicted_error([r.map], s, cam.position)["objective"], rel=1e-9)
+    assert r.fun <= predicted_error([base], s, cam.position)["objective"] * (1 + 1e-9)
+    s_, t_, z_, w_ = r.map.map_coords(pts)
+    assert np.all((s_ >= 0) & (s_ <= 1) & (t_ >= 0) & (t_ <= 1) & (np.abs(z_) <= 1) & (w_ > 0))
