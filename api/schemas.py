@@ -74,6 +74,8 @@ class ShadowSpec(_Strict):
     max_cascades: Annotated[int, Field(ge=1, le=16)] = 4
     target_p95_m: Annotated[float, Field(gt=0)] | None = None
     splits: Literal["practical", "log", "uniform", "optimized"] = "practical"
+    snap_to_texels: bool = Field(False, description="unwarped directional maps: a texel grid fixed in the world "
+                                 "(no shimmering while the camera moves without turning)")
     lambda_: Annotated[float, Field(ge=0, le=1)] = Field(0.5, alias="lambda")
 
     @model_validator(mode="after")

@@ -204,6 +204,8 @@ def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | N
             maps, info, auto = auto_cascades(maps_for, prob, resolved.camera.position, shadow)
         else:
             (maps, info), auto = maps_for(common["cascades"]), None
+        if shadow.get("snap_to_texels"):
+            snap_maps(maps, prob)
         if info is not None:
             if auto is not None:
                 info["auto_cascades"] = auto
@@ -222,6 +224,23 @@ def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | N
     if method == "optimized":
         sol["solver"] = solvers_json[0] if len(solvers_json) == 1 else {"lights": solvers_json}
     return sol
+
+
+def snap_maps(maps: list[ShadowMap], prob: LightProblem) -> None:
+    """`shadow.snap_to_texels`: unwarped directional maps get a world-fixed texel grid
+    (solvers.fitting.snap_to_texels); warped and perspective maps are left as they are."""
+    from ..solvers.baselines import _with_bias
+    from ..solvers.fitting import snap_to_texels
+
+    for smap in maps:
+        if prob.light.kind != "directional" or smap.face is not None or smap.log_warp is not None:
+            continue
+        P = snap_to_texels(smap.view, smap.projection, smap.resolution)
+        if P is not None:
+            smap.projection = P
+            smap.snapped = True
+            if len(prob.receivers):
+                _with_bias(smap, prob.receivers, prob.light)
 
 
 def _previous_x(previous: dict | None, light_index: int):

@@ -2,6 +2,8 @@
 light-space bounds. Projections map to the canonical OpenGL clip space (solvers.shadow_map)."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial import ConvexHull
 
@@ -136,3 +138,30 @@ def light_plane_hull(direction: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray
     z = pts @ d
     return hull, pts[[int(np.argmin(z)), int(np.argmax(z))]]
 
+
+
+SNAP_STEPS_PER_OCTAVE = 8  # texel world sizes are rounded up to 2^(k/8) metres
+
+
+def snap_to_texels(view: np.ndarray, projection: np.ndarray, resolution) -> np.ndarray | None:
+    """Texel snapping for an unwarped (affine) map: the projection whose texel grid is fixed in the
+    world, so that a camera that moves without turning sees no shimmering (the light frame, which
+    follows the view direction, is unchanged). Per map axis i: the world spacing of its texel grid
+    lines is rounded up to a size on a fixed geometric ladder (2^(k/8) m) with one texel of margin
+    on each side, the map scaled about its centre to that size, then shifted by at most half a texel
+    so that the world origin falls on a texel corner. Everything inside the map before stays inside.
+    Returns None for a projective (warped or perspective) map."""
+    P = np.asarray(projection, dtype=np.float64).copy()
+    if not np.allclose(P[3], [0.0, 0.0, 0.0, 1.0]):
+        return None
+    origin = np.asarray(view, dtype=np.float64)[:, 3]  # the world origin in light view (homogeneous)
+    for i, r in enumerate((int(resolution[0]), int(resolution[1]))):
+        norm = float(np.linalg.norm(P[i, :3]))
+        if norm == 0 or r < 4:
+            continue
+        spacing = (2.0 / r) / norm * r / (r - 2)  # world size of a texel, with a texel of margin per side
+        size = 2.0 ** (math.ceil(math.log2(spacing) * SNAP_STEPS_PER_OCTAVE - 1e-9) / SNAP_STEPS_PER_OCTAVE)
+        P[i] *= (2.0 / r) / norm / size
+        o = float(P[i] @ origin)
+        P[i, 3] += (round((o + 1.0) * r / 2.0) * 2.0 / r - 1.0) - o
+    return P

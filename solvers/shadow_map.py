@@ -56,6 +56,7 @@ class ShadowMap:
     log_warp: LogWarp | None = None
     depth_bias: dict = field(default_factory=lambda: {"constant": 0.0, "slope": 0.0})
     face: str | None = None  # cube-map face (+x, -x, ...) for point lights
+    snapped: bool = False  # texel grid fixed in the world (solvers.fitting.snap_to_texels)
 
     @property
     def matrix(self) -> np.ndarray:
@@ -101,6 +102,7 @@ class ShadowMap:
              "view_matrix": self.view.tolist(), "projection_matrix": self.projection.tolist()}
         if self.face is not None:
             d["face"] = self.face
+        d["texel_snapped"] = self.snapped
         return d
 
     @staticmethod
@@ -111,7 +113,8 @@ class ShadowMap:
                          tuple(d["resolution"]), tuple(d["split"]), tuple(d["light_depth"]),
                          w.get("kind", "none"), w.get("eta"), w.get("n"),
                          LogWarp(lw["c0"], lw["c1"], lw["c2"]) if lw else None,
-                         dict(d.get("depth_bias") or {"constant": 0.0, "slope": 0.0}), d.get("face"))
+                         dict(d.get("depth_bias") or {"constant": 0.0, "slope": 0.0}), d.get("face"),
+                         bool(d.get("texel_snapped", False)))
 
 
 def map_for_depth(maps: list[ShadowMap], view_depth: np.ndarray) -> np.ndarray:

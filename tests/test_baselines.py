@@ -203,6 +203,36 @@ def test_optimized_with_log_warps_allowed_says_which_warp_it_chose():
     assert evaluate_solution(entry, r, sol, screen=(320, 180))["outside_pixels"] == 0
 
 
+def test_texel_snapping_fixes_the_grid_in_the_world_and_keeps_every_receiver():
+    """Two frames, the camera moved sideways without turning: with snap_to_texels the focused maps'
+    texel grids coincide in the world (a world point has the same fractional texel position in both),
+    which they do not without it; every receiver stays inside."""
+    entry = scene()
+    light = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}
+    probe = np.random.default_rng(5).uniform([-20, 0, 5], [20, 3, 60], size=(50, 3))
+
+    def frac_texels(sol):
+        m = maps_from_solution(sol)[0][0]
+        s_, t_, _, _ = m.map_coords(probe)
+        return m, np.column_stack([s_ * m.resolution[0], t_ * m.resolution[1]]) % 1.0
+
+    out = {}
+    for snap in (False, True):
+        frames = []
+        for dx in (0.0, 0.37):
+            cam = {**CAM, "position": (dx, 1.7, 0.0)}
+            r = rig(cam, light, snap_to_texels=snap)
+            sol = solve(entry, r, "focused")
+            assert evaluate_solution(entry, r, sol, screen=(320, 180))["outside_pixels"] == 0
+            frames.append(frac_texels(sol))
+        (m0, f0), (m1, f1) = frames
+        assert m0.snapped == m1.snapped == snap
+        d = np.abs(f0 - f1)
+        out[snap] = float(np.max(np.minimum(d, 1.0 - d)))
+    assert out[True] < 1e-6, out
+    assert out[False] > 1e-3, out
+
+
 def test_auto_cascades_pick_the_smallest_k_meeting_the_target():
     entry = scene()
     light = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}
