@@ -186,15 +186,19 @@ class Service:
         from ..service.batches import BatchRunner
         from ..service.store import Store
 
+        import_native_stack()
         Path(self.settings.data_dir).mkdir(parents=True, exist_ok=True)
         self.store = Store(self.settings.data_dir, retention_days=self.settings.retention_days,
                            max_bytes=self.settings.max_data_bytes)
         self.runner = BatchRunner(self.store, backend=self.settings.batch_backend,
                                   workers=self.settings.batch_workers, ray_address=self.settings.ray_address)
+        log.info("store ready", extra={"fields": {"data_dir": str(self.settings.data_dir)}})
+        threading.Thread(target=self.warm_up_then_resume, daemon=True, name="warm-up").start()
+
+    def warm_up_then_resume(self) -> None:
+        self.warm_up()
         resumed = self.runner.resume()
-        log.info("store ready", extra={"fields": {"data_dir": str(self.settings.data_dir),
-                                                  "resumed_batches": _count(resumed)}})
-        threading.Thread(target=self.warm_up, daemon=True, name="warm-up").start()
+        log.info("resumed unfinished batches", extra={"fields": {"resumed_batches": _count(resumed)}})
 
     def stop(self) -> None:
         if self.runner is not None:
@@ -251,6 +255,22 @@ class Service:
             if hmac.compare_digest(tok.encode(), token.encode()):
                 found = name
         return found
+
+
+def import_native_stack() -> None:
+    """Import USD, Mitsuba/Dr.Jit and the process-pool machinery on one thread before any other starts:
+    two threads loading native extensions at once (USD's static initialisers in one, multiprocessing's
+    in the other) were seen to deadlock in the dynamic loader."""
+    import concurrent.futures.process  # noqa: F401
+    import multiprocessing.resource_tracker  # noqa: F401
+    import multiprocessing.synchronize  # noqa: F401
+
+    from pxr import Sdf, Usd, UsdGeom  # noqa: F401
+
+    from ..renderers.mitsuba_setup import mitsuba
+    from ..service.solve import solve  # noqa: F401
+
+    mitsuba()  # mitsuba and drjit with the LLVM variant set
 
 
 def _count(x) -> int:

@@ -42,8 +42,9 @@ class Server:
 
 
 def launch(data_dir: Path, env: dict | None = None, tokens: dict | None = TOKENS, port: int | None = None,
-           args: tuple = ()) -> Server:
-    """Start the server (not waiting for it). `env` adds SHADOWOPT_* settings."""
+           args: tuple = (), new_session: bool = False) -> Server:
+    """Start the server (not waiting for it). `env` adds SHADOWOPT_* settings. With `new_session` the
+    server leads its own process group (its batch workers included), for tests that kill it."""
     port = port or free_port()
     full_env = {k: v for k, v in os.environ.items() if not k.startswith("SHADOWOPT_")}
     if tokens:
@@ -54,7 +55,8 @@ def launch(data_dir: Path, env: dict | None = None, tokens: dict | None = TOKENS
     log_path = data_dir.parent / f"{data_dir.name}-server-{port}.log"
     log = open(log_path, "a")
     proc = subprocess.Popen([str(exe), "serve", "--host", "127.0.0.1", "--port", str(port), "--data-dir",
-                             str(data_dir), *args], cwd=REPO, env=full_env, stdout=log, stderr=subprocess.STDOUT)
+                             str(data_dir), *args], cwd=REPO, env=full_env, stdout=log, stderr=subprocess.STDOUT,
+                            start_new_session=new_session)
     log.close()
     return Server(f"http://127.0.0.1:{port}", proc, data_dir, log_path)
 
