@@ -409,5 +409,5 @@ def bench_trust(validate_rig, rigs: int | None = None, write: bool = True) -> di
            "across_rig_spearman": across, "across_rig_spearman_per_boundary_pixel": across_norm,
            "configurations": configs, "table": table}
     if write:
-        write_section("trust", table, f"shadowopt bench trust --rigs {n}")
+        write_section("trust", table, f"shadowopt bench trust --lights {n}")
     return out
