@@ -286,3 +286,32 @@ def test_log_warp_family_is_searched_when_allowed(ground):
     assert r.fun <= predicted_error([base], s, cam.position)["objective"] * (1 + 1e-9)
     s_, t_, z_, w_ = r.map.map_coords(pts)
     assert np.all((s_ >= 0) & (s_ <= 1) & (t_ >= 0) & (t_ <= 1) & (np.abs(z_) <= 1) & (w_ > 0))
+
+
+@pytest.fixture(scope="module")
+def demo_problem():
+    from pathlib import Path
+
+    from shadowopt.api.cli import validate_rig
+    from shadowopt.service.pipeline import coarse_pass
+    from shadowopt.service.scenes import SceneCache
+    from shadowopt.service.solve import light_problems
+
+    entry = SceneCache().get(Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda")
+    rig = validate_rig({"camera": {"usd_path": "/World/Camera", "resolution": [640, 360]},
+                        "lights": [{"type": "directional", "direction": [-0.4, -0.7, 0.3]}], "coarse_long_side": 96})
+    resolved, buffers = coarse_pass(entry, rig)
+    bounds = entry.loaded.geometry.bounds()
+    return resolved.camera, light_problems(resolved, buffers, bounds)[0], bounds
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_every_solver_converges_on_the_demo_scene(demo_problem, method):
+    cam, p, bounds = demo_problem
+    if "best" not in _CACHE.setdefault("demo", {}):
+        _CACHE["demo"]["best"] = minimize(cam, p.light, p.samples, p.receivers, bounds, (1024, 1024),
+                                          method="nlopt:GN_DIRECT_L", maxiter=80).fun
+    r = minimize(cam, p.light, p.samples, p.receivers, bounds, (1024, 1024), method=method)
+    assert r.success, r.message
+    assert r.fun <= 1.05 * _CACHE["demo"]["best"], (method, r.fun, _CACHE["demo"]["best"])
+    assert r.fun <= min(r.starts.values()) * (1 + 1e-12)
