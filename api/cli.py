@@ -290,7 +290,9 @@ def cmd_batch(args) -> int:
         first = s["errors"][0]
         print(f"shadowopt: error: {s['failed']} configuration(s) failed; first: index {first['index']}: "
               f"{first['code']}: {first['message']}", file=sys.stderr)
-        return 1
+        # Nothing succeeded because of the input (the scene or the rigs): a usage error, like a bad file.
+        internal = ("internal_error", "worker_crashed", "runner_error")
+        return EXIT_USAGE if s["done"] == 0 and first["code"] not in internal else 1
     return 0
 
 

@@ -299,3 +299,14 @@ def test_cli_batch_bad_configs_exit_2_naming_the_field(tmp_path, content, words)
     p = _cli("batch", DEMO, "--configs", cfg, "--out", tmp_path / "o.jsonl")
     assert p.returncode == 2, (p.stdout, p.stderr)
     assert words in p.stderr and "Traceback" not in p.stderr
+
+
+def test_cli_batch_on_a_file_that_is_not_usd_exits_2_with_the_loaders_reason(tmp_path):
+    bad = tmp_path / "bad.usda"
+    bad.write_text("not usd")
+    cfg = tmp_path / "c.json"
+    cfg.write_text(json.dumps([{"rig": TINY}]))
+    out = tmp_path / "o.jsonl"
+    p = _cli("batch", bad, "--configs", cfg, "--out", out, "--workers", "1", "--no-progress")
+    assert p.returncode == 2 and "not_usd" in p.stderr and "Traceback" not in p.stderr
+    assert json.loads(out.read_text())["error"]["code"] == "not_usd"  # the line is still written
