@@ -682,6 +682,11 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
     per_method = {m: baseline(m, camera, light, receivers, casters_bounds, allow_log=allow_log and m == "logpsm",
                               **common) for m in BASELINES}
     ref = per_method["focused"]
+    if ref and ref[0].face is not None:  # a cube map (point light, wide spot): fixed 90° faces, nothing to search
+        return ref, {"name": solver, "time_ms": round((time.perf_counter() - t0) * 1e3, 3), "nit": 0, "nfev": 0,
+                     "fun": float(predicted_error(ref, samples, camera.position)["objective"]), "success": True,
+                     "converged": True, "message": "cube map: six fixed 90-degree faces, no projective parameters",
+                     "x": [None] * len(ref), "cascades": []}
     depth = (receivers - camera.position) @ camera.forward if len(receivers) else np.zeros(0)
     slack = np.zeros(len(receivers)) if receiver_slack is None else np.asarray(receiver_slack, float)
     out_maps, info = [], []

@@ -112,7 +112,7 @@ HARD = {
 
 
 @pytest.mark.parametrize("case", sorted(HARD))
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", METHODS + ("optimized",))
 def test_hard_cases_give_finite_maps_that_keep_every_receiver(case, method):
     cam, light = HARD[case]
     entry = scene()
@@ -130,7 +130,7 @@ def test_hard_cases_give_finite_maps_that_keep_every_receiver(case, method):
         assert res["receiver_pixels"] == 0
 
 
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", METHODS + ("optimized",))
 def test_scene_far_from_the_origin_and_one_triangle(method):
     off = (1e5, 0.0, -1e5)
     entry = scene(off)
