@@ -544,6 +544,9 @@ class SceneSolver:
     def pid(self) -> int:
         return os.getpid()
 
+    def getenv(self, name: str) -> str | None:
+        return os.environ.get(name)
+
 
 class _RayBackend:
     """Ray actors (one per worker, each loading the shipped scene once), on `address` or a local instance."""

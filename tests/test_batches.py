@@ -166,6 +166,8 @@ def test_a_batch_runs_to_done_in_index_order_and_a_bad_configuration_is_only_an_
     assert all(not np.allclose(a, c) for a, c in zip(views, views[1:]))
     hints = interpolation_hints(lines)
     assert [2, 3] in [x["between"] for x in hints["breaks"]] and [3, 4] in [x["between"] for x in hints["breaks"]]
+    worker_env = runner._impl.pool.submit(os.getenv, "DRJIT_LIBLLVM_PATH").result(timeout=60)
+    assert worker_env and Path(worker_env).exists()  # spawned workers carry the LLVM path Dr.Jit needs
 
 
 def test_cancel_stops_a_batch_and_the_runner_goes_on(pool):
@@ -259,6 +261,8 @@ def test_ray_backend_on_a_local_instance(tmp_path):
         runner.submit("t", b)
         assert runner.wait(b, timeout=240) == "done"
         pids = runner._impl.last_actor_pids
+        env = ray.get(runner._impl.actors[0].getenv.remote("DRJIT_LIBLLVM_PATH"))
+        assert env and Path(env).exists()  # the Ray workers' environment carries the LLVM path
     finally:
         runner.shutdown()
     assert not ray.is_initialized()  # the runner started the local instance and stopped it
