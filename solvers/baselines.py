@@ -136,8 +136,8 @@ def _texel_world_size(smap: ShadowMap, pts: np.ndarray, light) -> float:
     """95th percentile over the points inside the map of the world size of one texel (its longer
     side, perpendicular to the light); 0 when no point is inside."""
     pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
-    if len(pts) > 2000:
-        pts = pts[np.random.default_rng(0).choice(len(pts), 2000, replace=False)]
+    if len(pts) > 512:  # a percentile of a random sample
+        pts = pts[np.random.default_rng(0).choice(len(pts), 512, replace=False)]
     per_s, per_t = texel_extents(smap, pts, light)
     size = np.maximum(per_s / smap.resolution[0], per_t / smap.resolution[1])
     size = size[np.isfinite(size)]
@@ -310,7 +310,7 @@ def _cube_maps(light, corners: np.ndarray, receivers: np.ndarray, resolution) ->
 def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_bounds=None,
              resolution=(2048, 2048), cascades: int = 1, splits: str = "practical", split_lambda: float = 0.5,
              texel_budget: int | None = None, allow_log: bool = True,
-             receiver_slack: np.ndarray | None = None, split_at=None) -> list[ShadowMap]:
+             receiver_slack: np.ndarray | None = None, split_at=None, hull_cache: dict | None = None) -> list[ShadowMap]:
     """The maps of one baseline method for one light (see the module doc for every choice).
 
     method: uniform | focused | lispsm | logpsm. receivers: (N, 3) world points the camera sees
@@ -321,7 +321,9 @@ def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_
     allow_log: False -> logpsm returns its perspective part only; receiver_slack: per receiver,
     how far in view depth the surface around it reaches (a cascade fits every receiver whose
     [depth - slack, depth + slack] meets its split, so the split boundary is covered);
-    split_at: the k - 1 inner split depths, given explicitly (optimized splits) instead of `splits`.
+    split_at: the k - 1 inner split depths, given explicitly (optimized splits) instead of `splits`;
+    hull_cache: a dict shared by calls with the same light, receivers and splits (several methods),
+    so each cascade's receivers are reduced to their light-plane hull once.
 
     Each map's depth_bias follows the one rule the evaluator applies (renderers/ground_truth.py):
     with d the distance along the texel's light ray, a receiver is shadowed iff
@@ -376,8 +378,13 @@ def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_
         part = receivers[sel] if len(receivers) else receivers
         if len(part) == 0 and len(receivers):
             part = _frustum_slice(camera, z[i], z[i + 1])
-        smap = _directional_map(method, camera, light, np.vstack(light_plane_hull(light.direction, part)),
-                                corners, res, allow_log, (z[i], z[i + 1]))
+        key = (i, float(z[i]), float(z[i + 1]), len(part))
+        fit_part = hull_cache.get(key) if hull_cache is not None else None
+        if fit_part is None:
+            fit_part = np.vstack(light_plane_hull(light.direction, part))
+            if hull_cache is not None:
+                hull_cache[key] = fit_part
+        smap = _directional_map(method, camera, light, fit_part, corners, res, allow_log, (z[i], z[i + 1]))
         smap.split = (0.0 if i == 0 else float(z[i]), float(camera.far if i == k - 1 else z[i + 1]))
         maps.append(smap)
         parts.append(part)

@@ -679,7 +679,9 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
             split_at, split_info = sr.split_at, sr.to_json()
     common = dict(resolution=resolution, cascades=cascades, splits=splits, split_lambda=split_lambda,
                   texel_budget=texel_budget, receiver_slack=receiver_slack, split_at=split_at)
+    hulls: dict = {}  # the receivers' light-plane hull per cascade, shared by the four methods
     per_method = {m: baseline(m, camera, light, receivers, casters_bounds, allow_log=allow_log and m == "logpsm",
+                              hull_cache=hulls,
                               **common) for m in BASELINES}
     ref = per_method["focused"]
     if ref and ref[0].face is not None:  # a cube map (point light, wide spot): fixed 90° faces, nothing to search
