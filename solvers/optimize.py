@@ -401,7 +401,6 @@ def _start_x(prob: Problem, smap: ShadowMap) -> np.ndarray:
     square = prob.resolution[0] == prob.resolution[1]
     if smap.n_prime is None or not math.isfinite(smap.n_prime):
         return np.array([_angle_of(smap.view, prob.view0, square), 0.0])
-    _, _, _, _ = None, None, None, None
     view = prob.view0
     v = to_view(view, prob.fit_pts)[:, 1]
     y0, y1 = padded(v.min(keepdims=True), v.max(keepdims=True), PAD, _min_extent(v[:, None]))
