@@ -474,6 +474,29 @@ def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receiver
                           prob.njev)
 
 
+SINGLE_MAP_CONE_DEG = 70.0  # a point light's receivers within this half-angle of one axis get one map
+
+
+def single_map_spot(light, receivers: np.ndarray):
+    """For a point light: a spot light with the receivers' mean direction as its axis and a cone just
+    covering them, when that cone is at most SINGLE_MAP_CONE_DEG; else None."""
+    from .lights import PointLight
+
+    if not isinstance(light, PointLight) or len(receivers) < 3:
+        return None
+    d = np.asarray(receivers, float).reshape(-1, 3) - light.position
+    d = d[np.linalg.norm(d, axis=1) > 0]
+    if len(d) < 3:
+        return None
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    axis = d.mean(0)
+    if np.linalg.norm(axis) < 1e-6:
+        return None
+    axis /= np.linalg.norm(axis)
+    cone = float(np.degrees(np.arccos(np.clip(d @ axis, -1.0, 1.0))).max()) + 1.0
+    return SpotLight.make(light.position, axis, cone, light.usd_path) if cone <= SINGLE_MAP_CONE_DEG else None
+
+
 def optimizable(light) -> bool:
     """Lights with projective parameters to optimize: directional, and spots drawn as one map."""
     from .baselines import SPOT_AS_CUBE_DEG
@@ -683,6 +706,16 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
                               hull_cache=hulls,
                               **common) for m in BASELINES}
     ref = per_method["focused"]
+    proxy = single_map_spot(light, receivers)
+    if proxy is not None and ref and ref[0].face is not None:
+        # A point light whose visible receivers lie in one cone: one perspective map with an optimized
+        # axis instead of six cube faces, kept when the metric scores it no worse than the cube.
+        maps, sj = optimized_maps(camera, proxy, samples, receivers, casters_bounds, resolution, 1, solver=solver,
+                                  time_budget_ms=time_budget_ms, receiver_slack=receiver_slack)
+        cube = float(predicted_error(ref, samples, camera.position)["objective"])
+        if sj["fun"] <= cube:
+            sj["point_light"] = {"single_map_cone_deg": proxy.cone_deg, "cube_objective": cube}
+            return maps, sj
     if ref and ref[0].face is not None:  # a cube map (point light, wide spot): fixed 90° faces, nothing to search
         return ref, {"name": solver, "time_ms": round((time.perf_counter() - t0) * 1e3, 3), "nit": 0, "nfev": 0,
                      "fun": float(predicted_error(ref, samples, camera.position)["objective"]), "success": True,

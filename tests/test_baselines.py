@@ -233,6 +233,20 @@ def test_texel_snapping_fixes_the_grid_in_the_world_and_keeps_every_receiver():
     assert out[False] > 1e-3, out
 
 
+def test_point_light_over_a_small_view_gets_one_optimized_map_instead_of_a_cube():
+    entry = scene()
+    r = rig({**CAM, "far": 60}, {"type": "point", "position": (0.0, 80.0, 25.0)})
+    cube = solve(entry, r, "focused")
+    opt = solve(entry, r, "optimized")
+    assert len(cube["lights"][0]["cascades"]) == 6 and len(opt["lights"][0]["cascades"]) == 1
+    assert opt["solver"]["point_light"]["single_map_cone_deg"] <= 70
+    assert opt["lights"][0]["predicted_error"]["objective"] < cube["lights"][0]["predicted_error"]["objective"]
+    res_opt = evaluate_solution(entry, r, opt, screen=(320, 180))
+    res_cube = evaluate_solution(entry, r, cube, screen=(320, 180))
+    assert res_opt["outside_pixels"] == 0
+    assert res_opt["misclassified_pixels"] <= res_cube["misclassified_pixels"]
+
+
 def test_auto_cascades_pick_the_smallest_k_meeting_the_target():
     entry = scene()
     light = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}
