@@ -1,4 +1,5 @@
-# shadowopt: `make serve` sets everything up and serves the demo scene; `make test` sets up and tests.
+# shadowopt: `make demo` sets everything up and runs the main job on the demo scene; `make serve` serves it;
+# `make test` sets up and tests.
 # Both are idempotent: the set-up re-runs only when requirements.lock or pyproject.toml change.
 SHELL := /bin/bash
 VENV := .venv
@@ -40,8 +41,12 @@ test: setup
 bench: setup
 	$(VENV)/bin/shadowopt bench coarse
 
+# The main job on the bundled demo scene: an optimized setup, measured against ray-traced shadows,
+# and every method side by side (heatmaps and table in out/demo/).
 demo: setup
-	$(VENV)/bin/shadowopt coarse configs/demo_scene.usda --rig configs/demo_rig.json --out out/demo
+	$(VENV)/bin/shadowopt optimize configs/demo_scene.usda --rig configs/demo_rig.json --method optimized --out out/demo/solution.json
+	$(VENV)/bin/shadowopt evaluate configs/demo_scene.usda --rig configs/demo_rig.json --solution out/demo/solution.json --screen 640x360 --heatmap out/demo/optimized_heatmap.png
+	$(VENV)/bin/shadowopt compare configs/demo_scene.usda --rig configs/demo_rig.json --methods uniform,focused,lispsm,logpsm,optimized --screen 640x360 --report out/demo
 
 clean:
 	rm -rf $(VENV) out .pytest_cache
