@@ -462,6 +462,9 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException):
+        if exc.status_code == 400:  # FastAPI's "error parsing the body" (e.g. bytes that are not UTF-8)
+            request.state.error_code = "invalid_json"
+            return error_json(422, "invalid_json", f"body: not valid JSON ({exc.detail})", "body")
         codes = {404: "not_found", 405: "method_not_allowed", 400: "bad_request", 413: "too_large"}
         code = codes.get(exc.status_code, f"http_{exc.status_code}")
         request.state.error_code = code
