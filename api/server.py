@@ -171,6 +171,7 @@ class Service:
         self.store = None
         self.runner = None
         self.ready = threading.Event()
+        self.stopping = threading.Event()
         self.warm_errors: dict[str, str] = {}
         self.warm_s: float | None = None
         self.limiter = RateLimiter(settings.rate_limit_per_s, settings.rate_limit_burst)
@@ -199,8 +200,23 @@ class Service:
         self.warm_up()
         resumed = self.runner.resume()
         log.info("resumed unfinished batches", extra={"fields": {"resumed_batches": _count(resumed)}})
+        if self.settings.retention_days is not None or self.settings.max_data_bytes is not None:
+            threading.Thread(target=self.retention_loop, daemon=True, name="retention").start()
+
+    def retention_loop(self) -> None:
+        """Apply the retention settings at start and then every `retention_interval_s`."""
+        while not self.stopping.is_set():
+            try:
+                removed = self.store.enforce_retention()
+                if removed.get("batches") or removed.get("scenes"):
+                    log.info("retention", extra={"fields": {"removed_batches": len(removed["batches"]),
+                                                            "removed_scenes": len(removed["scenes"])}})
+            except Exception as e:  # a failed sweep is retried at the next interval
+                log.error("retention failed", extra={"fields": {"error": f"{type(e).__name__}: {e}"}})
+            self.stopping.wait(self.settings.retention_interval_s)
 
     def stop(self) -> None:
+        self.stopping.set()
         if self.runner is not None:
             self.runner.shutdown()
 

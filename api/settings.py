@@ -40,6 +40,7 @@ class Settings:
     ray_address: str | None = None
     retention_days: float | None = None
     max_data_bytes: int | None = None
+    retention_interval_s: float = 600.0  # how often retention_days / max_data_bytes are applied
     warm_scenes: list[str] = field(default_factory=list)  # loaded and solved once before /healthz is 200
     log_level: str = "INFO"
 
@@ -53,8 +54,8 @@ class Settings:
                      "solve_threads", "batch_workers", "rate_limit_burst"):
             if getattr(self, name) < 1:
                 raise SettingsError(f"{name}: must be at least 1, got {getattr(self, name)}")
-        if self.max_time_budget_ms <= 0 or self.rate_limit_per_s < 0:
-            raise SettingsError("max_time_budget_ms must be > 0 and rate_limit_per_s >= 0")
+        if self.max_time_budget_ms <= 0 or self.rate_limit_per_s < 0 or self.retention_interval_s <= 0:
+            raise SettingsError("max_time_budget_ms and retention_interval_s must be > 0, rate_limit_per_s >= 0")
         if self.batch_backend not in ("local", "ray"):
             raise SettingsError(f"batch_backend: 'local' or 'ray', got {self.batch_backend!r}")
         if not 0 < self.port < 65536:

@@ -9,7 +9,8 @@ import pytest
 from serverkit import DEMO, REPO, TINY_RIG, auth, running, upload
 
 LIMITS = {"SHADOWOPT_MAX_UPLOAD_BYTES": "20000", "SHADOWOPT_MAX_TRIANGLES": "1000", "SHADOWOPT_MAX_QUEUE": "6",
-          "SHADOWOPT_RATE_LIMIT_PER_S": "2", "SHADOWOPT_RATE_LIMIT_BURST": "40", "SHADOWOPT_BATCH_WORKERS": "1"}
+          "SHADOWOPT_RATE_LIMIT_PER_S": "2", "SHADOWOPT_RATE_LIMIT_BURST": "40", "SHADOWOPT_BATCH_WORKERS": "1",
+          "SHADOWOPT_MAX_BODY_BYTES": "100000", "SHADOWOPT_MAX_TIME_BUDGET_MS": "300"}
 
 # A box on a ground plane: 14 triangles, no camera or light of its own (rigs give them explicitly).
 BOX = """#usda 1.0
@@ -118,6 +119,16 @@ def test_upload_size_limit_413(server):
     r = httpx.post(f"{server.base}/v1/scenes", params={"filename": "big.usda"}, headers=auth("alice"),
                    content=iter([big.encode()[:15000], big.encode()[15000:]]))
     assert error_of(r, 413)["code"] == "upload_too_large"
+
+
+def test_json_body_limit_413_and_time_budget_cap(server, alice_box):
+    padded = {"scene_id": alice_box, "rig": BOX_RIG, "previous": {"pad": "x" * 120_000}}
+    err = error_of(httpx.post(server.base + "/v1/optimize", json=padded, headers=auth("alice")), 413)
+    assert err["code"] == "body_too_large" and "100000" in err["message"]
+    r = httpx.post(server.base + "/v1/optimize", json={"scene_id": alice_box, "rig": BOX_RIG, "time_budget_ms": 60000},
+                   headers=auth("alice"), timeout=60)
+    assert r.status_code == 200, r.text
+    assert r.json()["provenance"]["settings"]["time_budget_ms"] == 300  # capped by the server's budget
 
 
 def test_triangle_limit_413_and_nothing_kept(server):

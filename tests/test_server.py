@@ -7,6 +7,7 @@ import os
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import httpx
@@ -93,6 +94,18 @@ def test_no_tokens_means_loopback_only_and_open(tmp_path):
         assert any("no tokens configured" in e["msg"] and e.get("host") == "127.0.0.1" for e in starts)
     finally:
         stop(server)
+
+
+def test_retention_removes_old_scenes(tmp_path):
+    env = {"SHADOWOPT_RETENTION_DAYS": str(1.0 / 86400), "SHADOWOPT_RETENTION_INTERVAL_S": "0.3"}
+    with running(tmp_path / "data", env=env) as server:
+        sid = upload(server.base, "alice").json()["scene_id"]
+        assert httpx.get(f"{server.base}/v1/scenes/{sid}", headers=auth("alice")).status_code == 200
+        deadline = time.monotonic() + 20
+        while httpx.get(f"{server.base}/v1/scenes/{sid}", headers=auth("alice")).status_code == 200:
+            assert time.monotonic() < deadline, "the scene outlived its one-second retention"
+            time.sleep(0.2)
+        assert not list((tmp_path / "data" / "scenes").rglob("*.usda"))
 
 
 def test_settings_from_file_env_and_flags(tmp_path):
