@@ -20,6 +20,7 @@ import threading
 import time
 import traceback
 import uuid
+from collections import OrderedDict
 from pathlib import Path
 from typing import Annotated
 
@@ -846,7 +847,9 @@ def retry_after(queued: int) -> int:
     return int(min(60, max(1, queued // 10)))
 
 
-_HINTS: dict[tuple, dict] = {}
+_HINTS: "OrderedDict[tuple, dict]" = OrderedDict()  # (tenant, batch_id) -> hints of a finished batch
+HINTS_KEPT = 256
+HINTS_PAGE = 1000
 
 
 def status_json(svc: Service, tenant: str, b: dict) -> dict:
@@ -855,15 +858,43 @@ def status_json(svc: Service, tenant: str, b: dict) -> dict:
     out["progress"] = round((int(b.get("done") or 0) + int(b.get("failed") or 0)) / total, 6) if total else 1.0
     out.setdefault("errors", [])
     if b.get("state") == "done" and out.get("interpolation") is None:
-        key = (tenant, b["batch_id"])
-        if key not in _HINTS:
-            from ..service.batches import interpolation_hints
-
-            shape = (b.get("settings") or {}).get("shape")
-            _HINTS[key] = interpolation_hints(svc.store.results(tenant, b["batch_id"]),
-                                              tuple(shape) if shape else None)
-        out["interpolation"] = _HINTS[key]
+        out["interpolation"] = batch_hints(svc, tenant, b)
     return out
+
+
+def batch_hints(svc: Service, tenant: str, b: dict) -> dict:
+    """service.batches.interpolation_hints over the results, read a page at a time and cut down to the
+    fields the hints compare (a big batch never sits in memory whole); cached per finished batch."""
+    from ..service.batches import interpolation_hints
+
+    key = (tenant, b["batch_id"])
+    if key in _HINTS:
+        _HINTS.move_to_end(key)
+        return _HINTS[key]
+    rows, offset = [], 0
+    while True:
+        page = svc.store.results(tenant, b["batch_id"], offset=offset, limit=HINTS_PAGE)
+        rows += [_skeleton(r) for r in page]
+        if len(page) < HINTS_PAGE:
+            break
+        offset = page[-1]["index"] + 1
+    shape = (b.get("settings") or {}).get("shape")
+    hints = interpolation_hints(rows, tuple(shape) if shape else None)
+    _HINTS[key] = hints
+    while len(_HINTS) > HINTS_KEPT:
+        _HINTS.popitem(last=False)
+    return hints
+
+
+def _skeleton(r: dict) -> dict:
+    if "error" in r:
+        return {"index": r["index"], "error": r["error"]}
+    keep = ("kind",)
+    return {"index": r["index"], "method": r.get("method"), "lights": [
+        {"type": l.get("type"), "cascades": [
+            {"resolution": c.get("resolution"), "face": c.get("face"),
+             "warp": {k: (c.get("warp") or {}).get(k) for k in keep}} for c in l.get("cascades") or []]}
+        for l in r.get("lights") or []]}
 
 
 # --- serve --------------------------------------------------------------------------------------

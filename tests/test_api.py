@@ -65,6 +65,9 @@ def test_upload_answers_what_the_loader_found(api, scene):
     # the same bytes as multipart: the same id (a content hash), 200 not 201, nothing reloaded
     again = api.post("/v1/scenes", files={"file": ("other-name.usda", DEMO.read_bytes(), "application/octet-stream")})
     assert again.status_code == 200 and again.json()["scene_id"] == scene["scene_id"] and again.json()["created"] is False
+    by_header = api.post("/v1/scenes", content=DEMO.read_bytes(),
+                         headers={"X-Filename": "demo_scene.usda", "Content-Type": "application/octet-stream"})
+    assert by_header.status_code == 200 and by_header.json()["scene_id"] == scene["scene_id"]
     got = api.get(f"/v1/scenes/{scene['scene_id']}").json()
     assert got["triangles"] == scene["triangles"] and got["scene_hash"] == scene["scene_hash"]
     assert scene["scene_id"] in [s["scene_id"] for s in api.get("/v1/scenes").json()["scenes"]]
