@@ -738,7 +738,8 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
             "resolution")}]}]})
         methods = list(dict.fromkeys(req.methods))
         with svc.heavy(), solver_errors():
-            res = compare_methods(entry, rig, methods, screen=req.screen)
+            res = compare_methods(entry, rig, methods, screen=req.screen,
+                                  solve_options={"time_budget_ms": svc.settings.max_time_budget_ms})
         return json_response(res)
 
     @app.post("/v1/analyze", summary="Lloyd's scene-independent critical resolution and storage factors",

@@ -73,6 +73,19 @@ def test_upload_answers_what_the_loader_found(api, scene):
     assert scene["scene_id"] in [s["scene_id"] for s in api.get("/v1/scenes").json()["scenes"]]
 
 
+def test_upload_usdz_package(api, scene, tmp_path):
+    from pxr import Sdf, UsdUtils
+
+    copy = tmp_path / "demo_scene.usda"
+    copy.write_bytes(DEMO.read_bytes())
+    assert UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(copy)), str(tmp_path / "demo.usdz"))
+    r = api.post("/v1/scenes", files={"file": ("demo.usdz", (tmp_path / "demo.usdz").read_bytes())})
+    assert r.status_code == 201, r.text
+    info = r.json()
+    assert info["triangles"] == scene["triangles"] and info["scene_id"] != scene["scene_id"]
+    assert info["filename"] == "demo.usdz" and info["warnings"] == []
+
+
 def test_upload_errors_name_the_field(api):
     err = error_of(api.post("/v1/scenes", content=b"#usda 1.0\n", headers={"Content-Type": "application/octet-stream"}),
                    422)
