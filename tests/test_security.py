@@ -111,6 +111,23 @@ def test_upload_referencing_a_file_elsewhere_is_refused_with_a_warning(server):
     assert info["cameras"] == [] and info["lights"] == []  # the demo's camera and sun stayed outside
 
 
+def test_usdz_entry_with_a_traversal_name_is_refused_with_a_warning(server):
+    import io
+    import zipfile
+
+    root = BOX % '    def "Evil" (\n        prepend references = @../evil.usda@\n    ) {}\n'
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as z:
+        z.writestr("root.usda", root)
+        z.writestr("../evil.usda", DEMO.read_text())
+    r = httpx.post(f"{server.base}/v1/scenes", params={"filename": "evil.usdz"}, content=buf.getvalue(),
+                   headers=auth("alice"), timeout=60)
+    assert r.status_code == 201, r.text
+    info = r.json()
+    assert info["triangles"] == 14 and info["cameras"] == []
+    assert any("unsafe names" in w and "../evil.usda" in w for w in info["warnings"]), info["warnings"]
+
+
 def test_upload_size_limit_413(server):
     big = (BOX % "") + "#" * 25000 + "\n"
     err = error_of(post_scene(server.base, "alice", big), 413)
