@@ -222,17 +222,20 @@ class Service:
             self.runner.shutdown()
 
     def warm_up(self) -> None:
-        """Load the warm-up scenes and run one optimize each, so the kernels are compiled before /healthz is 200."""
+        """Load the warm-up scenes, run one optimize and one small evaluate each, so the kernels are compiled
+        (or loaded from Dr.Jit's disk cache) before /healthz is 200."""
+        from ..service.evaluation import evaluate_solution
         from ..service.scenes import SCENES
         from ..service.solve import solve
 
         t0 = time.perf_counter()
         for path in self.settings.warm_scenes or [str(DEMO_SCENE)]:
             try:
-                entry = SCENES.get(path, sandbox=True)
+                entry = SCENES.get(path)  # the operator's own files: local mode, not the upload sandbox
                 rig = warm_rig(entry.loaded, path)
                 if rig is not None:
-                    solve(entry, rig, method="optimized")
+                    sol = solve(entry, rig, method="optimized")
+                    evaluate_solution(entry, rig, sol, screen=(160, 90))  # the ground-truth kernels too
             except Exception as e:  # a bad warm-up scene must not take the service down
                 self.warm_errors[str(path)] = f"{type(e).__name__}: {e}"
                 log.error("warm-up failed", extra={"fields": {"scene": str(path), "error": str(e)}})
