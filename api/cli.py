@@ -430,7 +430,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("serve", help="start the REST service")
     sp.add_argument("--host", default=None, help="default 127.0.0.1; another address needs tokens configured")
     sp.add_argument("--port", type=int, default=None, help="default 8000")
-    sp.add_argument("--data-dir", default=None, help="scene files and the SQLite database (default ./shadowopt-data)")
+    sp.add_argument("--data-dir", default=None, help="scene files and the SQLite database (default ./data)")
     sp.add_argument("--config", default=None, help="settings file (TOML or JSON): tokens, limits, batch backend")
     sp.add_argument("--scene", action="append", default=None, help="scene to warm up with before /healthz is 200 "
                     "(repeatable; default: the demo)")

@@ -20,7 +20,7 @@ class SettingsError(ValueError):
 
 @dataclass
 class Settings:
-    data_dir: str = "shadowopt-data"
+    data_dir: str = "data"  # relative to the working directory (git-ignored in the repository)
     host: str = "127.0.0.1"
     port: int = 8000
     tokens: dict[str, str] = field(default_factory=dict)  # name -> token
