@@ -232,3 +232,26 @@ def test_batch_camera_path_form_and_cancel(api, scene):
     kept = lines(api.get(f"/v1/batches/{bid}/results"))
     assert [x["index"] for x in kept] == sorted({x["index"] for x in kept}) and len(kept) == st["done"] + st["failed"]
     assert error_of(api.get("/v1/batches/0123456789abcdef"), 404)["code"] == "batch_not_found"
+
+
+def test_solver_work_does_not_block_the_event_loop(api, scene, server):
+    import json as _json
+    import threading
+
+    from serverkit import REPO
+
+    rig = _json.loads((REPO / "configs" / "demo_rig.json").read_text())  # 1280x720, 2048^2: ~1 s of ground truth
+    sol = api.post("/v1/optimize", json={"scene_id": scene["scene_id"], "rig": rig, "method": "focused"}).json()
+    done = {}
+    worker = threading.Thread(target=lambda: done.setdefault("r", api.post(
+        "/v1/evaluate", json={"scene_id": scene["scene_id"], "rig": rig, "solution": sol})))
+    worker.start()
+    latencies = []
+    while worker.is_alive():
+        t0 = time.perf_counter()
+        assert httpx.get(server.base + "/healthz").status_code == 200
+        latencies.append(time.perf_counter() - t0)
+        time.sleep(0.02)
+    worker.join()
+    assert done["r"].status_code == 200 and len(latencies) >= 5
+    assert max(latencies) < 0.5, latencies  # answered while the evaluate ran in a worker thread
