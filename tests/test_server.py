@@ -135,3 +135,21 @@ def test_serve_bad_config_exits_2(tmp_path):
     r = subprocess.run([str(exe), "serve", "--config", str(tmp_path / "c.toml")], env=env, capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 2 and "max_queue: must be at least 1" in r.stderr
+
+
+def test_health_is_503_with_retry_after_until_warm(tmp_path):
+    import asyncio
+
+    from shadowopt.api.server import create_app
+
+    app = create_app(Settings(data_dir=str(tmp_path / "d")))  # in process, no lifespan: nothing has warmed up
+
+    async def health():
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://t") as c:
+            return await c.get("/healthz")
+
+    r = asyncio.run(health())
+    assert r.status_code == 503 and r.headers["retry-after"] == "1"
+    assert r.json()["status"] == "warming" and r.json()["error"]["code"] == "warming_up"
+    app.state.service.ready.set()
+    assert asyncio.run(health()).status_code == 200
