@@ -6,7 +6,6 @@ Every 4xx is `{"error": {"code", "message", "field"}}` and is listed in the rout
 The solver work runs in worker threads (never on the event loop), at most `solve_threads` at a time.
 """
 
-import asyncio
 import base64
 import contextlib
 import hmac

@@ -6,7 +6,7 @@ import time
 
 import httpx
 import pytest
-from serverkit import DEMO, REPO, TINY_RIG, auth, running, upload
+from serverkit import DEMO, REPO, auth, running, upload
 
 LIMITS = {"SHADOWOPT_MAX_UPLOAD_BYTES": "20000", "SHADOWOPT_MAX_TRIANGLES": "1000", "SHADOWOPT_MAX_QUEUE": "6",
           "SHADOWOPT_RATE_LIMIT_PER_S": "2", "SHADOWOPT_RATE_LIMIT_BURST": "40", "SHADOWOPT_BATCH_WORKERS": "1",
