@@ -37,7 +37,7 @@ from .baselines import PAD, _min_extent, _with_bias, baseline, directional_view
 from .cameras import Camera
 from .fitting import box_corners, convex_hull_2d, light_plane_hull, min_area_rectangle, ortho, padded, rotation_z, to_view
 from .lights import DirectionalLight, SpotLight
-from .metric import DeviceSamples, log_to_device, matrix_to_device, objective, recentre
+from .metric import DeviceSamples, log_to_device, matrix_to_device, objective, recentre, serial_kernels
 from .samples import Samples
 from .shadow_map import ShadowMap
 from .warp import log_warp
@@ -409,6 +409,7 @@ def _start_x(prob: Problem, smap: ShadowMap) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ entry point
+@serial_kernels()
 def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receivers: np.ndarray, casters_bounds,
              resolution=(2048, 2048), method: str = DEFAULT_METHOD, x0=None, time_budget_ms: float | None = None,
              starts=START_NAMES, maxiter: int = 30, gradient: str = "ad", affine: str = "parallelogram",
@@ -671,6 +672,7 @@ def _cg07_linesearch(prob: Problem, x: np.ndarray, maxiter: int) -> int:
     return it
 
 
+@serial_kernels()
 def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarray, casters_bounds,
                    resolution=(2048, 2048), cascades: int = 1, splits: str = "practical", split_lambda: float = 0.5,
                    texel_budget: int | None = None, allow_log: bool = False, solver: str = DEFAULT_METHOD,

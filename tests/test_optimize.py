@@ -315,3 +315,32 @@ def test_every_solver_converges_on_the_demo_scene(demo_problem, method):
     assert r.success, r.message
     assert r.fun <= 1.05 * _CACHE["demo"]["best"], (method, r.fun, _CACHE["demo"]["best"])
     assert r.fun <= min(r.starts.values()) * (1 + 1e-12)
+
+
+def test_serial_kernels_restores_the_thread_pool_when_the_last_user_leaves():
+    """Solves run Dr.Jit's kernels on the calling thread; nested and concurrent users share that, and
+    the pool's size comes back afterwards (an evaluate after a solve is parallel again)."""
+    import threading
+
+    import drjit as dr
+
+    from shadowopt.solvers.metric import serial_kernels
+
+    before = dr.thread_count()
+    inside, release = threading.Event(), threading.Event()
+
+    def other_user():
+        with serial_kernels():
+            inside.set()
+            release.wait(10)
+
+    t = threading.Thread(target=other_user)
+    with serial_kernels():
+        with serial_kernels():
+            assert dr.thread_count() == 1
+        t.start()
+        assert inside.wait(10)
+    assert dr.thread_count() == 1  # the other thread is still inside
+    release.set()
+    t.join(10)
+    assert dr.thread_count() == before
