@@ -68,6 +68,16 @@ class DeviceSamples:
         self.w = f64(samples.weight)
 
 
+def device_samples(samples: Samples, origin: np.ndarray | None = None) -> DeviceSamples:
+    """The samples on the device, uploaded once per Samples object and origin."""
+    origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
+    key = origin.tobytes()
+    ds = samples._device.get(key)
+    if ds is None:
+        ds = samples._device[key] = DeviceSamples(samples, origin)
+    return ds
+
+
 def recentre(matrix: np.ndarray, origin: np.ndarray) -> np.ndarray:
     """P acting on points relative to `origin`: P @ T(origin)."""
     t = np.eye(4)
@@ -134,8 +144,11 @@ def log_to_device(smap: ShadowMap):
 
 def per_sample(smap: ShadowMap, ds: DeviceSamples):
     """NumPy (h, m, valid) for one map over device samples."""
+    import drjit as dr
+
     P = matrix_to_device(recentre(smap.matrix, ds.origin))
     h, m, valid = footprint(P, smap.resolution, log_to_device(smap), ds)
+    dr.eval(h, m, valid)  # one kernel for the three
     return np.array(h), np.array(m), np.array(valid, dtype=bool)
 
 
@@ -152,7 +165,7 @@ def per_sample_maps(maps: list[ShadowMap], samples: Samples, origin: np.ndarray 
         sel = idx == k
         if not sel.any():
             continue
-        ds = DeviceSamples(samples.subset(sel), origin)
+        ds = device_samples(samples if sel.all() else samples.subset(sel), origin)
         hk, mk, ok = per_sample(smap, ds)
         hk[~ok] = np.inf
         mk[~ok] = np.inf

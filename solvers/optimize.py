@@ -37,7 +37,7 @@ from .baselines import PAD, _min_extent, _with_bias, baseline, directional_view
 from .cameras import Camera
 from .fitting import box_corners, convex_hull_2d, light_plane_hull, min_area_rectangle, ortho, padded, rotation_z, to_view
 from .lights import DirectionalLight, SpotLight
-from .metric import DeviceSamples, log_to_device, matrix_to_device, objective, recentre, serial_kernels
+from .metric import device_samples, log_to_device, matrix_to_device, objective, recentre, serial_kernels
 from .samples import Samples
 from .shadow_map import ShadowMap
 from .warp import log_warp
@@ -170,7 +170,7 @@ class Problem:
         self.n_hull = len(hull) if len(extremes) else 0  # 0: no ordered hull (few or degenerate points)
         self.fit_pts = np.vstack([hull, extremes])
         self.corners = box_corners(np.asarray(casters_bounds[0], float), np.asarray(casters_bounds[1], float))
-        self.ds = DeviceSamples(samples, camera.position)
+        self.ds = device_samples(samples, camera.position)
         self.view0 = directional_view(light, camera)
         self.deadline = deadline
         self.gradient_mode = gradient
@@ -327,7 +327,7 @@ class SpotProblem(Problem):
             raise ValueError("no receivers and no samples to fit the map to")
         self.fit_pts = fit
         self.corners = box_corners(np.asarray(casters_bounds[0], float), np.asarray(casters_bounds[1], float))
-        self.ds = DeviceSamples(samples, camera.position)
+        self.ds = device_samples(samples, camera.position)
         self.view0 = spot_view(light, camera)
         self.deadline, self.gradient_mode, self.affine = deadline, "fd", affine
         self.nfev = self.njev = 0
@@ -729,7 +729,7 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
     for k, rmap in enumerate(ref):
         lo, hi = rmap.split
         sel_s = (samples.view_depth >= lo) & (samples.view_depth <= hi)
-        sub = samples.subset(sel_s)
+        sub = samples if sel_s.all() else samples.subset(sel_s)
         sel_r = np.ones(len(receivers), bool)
         if isinstance(light, DirectionalLight) and len(receivers) > 0:
             sel_r = (depth + slack >= (lo if k else -np.inf)) & (depth - slack <= (hi if k < len(ref) - 1 else np.inf))

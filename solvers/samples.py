@@ -16,7 +16,7 @@ aliasing on near edge-on surfaces is then large but finite; no light matrix coul
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -37,9 +37,14 @@ class Samples:
     weight: np.ndarray  # (N,)
     pixel: np.ndarray  # (N, 2) coarse-buffer (row, col) each sample came from
     kind: str  # "boundary" or "all_facing" or "none"
+    # Dr.Jit copies by origin (solvers.metric.device_samples): the arrays above are never modified.
+    _device: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __len__(self) -> int:
         return int(self.position.shape[0])
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_device": {}}  # device copies stay in their process
 
     def subset(self, mask: np.ndarray) -> "Samples":
         return Samples(self.position[mask], self.normal[mask], self.dx[mask], self.dy[mask],
