@@ -65,6 +65,7 @@ sign) -> no warp; degenerate extents (one point, a line) are padded to a minimum
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -332,6 +333,28 @@ def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_
     receiver (a hardware slope-scaled or normal-offset bias in texel units); constant_texels = 1.5,
     slope_texels = 1. For engines with a fixed bias in metres, fixed_constant_m and fixed_slope_m
     are those units times the 95th-percentile texel world size of the map at its receivers."""
+    return fit_baseline(method, camera, light, receivers, casters_bounds, resolution, cascades, splits, split_lambda,
+                        texel_budget, allow_log, receiver_slack, split_at, hull_cache).biased(light)
+
+
+@dataclass
+class Fitted:
+    """A baseline's maps before their depth bias, with the receivers each covers."""
+
+    maps: list[ShadowMap]
+    parts: list[np.ndarray]  # per map: the receivers it was fitted to (its bias is measured on them)
+    fit_points: list[np.ndarray | None]  # per directional map: those receivers' light-plane hull and depth extremes
+
+    def biased(self, light) -> list[ShadowMap]:
+        return [_with_bias(m, p, light) for m, p in zip(self.maps, self.parts)]
+
+
+def fit_baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_bounds=None,
+                 resolution=(2048, 2048), cascades: int = 1, splits: str = "practical", split_lambda: float = 0.5,
+                 texel_budget: int | None = None, allow_log: bool = True,
+                 receiver_slack: np.ndarray | None = None, split_at=None, hull_cache: dict | None = None) -> Fitted:
+    """baseline() without the depth bias (the metric does not depend on it: a caller that scores
+    several candidates biases only the one it keeps, Fitted.biased or _with_bias on Fitted.parts)."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
@@ -356,7 +379,7 @@ def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_
     if maps is not None:
         for m in maps:
             m.split = (0.0, float(camera.far))
-        return [_with_bias(m, receivers, light) for m in maps]
+        return Fitted(maps, [receivers] * len(maps), [None] * len(maps))
 
     depth = (receivers - camera.position) @ camera.forward if len(receivers) else np.zeros(0)
     if len(receivers):
@@ -370,7 +393,7 @@ def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_
         if len(inner) != k - 1 or not np.all(np.isfinite(inner)):
             raise ValueError(f"split_at: need {k - 1} finite inner split depths, got {len(inner)}")
         z[1:-1] = np.clip(inner, z_lo, z_hi)
-    maps, parts = [], []
+    maps, parts, fits = [], [], []
     for i in range(k):
         lo_z = -np.inf if i == 0 else z[i]
         hi_z = np.inf if i == k - 1 else z[i + 1]
@@ -388,9 +411,10 @@ def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_
         smap.split = (0.0 if i == 0 else float(z[i]), float(camera.far if i == k - 1 else z[i + 1]))
         maps.append(smap)
         parts.append(part)
+        fits.append(fit_part)
     if texel_budget:
         _allocate(maps, camera, receivers, depth, texel_budget, light)
-    return [_with_bias(m, p, light) for m, p in zip(maps, parts)]
+    return Fitted(maps, parts, fits)
 
 
 def _frustum_slice(camera: Camera, z0: float, z1: float) -> np.ndarray:

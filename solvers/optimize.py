@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .baselines import PAD, _min_extent, _with_bias, baseline, directional_view
+from .baselines import PAD, _min_extent, _with_bias, baseline, directional_view, fit_baseline
 from .cameras import Camera
 from .fitting import box_corners, convex_hull_2d, light_plane_hull, min_area_rectangle, ortho, padded, rotation_z, to_view
 from .lights import DirectionalLight, SpotLight
@@ -413,7 +413,7 @@ def _start_x(prob: Problem, smap: ShadowMap) -> np.ndarray:
 def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receivers: np.ndarray, casters_bounds,
              resolution=(2048, 2048), method: str = DEFAULT_METHOD, x0=None, time_budget_ms: float | None = None,
              starts=START_NAMES, maxiter: int = 30, gradient: str = "ad", affine: str = "parallelogram",
-             start_maps_given: dict | None = None, log: bool = False) -> OptimizeResult:
+             start_maps_given: dict | None = None, log: bool = False, bias: bool = True) -> OptimizeResult:
     """Minimise the metric's objective over the light's projective parameters x = (φ, u).
 
     Every start (and `x0`, a previous solution's x, when given) is evaluated first, even past the
@@ -421,7 +421,8 @@ def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receiver
     maps included. `time_budget_ms`: stop early, return the best so far with success=False.
     `start_maps_given`: {name: ShadowMap} baseline maps already fitted to these receivers (used as the
     starts instead of fitting them again). `log`: search LogPSM's family instead (the perspective
-    part's (φ, u) with the log warp on t, Lloyd et al. 2007 eq. 78; engines must apply it in a shader)."""
+    part's (φ, u) with the log warp on t, Lloyd et al. 2007 eq. 78; engines must apply it in a shader).
+    `bias=False`: the map is returned without its depth bias (a caller that biases what it keeps)."""
     if method not in METHODS + EXTRA_METHODS:
         raise ValueError(f"method: unknown solver {method!r} (known: {', '.join(METHODS + EXTRA_METHODS)})")
     if not optimizable(light):
@@ -431,7 +432,7 @@ def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receiver
     deadline = None if time_budget_ms is None else t0 + float(time_budget_ms) / 1e3
     if isinstance(light, SpotLight):
         return _minimize_spot(camera, light, samples, receivers, casters_bounds, resolution, method, x0, deadline,
-                              maxiter, affine, t0)
+                              maxiter, affine, t0, bias)
     prob = Problem(camera, light, samples, receivers, casters_bounds, resolution, gradient=gradient, affine=affine,
                    log=log)
     # The starts fit the same hull vertices as the problem: the same min/max, a fraction of the points.
@@ -468,7 +469,7 @@ def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receiver
         if success:
             message = f"converged; the {bname} baseline map is best"
     smap.split = (0.0, float(camera.far))
-    if len(receivers):
+    if bias and len(receivers):
         _with_bias(smap, np.asarray(receivers, float).reshape(-1, 3), light)
     return OptimizeResult(np.asarray(xb, float), float(f), int(nit), prob.nfev, (time.perf_counter() - t0) * 1e3,
                           success, message, smap, start, {**base_vals, **{f"{k}@family": v for k, v in fam_vals.items()}},
@@ -506,7 +507,7 @@ def optimizable(light) -> bool:
 
 
 def _minimize_spot(camera, light, samples, receivers, casters_bounds, resolution, method, x0, deadline, maxiter,
-                   affine, t0) -> OptimizeResult:
+                   affine, t0, bias=True) -> OptimizeResult:
     """minimize() for a spot light: starts are the spot's own axis (the focused baseline's map, the
     family's x = 0) and the axis through the receivers' centroid."""
     prob = SpotProblem(camera, light, samples, receivers, casters_bounds, resolution, affine=affine)
@@ -543,11 +544,18 @@ def _minimize_spot(camera, light, samples, receivers, casters_bounds, resolution
     else:
         smap, start = prob.map_for(xb), best_start
     smap.split = (0.0, float(camera.far))
-    if len(receivers):
+    if bias and len(receivers):
         _with_bias(smap, np.asarray(receivers, float).reshape(-1, 3), light)
     return OptimizeResult(np.asarray(xb, float), float(f), int(nit), prob.nfev, (time.perf_counter() - t0) * 1e3,
                           success, message, smap, start, {"focused": base_val, **{f"{k}@family": v for k, v in fam_vals.items()}},
                           prob.njev)
+
+
+def _note_bias(res: OptimizeResult, starts: dict, bias_points: dict, k: int, part: np.ndarray) -> None:
+    """minimize() may return a start (baseline) map itself: kept, it is biased on this cascade's receivers."""
+    for name, smap in starts.items():
+        if res.map is smap and len(part):
+            bias_points[name][k] = part
 
 
 def _run(method: str, prob: Problem, x: np.ndarray, maxiter: int) -> int:
@@ -704,9 +712,10 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
     common = dict(resolution=resolution, cascades=cascades, splits=splits, split_lambda=split_lambda,
                   texel_budget=texel_budget, receiver_slack=receiver_slack, split_at=split_at)
     hulls: dict = {}  # the receivers' light-plane hull per cascade, shared by the four methods
-    per_method = {m: baseline(m, camera, light, receivers, casters_bounds, allow_log=allow_log and m == "logpsm",
-                              hull_cache=hulls,
-                              **common) for m in BASELINES}
+    fitted = {m: fit_baseline(m, camera, light, receivers, casters_bounds, allow_log=allow_log and m == "logpsm",
+                              hull_cache=hulls, **common) for m in BASELINES}
+    per_method = {m: f.maps for m, f in fitted.items()}
+    bias_points = {m: list(f.parts) for m, f in fitted.items()}  # per map, what its bias is measured on if kept
     ref = per_method["focused"]
     proxy = single_map_spot(light, receivers)
     if proxy is not None and ref and ref[0].face is not None:
@@ -719,6 +728,7 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
             sj["point_light"] = {"single_map_cone_deg": proxy.cone_deg, "cube_objective": cube}
             return maps, sj
     if ref and ref[0].face is not None:  # a cube map (point light, wide spot): fixed 90° faces, nothing to search
+        ref = fitted["focused"].biased(light)
         return ref, {"name": solver, "time_ms": round((time.perf_counter() - t0) * 1e3, 3), "nit": 0, "nfev": 0,
                      "fun": float(predicted_error(ref, samples, camera.position)["objective"]), "success": True,
                      "converged": True, "message": "cube map: six fixed 90-degree faces, no projective parameters",
@@ -733,25 +743,28 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
         sel_r = np.ones(len(receivers), bool)
         if isinstance(light, DirectionalLight) and len(receivers) > 0:
             sel_r = (depth + slack >= (lo if k else -np.inf)) & (depth - slack <= (hi if k < len(ref) - 1 else np.inf))
-        for maps in per_method.values():  # one allocation (focused's) for every candidate: the budget holds
+        part_r = receivers[sel_r]
+        for m, maps in per_method.items():  # one allocation (focused's) for every candidate: the budget holds
             if tuple(maps[k].resolution) != tuple(rmap.resolution) and maps[k].face is None:
                 maps[k].resolution = rmap.resolution
-                _with_bias(maps[k], receivers[sel_r] if sel_r.any() else receivers, light)
+                bias_points[m][k] = part_r if sel_r.any() else receivers
         scores = {m: predicted_error([maps[k]], sub, camera.position)["objective"] for m, maps in per_method.items()}
         best_name = min(scores, key=scores.get)
         best_map, best_f = per_method[best_name][k], scores[best_name]
         entry = {"cascade": k, "baselines": {m: float(v) for m, v in scores.items()}}
         if optimizable(light) and len(sub) > 0 and len(receivers) > 0:
             left = None if time_budget_ms is None else max(1.0, time_budget_ms - (time.perf_counter() - t0) * 1e3)
-            res = minimize(camera, light, sub, receivers[sel_r], casters_bounds, rmap.resolution, solver,
+            starts = {m: per_method[m][k] for m in ("focused", "lispsm", "logpsm")}
+            res = minimize(camera, light, sub, part_r, casters_bounds, rmap.resolution, solver,
                            x0=x0[k] if x0 is not None and k < len(x0) else None, time_budget_ms=left,
-                           start_maps_given={m: per_method[m][k] for m in ("focused", "lispsm", "logpsm")})
+                           start_maps_given=starts, bias=False)
+            _note_bias(res, starts, bias_points, k, part_r)
             entry["result"] = res.to_json()
             if allow_log and isinstance(light, DirectionalLight):  # LogPSM's family too; the lower objective wins
                 left = None if time_budget_ms is None else max(1.0, time_budget_ms - (time.perf_counter() - t0) * 1e3)
-                res_log = minimize(camera, light, sub, receivers[sel_r], casters_bounds, rmap.resolution, solver,
-                                   time_budget_ms=left, log=True,
-                                   start_maps_given={m: per_method[m][k] for m in ("focused", "lispsm", "logpsm")})
+                res_log = minimize(camera, light, sub, part_r, casters_bounds, rmap.resolution, solver,
+                                   time_budget_ms=left, log=True, start_maps_given=starts, bias=False)
+                _note_bias(res_log, starts, bias_points, k, part_r)
                 entry["result_log"] = res_log.to_json()
                 if res_log.map is not None and res_log.fun < res.fun:
                     res = res_log
@@ -762,7 +775,7 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
                 best_map.eta = None
         prev = previous_x[k] if previous_x is not None and k < len(previous_x) else None
         if prev is not None and isinstance(light, DirectionalLight) and len(sub) > 0 and len(receivers) > 0:
-            refit = Problem(camera, light, sub, receivers[sel_r], casters_bounds, rmap.resolution).map_for(
+            refit = Problem(camera, light, sub, part_r, casters_bounds, rmap.resolution).map_for(
                 np.asarray(prev, dtype=np.float64))
             h_new, _, _ = per_sample_maps([best_map], sub, camera.position)
             h_old, _, _ = per_sample_maps([refit], sub, camera.position)
@@ -778,7 +791,9 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
         best_map.split = rmap.split
         if best_name == "optimized":
             best_map.resolution = rmap.resolution
-            _with_bias(best_map, receivers[sel_r], light)
+            _with_bias(best_map, part_r, light)
+        else:
+            _with_bias(best_map, bias_points[best_name][k], light)
         entry["chosen"] = best_name
         entry["objective"] = float(best_f)
         out_maps.append(best_map)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .baselines import baseline
+from .baselines import fit_baseline
 from .cascades import split_depths
 from .metric import predicted_error
 from .samples import Samples
@@ -75,8 +75,8 @@ def optimize_splits(camera, light, samples: Samples, receivers: np.ndarray, cast
     def f(s) -> float:
         nonlocal nfev
         nfev += 1
-        maps = baseline(method, camera, light, rec, casters_bounds, resolution, cascades=k,
-                        texel_budget=texel_budget, allow_log=False, receiver_slack=slack, split_at=split_at(s))
+        maps = fit_baseline(method, camera, light, rec, casters_bounds, resolution, cascades=k, texel_budget=texel_budget,
+                            allow_log=False, receiver_slack=slack, split_at=split_at(s)).maps  # no bias: not scored
         v = predicted_error(maps, samples, camera.position)["objective"]
         return v if math.isfinite(v) else 1e300
 

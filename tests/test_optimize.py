@@ -344,3 +344,23 @@ def test_serial_kernels_restores_the_thread_pool_when_the_last_user_leaves():
     release.set()
     t.join(10)
     assert dr.thread_count() == before
+
+
+def test_every_candidate_map_kept_carries_its_depth_bias(demo_problem):
+    """optimized_maps biases only the map it keeps per cascade: every returned map has the texel-unit
+    bias of the baselines' rule, and a kept baseline map the same bias as baseline() gives it."""
+    from shadowopt.solvers.baselines import METHODS as BASELINES
+    from shadowopt.solvers.baselines import fit_baseline
+    from shadowopt.solvers.optimize import optimized_maps
+
+    cam, p, bounds = demo_problem
+    opts = dict(resolution=(512, 512), cascades=3, receiver_slack=p.receiver_slack)
+    for m in BASELINES:
+        biased = fit_baseline(m, cam, p.light, p.receivers, bounds, **opts).biased(p.light)
+        assert [b.depth_bias for b in biased] == [b.depth_bias for b in baseline(m, cam, p.light, p.receivers, bounds, **opts)]
+    maps, info = optimized_maps(cam, p.light, p.samples, p.receivers, bounds, **opts)
+    for smap, entry in zip(maps, info["cascades"]):
+        assert smap.depth_bias["texel_world_size"] > 0 and math.isfinite(smap.depth_bias["texel_world_size"])
+        if entry["chosen"] != "optimized":
+            k = entry["cascade"]
+            assert smap.depth_bias == baseline(entry["chosen"], cam, p.light, p.receivers, bounds, **opts)[k].depth_bias
