@@ -96,10 +96,15 @@ def _robust_difference(fm, f0, fp, h):
 AFFINE_FITS = ("axis", "rectangle", "parallelogram")
 
 
+def _next(a: np.ndarray) -> np.ndarray:
+    """np.roll(a, -1, axis=0) (each vertex's successor), without roll's overhead."""
+    return np.concatenate((a[1:], a[:1]))
+
+
 def _ccw(hull: np.ndarray) -> np.ndarray:
     """Hull vertices in counter-clockwise order (reversed if given clockwise)."""
     x, y = hull[:, 0], hull[:, 1]
-    area2 = float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+    area2 = float(np.dot(x, _next(y)) - np.dot(y, _next(x)))
     return hull if area2 >= 0 else hull[::-1]
 
 
@@ -124,9 +129,11 @@ def _affine_fit(q: np.ndarray, how: str, resolution, is_hull: bool = False) -> t
         c, s = math.cos(a), math.sin(a)
         C[:2, :2] = [[c, s], [-s, c]]
     elif how == "parallelogram":
-        e = np.roll(hull, -1, axis=0) - hull
-        e = e[np.linalg.norm(e, axis=1) > 0]
-        n = np.column_stack([-e[:, 1], e[:, 0]]) / np.linalg.norm(e, axis=1, keepdims=True)
+        e = _next(hull) - hull
+        length = np.sqrt(e[:, 0] * e[:, 0] + e[:, 1] * e[:, 1])  # np.linalg.norm(e, axis=1), bit for bit
+        if not (length > 0).all():
+            e, length = e[length > 0], length[length > 0]
+        n = np.column_stack([-e[:, 1], e[:, 0]]) / length[:, None]
         proj = hull @ n.T  # (hull, edges)
         width = proj.max(0) - proj.min(0)
         sin = np.abs(n[:, 0, None] * n[None, :, 1] - n[:, 1, None] * n[None, :, 0])
@@ -186,33 +193,52 @@ class Problem:
     # -------------------------------------------------------------- the family
     def fit(self, x):
         """(view, projection, light_depth, n') of the map with projective parameters x = (φ, u)."""
+        view, proj, v, dv = self._fit(x)
+        d = np.concatenate([-v[:, 2], -dv[:, 2]])
+        u = float(x[1])
+        y0, y1 = self._warp_range(v)
+        n_prime = math.inf if abs(u) < 1e-12 else (y1 - y0) / math.expm1(u)
+        return view, proj, (float(d.min()), float(-v[:, 2].max())), n_prime
+
+    def _fit(self, x):
+        """(view, projection, fit points and corners in the view) for x = (φ, u)."""
         phi, u = float(x[0]), float(x[1])
         view = rotation_z(phi) @ self.view0  # warp axis: +Y of the rotated frame
         v = to_view(view, self.fit_pts)
-        y0, y1 = padded(v[:, 1].min(keepdims=True), v[:, 1].max(keepdims=True), PAD, _min_extent(v[:, 1:2]))
-        y0, y1 = float(y0[0]), float(y1[0])
-        D = y1 - y0
-        k = math.expm1(u) / D  # w' = 1 + k (y - y0): 1 at the near end, e^u at the far end
-        W = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, -y0], [0, 0, 1.0, 0], [0, k, 0, 1.0 - k * y0]])
-        # Depth extremes: the fit points and the scene corners slid along y into [y0, y1] (a caster
-        # that shadows a receiver lies on the receiver's light ray, so within that range).
         dv = to_view(view, self.corners)
-        allp = np.vstack([v] + [np.column_stack([dv[:, 0], np.full(len(dv), y), dv[:, 2]]) for y in (y0, y1)])
-        w_all = 1.0 + k * (allp[:, 1] - y0)
-        Z = allp[:, 2] / w_all  # depth: z / w' is linear along each light ray (w' is constant on it)
+        y0, y1 = self._warp_range(v)
+        k = math.expm1(u) / (y1 - y0)  # w' = 1 + k (y - y0): 1 at the near end, e^u at the far end
+        W = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, -y0], [0, 0, 1.0, 0], [0, k, 0, 1.0 - k * y0]])
         wv = 1.0 + k * (v[:, 1] - y0)
-        q = np.column_stack([v[:, 0] / wv, (v[:, 1] - y0) / wv])
-        C, lo, hi = _affine_fit(q[:self.n_hull] if self.n_hull else q, self.affine, self.resolution, self.n_hull > 0)
-        lo, hi = padded(lo, hi, PAD, _min_extent(np.vstack([lo, hi])))
-        near, far = float((-Z).min()), float((-Z).max())
+        near, far = self._depth_range(v, dv, wv, k, y0, y1)
+        h = self.n_hull or len(v)
+        q = np.column_stack([v[:h, 0] / wv[:h], (v[:h, 1] - y0) / wv[:h]])
+        C, lo, hi = _affine_fit(q, self.affine, self.resolution, self.n_hull > 0)
+        lo, hi = padded(lo, hi, PAD, max(1e-6, 1e-6 * max(float(np.abs(lo).max()), float(np.abs(hi).max()))))
         span = max(far - near, 1e-9 * max(abs(near), abs(far), 1.0))
         proj = ortho(float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), near - 0.01 * span, far + 0.01 * span) @ C @ W
-        d = np.concatenate([-v[:, 2], -dv[:, 2]])
-        n_prime = math.inf if abs(u) < 1e-12 else D / math.expm1(u)
-        return view, proj, (float(d.min()), float(-v[:, 2].max())), n_prime
+        return view, proj, v, dv
+
+    @staticmethod
+    def _warp_range(v: np.ndarray) -> tuple[float, float]:
+        """[y0, y1]: the fit points' padded extent along the warp axis (light-view +Y)."""
+        lo, hi = float(v[:, 1].min()), float(v[:, 1].max())
+        floor = max(1e-6, 1e-6 * float(np.abs(v[:, 1]).max()))  # _min_extent
+        size = hi - lo
+        pad = max(size * PAD, max(floor - size, 0.0) / 2 + 1e-12)  # solvers.fitting.padded
+        return lo - pad, hi + pad
+
+    @staticmethod
+    def _depth_range(v, dv, wv, k: float, y0: float, y1: float) -> tuple[float, float]:
+        """Warped depth extremes: the fit points and the scene corners slid along y to y0 and y1 (a
+        caster that shadows a receiver lies on the receiver's light ray, so within that range); depth
+        z / w' is linear along each light ray (w' is constant on it)."""
+        z = dv[:, 2]
+        Z = (v[:, 2] / wv, z / (1.0 + k * (y0 - y0)), z / (1.0 + k * (y1 - y0)))
+        return -max(float(a.max()) for a in Z), -min(float(a.min()) for a in Z)
 
     def matrix(self, x) -> np.ndarray:
-        view, proj, _, _ = self.fit(x)
+        view, proj, _, _ = self._fit(x)
         return recentre(proj @ view, self.ds.origin)
 
     def map_for(self, x) -> ShadowMap:
