@@ -37,7 +37,8 @@ from .baselines import PAD, _min_extent, _with_bias, baseline, directional_view,
 from .cameras import Camera
 from .fitting import box_corners, convex_hull_2d, light_plane_hull, min_area_rectangle, ortho, padded, rotation_z, to_view
 from .lights import DirectionalLight, SpotLight
-from .metric import device_samples, log_to_device, matrix_to_device, objective, recentre, serial_kernels
+from .metric import (device_samples, log_to_device, matrix_to_device, objective, objective_value, recentre,
+                     serial_kernels)
 from .samples import Samples
 from .shadow_map import ShadowMap
 from .warp import log_warp
@@ -275,7 +276,7 @@ class Problem:
     def eval_matrix(self, M: np.ndarray) -> float:
         """The metric's objective of a recentred matrix (parameters opaque: no recompiles)."""
         self.nfev += 1
-        return float(objective(matrix_to_device(M), self.resolution, None, self.ds)[0])
+        return objective_value(M, self.resolution, self.ds)
 
     def eval_map(self, smap: ShadowMap) -> float:
         """The metric's objective of a map (its log warp included)."""

@@ -364,3 +364,25 @@ def test_every_candidate_map_kept_carries_its_depth_bias(demo_problem):
         if entry["chosen"] != "optimized":
             k = entry["cascade"]
             assert smap.depth_bias == baseline(entry["chosen"], cam, p.light, p.receivers, bounds, **opts)[k].depth_bias
+
+
+def test_frozen_objective_equals_the_traced_one_for_any_size_and_thread(ground):
+    """metric.objective_value (kernels recorded once, replayed) gives the traced objective's value bit
+    for bit, for sample sets of any size and from concurrent threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from shadowopt.solvers.metric import device_samples, matrix_to_device, objective, objective_value, recentre
+
+    cam, pts, s = ground
+    light = DirectionalLight.make(LIGHTS["45deg"])
+    maps = [baseline(m, cam, light, pts, BOUNDS, RES)[0] for m in ("uniform", "focused", "lispsm")]
+    cases = []
+    for n in (1, 2, 37, len(s)):
+        ds = device_samples(s.subset(np.arange(len(s)) < n), cam.position)
+        for smap, res in zip(maps, (RES, (640, 480), (333, 2048))):
+            M = recentre(smap.matrix, ds.origin)
+            cases.append((M, res, ds, float(objective(matrix_to_device(M), res, None, ds)[0])))
+    assert all(objective_value(M, res, ds) == want for M, res, ds, want in cases)
+    with ThreadPoolExecutor(2) as pool:
+        got = list(pool.map(lambda c: objective_value(c[0], c[1], c[2]), cases * 4))
+    assert got == [c[3] for c in cases * 4]
