@@ -323,8 +323,9 @@ def baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_
     how far in view depth the surface around it reaches (a cascade fits every receiver whose
     [depth - slack, depth + slack] meets its split, so the split boundary is covered);
     split_at: the k - 1 inner split depths, given explicitly (optimized splits) instead of `splits`;
-    hull_cache: a dict shared by calls with the same light, receivers and splits (several methods),
-    so each cascade's receivers are reduced to their light-plane hull once.
+    hull_cache: a dict shared by calls with the same camera, light, receivers, slack and splits
+    (several methods), so the receivers are filtered and each cascade's selected and reduced to its
+    light-plane hull once.
 
     Each map's depth_bias follows the one rule the evaluator applies (renderers/ground_truth.py):
     with d the distance along the texel's light ray, a receiver is shadowed iff
@@ -357,10 +358,7 @@ def fit_baseline(method: str, camera: Camera, light, receivers: np.ndarray, cast
     several candidates biases only the one it keeps, Fitted.biased or _with_bias on Fitted.parts)."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
-    receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
-    slack = np.zeros(len(receivers)) if receiver_slack is None else np.asarray(receiver_slack, dtype=np.float64)
-    keep = np.all(np.isfinite(receivers), axis=1)
-    receivers, slack = receivers[keep], slack[keep]
+    receivers, slack, depth = _finite_receivers(camera, receivers, receiver_slack, hull_cache)
     if casters_bounds is None:
         casters_bounds = (receivers.min(0), receivers.max(0)) if len(receivers) else (camera.position - 1, camera.position + 1)
     corners = box_corners(np.asarray(casters_bounds[0], float), np.asarray(casters_bounds[1], float))
@@ -381,7 +379,6 @@ def fit_baseline(method: str, camera: Camera, light, receivers: np.ndarray, cast
             m.split = (0.0, float(camera.far))
         return Fitted(maps, [receivers] * len(maps), [None] * len(maps))
 
-    depth = (receivers - camera.position) @ camera.forward if len(receivers) else np.zeros(0)
     if len(receivers):
         z_lo, z_hi = max(float(depth.min()), camera.near), max(float(depth.max()), camera.near * 1.001)
     else:
@@ -395,18 +392,7 @@ def fit_baseline(method: str, camera: Camera, light, receivers: np.ndarray, cast
         z[1:-1] = np.clip(inner, z_lo, z_hi)
     maps, parts, fits = [], [], []
     for i in range(k):
-        lo_z = -np.inf if i == 0 else z[i]
-        hi_z = np.inf if i == k - 1 else z[i + 1]
-        sel = (depth + slack >= lo_z * (1 - 1e-9)) & (depth - slack <= hi_z * (1 + 1e-9))
-        part = receivers[sel] if len(receivers) else receivers
-        if len(part) == 0 and len(receivers):
-            part = _frustum_slice(camera, z[i], z[i + 1])
-        key = (i, float(z[i]), float(z[i + 1]), len(part))
-        fit_part = hull_cache.get(key) if hull_cache is not None else None
-        if fit_part is None:
-            fit_part = np.vstack(light_plane_hull(light.direction, part))
-            if hull_cache is not None:
-                hull_cache[key] = fit_part
+        part, fit_part = _cascade_part(camera, light, receivers, slack, depth, z, i, hull_cache)
         smap = _directional_map(method, camera, light, fit_part, corners, res, allow_log, (z[i], z[i + 1]))
         smap.split = (0.0 if i == 0 else float(z[i]), float(camera.far if i == k - 1 else z[i + 1]))
         maps.append(smap)
@@ -415,6 +401,39 @@ def fit_baseline(method: str, camera: Camera, light, receivers: np.ndarray, cast
     if texel_budget:
         _allocate(maps, camera, receivers, depth, texel_budget, light)
     return Fitted(maps, parts, fits)
+
+
+def _finite_receivers(camera: Camera, receivers, receiver_slack, cache: dict | None):
+    """(receivers, slack, view depth) of the finite receivers, once per shared cache."""
+    if cache is not None and "finite" in cache:
+        return cache["finite"]
+    receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
+    slack = np.zeros(len(receivers)) if receiver_slack is None else np.asarray(receiver_slack, dtype=np.float64)
+    keep = np.all(np.isfinite(receivers), axis=1)
+    if not keep.all():
+        receivers, slack = receivers[keep], slack[keep]
+    depth = (receivers - camera.position) @ camera.forward if len(receivers) else np.zeros(0)
+    if cache is not None:
+        cache["finite"] = (receivers, slack, depth)
+    return receivers, slack, depth
+
+
+def _cascade_part(camera: Camera, light, receivers, slack, depth, z, i: int, cache: dict | None):
+    """Cascade i's receivers (depth +- slack meets its split; the frustum slice when none does) and
+    their light-plane hull vertices and depth extremes, once per shared cache."""
+    key = ("part", i, float(z[i]), float(z[i + 1]))
+    if cache is not None and key in cache:
+        return cache[key]
+    lo_z = -np.inf if i == 0 else z[i]
+    hi_z = np.inf if i == len(z) - 2 else z[i + 1]
+    sel = (depth + slack >= lo_z * (1 - 1e-9)) & (depth - slack <= hi_z * (1 + 1e-9))
+    part = receivers if sel.all() else receivers[sel]
+    if len(part) == 0 and len(receivers):
+        part = _frustum_slice(camera, z[i], z[i + 1])
+    out = part, np.vstack(light_plane_hull(light.direction, part))
+    if cache is not None:
+        cache[key] = out
+    return out
 
 
 def _frustum_slice(camera: Camera, z0: float, z1: float) -> np.ndarray:
