@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -115,14 +116,19 @@ def maps_error(maps: list[ShadowMap], samples: Samples, origin) -> tuple[dict, l
     return total, per_map
 
 
-def solution_json(entry: SceneEntry, resolved: ResolvedRig, method: str, per_light: list[dict],
-                  timings: dict, settings: dict) -> dict:
+@lru_cache(maxsize=1)
+def software_version() -> str:
     from importlib.metadata import PackageNotFoundError, version
 
     try:
-        ver = version("shadowopt")
+        return version("shadowopt")
     except PackageNotFoundError:
-        ver = "0+unknown"
+        return "0+unknown"
+
+
+def solution_json(entry: SceneEntry, resolved: ResolvedRig, method: str, per_light: list[dict],
+                  timings: dict, settings: dict) -> dict:
+    ver = software_version()
     out = resolved.output
     return {
         "schema_version": SCHEMA_VERSION,

@@ -190,10 +190,9 @@ def error_stats(h: np.ndarray, m: np.ndarray, weight: np.ndarray | None = None) 
     if n == 0:
         return {"objective": 0.0, "mean_m": 0.0, "median_m": 0.0, "p95_m": 0.0, "max_m": 0.0,
                 "frac_m_gt_1": 0.0, "samples": 0}
-    w = np.ones(n) if weight is None else np.asarray(weight, dtype=np.float64)
     finite = np.isfinite(h) & np.isfinite(m)
     out = {
-        "objective": float(np.sum(w * h) / np.sum(w)) if finite.all() else float("inf"),
+        "objective": objective_of(h, m, weight),
         "mean_m": float(np.mean(m)) if finite.all() else float("inf"),
         "median_m": float(np.median(m)),
         "p95_m": float(np.percentile(m, 95)),
@@ -202,6 +201,22 @@ def error_stats(h: np.ndarray, m: np.ndarray, weight: np.ndarray | None = None) 
         "samples": n,
     }
     return out
+
+
+def objective_of(h: np.ndarray, m: np.ndarray, weight: np.ndarray | None = None) -> float:
+    """The `objective` field: the weighted mean of h (inf if any sample's h or m is not finite)."""
+    if len(m) == 0:
+        return 0.0
+    w = np.ones(len(m)) if weight is None else np.asarray(weight, dtype=np.float64)
+    if not (np.isfinite(h) & np.isfinite(m)).all():
+        return float("inf")
+    return float(np.sum(w * h) / np.sum(w))
+
+
+def predicted_objective(maps: list[ShadowMap], samples: Samples, origin: np.ndarray | None = None) -> float:
+    """predicted_error(...)["objective"] alone (no percentiles): to score candidate maps."""
+    h, m, _ = per_sample_maps(maps, samples, origin)
+    return objective_of(h, m, samples.weight)
 
 
 def predicted_error(maps: list[ShadowMap], samples: Samples, origin: np.ndarray | None = None) -> dict:

@@ -721,7 +721,7 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
     cascade), the previous projective parameters are refit to the current receivers and kept unless
     the new map's median h is below `hysteresis` x the refit one's."""
     from .baselines import METHODS as BASELINES
-    from .metric import per_sample_maps, predicted_error
+    from .metric import per_sample_maps, predicted_error, predicted_objective
 
     if solver not in METHODS:
         raise ValueError(f"solver: unknown solver {solver!r} (known: {', '.join(METHODS)})")
@@ -775,7 +775,7 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
             if tuple(maps[k].resolution) != tuple(rmap.resolution) and maps[k].face is None:
                 maps[k].resolution = rmap.resolution
                 bias_points[m][k] = part_r if sel_r.any() else receivers
-        scores = {m: predicted_error([maps[k]], sub, camera.position)["objective"] for m, maps in per_method.items()}
+        scores = {m: predicted_objective([maps[k]], sub, camera.position) for m, maps in per_method.items()}
         best_name = min(scores, key=scores.get)
         best_map, best_f = per_method[best_name][k], scores[best_name]
         entry = {"cascade": k, "baselines": {m: float(v) for m, v in scores.items()}}
