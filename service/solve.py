@@ -91,9 +91,9 @@ def depth_slack(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
     d = np.where(mask, depth, np.nan).astype(np.float64)
     p = np.pad(d, 1, constant_values=np.nan)
     with np.errstate(invalid="ignore"):
-        diffs = np.stack([np.abs(p[:-2, 1:-1] - d), np.abs(p[2:, 1:-1] - d), np.abs(p[1:-1, :-2] - d),
-                          np.abs(p[1:-1, 2:] - d)])
-    out = np.nanmax(np.where(np.isnan(diffs), -np.inf, diffs), axis=0)
+        out = np.abs(p[:-2, 1:-1] - d)
+        for q in (p[2:, 1:-1], p[1:-1, :-2], p[1:-1, 2:]):
+            np.fmax(out, np.abs(q - d), out=out)  # the largest of the differences that are not NaN
     return np.where(np.isfinite(out) & (out > 0), out, 0.0)
 
 

@@ -409,8 +409,8 @@ def _finite_receivers(camera: Camera, receivers, receiver_slack, cache: dict | N
         return cache["finite"]
     receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
     slack = np.zeros(len(receivers)) if receiver_slack is None else np.asarray(receiver_slack, dtype=np.float64)
-    keep = np.all(np.isfinite(receivers), axis=1)
-    if not keep.all():
+    if not np.isfinite(receivers).all():
+        keep = np.all(np.isfinite(receivers), axis=1)
         receivers, slack = receivers[keep], slack[keep]
     depth = (receivers - camera.position) @ camera.forward if len(receivers) else np.zeros(0)
     if cache is not None:

@@ -97,6 +97,11 @@ def _robust_difference(fm, f0, fp, h):
 AFFINE_FITS = ("axis", "rectangle", "parallelogram")
 
 
+def _finite_rows(p: np.ndarray) -> np.ndarray:
+    """The rows of p without a NaN or infinity (p itself when all are finite, the usual case)."""
+    return p if np.isfinite(p).all() else p[np.all(np.isfinite(p), axis=1)]
+
+
 def _next(a: np.ndarray) -> np.ndarray:
     """np.roll(a, -1, axis=0) (each vertex's successor), without roll's overhead."""
     return np.concatenate((a[1:], a[:1]))
@@ -171,7 +176,7 @@ class Problem:
         self.camera, self.light, self.resolution = camera, light, (int(resolution[0]), int(resolution[1]))
         receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
         fit = np.vstack([receivers, samples.position]) if len(samples) else receivers
-        fit = fit[np.all(np.isfinite(fit), axis=1)]
+        fit = _finite_rows(fit)
         if len(fit) == 0:
             raise ValueError("no receivers and no samples to fit the map to")
         hull, extremes = light_plane_hull(light.direction, fit)
@@ -349,7 +354,7 @@ class SpotProblem(Problem):
         self.camera, self.light, self.resolution = camera, light, (int(resolution[0]), int(resolution[1]))
         receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
         fit = np.vstack([receivers, samples.position]) if len(samples) else receivers
-        fit = fit[np.all(np.isfinite(fit), axis=1)]
+        fit = _finite_rows(fit)
         if len(fit) == 0:
             raise ValueError("no receivers and no samples to fit the map to")
         self.fit_pts = fit
