@@ -14,17 +14,29 @@ from __future__ import annotations
 
 import threading
 from contextlib import contextmanager
+from functools import lru_cache
 from types import SimpleNamespace
 
 import numpy as np
 
-from .jit import aligned, llvm_ad
+from .jit import aligned
+from .jit import llvm_ad as _llvm_ad
 from .samples import Samples
 from .shadow_map import ShadowMap, map_for_depth
 
 DET_FLOOR = 1e-18  # |det J| below this counts as degenerate (the sample sees no texel change)
 W_FLOOR = 1e-12  # clip w below this: the point is behind a perspective light's centre of projection
 ERROR_FIELDS = ("objective", "mean_m", "median_m", "p95_m", "max_m", "frac_m_gt_1", "samples")
+
+
+_ad_module = []
+
+
+def llvm_ad():
+    """solvers.jit.llvm_ad(), looked up once (it reads the environment each call)."""
+    if not _ad_module:
+        _ad_module.append(_llvm_ad())
+    return _ad_module[0]
 
 
 _serial = {"depth": 0, "saved": 0}
@@ -247,13 +259,18 @@ def objective_value(matrix: np.ndarray, resolution, ds: DeviceSamples) -> float:
     if ds.count < 2:  # a one-sample (scalar) or empty configuration: trace as usual
         return float(objective(matrix_to_device(matrix), resolution, None, ds)[0])
     P16 = ad.Float64(aligned(np.asarray(matrix, dtype=np.float64).ravel(), np.float64))
-    res2 = ad.Float64(aligned(np.array([float(resolution[0]), float(resolution[1])]), np.float64))
+    res2 = _resolution_array(float(resolution[0]), float(resolution[1]))
     with _frozen["lock"]:  # one replay at a time: solves may run in several threads
         if _frozen["fn"] is None:
             import drjit as dr
 
             _frozen["fn"] = dr.freeze(_objective_of_arrays, limit=8)
         return float(_frozen["fn"](P16, res2, ds.X, ds.dx, ds.dy, ds.w)[0])
+
+
+@lru_cache(maxsize=16)
+def _resolution_array(width: float, height: float):
+    return llvm_ad().Float64(aligned(np.array([width, height]), np.float64))
 
 
 def _objective_of_arrays(P16, res2, X, dx, dy, w):

@@ -97,6 +97,19 @@ def _robust_difference(fm, f0, fp, h):
 AFFINE_FITS = ("axis", "rectangle", "parallelogram")
 
 
+def _padded_range(lo: float, hi: float, floor: float) -> tuple[float, float]:
+    """solvers.fitting.padded for one dimension in Python floats (the same operations)."""
+    size = hi - lo
+    pad = max(size * PAD, max(floor - size, 0.0) / 2 + 1e-12)
+    return lo - pad, hi + pad
+
+
+def _padded_box(lo: list, hi: list) -> tuple[tuple[float, float], tuple[float, float]]:
+    """padded(lo, hi, PAD, _min_extent([lo, hi])) for a 2D box, per dimension in Python floats."""
+    floor = max(1e-6, 1e-6 * max(abs(v) for v in lo + hi))
+    return _padded_range(lo[0], hi[0], floor), _padded_range(lo[1], hi[1], floor)
+
+
 def _finite_rows(p: np.ndarray) -> np.ndarray:
     """The rows of p without a NaN or infinity (p itself when all are finite, the usual case)."""
     return p if np.isfinite(p).all() else p[np.all(np.isfinite(p), axis=1)]
@@ -143,8 +156,7 @@ def _affine_fit(q: np.ndarray, how: str, resolution, is_hull: bool = False) -> t
         proj = hull @ n.T  # (hull, edges)
         width = proj.max(0) - proj.min(0)
         sin = np.abs(n[:, 0, None] * n[None, :, 1] - n[:, 1, None] * n[None, :, 0])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            area = np.where(sin > 1e-9, width[:, None] * width[None, :] / sin, np.inf)
+        area = np.divide(width[:, None] * width[None, :], sin, out=np.full(sin.shape, np.inf), where=sin > 1e-9)
         i, j = np.unravel_index(int(np.argmin(area)), area.shape)
         if not np.isfinite(area[i, j]):
             return C, q.min(0), q.max(0)
@@ -220,28 +232,33 @@ class Problem:
         h = self.n_hull or len(v)
         q = np.column_stack([v[:h, 0] / wv[:h], (v[:h, 1] - y0) / wv[:h]])
         C, lo, hi = _affine_fit(q, self.affine, self.resolution, self.n_hull > 0)
-        lo, hi = padded(lo, hi, PAD, max(1e-6, 1e-6 * max(float(np.abs(lo).max()), float(np.abs(hi).max()))))
+        (s0, s1), (t0, t1) = _padded_box(lo.tolist(), hi.tolist())
         span = max(far - near, 1e-9 * max(abs(near), abs(far), 1.0))
-        proj = ortho(float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), near - 0.01 * span, far + 0.01 * span) @ C @ W
+        proj = ortho(s0, s1, t0, t1, near - 0.01 * span, far + 0.01 * span) @ C @ W
         return view, proj, v, dv
 
     @staticmethod
     def _warp_range(v: np.ndarray) -> tuple[float, float]:
         """[y0, y1]: the fit points' padded extent along the warp axis (light-view +Y)."""
         lo, hi = float(v[:, 1].min()), float(v[:, 1].max())
-        floor = max(1e-6, 1e-6 * float(np.abs(v[:, 1]).max()))  # _min_extent
-        size = hi - lo
-        pad = max(size * PAD, max(floor - size, 0.0) / 2 + 1e-12)  # solvers.fitting.padded
-        return lo - pad, hi + pad
+        return _padded_range(lo, hi, max(1e-6, 1e-6 * float(np.abs(v[:, 1]).max())))  # floor: _min_extent
 
     @staticmethod
     def _depth_range(v, dv, wv, k: float, y0: float, y1: float) -> tuple[float, float]:
         """Warped depth extremes: the fit points and the scene corners slid along y to y0 and y1 (a
         caster that shadows a receiver lies on the receiver's light ray, so within that range); depth
         z / w' is linear along each light ray (w' is constant on it)."""
-        z = dv[:, 2]
-        Z = (v[:, 2] / wv, z / (1.0 + k * (y0 - y0)), z / (1.0 + k * (y1 - y0)))
-        return -max(float(a.max()) for a in Z), -min(float(a.min()) for a in Z)
+        zv = v[:, 2] / wv
+        hi, lo = [float(zv.max())], [float(zv.min())]
+        zc_hi, zc_lo = float(dv[:, 2].max()), float(dv[:, 2].min())
+        for w in (1.0 + k * (y0 - y0), 1.0 + k * (y1 - y0)):
+            if w > 0:  # division by a positive number keeps the order: the extremes' quotients
+                hi.append(zc_hi / w)
+                lo.append(zc_lo / w)
+            else:
+                hi.append(float((dv[:, 2] / w).max()))
+                lo.append(float((dv[:, 2] / w).min()))
+        return -max(hi), -min(lo)
 
     def matrix(self, x) -> np.ndarray:
         view, proj, _, _ = self._fit(x)
