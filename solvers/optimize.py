@@ -204,6 +204,7 @@ class Problem:
         self.affine = affine
         self.nfev = 0
         self.njev = 0
+        self.seen: dict = {}  # f at each point evaluated
         self.best = (math.inf, None, None)
         self.lower, self.upper = np.array([-PHI_MAX, U_LOG_MIN if log else U_MIN]), np.array([PHI_MAX, U_MAX])
         self.log = log
@@ -304,17 +305,25 @@ class Problem:
         """The metric's objective of a map (its log warp included)."""
         self.nfev += 1
         M = recentre(smap.matrix, self.ds.origin)
+        if smap.log_warp is None:
+            return objective_value(M, smap.resolution, self.ds)
         return float(objective(matrix_to_device(M), smap.resolution, log_to_device(smap), self.ds)[0])
 
     def value(self, x) -> float:
+        """f(x), each point evaluated once (solvers revisit points: BOBYQA starts at a start)."""
         self._check()
         x = self.clip(x)
+        key = (float(x[0]), float(x[1]))
+        if key not in self.seen:
+            self.seen[key] = self._evaluate(x)
+        return self._record(x, self.seen[key])
+
+    def _evaluate(self, x) -> float:
         if self.log:
             self.nfev += 1
-            f = float(objective(matrix_to_device(self.matrix(x)), self.resolution,
-                                log_to_device(self.map_for(x)), self.ds)[0])
-            return self._record(x, f)
-        return self._record(x, self.eval_matrix(self.matrix(x)))
+            return float(objective(matrix_to_device(self.matrix(x)), self.resolution,
+                                   log_to_device(self.map_for(x)), self.ds)[0])
+        return self.eval_matrix(self.matrix(x))
 
     def value_and_grad(self, x):
         self._check()
@@ -380,6 +389,7 @@ class SpotProblem(Problem):
         self.view0 = spot_view(light, camera)
         self.deadline, self.gradient_mode, self.affine = deadline, "fd", affine
         self.nfev = self.njev = 0
+        self.seen: dict = {}
         self.best = (math.inf, None, None)
         self.lower, self.upper = np.full(2, -self.TILT_MAX), np.full(2, self.TILT_MAX)
         self.n_hull = 0
@@ -419,11 +429,9 @@ class SpotProblem(Problem):
         view, proj, ld, _ = self.fit(x)
         return ShadowMap(view, proj, self.resolution, light_depth=ld)
 
-    def value(self, x) -> float:
-        self._check()
-        x = self.clip(x)
+    def _evaluate(self, x) -> float:
         M = self.matrix(x)
-        return self._record(x, math.inf if M is None else self.eval_matrix(M))
+        return math.inf if M is None else self.eval_matrix(M)
 
 
 # ------------------------------------------------------------------ starting points

@@ -386,3 +386,14 @@ def test_frozen_objective_equals_the_traced_one_for_any_size_and_thread(ground):
     with ThreadPoolExecutor(2) as pool:
         got = list(pool.map(lambda c: objective_value(c[0], c[1], c[2]), cases * 4))
     assert got == [c[3] for c in cases * 4]
+
+
+def test_a_point_is_evaluated_once(ground):
+    """Problem.value: a revisited point (BOBYQA starts at a start already scored) costs no metric pass,
+    and gives the same value; nfev counts the passes."""
+    cam, pts, s = ground
+    prob = Problem(cam, DirectionalLight.make(LIGHTS["45deg"]), s, pts, BOUNDS, RES)
+    f1 = prob.value([0.1, 0.5])
+    f2 = prob.value(np.array([0.1, 0.5]))
+    f3 = prob.value([0.2, 0.5])
+    assert f1 == f2 != f3 and prob.nfev == 2
