@@ -37,6 +37,7 @@ class LightProblem:
     samples: Samples
     receivers: np.ndarray  # (N, 3) world positions of visible receivers that could be in shadow
     receiver_slack: np.ndarray  # (N,) view-depth change to a neighbouring coarse pixel (cascade overlap)
+    sample_rows: np.ndarray | None = None  # per sample, the index of the receiver at its pixel
 
 
 EDGE_REACH = 1.5  # coarse pixels: a full-resolution hit next to coarse misses can be up to ~1.4 coarse pixels (diagonally) from the nearest coarse hit
@@ -102,9 +103,17 @@ def light_problems(resolved: ResolvedRig, buffers: CoarseBuffers, bounds) -> lis
     for light, lb in zip(resolved.lights, buffers.lights):
         samples = select_samples(resolved.camera, light, buffers.position, buffers.normal, buffers.hit,
                                  lb.facing, lb.boundary, lb.in_light)
-        recv, slack = receiver_points(resolved.camera, buffers, buffers.hit & lb.facing & lb.in_light, bounds)
-        out.append(LightProblem(light, samples, recv, slack))
+        mask = buffers.hit & lb.facing & lb.in_light
+        recv, slack = receiver_points(resolved.camera, buffers, mask, bounds)
+        out.append(LightProblem(light, samples, recv, slack, sample_rows(samples, mask)))
     return out
+
+
+def sample_rows(samples: Samples, mask: np.ndarray) -> np.ndarray:
+    """Per sample, the index in receiver_points(mask) of the receiver at its pixel (the mask's
+    pixels come first there, in row-major order)."""
+    rank = np.cumsum(mask.ravel()) - 1
+    return rank[samples.pixel[:, 0] * mask.shape[1] + samples.pixel[:, 1]]
 
 
 def maps_error(maps: list[ShadowMap], samples: Samples, origin) -> tuple[dict, list[dict]]:
@@ -194,7 +203,7 @@ def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | N
                 return optimized_maps(resolved.camera, prob.light, prob.samples, prob.receivers, (lo, hi),
                                       allow_log=allow_log, solver=solver or DEFAULT_SOLVER,
                                       time_budget_ms=time_budget_ms, previous_x=_previous_x(previous, li),
-                                      hysteresis=hysteresis, **opts)
+                                      hysteresis=hysteresis, sample_rows=prob.sample_rows, **opts)
             if opts["splits"] == "optimized":  # a baseline method with optimized splits: the search's splits
                 opts["splits"] = "practical"
                 if opts["cascades"] > 1 and prob.light.kind == "directional":

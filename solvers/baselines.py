@@ -344,7 +344,7 @@ class Fitted:
 
     maps: list[ShadowMap]
     parts: list[np.ndarray]  # per map: the receivers it was fitted to (its bias is measured on them)
-    fit_points: list[np.ndarray | None]  # per directional map: those receivers' light-plane hull and depth extremes
+    fit_points: list[tuple | None]  # per directional map: light_plane_hull of those receivers (hull, extremes)
 
     def biased(self, light) -> list[ShadowMap]:
         return [_with_bias(m, p, light) for m, p in zip(self.maps, self.parts)]
@@ -392,12 +392,12 @@ def fit_baseline(method: str, camera: Camera, light, receivers: np.ndarray, cast
         z[1:-1] = np.clip(inner, z_lo, z_hi)
     maps, parts, fits = [], [], []
     for i in range(k):
-        part, fit_part = _cascade_part(camera, light, receivers, slack, depth, z, i, hull_cache)
-        smap = _directional_map(method, camera, light, fit_part, corners, res, allow_log, (z[i], z[i + 1]))
+        part, hull = _cascade_part(camera, light, receivers, slack, depth, z, i, hull_cache)
+        smap = _directional_map(method, camera, light, np.vstack(hull), corners, res, allow_log, (z[i], z[i + 1]))
         smap.split = (0.0 if i == 0 else float(z[i]), float(camera.far if i == k - 1 else z[i + 1]))
         maps.append(smap)
         parts.append(part)
-        fits.append(fit_part)
+        fits.append(hull)
     if texel_budget:
         _allocate(maps, camera, receivers, depth, texel_budget, light)
     return Fitted(maps, parts, fits)
@@ -430,7 +430,7 @@ def _cascade_part(camera: Camera, light, receivers, slack, depth, z, i: int, cac
     part = receivers if sel.all() else receivers[sel]
     if len(part) == 0 and len(receivers):
         part = _frustum_slice(camera, z[i], z[i + 1])
-    out = part, np.vstack(light_plane_hull(light.direction, part))
+    out = part, light_plane_hull(light.direction, part)
     if cache is not None:
         cache[key] = out
     return out

@@ -180,18 +180,13 @@ class Problem:
 
     def __init__(self, camera: Camera, light: DirectionalLight, samples: Samples, receivers: np.ndarray,
                  casters_bounds, resolution, deadline: float | None = None, gradient: str = "ad",
-                 affine: str = "parallelogram", log: bool = False):
+                 affine: str = "parallelogram", log: bool = False, fit_points: tuple | None = None):
         if log:  # LogPSM's family: t along the warp axis, the log warp on it, finite differences
             affine, gradient = "axis", "fd"
         if gradient not in ("ad", "fd"):
             raise ValueError(f"gradient must be 'ad' or 'fd', got {gradient!r}")
         self.camera, self.light, self.resolution = camera, light, (int(resolution[0]), int(resolution[1]))
-        receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
-        fit = np.vstack([receivers, samples.position]) if len(samples) else receivers
-        fit = _finite_rows(fit)
-        if len(fit) == 0:
-            raise ValueError("no receivers and no samples to fit the map to")
-        hull, extremes = light_plane_hull(light.direction, fit)
+        hull, extremes = fit_points if fit_points is not None else self._hull(light, samples, receivers)
         self.n_hull = len(hull) if len(extremes) else 0  # 0: no ordered hull (few or degenerate points)
         self.fit_pts = np.vstack([hull, extremes])
         self.corners = box_corners(np.asarray(casters_bounds[0], float), np.asarray(casters_bounds[1], float))
@@ -208,6 +203,15 @@ class Problem:
         self.best = (math.inf, None, None)
         self.lower, self.upper = np.array([-PHI_MAX, U_LOG_MIN if log else U_MIN]), np.array([PHI_MAX, U_MAX])
         self.log = log
+
+    @staticmethod
+    def _hull(light, samples: Samples, receivers) -> tuple[np.ndarray, np.ndarray]:
+        """light_plane_hull of the finite receivers and samples (what the fit needs of them)."""
+        receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
+        fit = _finite_rows(np.vstack([receivers, samples.position]) if len(samples) else receivers)
+        if len(fit) == 0:
+            raise ValueError("no receivers and no samples to fit the map to")
+        return light_plane_hull(light.direction, fit)
 
     # -------------------------------------------------------------- the family
     def fit(self, x):
@@ -470,7 +474,8 @@ def _start_x(prob: Problem, smap: ShadowMap) -> np.ndarray:
 def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receivers: np.ndarray, casters_bounds,
              resolution=(2048, 2048), method: str = DEFAULT_METHOD, x0=None, time_budget_ms: float | None = None,
              starts=START_NAMES, maxiter: int = 30, gradient: str = "ad", affine: str = "parallelogram",
-             start_maps_given: dict | None = None, log: bool = False, bias: bool = True) -> OptimizeResult:
+             start_maps_given: dict | None = None, log: bool = False, bias: bool = True,
+             fit_points: tuple | None = None) -> OptimizeResult:
     """Minimise the metric's objective over the light's projective parameters x = (φ, u).
 
     Every start (and `x0`, a previous solution's x, when given) is evaluated first, even past the
@@ -479,7 +484,8 @@ def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receiver
     `start_maps_given`: {name: ShadowMap} baseline maps already fitted to these receivers (used as the
     starts instead of fitting them again). `log`: search LogPSM's family instead (the perspective
     part's (φ, u) with the log warp on t, Lloyd et al. 2007 eq. 78; engines must apply it in a shader).
-    `bias=False`: the map is returned without its depth bias (a caller that biases what it keeps)."""
+    `bias=False`: the map is returned without its depth bias (a caller that biases what it keeps).
+    `fit_points`: light_plane_hull of the receivers and samples when the caller has it (directional)."""
     if method not in METHODS + EXTRA_METHODS:
         raise ValueError(f"method: unknown solver {method!r} (known: {', '.join(METHODS + EXTRA_METHODS)})")
     if not optimizable(light):
@@ -491,7 +497,7 @@ def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receiver
         return _minimize_spot(camera, light, samples, receivers, casters_bounds, resolution, method, x0, deadline,
                               maxiter, affine, t0, bias)
     prob = Problem(camera, light, samples, receivers, casters_bounds, resolution, gradient=gradient, affine=affine,
-                   log=log)
+                   log=log, fit_points=fit_points)
     # The starts fit the same hull vertices as the problem: the same min/max, a fraction of the points.
     if start_maps_given:
         bases = {name: m for name, m in start_maps_given.items() if m.face is None and (log or m.log_warp is None)}
@@ -606,6 +612,21 @@ def _minimize_spot(camera, light, samples, receivers, casters_bounds, resolution
     return OptimizeResult(np.asarray(xb, float), float(f), int(nit), prob.nfev, (time.perf_counter() - t0) * 1e3,
                           success, message, smap, start, {"focused": base_val, **{f"{k}@family": v for k, v in fam_vals.items()}},
                           prob.njev)
+
+
+def _shared_hull(fitted, k: int, part: np.ndarray, sub: Samples, receivers: np.ndarray, sample_rows, sel_s, sel_r):
+    """The baselines' light-plane hull of cascade k, for the search too, when it is what Problem would
+    compute: the same receivers, and every sample one of them at the same position (Qhull gives the
+    same vertices in the same order when duplicates of the points are appended after them). Else None."""
+    hull = fitted.fit_points[k]
+    if hull is None or sample_rows is None or not len(hull[1]):
+        return None
+    if fitted.parts[k].shape != part.shape or not np.array_equal(fitted.parts[k], part):
+        return None
+    rows = np.asarray(sample_rows)[sel_s]
+    if len(rows) and not (sel_r[rows].all() and np.array_equal(receivers[rows], sub.position)):
+        return None
+    return hull
 
 
 def _note_bias(res: OptimizeResult, starts: dict, bias_points: dict, k: int, part: np.ndarray) -> None:
@@ -742,14 +763,17 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
                    resolution=(2048, 2048), cascades: int = 1, splits: str = "practical", split_lambda: float = 0.5,
                    texel_budget: int | None = None, allow_log: bool = False, solver: str = DEFAULT_METHOD,
                    time_budget_ms: float | None = None, receiver_slack=None, x0=None, previous_x=None,
-                   hysteresis: float = 0.8):
+                   hysteresis: float = 0.8, sample_rows: np.ndarray | None = None):
     """`method: optimized`: per cascade, the optimized map or the best baseline, whichever the metric
     scores lower on that cascade's samples (so never worse than the best baseline). Returns
     (maps, solver_json).
 
     Temporal stability (Chong & Gortler 2007 §3): with `previous_x` (the previous solution's x per
     cascade), the previous projective parameters are refit to the current receivers and kept unless
-    the new map's median h is below `hysteresis` x the refit one's."""
+    the new map's median h is below `hysteresis` x the refit one's.
+
+    `sample_rows`: per sample, the index of the receiver at the same position, when the samples are
+    receivers (service.solve's are): the search then reuses the baselines' hull of each cascade."""
     from .baselines import METHODS as BASELINES
     from .metric import per_sample_maps, predicted_error, predicted_objective
 
@@ -801,6 +825,7 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
         if isinstance(light, DirectionalLight) and len(receivers) > 0:
             sel_r = (depth + slack >= (lo if k else -np.inf)) & (depth - slack <= (hi if k < len(ref) - 1 else np.inf))
         part_r = receivers[sel_r]
+        hull_r = _shared_hull(fitted["focused"], k, part_r, sub, receivers, sample_rows, sel_s, sel_r)
         for m, maps in per_method.items():  # one allocation (focused's) for every candidate: the budget holds
             if tuple(maps[k].resolution) != tuple(rmap.resolution) and maps[k].face is None:
                 maps[k].resolution = rmap.resolution
@@ -814,13 +839,14 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
             starts = {m: per_method[m][k] for m in ("focused", "lispsm", "logpsm")}
             res = minimize(camera, light, sub, part_r, casters_bounds, rmap.resolution, solver,
                            x0=x0[k] if x0 is not None and k < len(x0) else None, time_budget_ms=left,
-                           start_maps_given=starts, bias=False)
+                           start_maps_given=starts, bias=False, fit_points=hull_r)
             _note_bias(res, starts, bias_points, k, part_r)
             entry["result"] = res.to_json()
             if allow_log and isinstance(light, DirectionalLight):  # LogPSM's family too; the lower objective wins
                 left = None if time_budget_ms is None else max(1.0, time_budget_ms - (time.perf_counter() - t0) * 1e3)
                 res_log = minimize(camera, light, sub, part_r, casters_bounds, rmap.resolution, solver,
-                                   time_budget_ms=left, log=True, start_maps_given=starts, bias=False)
+                                   time_budget_ms=left, log=True, start_maps_given=starts, bias=False,
+                                   fit_points=hull_r)
                 _note_bias(res_log, starts, bias_points, k, part_r)
                 entry["result_log"] = res_log.to_json()
                 if res_log.map is not None and res_log.fun < res.fun:
@@ -832,7 +858,7 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
                 best_map.eta = None
         prev = previous_x[k] if previous_x is not None and k < len(previous_x) else None
         if prev is not None and isinstance(light, DirectionalLight) and len(sub) > 0 and len(receivers) > 0:
-            refit = Problem(camera, light, sub, part_r, casters_bounds, rmap.resolution).map_for(
+            refit = Problem(camera, light, sub, part_r, casters_bounds, rmap.resolution, fit_points=hull_r).map_for(
                 np.asarray(prev, dtype=np.float64))
             h_new, _, _ = per_sample_maps([best_map], sub, camera.position)
             h_old, _, _ = per_sample_maps([refit], sub, camera.position)

@@ -397,3 +397,23 @@ def test_a_point_is_evaluated_once(ground):
     f2 = prob.value(np.array([0.1, 0.5]))
     f3 = prob.value([0.2, 0.5])
     assert f1 == f2 != f3 and prob.nfev == 2
+
+
+def test_search_on_the_baselines_hull_gives_the_same_maps(demo_problem, monkeypatch):
+    """optimized_maps with sample_rows (solve's samples are receivers: the search reuses the baselines'
+    hull per cascade) returns exactly the maps it returns without."""
+    from shadowopt.solvers import optimize
+    from shadowopt.solvers.optimize import optimized_maps
+
+    shared = []
+    real = optimize._shared_hull
+    monkeypatch.setattr(optimize, "_shared_hull", lambda *a: shared.append(real(*a)) or shared[-1])
+    cam, p, bounds = demo_problem
+    assert p.sample_rows is not None and np.array_equal(p.receivers[p.sample_rows], p.samples.position)
+    for k in (1, 3):
+        opts = dict(resolution=(512, 512), cascades=k, receiver_slack=p.receiver_slack)
+        plain, _ = optimized_maps(cam, p.light, p.samples, p.receivers, bounds, **opts)
+        with_rows, _ = optimized_maps(cam, p.light, p.samples, p.receivers, bounds, sample_rows=p.sample_rows, **opts)
+        for a, b in zip(plain, with_rows):
+            assert np.array_equal(a.matrix, b.matrix) and a.depth_bias == b.depth_bias
+    assert sum(h is not None for h in shared) == 1 + 3  # every cascade of the runs with sample_rows
