@@ -221,8 +221,9 @@ def _fit_warped(view: np.ndarray, receivers: np.ndarray, depth_pts: np.ndarray, 
 
 
 def _directional_map(method: str, camera: Camera, light: DirectionalLight, receivers: np.ndarray,
-                     corners: np.ndarray, resolution, allow_log: bool, z_range: tuple[float, float]) -> ShadowMap:
-    view = directional_view(light, camera)
+                     corners: np.ndarray, resolution, allow_log: bool, z_range: tuple[float, float],
+                     view: np.ndarray | None = None) -> ShadowMap:
+    view = directional_view(light, camera) if view is None else view
     fit_pts = corners if method == "uniform" or len(receivers) == 0 else receivers
     depth_pts = np.vstack([corners, fit_pts])
     warp_n = None
@@ -391,9 +392,10 @@ def fit_baseline(method: str, camera: Camera, light, receivers: np.ndarray, cast
             raise ValueError(f"split_at: need {k - 1} finite inner split depths, got {len(inner)}")
         z[1:-1] = np.clip(inner, z_lo, z_hi)
     maps, parts, fits = [], [], []
+    view = _light_view(camera, light, hull_cache)
     for i in range(k):
         part, hull = _cascade_part(camera, light, receivers, slack, depth, z, i, hull_cache)
-        smap = _directional_map(method, camera, light, np.vstack(hull), corners, res, allow_log, (z[i], z[i + 1]))
+        smap = _directional_map(method, camera, light, np.vstack(hull), corners, res, allow_log, (z[i], z[i + 1]), view)
         smap.split = (0.0 if i == 0 else float(z[i]), float(camera.far if i == k - 1 else z[i + 1]))
         maps.append(smap)
         parts.append(part)
@@ -401,6 +403,15 @@ def fit_baseline(method: str, camera: Camera, light, receivers: np.ndarray, cast
     if texel_budget:
         _allocate(maps, camera, receivers, depth, texel_budget, light)
     return Fitted(maps, parts, fits)
+
+
+def _light_view(camera: Camera, light, cache: dict | None) -> np.ndarray:
+    """directional_view(light, camera), once per shared cache."""
+    if cache is None:
+        return directional_view(light, camera)
+    if "view" not in cache:
+        cache["view"] = directional_view(light, camera)
+    return cache["view"]
 
 
 def _finite_receivers(camera: Camera, receivers, receiver_slack, cache: dict | None):
