@@ -23,6 +23,7 @@ import numpy as np
 from .cameras import Camera
 from .lights import DirectionalLight, Light
 
+SUBSETS_KEPT = 16  # per Samples object, the most recent subsets (with their device copies)
 GRAZING_LIGHT_DEG = 85.0
 GRAZING_VIEW_DEG = 88.0
 
@@ -37,18 +38,29 @@ class Samples:
     weight: np.ndarray  # (N,)
     pixel: np.ndarray  # (N, 2) coarse-buffer (row, col) each sample came from
     kind: str  # "boundary" or "all_facing" or "none"
-    # Dr.Jit copies by origin (solvers.metric.device_samples): the arrays above are never modified.
+    # Dr.Jit copies by origin (solvers.metric.device_samples) and recent subsets by mask, so that a
+    # subset taken again (a cascade's samples, scored then predicted) is uploaded once: the arrays
+    # above are never modified.
     _device: dict = field(default_factory=dict, repr=False, compare=False)
+    _subsets: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __len__(self) -> int:
         return int(self.position.shape[0])
 
     def __getstate__(self) -> dict:
-        return {**self.__dict__, "_device": {}}  # device copies stay in their process
+        return {**self.__dict__, "_device": {}, "_subsets": {}}  # device copies stay in their process
 
     def subset(self, mask: np.ndarray) -> "Samples":
-        return Samples(self.position[mask], self.normal[mask], self.dx[mask], self.dy[mask],
-                       self.view_depth[mask], self.weight[mask], self.pixel[mask], self.kind)
+        mask = np.asarray(mask)
+        key = (mask.dtype.str, mask.shape, mask.tobytes())
+        sub = self._subsets.get(key)
+        if sub is None:
+            sub = Samples(self.position[mask], self.normal[mask], self.dx[mask], self.dy[mask],
+                          self.view_depth[mask], self.weight[mask], self.pixel[mask], self.kind)
+            if len(self._subsets) >= SUBSETS_KEPT:
+                self._subsets.pop(next(iter(self._subsets)))
+            self._subsets[key] = sub
+        return sub
 
 
 def directions_to_light(light: Light, points: np.ndarray) -> np.ndarray:

@@ -417,3 +417,16 @@ def test_search_on_the_baselines_hull_gives_the_same_maps(demo_problem, monkeypa
         for a, b in zip(plain, with_rows):
             assert np.array_equal(a.matrix, b.matrix) and a.depth_bias == b.depth_bias
     assert sum(h is not None for h in shared) == 1 + 3  # every cascade of the runs with sample_rows
+
+
+def test_a_subset_taken_again_is_not_copied_or_uploaded_again(ground):
+    """Samples.subset keeps recent subsets by mask (a cascade's samples are scored, then predicted):
+    the same mask gives the same samples and the same device copy; another mask, its own."""
+    from shadowopt.solvers.metric import device_samples
+
+    cam, pts, s = ground
+    near = s.view_depth < np.median(s.view_depth)
+    a, b, far = s.subset(near), s.subset(near.copy()), s.subset(~near)
+    assert a is b and device_samples(a, cam.position) is device_samples(b, cam.position)
+    assert far is not a and np.array_equal(far.position, s.position[~near])
+    assert np.array_equal(a.position, s.position[near]) and np.array_equal(a.weight, s.weight[near])
