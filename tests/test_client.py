@@ -3,7 +3,9 @@
 The server runs as `shadowopt serve` in a subprocess (tests/serverkit.py: a temporary data
 directory, the tenants' tokens). Retry-After timing, giving up after the retries and a result stream
 cut mid-way use a tiny stand-in HTTP server: failures the real server cannot be made to show on demand.
-Server gaps found while writing the client: none blocking (see the report of issue 5's client work).
+Server notes from writing the client: nothing the client needs is missing. A batch result line holds
+the solution's fields at its top level (`{"index", "method", "lights", ...}`, not under "solution");
+a failed configuration's line is `{"index", "error": {"code", "message"}}`.
 """
 from __future__ import annotations
 
