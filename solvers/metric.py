@@ -159,8 +159,11 @@ def per_sample(smap: ShadowMap, ds: DeviceSamples):
     """NumPy (h, m, valid) for one map over device samples."""
     import drjit as dr
 
-    P = matrix_to_device(recentre(smap.matrix, ds.origin))
-    h, m, valid = footprint(P, smap.resolution, log_to_device(smap), ds)
+    M = recentre(smap.matrix, ds.origin)
+    if smap.log_warp is None and ds.count >= 2:
+        h, m, valid = _replay("footprint", _footprint_of_arrays, M, smap.resolution, ds)
+    else:
+        h, m, valid = footprint(matrix_to_device(M), smap.resolution, log_to_device(smap), ds)
     dr.eval(h, m, valid)  # one kernel for the three
     return np.array(h), np.array(m), np.array(valid, dtype=bool)
 
@@ -248,24 +251,29 @@ def objective(P, resolution, log_warp, ds: DeviceSamples):
     return dr.sum(w * h) / dr.maximum(dr.sum(w), 1e-300)
 
 
-_frozen = {"fn": None, "lock": threading.Lock()}
+_frozen = {"lock": threading.Lock()}
 
 
 def objective_value(matrix: np.ndarray, resolution, ds: DeviceSamples) -> float:
     """float(objective(...)) of a recentred matrix without a log warp, as the optimizer's inner loop
     needs it: the kernels are traced once and replayed (dr.freeze, the matrix and resolution passed
     as device arrays), the same operations, so the same value; half the time of tracing each call."""
-    ad = llvm_ad()
     if ds.count < 2:  # a one-sample (scalar) or empty configuration: trace as usual
         return float(objective(matrix_to_device(matrix), resolution, None, ds)[0])
-    P16 = ad.Float64(aligned(np.asarray(matrix, dtype=np.float64).ravel(), np.float64))
+    return float(_replay("objective", _objective_of_arrays, matrix, resolution, ds)[0])
+
+
+def _replay(name: str, fn, matrix: np.ndarray, resolution, ds: DeviceSamples):
+    """fn(matrix entries, resolution, ds.X, ds.dx, ds.dy, ds.w) frozen (dr.freeze): traced on the
+    first call for a configuration, replayed after. One replay at a time: solves run in threads."""
+    P16 = llvm_ad().Float64(aligned(np.asarray(matrix, dtype=np.float64).ravel(), np.float64))
     res2 = _resolution_array(float(resolution[0]), float(resolution[1]))
-    with _frozen["lock"]:  # one replay at a time: solves may run in several threads
-        if _frozen["fn"] is None:
+    with _frozen["lock"]:
+        if name not in _frozen:
             import drjit as dr
 
-            _frozen["fn"] = dr.freeze(_objective_of_arrays, limit=8)
-        return float(_frozen["fn"](P16, res2, ds.X, ds.dx, ds.dy, ds.w)[0])
+            _frozen[name] = dr.freeze(fn, limit=8)
+        return _frozen[name](P16, res2, ds.X, ds.dx, ds.dy, ds.w)
 
 
 @lru_cache(maxsize=16)
@@ -275,9 +283,17 @@ def _resolution_array(width: float, height: float):
 
 def _objective_of_arrays(P16, res2, X, dx, dy, w):
     """objective() with the 16 matrix entries and the resolution read from device arrays."""
+    return objective(*_gathered(P16, res2), None, SimpleNamespace(X=X, dx=dx, dy=dy, w=w))
+
+
+def _footprint_of_arrays(P16, res2, X, dx, dy, w):
+    """footprint() with the 16 matrix entries and the resolution read from device arrays."""
+    return footprint(*_gathered(P16, res2), None, SimpleNamespace(X=X, dx=dx, dy=dy, w=w))
+
+
+def _gathered(P16, res2):
     import drjit as dr
 
     ad = llvm_ad()
-    P = [dr.gather(ad.Float64, P16, i) for i in range(16)]
-    resolution = (dr.gather(ad.Float64, res2, 0), dr.gather(ad.Float64, res2, 1))
-    return objective(P, resolution, None, SimpleNamespace(X=X, dx=dx, dy=dy, w=w))
+    return ([dr.gather(ad.Float64, P16, i) for i in range(16)],
+            (dr.gather(ad.Float64, res2, 0), dr.gather(ad.Float64, res2, 1)))

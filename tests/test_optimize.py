@@ -367,8 +367,8 @@ def test_every_candidate_map_kept_carries_its_depth_bias(demo_problem):
 
 
 def test_frozen_objective_equals_the_traced_one_for_any_size_and_thread(ground):
-    """metric.objective_value (kernels recorded once, replayed) gives the traced objective's value bit
-    for bit, for sample sets of any size and from concurrent threads."""
+    """metric.objective_value and per_sample (kernels recorded once, replayed) give the traced values
+    bit for bit, for sample sets of any size and from concurrent threads."""
     from concurrent.futures import ThreadPoolExecutor
 
     from shadowopt.solvers.metric import device_samples, matrix_to_device, objective, objective_value, recentre
@@ -386,6 +386,18 @@ def test_frozen_objective_equals_the_traced_one_for_any_size_and_thread(ground):
     with ThreadPoolExecutor(2) as pool:
         got = list(pool.map(lambda c: objective_value(c[0], c[1], c[2]), cases * 4))
     assert got == [c[3] for c in cases * 4]
+    # per_sample (the frozen footprint) against the traced footprint, h, m and valid bit for bit
+    import drjit as dr
+
+    from shadowopt.solvers.metric import footprint, per_sample
+
+    for n in (2, 37, len(s)):
+        ds = device_samples(s.subset(np.arange(len(s)) < n), cam.position)
+        for smap in maps:
+            traced = footprint(matrix_to_device(recentre(smap.matrix, ds.origin)), smap.resolution, None, ds)
+            dr.eval(*traced)
+            for got, want in zip(per_sample(smap, ds), traced):
+                assert np.array_equal(got, np.array(want))
 
 
 def test_a_point_is_evaluated_once(ground):
