@@ -27,6 +27,7 @@ f is only piecewise smooth; both agree away from the kinks (tests/test_optimize.
 """
 from __future__ import annotations
 
+import copy
 import math
 import time
 from dataclasses import dataclass, field
@@ -528,7 +529,8 @@ def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receiver
     bname = min(same_kind, key=same_kind.get) if same_kind else None
     start = best_start
     if bname is not None and base_vals[bname] < f:  # a baseline map itself is best (fit details differ)
-        f, smap, xb, start = base_vals[bname], bases[bname], _start_x(prob, bases[bname]), bname
+        # a copy: the caller's baseline map (start_maps_given) keeps its own split and bias
+        f, smap, xb, start = base_vals[bname], copy.deepcopy(bases[bname]), _start_x(prob, bases[bname]), bname
         if success:
             message = f"converged; the {bname} baseline map is best"
     smap.split = (0.0, float(camera.far))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -245,6 +246,41 @@ def test_point_light_over_a_small_view_gets_one_optimized_map_instead_of_a_cube(
     res_cube = evaluate_solution(entry, r, cube, screen=(320, 180))
     assert res_opt["outside_pixels"] == 0
     assert res_opt["misclassified_pixels"] <= res_cube["misclassified_pixels"]
+
+
+@pytest.mark.parametrize("direction", [(-0.3, -0.8, 0.5), (-0.107, -0.11, -0.988), (0.6, -0.5, -0.6), (0.0, -1.0, 0.01)])
+def test_optimized_cascades_keep_their_splits(direction):
+    """Whichever candidate wins a cascade (an optimized map or a baseline map), the cascades' splits are
+    the planned ones, contiguous from 0 to far, and every receiver is served (a baseline map shared
+    with the optimizer as a start once came back with the single map's split 0..far)."""
+    entry = scene()
+    light = {"type": "directional", "direction": direction}
+    plan = maps_from_solution(solve(entry, rig(CAM, light, cascades=4), "focused"))[0]
+    r = rig(CAM, light, cascades=4)
+    sol = solve(entry, r, "optimized")
+    maps = maps_from_solution(sol)[0]
+    assert np.ravel([m.split for m in maps]) == pytest.approx(np.ravel([m.split for m in plan]))
+    assert evaluate_solution(entry, r, sol, screen=(320, 180))["outside_pixels"] <= 2
+
+
+def test_optimized_splits_on_the_demo_scene_stay_contiguous():
+    """The quality benchmark's four-cascade configuration for a low sun behind the view (its light 75),
+    where a cascade keeps a baseline map: the splits are the optimized ones, in order, and the view is
+    covered."""
+    from shadowopt.api.cli import validate_rig
+    from shadowopt.service.scenes import SceneCache
+
+    entry = SceneCache().get(Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda")
+    r = validate_rig({"camera": {"usd_path": "/World/Camera", "resolution": [320, 320]},
+                      "lights": [{"type": "directional", "direction": [-0.107, -0.11, -0.988]}],
+                      "shadow": {"texel_budget": 4 * 400 * 400, "cascades": 4, "splits": "optimized"}})
+    sol = solve(entry, r, "optimized")
+    maps = maps_from_solution(sol)[0]
+    ends = [m.split[1] for m in maps]
+    assert maps[0].split[0] == 0.0 and all(a.split[1] == pytest.approx(b.split[0]) for a, b in zip(maps, maps[1:]))
+    assert ends[:-1] == pytest.approx(sol["solver"]["splits"]["split_at"]) and np.all(np.diff(ends) > 0)
+    res = evaluate_solution(entry, r, sol)
+    assert res["outside_pixels"] <= 1e-3 * res["receiver_pixels"], res
 
 
 def test_auto_cascades_pick_the_smallest_k_meeting_the_target():
