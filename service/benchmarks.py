@@ -211,9 +211,10 @@ def bench_quality(validate_rig, lights: int | None = None, write: bool = True, p
             head = (f"**Four cascades**, same lights and screen: {spec['cascades']['note']}. Ratios: "
                     + _ratios_line(tot, ref, [m for m in tot if m != ref]) + " (target: practical+lispsm <= 0.8).")
         sections.append(head + "\n\n" + table)
+        if write:  # one section per part, so a part can be re-measured alone
+            write_section("quality" if part == "single" else "quality-cascades", sections[-1],
+                          f"shadowopt bench quality --lights {n} --part {part}")
     out["table"] = "\n\n".join(sections)
-    if write:
-        write_section("quality", out["table"], f"shadowopt bench quality --lights {n}")
     return out
 
 
