@@ -631,13 +631,6 @@ def _shared_hull(fitted, k: int, part: np.ndarray, sub: Samples, receivers: np.n
     return hull
 
 
-def _note_bias(res: OptimizeResult, starts: dict, bias_points: dict, k: int, part: np.ndarray) -> None:
-    """minimize() may return a start (baseline) map itself: kept, it is biased on this cascade's receivers."""
-    for name, smap in starts.items():
-        if res.map is smap and len(part):
-            bias_points[name][k] = part
-
-
 def _run(method: str, prob: Problem, x: np.ndarray, maxiter: int) -> int:
     kind, name = method.split(":")
     lo, hi = prob.lower, prob.upper
@@ -842,14 +835,12 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
             res = minimize(camera, light, sub, part_r, casters_bounds, rmap.resolution, solver,
                            x0=x0[k] if x0 is not None and k < len(x0) else None, time_budget_ms=left,
                            start_maps_given=starts, bias=False, fit_points=hull_r)
-            _note_bias(res, starts, bias_points, k, part_r)
             entry["result"] = res.to_json()
             if allow_log and isinstance(light, DirectionalLight):  # LogPSM's family too; the lower objective wins
                 left = None if time_budget_ms is None else max(1.0, time_budget_ms - (time.perf_counter() - t0) * 1e3)
                 res_log = minimize(camera, light, sub, part_r, casters_bounds, rmap.resolution, solver,
                                    time_budget_ms=left, log=True, start_maps_given=starts, bias=False,
                                    fit_points=hull_r)
-                _note_bias(res_log, starts, bias_points, k, part_r)
                 entry["result_log"] = res_log.to_json()
                 if res_log.map is not None and res_log.fun < res.fun:
                     res = res_log
