@@ -69,7 +69,8 @@ class LightSpec(_Strict):
 
 class ShadowSpec(_Strict):
     resolution: Resolution | None = Field(None, description="texels per map (width, height)")
-    texel_budget: Annotated[int, Field(gt=0)] | None = Field(None, description="total texels per light")
+    texel_budget: Annotated[int, Field(gt=0, le=16 * 16384 * 16384)] | None = Field(
+        None, description="total texels per light")
     cascades: Annotated[int, Field(ge=1, le=16)] | Literal["auto"] = 1
     max_cascades: Annotated[int, Field(ge=1, le=16)] = 4
     target_p95_m: Annotated[float, Field(gt=0)] | None = None

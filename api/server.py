@@ -616,14 +616,17 @@ def store_and_load(svc: Service, tenant: str, data: bytes, name: str) -> tuple[d
         with svc.heavy():
             entry = SCENES.get(path, sandbox=svc.store.scene_sandboxed(tenant, scene_id))
     except SceneError as e:
-        svc.store.delete_scene(tenant, scene_id)
+        if created:  # only what this request stored: a concurrent upload of the same bytes keeps its scene
+            svc.store.delete_scene(tenant, scene_id)
         raise ApiError(422, e.code, f"file: {e.message}", "file") from e
     except ApiError:
-        svc.store.delete_scene(tenant, scene_id)
+        if created:
+            svc.store.delete_scene(tenant, scene_id)
         raise
     info = entry.loaded.info()
     if info["triangles"] > svc.settings.max_triangles:
-        svc.store.delete_scene(tenant, scene_id)
+        if created:
+            svc.store.delete_scene(tenant, scene_id)
         raise ApiError(413, "too_many_triangles", f"file: the scene has {info['triangles']} triangles, over the "
                        f"limit of {svc.settings.max_triangles}", "file")
     svc.store.set_scene_info(tenant, scene_id, finite(info))
@@ -685,14 +688,22 @@ def check_eval_size(svc: Service, rig: dict, screen, solution: dict | None) -> N
         field = "screen" if screen else "rig.camera.resolution"
         raise ApiError(413, "too_many_pixels", f"{field}: {w}x{h} pixels is over the limit of {limit}", field)
     limit = svc.settings.max_eval_texels
+    shadow = rig.get("shadow") or {}
+    cascades = shadow.get("cascades") if isinstance(shadow.get("cascades"), int) else shadow.get("max_cascades", 4)
+    budget = shadow.get("texel_budget")
+    if budget is not None and budget > limit * max(int(cascades or 1), 1):  # compare sizes maps from the budget
+        raise ApiError(413, "too_many_texels", f"rig.shadow.texel_budget: {budget} texels is over the limit of "
+                       f"{limit} per map", "rig.shadow.texel_budget")
     for li, light in enumerate((solution or {}).get("lights") or []):
         for ci, c in enumerate((light.get("cascades") or []) if isinstance(light, dict) else []):
             res = c.get("resolution") if isinstance(c, dict) else None
-            if isinstance(res, (list, tuple)) and len(res) == 2 and all(isinstance(v, int) for v in res):
-                if res[0] * res[1] > limit:
-                    field = f"solution.lights.{li}.cascades.{ci}.resolution"
-                    raise ApiError(413, "too_many_texels", f"{field}: {res[0]}x{res[1]} texels is over the "
-                                   f"limit of {limit}", field)
+            field = f"solution.lights.{li}.cascades.{ci}.resolution"
+            if not (isinstance(res, (list, tuple)) and len(res) == 2
+                    and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in res)):
+                raise ApiError(422, "invalid_solution", f"{field}: expected two positive integers, got {res!r}", field)
+            if res[0] * res[1] > limit:
+                raise ApiError(413, "too_many_texels", f"{field}: {res[0]}x{res[1]} texels is over the "
+                               f"limit of {limit}", field)
 
 
 def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
@@ -851,6 +862,7 @@ def retry_after(queued: int) -> int:
 
 
 _HINTS: "OrderedDict[tuple, dict]" = OrderedDict()  # (tenant, batch_id) -> hints of a finished batch
+_HINTS_LOCK = threading.Lock()  # routes run on threadpool threads
 HINTS_KEPT = 256
 HINTS_PAGE = 1000
 
@@ -871,9 +883,10 @@ def batch_hints(svc: Service, tenant: str, b: dict) -> dict:
     from ..service.batches import interpolation_hints
 
     key = (tenant, b["batch_id"])
-    if key in _HINTS:
-        _HINTS.move_to_end(key)
-        return _HINTS[key]
+    with _HINTS_LOCK:
+        if key in _HINTS:
+            _HINTS.move_to_end(key)
+            return _HINTS[key]
     rows, offset = [], 0
     while True:
         page = svc.store.results(tenant, b["batch_id"], offset=offset, limit=HINTS_PAGE)
@@ -883,9 +896,10 @@ def batch_hints(svc: Service, tenant: str, b: dict) -> dict:
         offset = page[-1]["index"] + 1
     shape = (b.get("settings") or {}).get("shape")
     hints = interpolation_hints(rows, tuple(shape) if shape else None)
-    _HINTS[key] = hints
-    while len(_HINTS) > HINTS_KEPT:
-        _HINTS.popitem(last=False)
+    with _HINTS_LOCK:
+        _HINTS[key] = hints
+        while len(_HINTS) > HINTS_KEPT:
+            _HINTS.popitem(last=False)
     return hints
 
 

@@ -15,7 +15,7 @@ import numpy as np
 from ..renderers.coarse import CoarseBuffers
 from ..solvers.baselines import baseline
 from ..solvers.conventions import export_matrices
-from ..solvers.metric import error_stats, per_sample_maps, serial_kernels
+from ..solvers.metric import error_stats, per_sample_maps
 from ..solvers.optimize import DEFAULT_METHOD as DEFAULT_SOLVER
 from ..solvers.optimize import optimized_maps
 from ..solvers.samples import Samples, select_samples
@@ -175,7 +175,6 @@ def light_json(light, maps: list[ShadowMap], total: dict, per_map: list[dict], o
             "cascades": cascades, "predicted_error": total}
 
 
-@serial_kernels()  # small kernels: on the calling thread (solvers.metric.serial_kernels)
 def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | None = None,
           time_budget_ms: float | None = None, previous: dict | None = None, hysteresis: float = 0.8,
           **options) -> dict:

@@ -243,12 +243,16 @@ def predicted_error(maps: list[ShadowMap], samples: Samples, origin: np.ndarray 
 
 
 def objective(P, resolution, log_warp, ds: DeviceSamples):
-    """Weighted mean h as a Dr.Jit Float64 (differentiable with respect to P and log_warp)."""
+    """Weighted mean h as a Dr.Jit Float64 (differentiable with respect to P and log_warp); infinite
+    when a weighted sample has no valid footprint (behind the projection's centre, a degenerate J),
+    as objective_of() says for the prediction: a map cannot lower its score by losing samples."""
     import drjit as dr
 
     h, _, valid = footprint(P, resolution, log_warp, ds)
     w = dr.select(valid, ds.w, 0.0)
-    return dr.sum(w * h) / dr.maximum(dr.sum(w), 1e-300)
+    lost = dr.sum(dr.select(valid, 0.0, ds.w))
+    mean = dr.sum(w * h) / dr.maximum(dr.sum(w), 1e-300)
+    return dr.select(lost > 0.0, dr.inf, mean)
 
 
 _frozen = {"lock": threading.Lock()}

@@ -10,9 +10,11 @@ perpendicular to l, which leaves two projective degrees of freedom besides the s
   u = 0 is no warp (n' = ∞, the focused map), u > 0 a perspective warp (u ≈ D/n' for weak warps,
   ≈ log(D/n') for strong ones), u < 0 a warp centred beyond the far end. Unlike log n' this
   variable is smooth through the no-warp map, so a gradient step can leave the focused start.
-Given (φ, u) the six affine degrees of freedom are not searched: they are fitted (the warped-space
-box of solvers.baselines._fit_warped, written here with a warp matrix that is the identity at
-u = 0) to every receiver and every sample, so that no receiver leaves the map. The family contains
+Given (φ, u) the six affine degrees of freedom are not searched: they are fitted, as the minimum-area
+parallelogram (default `affine="parallelogram"`; "rectangle" and "axis" also exist) around every
+receiver and sample in warped space, so that no receiver leaves the map. Only the vertices of the
+points' hull in the light plane (solvers.fitting.light_plane_hull) and the two depth extremes enter
+the fit: the warp is a 2D projective map of light-plane coordinates, so hulls are kept. The family contains
 focused (u = 0, φ = its minimum-area rectangle's angle), LiSPSM (φ = 0, n' = n_opt) and LogPSM's
 perspective part (φ = 0, n' from η); those are the starting points, and the baseline maps
 themselves are candidates, so the result is never worse than the best of them.
@@ -472,7 +474,7 @@ def _start_x(prob: Problem, smap: ShadowMap) -> np.ndarray:
 
 # ------------------------------------------------------------------ entry point
 @serial_kernels()
-def minimize(camera: Camera, light: DirectionalLight, samples: Samples, receivers: np.ndarray, casters_bounds,
+def minimize(camera: Camera, light: DirectionalLight | SpotLight, samples: Samples, receivers: np.ndarray, casters_bounds,
              resolution=(2048, 2048), method: str = DEFAULT_METHOD, x0=None, time_budget_ms: float | None = None,
              starts=START_NAMES, maxiter: int = 30, gradient: str = "ad", affine: str = "parallelogram",
              start_maps_given: dict | None = None, log: bool = False, bias: bool = True,
@@ -846,7 +848,9 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
                     res = res_log
                     entry["result"], entry["result_log"] = res_log.to_json(), entry["result"]
                     entry["result"]["warp"] = "log"
-            if res.map is not None and res.fun < best_f:
+            # strictly lower beyond roundoff: a baseline map the search returned as it is (res.fun is the
+            # Dr.Jit sum, best_f the NumPy one) keeps its baseline name
+            if res.map is not None and res.fun < best_f * (1.0 - 1e-12):
                 best_map, best_f, best_name = res.map, res.fun, "optimized"
                 best_map.eta = None
         prev = previous_x[k] if previous_x is not None and k < len(previous_x) else None

@@ -80,8 +80,8 @@ def test_another_tenants_scene_and_batch_are_404(server, alice_box):
               httpx.post(f"{base}/v1/optimize", json={"scene_id": alice_box, "rig": BOX_RIG}, headers=bob)):
         assert error_of(r, 404)["code"] == "scene_not_found"
     assert alice_box not in [s["scene_id"] for s in httpx.get(f"{base}/v1/scenes", headers=bob).json()["scenes"]]
-    r = httpx.post(f"{base}/v1/batches", json={"scene_id": alice_box, "configurations": [{"rig": BOX_RIG}],
-                                               "method": "focused"}, headers=auth("alice"))
+    r = httpx.post(f"{base}/v1/batches", json={"scene_id": alice_box, "configurations": slow_configurations(5),
+                                               "method": "optimized"}, headers=auth("alice"))
     assert r.status_code == 202, r.text
     bid = r.json()["batch_id"]
     for r in (httpx.get(f"{base}/v1/batches/{bid}", headers=bob),
@@ -90,7 +90,10 @@ def test_another_tenants_scene_and_batch_are_404(server, alice_box):
         assert error_of(r, 404)["code"] == "batch_not_found"
     # bob's tries changed nothing of alice's
     assert httpx.get(f"{base}/v1/scenes/{alice_box}", headers=auth("alice")).status_code == 200
-    assert httpx.get(f"{base}/v1/batches/{bid}", headers=auth("alice")).json()["state"] != "cancelled"
+    state = httpx.get(f"{base}/v1/batches/{bid}", headers=auth("alice")).json()["state"]
+    assert state in ("queued", "running"), state  # still going: bob's DELETE above could have cancelled it
+    assert httpx.delete(f"{base}/v1/batches/{bid}", headers=auth("alice")).status_code == 200  # alice can
+    assert httpx.get(f"{base}/v1/batches/{bid}", headers=auth("alice")).json()["state"] == "cancelled"
     # the same bytes uploaded by bob are bob's own copy, deletable without touching alice's
     mine = post_scene(base, "bob", BOX % "")
     assert mine.status_code == 201 and mine.json()["created"] is True
@@ -156,9 +159,15 @@ def test_triangle_limit_413_and_nothing_kept(server):
     assert all(s["triangles"] != 2442 for s in listed)
 
 
+def slow_configurations(n: int) -> list[dict]:
+    """Configurations slow enough (4 cascades, searched splits, a finer coarse pass) that a batch of them
+    is still queued or running when the next request arrives."""
+    rig = {**BOX_RIG, "coarse_long_side": 160, "shadow": {"resolution": [256, 256], "cascades": 4, "splits": "optimized"}}
+    return [{"rig": {**rig, "lights": [{"type": "directional", "direction": [0.1 * k, -1, 0.2]}]}} for k in range(n)]
+
+
 def test_full_batch_queue_503_with_retry_after(server, alice_box):
-    configs = [{"rig": {**BOX_RIG, "lights": [{"type": "directional", "direction": [0.1 * k, -1, 0.2]}]}}
-               for k in range(4)]
+    configs = slow_configurations(4)
     body = {"scene_id": alice_box, "configurations": configs, "method": "optimized"}
     r = httpx.post(server.base + "/v1/batches", json=body, headers=auth("carol"))
     assert error_of(r, 404)["code"] == "scene_not_found"  # alice's scene: ownership is checked first
@@ -189,3 +198,20 @@ def test_rate_limit_per_token_429(server):
     assert httpx.get(server.base + "/v1/scenes", headers=auth("alice")).status_code == 200
     time.sleep(1.1)  # two tokens back at 2/s
     assert httpx.get(server.base + "/v1/scenes", headers=auth("carol")).status_code == 200
+
+
+def test_ground_truth_size_limits_cover_budgets_and_malformed_resolutions(server, alice_box):
+    """A texel budget (compare sizes its maps from it) and a solution's resolution are checked before any
+    ray is cast: a budget over the limit is a 413, a resolution that is not two positive integers a 422."""
+    rig = {**BOX_RIG, "shadow": {"texel_budget": 2 ** 30}}
+    r = httpx.post(server.base + "/v1/compare", json={"scene_id": alice_box, "rig": rig, "methods": ["focused"]},
+                   headers=auth("alice"), timeout=60)
+    err = error_of(r, 413)
+    assert err["code"] == "too_many_texels" and err["field"] == "rig.shadow.texel_budget"
+    sol = httpx.post(server.base + "/v1/optimize", json={"scene_id": alice_box, "rig": BOX_RIG, "method": "focused"},
+                     headers=auth("alice"), timeout=60).json()
+    sol["lights"][0]["cascades"][0]["resolution"] = [1e5, 1e5]
+    r = httpx.post(server.base + "/v1/evaluate", json={"scene_id": alice_box, "rig": BOX_RIG, "solution": sol},
+                   headers=auth("alice"), timeout=60)
+    err = error_of(r, 422)
+    assert err["code"] == "invalid_solution" and err["field"] == "solution.lights.0.cascades.0.resolution"
