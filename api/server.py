@@ -352,6 +352,14 @@ class RequestContext:
             too_big = self._too_big(scope)
             if too_big is not None:
                 await too_big(scope, receive, send_with_id)
+            elif self._uncounted(scope):  # a JSON body without Content-Length (chunked): read it within the limit
+                replay = await self._buffered(receive, self.service.settings.max_body_bytes)
+                if replay is None:
+                    limit = self.service.settings.max_body_bytes
+                    await error_json(413, "body_too_large", f"request body is over the limit of {limit} bytes",
+                                     "body")(scope, receive, send_with_id)
+                else:
+                    await self.app(scope, replay, send_with_id)
             else:
                 await self.app(scope, receive, send_with_id)
         except Exception as e:
@@ -362,6 +370,34 @@ class RequestContext:
                                  f"request id {rid}")(scope, receive, send_with_id)
         finally:
             self._record(scope, rid, status["code"], time.perf_counter() - t0)
+
+    @staticmethod
+    def _uncounted(scope) -> bool:
+        """A request body whose size Content-Length does not state (uploads count their own bytes)."""
+        headers = dict(scope.get("headers") or [])
+        upload = scope["method"] == "POST" and scope["path"].rstrip("/") == "/v1/scenes"
+        return b"content-length" not in headers and not upload and scope["method"] in ("POST", "PUT", "PATCH")
+
+    @staticmethod
+    async def _buffered(receive, limit: int):
+        """Read the whole body (at most `limit` bytes); a receive() that replays it, or None when it is larger."""
+        messages, size = [], 0
+        while True:
+            message = await receive()
+            messages.append(message)
+            if message.get("type") != "http.request":
+                break
+            size += len(message.get("body", b""))
+            if size > limit:
+                return None
+            if not message.get("more_body", False):
+                break
+        pending = iter(messages)
+
+        async def replay():
+            return next(pending, None) or await receive()
+
+        return replay
 
     def _too_big(self, scope):
         length = dict(scope.get("headers") or []).get(b"content-length")

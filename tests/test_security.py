@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import time
 
+import json
+
 import httpx
 import pytest
 from serverkit import DEMO, REPO, auth, running, upload
@@ -144,6 +146,12 @@ def test_upload_size_limit_413(server):
 def test_json_body_limit_413_and_time_budget_cap(server, alice_box):
     padded = {"scene_id": alice_box, "rig": BOX_RIG, "previous": {"pad": "x" * 120_000}}
     err = error_of(httpx.post(server.base + "/v1/optimize", json=padded, headers=auth("alice")), 413)
+    assert err["code"] == "body_too_large" and "100000" in err["message"]
+    # also without Content-Length (chunked): counted while it is read
+    raw = json.dumps(padded).encode()
+    r = httpx.post(server.base + "/v1/optimize", content=iter([raw[:60_000], raw[60_000:]]),
+                   headers={**auth("alice"), "content-type": "application/json"})
+    err = error_of(r, 413)
     assert err["code"] == "body_too_large" and "100000" in err["message"]
     r = httpx.post(server.base + "/v1/optimize", json={"scene_id": alice_box, "rig": BOX_RIG, "time_budget_ms": 60000},
                    headers=auth("alice"), timeout=60)
