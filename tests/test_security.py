@@ -2,9 +2,8 @@
 started with small limits."""
 from __future__ import annotations
 
-import time
-
 import json
+import time
 
 import httpx
 import pytest
