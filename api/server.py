@@ -824,6 +824,10 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
             shape = expansion_shape(body)
         except BatchError as e:
             raise ApiError(422, e.code, f"{e.field}: {e.message}", e.field) from e
+        limit = svc.settings.max_queue
+        if len(configs) > limit:  # before the per-configuration validation: its cost grows with the count
+            raise ApiError(413, "too_many_configurations", f"configurations: {len(configs)} configurations is "
+                           f"over the queue's capacity of {limit}", "configurations")
         configs = [validated_configuration(k, c) for k, c in enumerate(configs)]
         for k, c in enumerate(configs):  # a rig that does not fit the scene is refused now, not per result
             try:
@@ -831,10 +835,6 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
             except ValueError as e:
                 field = f"configurations.{k}.rig" + (f".{e.field}" if getattr(e, "field", None) else "")
                 raise ApiError(422, "invalid_rig", f"{field}: {getattr(e, 'message', e)}", field) from e
-        limit = svc.settings.max_queue
-        if len(configs) > limit:
-            raise ApiError(413, "too_many_configurations", f"configurations: {len(configs)} configurations is "
-                           f"over the queue's capacity of {limit}", "configurations")
         with svc.batch_lock:  # the check and the insert together: two requests cannot both take the last room
             queued = svc.queue_length()
             if queued + len(configs) > limit:
