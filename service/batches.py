@@ -33,6 +33,7 @@ BACKENDS = ("local", "ray")
 DEFAULT_METHOD = "optimized"
 IN_FLIGHT_PER_WORKER = 2  # keeps workers busy while a cancel takes effect within a configuration or two
 MAX_RETRIES = 1  # a configuration in flight when a worker process dies is tried once more
+RUNNER_RETRIES, RUNNER_RETRY_S = 3, 1.0  # a batch whose run fails as a whole is re-queued this often first
 
 
 class BatchError(ValueError):
@@ -656,6 +657,7 @@ class BatchRunner:
         self._cv = threading.Condition()
         self._current: str | None = None
         self._cancelled: set[str] = set()
+        self._runner_failures: dict[str, int] = {}
         self._stop = False
         self._thread: threading.Thread | None = None
 
@@ -740,7 +742,15 @@ class BatchRunner:
                 self._run(tenant, batch_id)
             except Exception as e:
                 log.exception("batch %s failed in the runner", batch_id)
-                if not self._stop:
+                tries = self._runner_failures.get(batch_id, 0) + 1
+                self._runner_failures[batch_id] = tries
+                if not self._stop and tries < RUNNER_RETRIES:
+                    # a passing failure (a busy database, a backend that did not start): the pending
+                    # configurations stay pending and the batch goes back in the queue, after the others
+                    time.sleep(RUNNER_RETRY_S)
+                    with self._cv:
+                        self._queue.append((tenant, batch_id))
+                elif not self._stop:
                     for i in self.store.pending_indices(batch_id):
                         self.store.put_error(batch_id, i, "runner_error", f"{type(e).__name__}: {e}")
                     self.store.finish_batch(batch_id)

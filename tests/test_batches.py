@@ -170,6 +170,30 @@ def test_a_batch_runs_to_done_in_index_order_and_a_bad_configuration_is_only_an_
     assert worker_env and Path(worker_env).exists()  # spawned workers carry the LLVM path Dr.Jit needs
 
 
+def test_a_passing_runner_failure_is_retried_not_turned_into_errors(pool, monkeypatch):
+    """A run that fails as a whole (here: the first attempt raises, as a busy database would; a stand-in,
+    the failure cannot be caused on demand) leaves its configurations pending and runs the batch again."""
+    import shadowopt.service.batches as B
+
+    store, runner = pool
+    sid, _ = store.put_scene("alice", DEMO.read_bytes(), "demo_scene.usda")
+    real, calls = runner._run, []
+
+    def flaky(tenant, batch_id):
+        calls.append(batch_id)
+        if len(calls) == 1:
+            raise RuntimeError("database is locked")
+        return real(tenant, batch_id)
+
+    monkeypatch.setattr(runner, "_run", flaky)
+    monkeypatch.setattr(B, "RUNNER_RETRY_S", 0.05)
+    b = store.create_batch("alice", sid, arc_configs(2), {"method": "focused"})
+    runner.submit("alice", b)
+    assert runner.wait(b, timeout=180) == "done"
+    st = store.batch("alice", b)
+    assert (st["done"], st["failed"], len(calls)) == (2, 0, 2)
+
+
 def test_cancel_stops_a_batch_and_the_runner_goes_on(pool):
     store, runner = pool
     sid, _ = store.put_scene("bob", DEMO.read_bytes(), "demo_scene.usda")
