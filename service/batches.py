@@ -762,9 +762,8 @@ class BatchRunner:
     def _should_stop(self, batch_id: str) -> bool:
         if self._stop or batch_id in self._cancelled:
             return True
-        owner = self.store.batch_owner(batch_id)
-        st = self.store.batch(owner, batch_id, max_errors=0) if owner is not None else None
-        return st is None or st["state"] == "cancelled"
+        state = self.store.batch_state(batch_id)
+        return state is None or state == "cancelled"
 
     def _run(self, tenant: str, batch_id: str) -> None:
         st = self.store.batch(tenant, batch_id, max_errors=0)

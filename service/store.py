@@ -240,6 +240,11 @@ class Store:
                 "created_at": iso(row["created_at"]), "updated_at": iso(row["updated_at"]),
                 "settings": json.loads(row["settings"])}
 
+    def batch_state(self, batch_id: str) -> str | None:
+        """The state alone (one indexed row, no counts): for the runner's polling."""
+        row = self._batch_row(batch_id)
+        return row["state"] if row is not None else None
+
     def batch_owner(self, batch_id: str) -> str | None:
         row = self._batch_row(batch_id)
         return row["tenant"] if row is not None else None
