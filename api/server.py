@@ -261,8 +261,7 @@ class Service:
     def queue_length(self) -> int:
         if self.store is None:
             return 0
-        return sum(max(0, b.get("total", 0) - b.get("done", 0) - b.get("failed", 0))
-                   for b in _batch_dicts(self.store, self.store.unfinished_batches()))
+        return self.store.pending_configurations()
 
     def tenant_for(self, token: str | None) -> str | None:
         if not self.tokens:
@@ -297,19 +296,6 @@ def _count(x) -> int:
         return len(x)
     except TypeError:
         return int(x or 0)
-
-
-def _batch_dicts(store, unfinished) -> list[dict]:
-    """store.unfinished_batches() as status dicts (it may give dicts or (tenant, batch_id) pairs)."""
-    out = []
-    for b in unfinished or []:
-        if isinstance(b, dict):
-            if "total" not in b and "batch_id" in b and "tenant" in b:
-                b = store.batch(b["tenant"], b["batch_id"]) or {}
-            out.append(b)
-        elif isinstance(b, (tuple, list)) and len(b) == 2:
-            out.append(store.batch(b[0], b[1]) or {})
-    return out
 
 
 def warm_rig(loaded, path) -> dict | None:

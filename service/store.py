@@ -376,6 +376,17 @@ class Store:
     def queue_length(self) -> int:
         return self._query("SELECT COUNT(*) FROM batches WHERE state IN ('queued', 'running')")[0][0]
 
+    def pending_configurations(self) -> int:
+        """Configurations of queued or running batches with neither a result nor an error (one query)."""
+        row = self._query(
+            "SELECT COALESCE(SUM(b.total), 0) - "
+            "(SELECT COUNT(*) FROM results r JOIN batches b2 ON r.batch_id = b2.batch_id "
+            " WHERE b2.state IN ('queued', 'running')) - "
+            "(SELECT COUNT(*) FROM errors e JOIN batches b3 ON e.batch_id = b3.batch_id "
+            " WHERE b3.state IN ('queued', 'running')) "
+            "FROM batches b WHERE b.state IN ('queued', 'running')")[0][0]
+        return max(int(row or 0), 0)
+
     # -- retention -------------------------------------------------------------------------------
     def disk_bytes(self) -> int:
         """Bytes the data directory takes (scene files and the database with its WAL)."""

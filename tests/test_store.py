@@ -128,6 +128,22 @@ def test_batch_states_and_what_resume_finds(store):
         store.set_state(c, "paused")
 
 
+def test_pending_configurations_count_what_unfinished_batches_still_owe(tmp_path):
+    st = Store(tmp_path / "d")
+    a = st.create_batch("t", "s", [{"rig": {}}] * 3, {})
+    b = st.create_batch("u", "s", [{"rig": {}}] * 2, {})
+    assert st.pending_configurations() == 5
+    st.put_result(a, 0, {"x": 1})
+    st.put_error(a, 1, "invalid_rig", "bad")
+    assert st.pending_configurations() == 3  # a owes 1, b owes 2
+    assert st.cancel_batch("u", b)
+    assert st.pending_configurations() == 1  # a cancelled batch owes nothing
+    st.put_result(a, 2, {"x": 3})
+    st.finish_batch(a)
+    assert st.pending_configurations() == 0
+    st.close()
+
+
 def test_the_database_survives_reopening_and_uses_wal(tmp_path):
     s1 = Store(tmp_path / "d")
     sid, _ = s1.put_scene("t", DEMO.read_bytes(), "demo_scene.usda")
