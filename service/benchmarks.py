@@ -394,6 +394,7 @@ def bench_trust(validate_rig, rigs: int | None = None, write: bool = True) -> di
     across = spearman(pooled[:, 0], pooled[:, 1])
     across_norm = spearman(pooled[:, 0], pooled[:, 2])
     mean_rho = float(np.nanmean(rhos))
+    undefined = int(np.sum(~np.isfinite(rhos)))  # a rig where one side ranks nothing (all equal)
     configs = [f"{m}@{r}" for r in spec["resolutions"] for m in spec["methods"]]
     table = "\n".join([
         f"Scene {spec['scene']}, screen {spec['screen'][0]}x{spec['screen'][1]}, {n} sun directions; per rig "
@@ -405,7 +406,7 @@ def bench_trust(validate_rig, rigs: int | None = None, write: bool = True) -> di
         f"| lowest within-rig Spearman | {float(np.nanmin(rhos)):.3f} |",
         f"| across rigs, pooled: objective vs misclassified | {across:.3f} |",
         f"| across rigs, pooled: objective vs misclassified per boundary pixel | {across_norm:.3f} |",
-        f"| rigs | {n} |"])
+        f"| rigs | {n} ({undefined} without a defined correlation, left out of the mean) |"])
     out = {"benchmark": "trust", "machine": machine(), "rigs": per_rig, "mean_within_rig_spearman": mean_rho,
            "across_rig_spearman": across, "across_rig_spearman_per_boundary_pixel": across_norm,
            "configurations": configs, "table": table}

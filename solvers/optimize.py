@@ -283,7 +283,9 @@ class Problem:
 
     def log_warp_for(self, x):
         """LogPSM's log step for the perspective part with parameters x (Lloyd et al. 2007 eq. 78,
-        solvers.warp.log_warp): a = n', W = D, the receivers' depth along the warp axis."""
+        solvers.warp.log_warp): a = n', W = D, the receivers' depth along the warp axis. The map's t
+        box is padded slightly beyond [y0, y1] (PAD), so t_p = 0 is a hair before y0: the warp is
+        Lloyd's up to that padding, and every receiver stays inside (c1 t + c2 > 0 on the box)."""
         u = float(self.clip(x)[1])
         n_prime = self.fit(x)[3]
         return log_warp(n_prime * math.expm1(u), n_prime)
@@ -606,7 +608,7 @@ def _minimize_spot(camera, light, samples, receivers, casters_bounds, resolution
     except _Budget:
         success, message = False, "time budget reached"
     f, xb, _ = prob.best
-    if xb is None or base_val < f:
+    if xb is None or not math.isfinite(f) or base_val < f:  # every tilt refused: the spot's own map
         f, smap, xb, start = base_val, base, np.zeros(2), "focused"
     else:
         smap, start = prob.map_for(xb), best_start

@@ -260,6 +260,8 @@ def test_optimized_cascades_keep_their_splits(direction):
     sol = solve(entry, r, "optimized")
     maps = maps_from_solution(sol)[0]
     assert np.ravel([m.split for m in maps]) == pytest.approx(np.ravel([m.split for m in plan]))
+    # Maps are fit to the coarse receivers (extended along their planes); a sliver thinner than a coarse
+    # pixel can lose a full-resolution pixel or two (as in the hard cases above), not a cascade's worth.
     assert evaluate_solution(entry, r, sol, screen=(320, 180))["outside_pixels"] <= 2
 
 
@@ -280,6 +282,7 @@ def test_optimized_splits_on_the_demo_scene_stay_contiguous():
     assert maps[0].split[0] == 0.0 and all(a.split[1] == pytest.approx(b.split[0]) for a, b in zip(maps, maps[1:]))
     assert ends[:-1] == pytest.approx(sol["solver"]["splits"]["split_at"]) and np.all(np.diff(ends) > 0)
     res = evaluate_solution(entry, r, sol)
+    # the same coarse-sampling allowance; the bug this guards against lost tens of percent of the view
     assert res["outside_pixels"] <= 1e-3 * res["receiver_pixels"], res
 
 
