@@ -23,6 +23,7 @@ from concurrent.futures import FIRST_COMPLETED, wait
 from dataclasses import dataclass
 from pathlib import Path
 
+from .rigs import FieldError
 from .store import UNFINISHED, Store
 
 log = logging.getLogger("shadowopt.batches")
@@ -36,14 +37,10 @@ MAX_RETRIES = 1  # a configuration in flight when a worker process dies is tried
 RUNNER_RETRIES, RUNNER_RETRY_S = 3, 1.0  # a batch whose run fails as a whole is re-queued this often first
 
 
-class BatchError(ValueError):
-    """A batch request is malformed. `field` is the request path at fault (e.g. `sun_arc.samples`)."""
+class BatchError(FieldError):
+    """A batch request is malformed (`field` e.g. `sun_arc.samples`)."""
 
-    def __init__(self, field: str, message: str):
-        super().__init__(f"{field}: {message}")
-        self.field = field
-        self.message = message
-        self.code = "invalid_batch"
+    code = "invalid_batch"
 
 
 # -- configurations ------------------------------------------------------------------------------

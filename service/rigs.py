@@ -14,24 +14,28 @@ DEFAULT_FOV_Y_DEG = 60.0
 DEFAULT_NEAR = 0.1
 
 
-class RigError(ValueError):
-    """The rig does not fit the scene. `field` is the rig path at fault (e.g. `lights.0.usd_path`)."""
+class FieldError(ValueError):
+    """Bad input that names the field at fault (a path such as `lights.0.usd_path`) and the reason;
+    `code` is the machine-readable error code the API answers with."""
+
+    code = "invalid_input"
 
     def __init__(self, field: str, message: str):
         super().__init__(f"{field}: {message}")
         self.field = field
         self.message = message
-        self.code = "invalid_rig"
 
 
-class SolutionError(ValueError):
+class RigError(FieldError):
+    """The rig does not fit the scene."""
+
+    code = "invalid_rig"
+
+
+class SolutionError(FieldError):
     """A solution file cannot be used with this scene and rig."""
 
-    def __init__(self, field: str, message: str):
-        super().__init__(f"{field}: {message}")
-        self.field = field
-        self.message = message
-        self.code = "invalid_solution"
+    code = "invalid_solution"
 
 
 @dataclass
