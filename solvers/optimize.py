@@ -514,19 +514,8 @@ def minimize(camera: Camera, light: DirectionalLight | SpotLight, samples: Sampl
         xs = {"warm": prob.clip(np.asarray(x0, float)), **xs}
     fam_vals = {name: prob.value(x) for name, x in xs.items()}
     best_start = min(fam_vals, key=fam_vals.get)
-    x = xs[best_start].copy()
     prob.deadline = deadline
-    nit, success, message = 0, True, "converged"
-    try:
-        prob._check()
-        if len(samples) == 0:
-            message = "no samples: the best starting point is returned"
-        elif method != "none":
-            nit = _run(method, prob, x, maxiter)
-        else:
-            message = "no optimization (method 'none'): the best start"
-    except _Budget:
-        success, message = False, "time budget reached"
+    nit, success, message = _search(prob, method, xs[best_start].copy(), maxiter, len(samples))
     f, xb, _ = prob.best
     smap = prob.map_for(xb)
     same_kind = {n: v for n, v in base_vals.items() if (bases[n].log_warp is not None) == log}  # log: stay log
@@ -591,22 +580,12 @@ def _minimize_spot(camera, light, samples, receivers, casters_bounds, resolution
     fam_vals = {name: prob.value(x) for name, x in xs.items()}
     best_start = min(fam_vals, key=fam_vals.get)
     prob.deadline = deadline
-    nit, success, message = 0, True, "converged"
-    try:
-        prob._check()
-        if len(samples) == 0:
-            message = "no samples: the best starting point is returned"
-        elif method != "none":
-            kind = method.split(":")[0]
-            # derivative-free on this family (the gradient would be finite differences of the fit)
-            nit = _run(method if kind == "nlopt" and method.startswith("nlopt:LN") else DEFAULT_METHOD, prob,
-                       xs[best_start].copy(), maxiter)
-            if method != DEFAULT_METHOD and not method.startswith("nlopt:LN"):
-                message = f"converged ({DEFAULT_METHOD}: spot lights use a derivative-free solver)"
-        else:
-            message = "no optimization (method 'none'): the best start"
-    except _Budget:
-        success, message = False, "time budget reached"
+    # derivative-free on this family (its gradient would be finite differences of the fit)
+    free = method == "none" or method.startswith("nlopt:LN")
+    nit, success, message = _search(prob, method if free else DEFAULT_METHOD, xs[best_start].copy(), maxiter,
+                                     len(samples))
+    if not free and success:
+        message = f"converged ({DEFAULT_METHOD}: spot lights use a derivative-free solver)"
     f, xb, _ = prob.best
     if xb is None or not math.isfinite(f) or base_val < f:  # every tilt refused: the spot's own map
         f, smap, xb, start = base_val, base, np.zeros(2), "focused"
@@ -633,6 +612,20 @@ def _shared_hull(fitted, k: int, part: np.ndarray, sub: Samples, receivers: np.n
     if len(rows) and not (sel_r[rows].all() and np.array_equal(receivers[rows], sub.position)):
         return None
     return hull
+
+
+def _search(prob, method: str, x: np.ndarray, maxiter: int, n_samples: int) -> tuple[int, bool, str]:
+    """Run `method` from x within the problem's deadline: (iterations, success, message). The problem
+    keeps the best point seen, so a search cut by the time budget still has a result."""
+    try:
+        prob._check()
+        if n_samples == 0:
+            return 0, True, "no samples: the best starting point is returned"
+        if method == "none":
+            return 0, True, "no optimization (method 'none'): the best start"
+        return _run(method, prob, x, maxiter), True, "converged"
+    except _Budget:
+        return 0, False, "time budget reached"
 
 
 def _run(method: str, prob: Problem, x: np.ndarray, maxiter: int) -> int:
