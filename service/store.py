@@ -90,6 +90,7 @@ class Store:
         self._conns_lock = threading.Lock()
         self._write_lock = threading.Lock()  # one writer at a time within this process
         self._last_retention = -math.inf
+        self._retention_lock = threading.Lock()  # one retention pass at a time (writes and a server timer)
         self._init_schema()
         self.auto_retention()
 
@@ -426,6 +427,10 @@ class Store:
         """Drop finished batches and scenes older than retention_days, then the oldest until the data
         directory is under max_bytes. Never touches a queued or running batch, nor a scene one uses.
         Returns what was removed: {"batches": [...], "scenes": [[tenant, scene_id], ...]}."""
+        with self._retention_lock:
+            return self._enforce_retention()
+
+    def _enforce_retention(self) -> dict:
         removed = {"batches": [], "scenes": []}
         busy = {(r["tenant"], r["scene_id"]) for r in self._query(
             "SELECT tenant, scene_id FROM batches WHERE state IN ('queued', 'running')")}
