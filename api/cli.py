@@ -267,10 +267,12 @@ def cmd_batch(args) -> int:
         configs = expand_configurations(request)
     except BatchError as e:
         raise CliError(f"--configs {args.configs}: {e.field}: {e.message}") from e
-    explicit = "configurations" in request
-    for i, c in enumerate(configs):
-        where = f"configurations.{i}.rig" if explicit else f"rig (configuration {i})"
-        c["rig"] = _validate_batch_rig(c["rig"], where, args.configs)
+    from .schemas import ConfigurationError, validate_configurations
+
+    try:
+        configs = validate_configurations(configs)
+    except ConfigurationError as e:
+        raise CliError(f"--configs {args.configs}: {e.message}") from e
     method = args.method or request.get("method") or "optimized"
     if method not in METHODS:
         raise CliError(f"--configs {args.configs}: method: unknown {method!r} (known: {', '.join(METHODS)})")
@@ -294,18 +296,6 @@ def cmd_batch(args) -> int:
         internal = ("internal_error", "worker_crashed", "runner_error")
         return EXIT_USAGE if s["done"] == 0 and first["code"] not in internal else 1
     return 0
-
-
-def _validate_batch_rig(raw, where: str, path: str) -> dict:
-    from pydantic import ValidationError
-
-    from .schemas import format_validation_error
-
-    try:
-        return validate_rig(raw)
-    except ValidationError as e:
-        text = "; ".join(f"{where}.{part}" for part in format_validation_error(e).split("; "))
-        raise CliError(f"--configs {path}: {text}") from e
 
 
 def cmd_serve(args) -> int:

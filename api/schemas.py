@@ -252,6 +252,32 @@ class BatchConfiguration(_Strict):
     rig: Rig
 
 
+class ConfigurationError(ValueError):
+    """A batch configuration that is not a valid rig: `field` (e.g. `configurations.3.rig.shadow.lambda`)
+    and the reason, for the CLI (exit 2) and the API (422) alike."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(message)
+        self.field, self.message = field, message
+
+
+def validate_configurations(configs: list[dict]) -> list[dict]:
+    """Each expanded configuration validated as {"rig": Rig}; the first bad one raises ConfigurationError
+    with its path under `configurations.K`."""
+    from pydantic import ValidationError
+
+    out = []
+    for k, c in enumerate(configs):
+        try:
+            out.append(BatchConfiguration.model_validate(c).model_dump(by_alias=True))
+        except ValidationError as e:
+            errors = e.errors()
+            first = ".".join(str(p) for p in ("configurations", k, *errors[0].get("loc", ())))
+            text = "; ".join(f"configurations.{k}.{line}" for line in format_validation_error(e).split("; "))
+            raise ConfigurationError(first, text) from e
+    return out
+
+
 class BatchCreated(_Open):
     batch_id: str
     state: BatchState

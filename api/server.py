@@ -27,7 +27,6 @@ from fastapi import Depends, FastAPI, Header, Query, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
@@ -814,7 +813,10 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
         if len(configs) > limit:  # before the per-configuration validation: its cost grows with the count
             raise ApiError(413, "too_many_configurations", f"configurations: {len(configs)} configurations is "
                            f"over the queue's capacity of {limit}", "configurations")
-        configs = [validated_configuration(k, c) for k, c in enumerate(configs)]
+        try:
+            configs = S.validate_configurations(configs)
+        except S.ConfigurationError as e:
+            raise ApiError(422, "invalid_request", e.message, e.field) from e
         for k, c in enumerate(configs):  # a rig that does not fit the scene is refused now, not per result
             try:
                 resolve_rig(c["rig"], entry.loaded)
@@ -864,15 +866,6 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
             raise batch_not_found(batch_id)
         svc.runner.cancel(tenant, batch_id)
         return json_response(status_json(svc, tenant, svc.store.batch(tenant, batch_id)))
-
-
-def validated_configuration(k: int, config: dict) -> dict:
-    try:
-        return S.BatchConfiguration.model_validate(config).model_dump(by_alias=True)
-    except ValidationError as e:
-        errors = [{**x, "loc": ("configurations", k) + tuple(x.get("loc", ()))} for x in e.errors()]
-        first = ".".join(str(p) for p in errors[0]["loc"])
-        raise ApiError(422, "invalid_request", S.format_validation_error(_Errors(errors)), first) from e
 
 
 def batch_not_found(batch_id: str) -> ApiError:
