@@ -35,6 +35,7 @@ DEFAULT_METHOD = "optimized"
 IN_FLIGHT_PER_WORKER = 2  # keeps workers busy while a cancel takes effect within a configuration or two
 MAX_RETRIES = 1  # a configuration in flight when a worker process dies is tried once more
 RUNNER_RETRIES, RUNNER_RETRY_S = 3, 1.0  # a batch whose run fails as a whole is re-queued this often first
+SLICE = 64  # configurations a batch runs before it lets a batch that arrived meanwhile take a turn
 
 
 class BatchError(FieldError):
@@ -779,9 +780,26 @@ class BatchRunner:
         configs = self.store.configurations(batch_id)
         job = SceneJob(str(path), rec["filename"], self.store.scene_sandboxed(tenant, st["scene_id"]))
         items = [(i, configs[i]) for i in pending]
+        for start in range(0, len(items), SLICE):
+            self._run_slice(batch_id, job, items[start:start + SLICE], st["settings"])
+            if self._stop or self._should_stop(batch_id):
+                break
+            if start + SLICE < len(items) and self._others_waiting():
+                # take turns: the rest of this batch goes behind the batches that arrived meanwhile
+                with self._cv:
+                    self._queue.append((tenant, batch_id))
+                return
+        if not self._stop:
+            self.store.finish_batch(batch_id)
+
+    def _others_waiting(self) -> bool:
+        with self._cv:
+            return bool(self._queue)
+
+    def _run_slice(self, batch_id: str, job, items: list, settings: dict) -> None:
+        """Run some of a batch's pending configurations, storing each outcome as it arrives."""
         self.stats["submitted"] += len(items)
-        stopped_early = False
-        outcomes = self._backend().run(job, items, st["settings"], lambda: self._should_stop(batch_id))
+        outcomes = self._backend().run(job, items, settings, lambda: self._should_stop(batch_id))
         for index, out in outcomes:
             if "result" in out:
                 self.store.put_result(batch_id, index, out["result"])
@@ -791,10 +809,6 @@ class BatchRunner:
                 self.stats["errors"] += 1
             with self._cv:
                 self._cv.notify_all()
-        if self._stop:
-            stopped_early = True
-        if not stopped_early:
-            self.store.finish_batch(batch_id)
 
 
 # -- the CLI's batch -------------------------------------------------------------------------------

@@ -194,11 +194,36 @@ def test_a_passing_runner_failure_is_retried_not_turned_into_errors(pool, monkey
     assert (st["done"], st["failed"], len(calls)) == (2, 0, 2)
 
 
+def test_a_small_batch_is_not_stuck_behind_a_big_one(pool, monkeypatch):
+    """Batches take turns a slice at a time: a 2-configuration batch submitted while a long one runs
+    finishes while the long one is still running."""
+    import shadowopt.service.batches as B
+
+    store, runner = pool
+    monkeypatch.setattr(B, "SLICE", 4)
+    sid, _ = store.put_scene("alice", DEMO.read_bytes(), "demo_scene.usda")
+    big = store.create_batch("alice", sid, arc_configs(40), {"method": "focused"})
+    runner.submit("alice", big)
+    deadline = time.monotonic() + 120
+    while store.batch("alice", big)["done"] < 2:  # the big batch is under way
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    bob_sid, _ = store.put_scene("bob", DEMO.read_bytes(), "demo_scene.usda")
+    small = store.create_batch("bob", bob_sid, arc_configs(2), {"method": "focused"})
+    runner.submit("bob", small)
+    assert runner.wait(small, timeout=120) == "done"
+    big_then = store.batch("alice", big)
+    assert big_then["state"] == "running" and big_then["done"] < 40, big_then
+    assert runner.wait(big, timeout=180) == "done"
+    assert [r["index"] for r in store.results("alice", big)] == list(range(40))
+
+
 def test_cancel_stops_a_batch_and_the_runner_goes_on(pool):
     store, runner = pool
     sid, _ = store.put_scene("bob", DEMO.read_bytes(), "demo_scene.usda")
     big = store.create_batch("bob", sid, arc_configs(40), {"method": "optimized"})
-    small = store.create_batch("bob", sid, arc_configs(2), {"method": "focused"})
+    bob_sid, _ = store.put_scene("bob", DEMO.read_bytes(), "demo_scene.usda")
+    small = store.create_batch("bob", bob_sid, arc_configs(2), {"method": "focused"})
     runner.submit("bob", big)
     runner.submit("bob", small)
     deadline = time.monotonic() + 120
