@@ -281,6 +281,17 @@ def _progress_bar(total: int, desc: str, enabled: bool):
     return tqdm(total=total, desc=desc, unit="conf", file=sys.stderr)
 
 
+def _finished(bar, st, deadline: float | None, timeout: float | None) -> bool:
+    """One poll of wait(): draw the bar; True once the batch is done, failed or cancelled; TimeoutError
+    past the deadline."""
+    _update_bar(bar, st)
+    if st.state in TERMINAL_STATES:
+        return True
+    if deadline is not None and time.monotonic() > deadline:
+        raise TimeoutError(f"batch {st.batch_id} still {st.state} after {timeout} s ({st.done}/{st.total})")
+    return False
+
+
 def _update_bar(bar, st: BatchStatus) -> None:
     if bar is not None:
         if st.total and bar.total != st.total:
@@ -407,14 +418,10 @@ class Client(_Base):
         st = self.batch(batch)
         bar = _progress_bar(st.total, f"batch {st.batch_id}", progress)
         try:
-            while True:
-                _update_bar(bar, st)
-                if st.state in TERMINAL_STATES:
-                    return st
-                if deadline is not None and time.monotonic() > deadline:
-                    raise TimeoutError(f"batch {st.batch_id} still {st.state} after {timeout} s ({st.done}/{st.total})")
+            while not _finished(bar, st, deadline, timeout):
                 time.sleep(poll_s)
                 st = self.batch(batch)
+            return st
         finally:
             if bar is not None:
                 bar.close()
@@ -551,14 +558,10 @@ class AsyncClient(_Base):
         st = await self.batch(batch)
         bar = _progress_bar(st.total, f"batch {st.batch_id}", progress)
         try:
-            while True:
-                _update_bar(bar, st)
-                if st.state in TERMINAL_STATES:
-                    return st
-                if deadline is not None and time.monotonic() > deadline:
-                    raise TimeoutError(f"batch {st.batch_id} still {st.state} after {timeout} s ({st.done}/{st.total})")
+            while not _finished(bar, st, deadline, timeout):
                 await asyncio.sleep(poll_s)
                 st = await self.batch(batch)
+            return st
         finally:
             if bar is not None:
                 bar.close()

@@ -257,6 +257,11 @@ class Service:
             with self._inflight_lock:
                 self._inflight -= 1
 
+    def time_budget(self, requested: float | None) -> float:
+        """A request's time budget in ms, capped by the server's max_time_budget_ms (the cap when none is asked)."""
+        cap = self.settings.max_time_budget_ms
+        return min(requested or cap, cap)
+
     def queue_length(self) -> int:
         if self.store is None:
             return 0
@@ -734,8 +739,7 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
               response_model=S.Solution, responses=error_responses(*AUTHED, 404, 413, 422, 503), tags=["solve"])
     def optimize(req: S.OptimizeRequest, tenant: Tenant):
         entry = scene_entry_for(svc, tenant, req.scene_id)
-        cap = svc.settings.max_time_budget_ms
-        budget = min(req.time_budget_ms or cap, cap)
+        budget = svc.time_budget(req.time_budget_ms)
         t0 = time.perf_counter()
         with svc.heavy(), solver_errors(req.previous is not None):
             sol = solve(entry, rig_dict(req.rig), method=req.method, solver=req.solver, time_budget_ms=budget,
@@ -773,7 +777,7 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
         methods = list(dict.fromkeys(req.methods))
         with svc.heavy(), solver_errors():
             res = compare_methods(entry, rig, methods, screen=req.screen,
-                                  solve_options={"time_budget_ms": svc.settings.max_time_budget_ms})
+                                  solve_options={"time_budget_ms": svc.time_budget(None)})
         return json_response(res)
 
     @app.post("/v1/analyze", summary="Lloyd's scene-independent critical resolution and storage factors",
@@ -828,9 +832,8 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
             if queued + len(configs) > limit:
                 raise ApiError(503, "queue_full", f"the batch queue holds {queued} of {limit} configurations; "
                                f"{len(configs)} more do not fit", headers={"Retry-After": str(retry_after(queued))})
-            cap = svc.settings.max_time_budget_ms
             settings = {"method": req.method, "solver": req.solver,
-                        "time_budget_ms": min(req.time_budget_ms or cap, cap),
+                        "time_budget_ms": svc.time_budget(req.time_budget_ms),
                         "shape": list(shape) if shape else None}
             batch_id = svc.store.create_batch(tenant, req.scene_id, configs, settings)
         svc.runner.submit(tenant, batch_id)

@@ -70,8 +70,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .cameras import Camera
-from .cascades import allocate, critical_factors, pixel_world_size, split_depths
-from .fitting import (box_corners, depth_range, frustum, light_plane_hull, min_area_rectangle, ortho, padded,
+from .cascades import allocate, critical_factors, pixel_world_size, receiver_depth_range, split_depths
+from .fitting import (box_corners, depth_range, extent_floor, frustum, light_plane_hull, min_area_rectangle, ortho, padded,
                       rotation_z, to_view)
 from .light_frames import CUBE_FACES, cube_face_views, directional_view, look_matrix, perpendicular_up, spot_view
 from .lights import DirectionalLight, PointLight, SpotLight
@@ -171,7 +171,7 @@ def _with_bias(smap: ShadowMap, receivers: np.ndarray, light) -> ShadowMap:
 def _min_extent(points: np.ndarray) -> float:
     if len(points) == 0:
         return 1e-3
-    return max(1e-6, 1e-6 * float(np.abs(points).max()))
+    return extent_floor(float(np.abs(points).max()))
 
 
 # ------------------------------------------------------------------ directional maps
@@ -380,10 +380,7 @@ def fit_baseline(method: str, camera: Camera, light, receivers: np.ndarray, cast
             m.split = (0.0, float(camera.far))
         return Fitted(maps, [receivers] * len(maps), [None] * len(maps))
 
-    if len(receivers):
-        z_lo, z_hi = max(float(depth.min()), camera.near), max(float(depth.max()), camera.near * 1.001)
-    else:
-        z_lo, z_hi = camera.near, camera.far
+    z_lo, z_hi = receiver_depth_range(camera, depth)
     k = max(1, int(cascades))
     z = split_depths(z_lo, z_hi, k, "practical" if split_at is not None else splits, split_lambda)
     if split_at is not None:

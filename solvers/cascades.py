@@ -30,6 +30,14 @@ def split_depths(z_near: float, z_far: float, k: int, kind: str = "practical", l
     return out
 
 
+def receiver_depth_range(camera, depth: np.ndarray) -> tuple[float, float]:
+    """The receivers' tight view-depth range that splits divide (SDSM): [min, max] of their view
+    depths, kept beyond the near plane; the camera's near..far when there is no receiver."""
+    if not len(depth):
+        return camera.near, camera.far
+    return max(float(np.min(depth)), camera.near), max(float(np.max(depth)), camera.near * 1.001)
+
+
 def pixel_world_size(camera, pts: np.ndarray) -> np.ndarray:
     """World size (m) of one full-resolution screen pixel at each point, perpendicular to the view
     ray: view depth · 2 tan(fov_y / 2) / height."""

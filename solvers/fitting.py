@@ -95,6 +95,19 @@ def padded(lo: np.ndarray, hi: np.ndarray, frac: float, floor: float) -> tuple[n
     return lo - pad, hi + pad
 
 
+def padded_range(lo: float, hi: float, frac: float, floor: float) -> tuple[float, float]:
+    """padded() for one dimension in Python floats (the same operations; the optimizer's inner loop)."""
+    size = hi - lo
+    pad = max(size * frac, max(floor - size, 0.0) / 2 + 1e-12)
+    return lo - pad, hi + pad
+
+
+def extent_floor(max_abs: float) -> float:
+    """The least extent a fitted box keeps: 1e-6 of the coordinates' magnitude, at least 1e-6
+    (degenerate receivers, a point or a line, still give a map)."""
+    return max(1e-6, 1e-6 * max_abs)
+
+
 def box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
 

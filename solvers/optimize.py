@@ -36,9 +36,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .baselines import PAD, _min_extent, _with_bias, baseline, directional_view, fit_baseline
+from .baselines import PAD, _with_bias, baseline, directional_view, fit_baseline
 from .cameras import Camera
-from .fitting import box_corners, convex_hull_2d, light_plane_hull, min_area_rectangle, ortho, padded, rotation_z, to_view
+from .fitting import (box_corners, convex_hull_2d, extent_floor, light_plane_hull, min_area_rectangle, ortho,
+                      padded, padded_range, rotation_z, to_view)
 from .lights import DirectionalLight, SpotLight
 from .metric import (device_samples, log_to_device, matrix_to_device, objective, objective_value, recentre,
                      serial_kernels)
@@ -100,17 +101,10 @@ def _robust_difference(fm, f0, fp, h):
 AFFINE_FITS = ("axis", "rectangle", "parallelogram")
 
 
-def _padded_range(lo: float, hi: float, floor: float) -> tuple[float, float]:
-    """solvers.fitting.padded for one dimension in Python floats (the same operations)."""
-    size = hi - lo
-    pad = max(size * PAD, max(floor - size, 0.0) / 2 + 1e-12)
-    return lo - pad, hi + pad
-
-
 def _padded_box(lo: list, hi: list) -> tuple[tuple[float, float], tuple[float, float]]:
-    """padded(lo, hi, PAD, _min_extent([lo, hi])) for a 2D box, per dimension in Python floats."""
-    floor = max(1e-6, 1e-6 * max(abs(v) for v in lo + hi))
-    return _padded_range(lo[0], hi[0], floor), _padded_range(lo[1], hi[1], floor)
+    """padded(lo, hi, PAD, extent floor of the box) for a 2D box, per dimension in Python floats."""
+    floor = extent_floor(max(abs(v) for v in lo + hi))
+    return padded_range(lo[0], hi[0], PAD, floor), padded_range(lo[1], hi[1], PAD, floor)
 
 
 def _finite_rows(p: np.ndarray) -> np.ndarray:
@@ -249,7 +243,7 @@ class Problem:
     def _warp_range(v: np.ndarray) -> tuple[float, float]:
         """[y0, y1]: the fit points' padded extent along the warp axis (light-view +Y)."""
         lo, hi = float(v[:, 1].min()), float(v[:, 1].max())
-        return _padded_range(lo, hi, max(1e-6, 1e-6 * float(np.abs(v[:, 1]).max())))  # floor: _min_extent
+        return padded_range(lo, hi, PAD, extent_floor(float(np.abs(v[:, 1]).max())))
 
     @staticmethod
     def _depth_range(v, dv, wv, k: float, y0: float, y1: float) -> tuple[float, float]:
@@ -467,10 +461,8 @@ def _start_x(prob: Problem, smap: ShadowMap) -> np.ndarray:
     square = prob.resolution[0] == prob.resolution[1]
     if smap.n_prime is None or not math.isfinite(smap.n_prime):
         return np.array([_angle_of(smap.view, prob.view0, square), 0.0])
-    view = prob.view0
-    v = to_view(view, prob.fit_pts)[:, 1]
-    y0, y1 = padded(v.min(keepdims=True), v.max(keepdims=True), PAD, _min_extent(v[:, None]))
-    D = float(y1[0] - y0[0])
+    y0, y1 = prob._warp_range(to_view(prob.view0, prob.fit_pts))  # the fit's own warp range
+    D = y1 - y0
     return prob.clip([_angle_of(smap.view, prob.view0, False), math.log1p(D / smap.n_prime)])
 
 

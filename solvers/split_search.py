@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .baselines import fit_baseline
-from .cascades import split_depths
+from .cascades import receiver_depth_range, split_depths
 from .metric import predicted_error
 from .samples import Samples
 
@@ -40,14 +40,6 @@ class SplitResult:
                 "time_ms": round(self.time_ms, 3)}
 
 
-def receiver_depth_range(camera, receivers: np.ndarray) -> tuple[float, float]:
-    """The receivers' tight view-depth range, as solvers.baselines.baseline splits it."""
-    if not len(receivers):
-        return camera.near, camera.far
-    depth = (receivers - camera.position) @ camera.forward
-    return max(float(depth.min()), camera.near), max(float(depth.max()), camera.near * 1.001)
-
-
 def _subsample(receivers: np.ndarray, slack: np.ndarray | None, n: int):
     if len(receivers) <= n:
         return receivers, slack
@@ -64,7 +56,7 @@ def optimize_splits(camera, light, samples: Samples, receivers: np.ndarray, cast
     t0 = time.perf_counter()
     k = int(cascades)
     receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
-    z_lo, z_hi = receiver_depth_range(camera, receivers)
+    z_lo, z_hi = receiver_depth_range(camera, (receivers - camera.position) @ camera.forward)
     rec, slack = _subsample(receivers, None if receiver_slack is None else np.asarray(receiver_slack, float),
                             SEARCH_RECEIVERS)
     nfev = 0
