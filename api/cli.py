@@ -146,6 +146,10 @@ def cmd_bench(args) -> int:
         from ..service.batch_benchmark import bench_batch
 
         result = bench_batch(validate_rig, configurations=args.lights or 20, write=not args.no_write)
+    elif args.bench == "security":
+        from ..service.security_benchmark import bench_security
+
+        result = bench_security(write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "load":
         from ..service.load_benchmark import bench_load
 
@@ -391,7 +395,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_analyze)
 
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
-    sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch"])
+    sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch", "security"])
     sp.add_argument("--seconds", type=float, default=60.0, help="load: seconds of concurrent load per workload")
     sp.add_argument("--lights", type=int, default=None, help="quality, solvers, trust: number of light directions (rigs)")
     sp.add_argument("--part", choices=["single", "cascades", "all"], default="all",

@@ -77,8 +77,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(data_dir: Path, token: str, port: int) -> subprocess.Popen:
-    env = {**os.environ, "SHADOWOPT_TOKENS": f"bench={token}", "SHADOWOPT_RATE_LIMIT_PER_S": "0"}
+def start_server(data_dir: Path, token: str | None, port: int, tokens: dict | None = None) -> subprocess.Popen:
+    """`shadowopt serve` with the bench token (or `tokens`, name -> token) and the rate limit off."""
+    tokens = tokens or {"bench": token}
+    env = {**os.environ, "SHADOWOPT_TOKENS": ",".join(f"{n}={t}" for n, t in tokens.items()),
+           "SHADOWOPT_RATE_LIMIT_PER_S": "0"}
     exe = Path(sys.executable).with_name("shadowopt")
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "shadowopt.api.cli"]
     log = open(data_dir / "server.log", "w")
