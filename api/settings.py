@@ -31,8 +31,20 @@ class Settings:
     max_eval_pixels: int = 3840 * 2160 * 2  # evaluate/compare: screen pixels
     max_eval_texels: int = 8192 * 8192  # evaluate/compare: texels per shadow map
     max_queue: int = 100_000  # configurations waiting or running over all batches
-    max_inflight: int = 64  # optimize/evaluate/compare requests at once; more wait in line up to this
+    max_inflight: int = 64  # heavy requests (upload loads, optimize, evaluate, compare, batch creation) admitted
+    # at once, running or waiting for a slot; one more is refused at once with 503 busy
     solve_threads: int = 2  # solves running at the same time
+    load_threads: int = 1  # scene loads (uploads and cache-miss reloads) running at the same time: own slots,
+    # so an upload never holds a solver slot
+    load_memory_bytes: int = 3 * 1024 ** 3  # address-space limit of the process loading an uploaded scene
+    load_timeout_s: float = 60.0  # wall-clock limit of one uploaded scene's load
+    scene_cache_entries: int = 8  # loaded scenes kept in memory
+    scene_cache_bytes: int = 2 * 1024 ** 3  # bytes of loaded scenes kept in memory
+    tenant_cache_share: float = 0.5  # fraction of the scene cache (entries and bytes) one tenant's scenes may hold
+    tenant_max_inflight: int = 16  # one tenant's heavy requests admitted at once; more get 429
+    tenant_max_queued: int = 25_000  # one tenant's batch configurations waiting or running; more get 429
+    tenant_max_stored_bytes: int = 1024 ** 3  # bytes of uploaded files one tenant may keep; more get 429 (413 when
+    # one upload alone is larger)
     rate_limit_per_s: float = 50.0  # per token; 0 turns the limit off
     rate_limit_burst: int = 100
     batch_backend: str = "local"
@@ -50,12 +62,20 @@ class Settings:
 
     def check(self) -> "Settings":
         for name in ("max_upload_bytes", "max_body_bytes", "max_triangles", "max_eval_pixels", "max_eval_texels",
-                     "max_queue", "max_inflight",
-                     "solve_threads", "batch_workers", "rate_limit_burst"):
+                     "max_queue", "max_inflight", "solve_threads", "load_threads", "load_memory_bytes",
+                     "scene_cache_entries", "scene_cache_bytes", "tenant_max_inflight", "tenant_max_queued",
+                     "tenant_max_stored_bytes", "batch_workers", "rate_limit_burst"):
             if getattr(self, name) < 1:
                 raise SettingsError(f"{name}: must be at least 1, got {getattr(self, name)}")
         if self.max_time_budget_ms <= 0 or self.rate_limit_per_s < 0 or self.retention_interval_s <= 0:
             raise SettingsError("max_time_budget_ms and retention_interval_s must be > 0, rate_limit_per_s >= 0")
+        if self.load_memory_bytes < 1 << 30:
+            raise SettingsError(f"load_memory_bytes: must be at least {1 << 30} (a loader process needs that much "
+                                f"address space for usd-core alone), got {self.load_memory_bytes}")
+        if self.load_timeout_s <= 0:
+            raise SettingsError(f"load_timeout_s: must be > 0, got {self.load_timeout_s}")
+        if not 0 < self.tenant_cache_share <= 1:
+            raise SettingsError(f"tenant_cache_share: must be in (0, 1], got {self.tenant_cache_share}")
         if self.batch_backend not in ("local", "ray"):
             raise SettingsError(f"batch_backend: 'local' or 'ray', got {self.batch_backend!r}")
         if not 0 < self.port < 65536:

@@ -8,6 +8,7 @@ Times are stored as Unix seconds and returned as ISO 8601 UTC strings.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -161,6 +162,110 @@ class Store:
         if n == 1:
             self.auto_retention()
         return scene_id, n == 1
+
+    # -- uploads, registered atomically ---------------------------------------------------------
+    # An upload is written under a temporary name and renamed into its folder (never a partial file
+    # there), loaded, and only then recorded, in one INSERT that carries its info. Until that INSERT the
+    # file is invisible (no row); a SIGKILL at any point leaves either no row or a complete one, and
+    # sweep_partial_uploads() (at server start) removes what an interrupted upload left behind.
+    def scene_folder(self, tenant: str, scene_id: str) -> Path:
+        return self.scenes_dir / tenant_dir_name(tenant) / scene_id
+
+    def write_upload(self, tenant: str, data: bytes, filename: str) -> tuple[str, Path, bool]:
+        """Write an upload's bytes to their final path, not yet recorded: (scene_id, path, wrote). `wrote` is
+        False when the same file is already there (same content hash and name), which is then left as is."""
+        scene_id = scene_id_for(data, filename)
+        folder = self.scene_folder(tenant, scene_id)
+        path = folder / sanitise_filename(filename)
+        if path.is_file() and path.stat().st_size == len(data):
+            return scene_id, path, False
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp = folder / f".{path.name}.{uuid.uuid4().hex}.tmp"
+        try:
+            with open(tmp, "wb") as f:
+                f.write(data)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        return scene_id, path, True
+
+    def register_upload(self, tenant: str, scene_id: str, path: Path, nbytes: int, info: dict) -> bool:
+        """Record a written and checked upload with its info in one transaction; False when it was
+        recorded already (a concurrent upload of the same bytes won)."""
+        (n,) = self._write([("INSERT OR IGNORE INTO scenes (tenant, scene_id, filename, bytes, path, source, "
+                             "created_at, info) VALUES (?, ?, ?, ?, ?, 'upload', ?, ?)",
+                             (tenant, scene_id, path.name, nbytes, str(path), time.time(), json.dumps(info)))])
+        if n == 1:
+            self.auto_retention()
+        return n == 1
+
+    def discard_upload(self, tenant: str, scene_id: str, path: Path) -> None:
+        """Remove an upload's file that was never recorded (its load failed); a recorded file stays."""
+        row = self._scene_row(tenant, scene_id)
+        if row is not None and Path(row["path"]) == path:
+            return
+        path.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            path.parent.rmdir()  # only when empty: another name of the same bytes may be in there
+
+    def tenant_stored_bytes(self, tenant: str) -> int:
+        """Bytes of the uploaded files this tenant keeps."""
+        return int(self._query("SELECT COALESCE(SUM(bytes), 0) FROM scenes WHERE tenant = ? AND source = 'upload'",
+                               (tenant,))[0][0])
+
+    def sweep_partial_uploads(self) -> dict:
+        """Remove what interrupted uploads left: temporary files, upload rows without info (and their files),
+        rows whose file is gone, and files or folders no row refers to. For a server's start, before it takes
+        requests (an upload in progress in another process would look partial). Returns what was removed."""
+        removed = {"rows": [], "files": []}
+        rows = self._query("SELECT tenant, scene_id, path, info FROM scenes WHERE source = 'upload'")
+        keep = set()
+        for r in rows:
+            path = Path(r["path"])
+            if r["info"] is None or not path.is_file():
+                self._write([("DELETE FROM scenes WHERE tenant = ? AND scene_id = ?", (r["tenant"], r["scene_id"]))])
+                removed["rows"].append([r["tenant"], r["scene_id"]])
+            else:
+                keep.add(os.path.realpath(path))
+        for tenant_dir in sorted(p for p in self.scenes_dir.iterdir()):
+            if not tenant_dir.is_dir():
+                if tenant_dir.name.endswith(".tmp") or tenant_dir.name.startswith("."):
+                    tenant_dir.unlink(missing_ok=True)
+                    removed["files"].append(tenant_dir.name)
+                continue
+            for folder in sorted(tenant_dir.iterdir()):
+                files = [folder] if not folder.is_dir() else sorted(folder.rglob("*"))
+                for f in files:
+                    if f.is_file() and os.path.realpath(f) not in keep:
+                        f.unlink(missing_ok=True)
+                        removed["files"].append(f"{folder.name}/{f.name}")
+                if folder.is_dir() and not any(folder.rglob("*")):
+                    shutil.rmtree(folder, ignore_errors=True)
+                elif folder.is_dir():  # empty sub-folders of a kept scene
+                    for d in sorted((d for d in folder.rglob("*") if d.is_dir()), reverse=True):
+                        with contextlib.suppress(OSError):
+                            d.rmdir()
+            with contextlib.suppress(OSError):
+                tenant_dir.rmdir()
+        if removed["rows"] or removed["files"]:
+            log.warning("swept %d partial upload records and %d stray files", len(removed["rows"]),
+                        len(removed["files"]))
+        return removed
+
+    def check_database(self) -> None:
+        """A cheap check that the database answers (its header and one query); raises sqlite3.DatabaseError
+        naming the reason."""
+        try:
+            with open(self.db_path, "rb") as f:
+                head = f.read(16)
+        except OSError as e:
+            raise sqlite3.DatabaseError(f"cannot read the database file ({e.strerror})") from e
+        if head != b"SQLite format 3\x00":
+            raise sqlite3.DatabaseError("file is not a database (its header is damaged)")
+        self._query("SELECT COUNT(*) FROM (SELECT 1 FROM scenes LIMIT 1)")
 
     def link_scene(self, tenant: str, path: str | Path) -> str:
         """Record a scene file in place (not copied, loaded without the upload sandbox): for the CLI."""
@@ -377,15 +482,17 @@ class Store:
     def queue_length(self) -> int:
         return self._query("SELECT COUNT(*) FROM batches WHERE state IN ('queued', 'running')")[0][0]
 
-    def pending_configurations(self) -> int:
-        """Configurations of queued or running batches with neither a result nor an error (one query)."""
+    def pending_configurations(self, tenant: str | None = None) -> int:
+        """Configurations of queued or running batches (of one tenant, or all) with neither a result nor an
+        error (one query)."""
+        who, params = ("", ()) if tenant is None else (" AND {b}.tenant = ?", (tenant,))
         row = self._query(
             "SELECT COALESCE(SUM(b.total), 0) - "
             "(SELECT COUNT(*) FROM results r JOIN batches b2 ON r.batch_id = b2.batch_id "
-            " WHERE b2.state IN ('queued', 'running')) - "
+            " WHERE b2.state IN ('queued', 'running')" + who.format(b="b2") + ") - "
             "(SELECT COUNT(*) FROM errors e JOIN batches b3 ON e.batch_id = b3.batch_id "
-            " WHERE b3.state IN ('queued', 'running')) "
-            "FROM batches b WHERE b.state IN ('queued', 'running')")[0][0]
+            " WHERE b3.state IN ('queued', 'running')" + who.format(b="b3") + ") "
+            "FROM batches b WHERE b.state IN ('queued', 'running')" + who.format(b="b"), params * 3)[0][0]
         return max(int(row or 0), 0)
 
     # -- retention -------------------------------------------------------------------------------

@@ -1,0 +1,133 @@
+"""Admission control for the heavy requests (upload loads, optimize, evaluate, compare, batch creation).
+
+Everything here runs on the event loop and never blocks a thread:
+- `Admission.admit(tenant)` answers at once: a refusal (503 when `max_inflight` heavy requests are in,
+  429 when this tenant has `tenant_max_inflight` in) or a ticket that counts the request as in flight
+  until it is released (queued and running requests alike: `shadowopt_inflight_requests`);
+- a ticket then waits for a slot of a `FairPool` (solver slots, `solve_threads`; scene-load slots,
+  `load_threads`) as an asyncio future. A freed slot goes to the tenants in turn (round robin over the
+  tenants with waiting requests, FIFO within a tenant), so one tenant's 40 waiting requests do not all go
+  before another tenant's one. Only a request holding a slot takes a worker thread.
+"""
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections import OrderedDict, deque
+from dataclasses import dataclass, field
+
+
+class Refused(Exception):
+    """An admission refusal: the HTTP status, error code, message and Retry-After seconds."""
+
+    def __init__(self, status: int, code: str, message: str, retry_after: int = 1):
+        super().__init__(message)
+        self.status, self.code, self.message, self.retry_after = status, code, message, retry_after
+
+
+class FairPool:
+    """`size` slots handed out on the event loop, taking turns between tenants."""
+
+    def __init__(self, name: str, size: int):
+        self.name, self.size = name, size
+        self.busy = 0
+        self._waiting: OrderedDict[str, deque[asyncio.Future]] = OrderedDict()  # tenant -> its waiters, in turn
+
+    @property
+    def waiting(self) -> int:
+        return sum(len(q) for q in self._waiting.values())
+
+    async def acquire(self, tenant: str) -> None:
+        if self.busy < self.size and not self._waiting:
+            self.busy += 1
+            return
+        fut = asyncio.get_running_loop().create_future()
+        self._waiting.setdefault(tenant, deque()).append(fut)
+        try:
+            await fut
+        except asyncio.CancelledError:
+            if fut.done() and not fut.cancelled():  # handed a slot and cancelled at the same time: give it on
+                self.release()
+            else:
+                q = self._waiting.get(tenant)
+                if q is not None and fut in q:
+                    q.remove(fut)
+                    if not q:
+                        del self._waiting[tenant]
+            raise
+
+    def release(self) -> None:
+        """Free a slot: it goes to the first waiter of the tenant whose turn it is (then at the back)."""
+        while self._waiting:
+            tenant, q = next(iter(self._waiting.items()))
+            fut = q.popleft()
+            del self._waiting[tenant]
+            if q:
+                self._waiting[tenant] = q  # to the back of the line
+            if not fut.done():
+                fut.set_result(None)  # the slot passes on: `busy` is unchanged
+                return
+        self.busy -= 1
+
+    @contextlib.asynccontextmanager
+    async def slot(self, tenant: str):
+        await self.acquire(tenant)
+        try:
+            yield
+        finally:
+            self.release()
+
+
+@dataclass
+class Ticket:
+    tenant: str
+    admission: "Admission"
+    released: bool = field(default=False)
+
+    def release(self) -> None:
+        if not self.released:
+            self.released = True
+            self.admission._release(self.tenant)
+
+
+class Admission:
+    """Counts heavy requests in flight (total and per tenant) and owns the slot pools."""
+
+    def __init__(self, max_inflight: int, tenant_max_inflight: int, solve_threads: int, load_threads: int):
+        self.max_inflight, self.tenant_max_inflight = max_inflight, tenant_max_inflight
+        self.inflight = 0
+        self.by_tenant: dict[str, int] = {}
+        self.solve = FairPool("solve", solve_threads)
+        self.load = FairPool("load", load_threads)
+        self.refused: dict[str, int] = {}  # code -> count, for /metrics
+
+    def admit(self, tenant: str) -> Ticket:
+        """A ticket, or Refused at once (nothing waits here)."""
+        if self.inflight >= self.max_inflight:
+            self.refused["busy"] = self.refused.get("busy", 0) + 1
+            raise Refused(503, "busy", f"{self.inflight} heavy requests are in flight (server limit "
+                          f"max_inflight = {self.max_inflight}); retry shortly")
+        mine = self.by_tenant.get(tenant, 0)
+        if mine >= self.tenant_max_inflight:
+            self.refused["tenant_quota"] = self.refused.get("tenant_quota", 0) + 1
+            raise Refused(429, "tenant_quota", f"this token has {mine} heavy requests in flight, the per-tenant "
+                          f"quota tenant_max_inflight = {self.tenant_max_inflight}; retry when one has finished")
+        self.inflight += 1
+        self.by_tenant[tenant] = mine + 1
+        return Ticket(tenant, self)
+
+    def _release(self, tenant: str) -> None:
+        self.inflight -= 1
+        left = self.by_tenant.get(tenant, 1) - 1
+        if left > 0:
+            self.by_tenant[tenant] = left
+        else:
+            self.by_tenant.pop(tenant, None)
+
+    @contextlib.asynccontextmanager
+    async def heavy(self, tenant: str):
+        ticket = self.admit(tenant)
+        try:
+            yield ticket
+        finally:
+            ticket.release()
