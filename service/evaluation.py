@@ -4,30 +4,20 @@ from __future__ import annotations
 import time
 
 from ..renderers.ground_truth import evaluate as evaluate_maps
-from .rigs import SolutionError, resolve_rig
+from .rigs import resolve_rig
 from .scenes import SceneEntry
+from .solution_check import validate_solution
 from .solve import maps_from_solution
-
-
-def check_solution(solution: dict, entry: SceneEntry, n_lights: int) -> None:
-    if not isinstance(solution, dict) or "lights" not in solution:
-        raise SolutionError("solution", "not a shadowopt solution (no 'lights')")
-    if len(solution["lights"]) != n_lights:
-        raise SolutionError("solution.lights", f"has {len(solution['lights'])} lights but the rig has {n_lights}")
-    prov = solution.get("provenance") or {}
-    if prov.get("scene_hash") and prov["scene_hash"] != entry.loaded.scene_hash:
-        raise SolutionError("solution.provenance.scene_hash", "the solution was computed for another scene")
 
 
 def evaluate_solution(entry: SceneEntry, rig: dict, solution: dict, screen=None, heatmap_path=None,
                       grid_every=None) -> dict:
     t0 = time.perf_counter()
     resolved = resolve_rig(rig, entry.loaded)
-    check_solution(solution, entry, len(resolved.lights))
-    try:
-        per_light_maps = maps_from_solution(solution)
-    except (KeyError, TypeError, ValueError) as e:
-        raise SolutionError("solution.lights", f"malformed cascade: {e}") from e
+    # Every field read below is checked first: a malformed one is a SolutionError naming it (422, exit 2).
+    solution = validate_solution(solution, "solution", light_kinds=[l.kind for l in resolved.lights],
+                                 scene_hash=entry.loaded.scene_hash)
+    per_light_maps = maps_from_solution(solution)
     results = []
     for k, (light, maps) in enumerate(zip(resolved.lights, per_light_maps)):
         path = heatmap_path

@@ -20,10 +20,12 @@ class FieldError(ValueError):
 
     code = "invalid_input"
 
-    def __init__(self, field: str, message: str):
+    def __init__(self, field: str, message: str, code: str | None = None):
         super().__init__(f"{field}: {message}")
         self.field = field
         self.message = message
+        if code is not None:  # e.g. invalid_previous for a SolutionError in a previous solution
+            self.code = code
 
 
 class RigError(FieldError):

@@ -23,10 +23,10 @@ from ..solvers.shadow_map import ShadowMap
 from .pipeline import coarse_pass
 from .rigs import ResolvedRig
 from .scenes import SceneEntry
+from .solution_check import SCHEMA_VERSION, validate_solution
 
 BASELINE_METHODS = ("uniform", "focused", "lispsm", "logpsm")
 METHODS = BASELINE_METHODS + ("optimized",)
-SCHEMA_VERSION = 1
 
 
 @dataclass
@@ -181,6 +181,9 @@ def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | N
     """The solution for `method` (a baseline name or "optimized") on a scene entry and validated rig dict."""
     if method not in METHODS:
         raise ValueError(f"method: unknown method {method!r} (known: {', '.join(METHODS)})")
+    if previous is not None:  # only its solver's x is read; a malformed field is a SolutionError naming it
+        previous = validate_solution(previous, "previous", n_lights=len(rig["lights"]), maps=False,
+                                     code="invalid_previous")
     t0 = time.perf_counter()
     resolved, buffers = coarse_pass(entry, rig)
     t1 = time.perf_counter()
@@ -260,7 +263,7 @@ def snap_maps(maps: list[ShadowMap], prob: LightProblem) -> None:
 
 def _previous_x(previous: dict | None, light_index: int):
     """The projective parameters per cascade of a previous `optimized` solution for one light."""
-    if not previous or "solver" not in previous:
+    if not previous or previous.get("solver") is None:  # previous: validate_solution's normalized copy
         return None
     s = previous["solver"]
     s = s["lights"][light_index] if "lights" in s else (s if light_index == 0 else None)

@@ -107,8 +107,14 @@ class ShadowMap:
 
     @staticmethod
     def from_json(d: dict) -> "ShadowMap":
+        """A map from its JSON (service.solution_check.validate_solution checks user input first; a wrong
+        type that reaches here is a ValueError naming the key, not an AttributeError)."""
         w = d.get("warp") or {}
+        if not isinstance(w, dict):
+            raise ValueError(f"warp: expected an object with kind, eta, n and log, got {w!r:.60}")
         lw = w.get("log")
+        if lw is not None and not isinstance(lw, dict):
+            raise ValueError(f"warp.log: expected an object {{c0, c1, c2}}, got {lw!r:.60}")
         return ShadowMap(np.asarray(d["view_matrix"], float), np.asarray(d["projection_matrix"], float),
                          tuple(d["resolution"]), tuple(d["split"]), tuple(d["light_depth"]),
                          w.get("kind", "none"), w.get("eta"), w.get("n"),
