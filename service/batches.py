@@ -394,9 +394,16 @@ def _llvm_path() -> str | None:
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
-def _worker_init(llvm: str | None, threads: int | None = None) -> None:
-    """Runs first in each worker: LLVM for Dr.Jit, and its share of the cores for the math libraries
-    (as Ray does for its workers) unless the caller set them."""
+def _worker_init(llvm: str | None, threads: int | None = None, parent_pid: int | None = None,
+                 pdeathsig: bool = False) -> None:
+    """Runs first in each worker: with `parent_pid` (the local pool) it exits when that process is gone
+    (service.isolation.die_with_parent: a SIGKILLed server leaves no worker behind); then LLVM for
+    Dr.Jit, and its share of the cores for the math libraries (as Ray does for its workers) unless the
+    caller set them."""
+    if parent_pid is not None:
+        from .isolation import die_with_parent
+
+        die_with_parent(parent_pid, pdeathsig=pdeathsig)
     if llvm:
         os.environ["DRJIT_LIBLLVM_PATH"] = llvm
     if threads:
@@ -453,10 +460,15 @@ class _LocalBackend:
     def _ensure_pool(self):
         if self.pool is None:
             import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
 
-            self.pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                            initializer=_worker_init, initargs=(self.llvm, self.threads))
+            from .isolation import DyingProcessPool
+
+            # Workers are started on service.isolation's spawner thread, which lives as long as this
+            # process: their parent-death signal cannot fire because the thread that submitted ended.
+            self.pool = DyingProcessPool(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                         initializer=_worker_init,
+                                         initargs=(self.llvm, self.threads, os.getpid(),
+                                                   DyingProcessPool.pdeathsig_safe()))
         return self.pool
 
     def run(self, job: SceneJob, items: list[tuple[int, dict]], settings: dict, should_stop):

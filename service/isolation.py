@@ -1,0 +1,326 @@
+"""Child processes that die with the server, and USD loads of uploaded scenes in a child with limits.
+
+- `die_with_parent(parent_pid)` runs first in every process we spawn (the loader child here, the batch
+  pool's workers through service.batches._worker_init): a daemon thread polls os.getppid() every 0.5 s
+  and os._exit()s once the parent is gone (the guarantee), and on Linux prctl(PR_SET_PDEATHSIG, SIGKILL)
+  makes the kernel kill the child at once. PDEATHSIG fires when the *thread* that spawned the child
+  exits, not the process, so every child we spawn is started from one long-lived thread (`SPAWNER`):
+  a request thread that ends, or the batch runner's thread at shutdown, never takes a live child with
+  it. The multiprocessing resource tracker needs nothing: it exits when the last holder of its pipe
+  (the server and these children) is gone.
+- `load_isolated(path, ..., limits=LoadLimits(...))` runs renderers.usd_loader.load_scene in a child
+  started with the spawn method (never fork: the server holds LLVM and threads), with RLIMIT_AS set
+  before USD is imported, killed after `timeout_s` of wall clock (counted from the spawn). The
+  LoadedScene comes back pickled over a pipe (40 MB for the chess set: 0.05 s), and the child's memory
+  goes back to the system when it exits. Over the memory limit -> SceneError("memory_limit"), over time
+  -> SceneError("load_timeout"), a child that crashes (a signal: USD segfaulting on a damaged file)
+  -> SceneError("corrupt"); the loader's own SceneErrors come back with their code and message.
+  Messages name the scene by its base name, never a server path.
+"""
+from __future__ import annotations
+
+import concurrent.futures
+import inspect
+import math
+import multiprocessing
+import os
+import queue
+import signal
+import sys
+import threading
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+
+from ..renderers.scene_data import SceneError
+
+WATCH_INTERVAL_S = 0.5
+# RLIMIT_AS of a loader child. A spawned child that imported numpy and usd-core and loaded the demo scene
+# peaks at 1.19 GB of address space (VmPeak; its RSS is only 0.13 GB: most is reserved, not used); the
+# chess set (1.43 M triangles, 40 MB of geometry) peaks at 1.33 GB. Measured on 2 cores, USD's work
+# threads and malloc's arenas capped (below) so the number does not grow with the core count.
+MEMORY_FLOOR_BYTES = 3 << 29  # 1.5 GiB: below this even a tiny scene cannot load, LoadLimits refuses it
+DEFAULT_MEMORY_BYTES = 3 << 30
+DEFAULT_TIMEOUT_S = 60.0
+DEFAULT_MAX_TRIANGLES = 5_000_000
+CHILD_THREADS = 4  # USD's work threads in a loader child (each one maps a stack)
+CPU_SLACK_S = 10  # RLIMIT_CPU = timeout * threads + this: a backstop should the parent not kill the child
+PDEATHSIG = sys.platform.startswith("linux")
+
+
+@dataclass(frozen=True)
+class LoadLimits:
+    max_triangles: int = DEFAULT_MAX_TRIANGLES
+    memory_bytes: int = DEFAULT_MEMORY_BYTES
+    timeout_s: float = DEFAULT_TIMEOUT_S
+
+    def __post_init__(self):
+        if not isinstance(self.max_triangles, int) or self.max_triangles < 1:
+            raise ValueError(f"max_triangles must be a positive integer, got {self.max_triangles!r}")
+        if not isinstance(self.memory_bytes, int) or self.memory_bytes < MEMORY_FLOOR_BYTES:
+            raise ValueError(f"memory_bytes must be at least {MEMORY_FLOOR_BYTES} (a loader child needs that "
+                             f"much address space for usd-core alone), got {self.memory_bytes!r}")
+        if not (isinstance(self.timeout_s, (int, float)) and self.timeout_s > 0 and math.isfinite(self.timeout_s)):
+            raise ValueError(f"timeout_s must be a positive number of seconds, got {self.timeout_s!r}")
+
+
+# -- dying with the parent ---------------------------------------------------------------------------
+
+def _set_pdeathsig() -> bool:
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        PR_SET_PDEATHSIG = 1
+        return libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def _watch(parent_pid: int, interval: float) -> None:
+    while True:
+        if os.getppid() != parent_pid:
+            os._exit(1)  # no cleanup: the parent that would collect anything is gone
+        time.sleep(interval)
+
+
+def die_with_parent(parent_pid: int | None = None, *, pdeathsig: bool = False,
+                    interval: float = WATCH_INTERVAL_S) -> None:
+    """Make this process exit when `parent_pid` (the process that spawned it) is gone.
+
+    `parent_pid` should come from the parent (os.getpid() there): a parent that died before this runs
+    is then still noticed. `pdeathsig` only when the parent spawned this process from a thread that
+    lives as long as the parent does (SPAWNER's): the kernel's signal follows the spawning thread."""
+    if parent_pid is None:
+        parent_pid = os.getppid()
+    if pdeathsig and PDEATHSIG:
+        _set_pdeathsig()
+    if os.getppid() != parent_pid:  # gone already (also closes the race with prctl)
+        os._exit(1)
+    threading.Thread(target=_watch, args=(parent_pid, interval), name="die-with-parent", daemon=True).start()
+
+
+class _Spawner:
+    """One long-lived daemon thread that starts every child process, so PDEATHSIG (which follows the
+    spawning thread) fires only when the whole process is gone."""
+
+    def __init__(self):
+        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self.spawns = 0  # processes started through call() (the tests check the pool's workers are among them)
+
+    def _run(self) -> None:
+        while True:
+            fn, fut = self._q.get()
+            if fut.set_running_or_notify_cancel():
+                try:
+                    fut.set_result(fn())
+                except BaseException as e:  # noqa: BLE001 - handed to the caller
+                    fut.set_exception(e)
+
+    def on_thread(self) -> bool:
+        return self._thread is not None and threading.current_thread() is self._thread
+
+    def call(self, fn):
+        """fn() on the spawner thread; its result or exception."""
+        if self.on_thread():
+            return fn()
+        with self._lock:
+            if self._thread is None or not self._thread.is_alive():
+                self._thread = threading.Thread(target=self._run, name="shadowopt-spawner", daemon=True)
+                self._thread.start()
+        fut: concurrent.futures.Future = concurrent.futures.Future()
+        self._q.put((fn, fut))
+        return fut.result()
+
+    def start(self, process) -> None:
+        self.call(process.start)
+        self.spawns += 1
+
+
+SPAWNER = _Spawner()
+
+
+class DyingProcessPool(ProcessPoolExecutor):
+    """A spawn ProcessPoolExecutor whose workers are started on SPAWNER's thread (whichever thread
+    submits), so they may use PDEATHSIG. `pdeathsig_safe()` says whether this Python's pool lets us."""
+
+    def _spawn_process(self):
+        SPAWNER.call(super()._spawn_process)
+        SPAWNER.spawns += 1
+
+    @staticmethod
+    def pdeathsig_safe() -> bool:
+        return PDEATHSIG and callable(getattr(ProcessPoolExecutor, "_spawn_process", None))
+
+
+# -- isolated loads ------------------------------------------------------------------------------------
+
+def _status(pid: int | str = "self") -> dict[str, int]:
+    """VmSize/VmPeak/VmRSS/VmHWM of a process in bytes ({} once it is gone)."""
+    out = {}
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                k, _, v = line.partition(":")
+                if k in ("VmSize", "VmPeak", "VmRSS", "VmHWM"):
+                    out[k] = int(v.split()[0]) * 1024
+    except OSError:
+        pass
+    return out
+
+
+def _cap_threads() -> None:
+    """Fewer threads and malloc arenas in a loader child: each maps address space RLIMIT_AS counts
+    (8 MB per stack, 64 MB per arena), so the limit means the same on 2 cores and on 64."""
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
+    try:
+        import ctypes
+
+        M_ARENA_MAX = -8
+        ctypes.CDLL(None).mallopt(M_ARENA_MAX, 2)
+    except (OSError, AttributeError):
+        pass
+
+
+def _limit_self(memory_bytes: int, timeout_s: float) -> None:
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))  # a crashing child leaves no core file behind
+    resource.setrlimit(resource.RLIMIT_AS, (memory_bytes, memory_bytes))
+    cpu = int(math.ceil(timeout_s * CHILD_THREADS)) + CPU_SLACK_S
+    resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 5))
+
+
+def _child_main(conn, parent_pid: int, fn, args: tuple, kwargs: dict, memory_bytes: int, timeout_s: float) -> None:
+    """Body of an isolated child: limits first, then fn(*args, **kwargs); one message back."""
+    die_with_parent(parent_pid, pdeathsig=True)  # started by SPAWNER's thread
+    _cap_threads()
+    _limit_self(memory_bytes, timeout_s)
+    try:
+        msg = ("ok", fn(*args, **kwargs))
+    except SceneError as e:
+        if e.code == "too_large" and isinstance(e.__cause__, MemoryError):
+            msg = ("memory", "")
+        else:
+            msg = ("error", e.code, e.message)
+    except MemoryError:
+        msg = ("memory", "")
+    except BaseException as e:  # noqa: BLE001 - reported to the parent, which raises SceneError
+        msg = ("error", "internal", f"the loader failed ({type(e).__name__})")
+    try:
+        conn.send(msg)
+    except MemoryError:
+        conn.send(("memory", ""))
+    conn.close()
+
+
+def _scrub(message: str, path: str) -> str:
+    """The message with the scene's server path (and its folder) replaced by the file's base name."""
+    name = os.path.basename(path)
+    full = [os.path.abspath(path), os.path.realpath(path), path]
+    for p in sorted({p for p in full if p}, key=len, reverse=True):
+        message = message.replace(p, name)
+    for d in sorted({os.path.dirname(p) for p in full if os.path.dirname(p)}, key=len, reverse=True):
+        message = message.replace(d + os.sep, "")
+    return message
+
+
+def run_isolated(fn, args: tuple = (), kwargs: dict | None = None, *, memory_bytes: int = DEFAULT_MEMORY_BYTES,
+                 timeout_s: float = DEFAULT_TIMEOUT_S, what: str = "the scene"):
+    """fn(*args, **kwargs) in a spawned child with RLIMIT_AS = memory_bytes, killed after timeout_s of
+    wall clock. fn must be importable by name (the child imports its module) and return a picklable
+    value. Raises SceneError memory_limit / load_timeout / corrupt (a crash), or fn's SceneError."""
+    ctx = multiprocessing.get_context("spawn")
+    reader, writer = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_child_main, name="shadowopt-isolated-load", daemon=True,
+                       args=(writer, os.getpid(), fn, args, kwargs or {}, memory_bytes, timeout_s))
+    t0 = time.monotonic()
+    peak = 0
+    try:
+        SPAWNER.start(proc)
+        writer.close()  # the child holds the only write end: EOF when it dies
+        deadline = t0 + timeout_s
+        msg = None
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                proc.kill()
+                raise SceneError("load_timeout", f"loading {what} took longer than {timeout_s:g} s (the load time "
+                                 f"limit); refused")
+            if reader.poll(min(left, 0.1)):
+                try:
+                    msg = reader.recv()
+                except (EOFError, OSError):
+                    msg = None
+                break
+            peak = max(peak, _status(proc.pid).get("VmPeak", 0))
+        proc.join(timeout=5)
+        if msg is None:
+            if proc.exitcode is None:
+                proc.kill()
+                proc.join(timeout=5)
+            return _crashed(proc.exitcode, peak, memory_bytes, what)
+        kind = msg[0]
+        if kind == "ok":
+            return msg[1]
+        if kind == "memory":
+            raise _memory_error(memory_bytes, what)
+        raise SceneError(msg[1], msg[2])
+    finally:
+        if proc.is_alive():
+            proc.kill()
+        if proc.pid is not None:
+            proc.join(timeout=5)
+        reader.close()
+        try:
+            proc.close()
+        except ValueError:
+            pass
+
+
+def _memory_error(memory_bytes: int, what: str) -> SceneError:
+    return SceneError("memory_limit", f"loading {what} needs more than {memory_bytes / 2**30:.3g} GiB of memory "
+                      f"(the load memory limit); refused")
+
+
+def _crashed(exitcode, peak: int, memory_bytes: int, what: str):
+    """A child that died without answering: a failed allocation (std::bad_alloc aborts; the kernel's OOM
+    killer sends SIGKILL) when it had mapped most of its limit, else a crash on a damaged file."""
+    sig = -exitcode if isinstance(exitcode, int) and exitcode < 0 else None
+    if sig == signal.SIGXCPU:
+        raise SceneError("load_timeout", f"loading {what} used more CPU time than the load time limit allows; refused")
+    if peak >= 0.8 * memory_bytes or sig == signal.SIGKILL:
+        raise _memory_error(memory_bytes, what)
+    how = f"signal {signal.Signals(sig).name}" if sig else f"exit status {exitcode}"
+    raise SceneError("corrupt", f"the loader crashed reading {what} ({how}): the file is damaged or not valid USD")
+
+
+def _load_in_child(path: str, options: dict, max_triangles: int | None):
+    from pxr import Work
+
+    Work.SetConcurrencyLimit(max(1, min(CHILD_THREADS, os.cpu_count() or 1)))
+    from ..renderers.usd_loader import load_scene
+
+    if max_triangles is not None and "max_triangles" in inspect.signature(load_scene).parameters:
+        options = {**options, "max_triangles": max_triangles}
+    try:
+        return load_scene(path, **options)
+    except SceneError as e:
+        raise SceneError(e.code, _scrub(e.message, path)) from e.__cause__
+
+
+def load_isolated(path, *, time_code: float | None = None, asset_root: str | None = None, sandbox: bool = False,
+                  limits: LoadLimits):
+    """renderers.usd_loader.load_scene(path, ..., max_triangles=limits.max_triangles) in a spawned child
+    with limits.memory_bytes of address space and limits.timeout_s of wall clock; the LoadedScene."""
+    path = os.fspath(path)
+    options = {"time_code": time_code, "asset_root": asset_root, "sandbox": sandbox}
+    name = os.path.basename(path)
+    try:
+        return run_isolated(_load_in_child, (path, options, limits.max_triangles), memory_bytes=limits.memory_bytes,
+                            timeout_s=limits.timeout_s, what=f"scene {name!r}")
+    except SceneError as e:
+        raise SceneError(e.code, _scrub(e.message, path)) from None
