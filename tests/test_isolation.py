@@ -1,0 +1,281 @@
+"""Isolated scene loads (a spawned child with a memory and a wall-clock limit) and children that die with
+the server: a SIGKILLed server leaves no batch worker, no loader child and no resource tracker behind."""
+from __future__ import annotations
+
+import ctypes
+import inspect
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+from serverkit import DEMO, TINY_RIG, auth, launch, upload, wait_ready
+
+from shadowopt.renderers.scene_data import SceneError
+from shadowopt.renderers.usd_loader import load_scene
+from shadowopt.service import isolation
+from shadowopt.service.hostile_corpus import instanced_spheres
+from shadowopt.service.isolation import LoadLimits, load_isolated, run_isolated
+
+GiB = 1 << 30
+LOADER_COUNTS = "max_triangles" in inspect.signature(load_scene).parameters
+
+
+def rss() -> int:
+    """This process's resident set (bytes), from /proc/self/status."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) * 1024
+    raise AssertionError("no VmRSS in /proc/self/status")
+
+
+def alive(pid: int) -> bool:
+    """Running (a zombie waiting to be reaped counts as gone)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state not in ("Z", "X")
+
+
+def children_of(pid: int) -> dict[int, str]:
+    """{pid: command line} of the processes whose parent is `pid`."""
+    out = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            if ppid == pid:
+                out[int(d.name)] = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except (OSError, IndexError, ValueError):
+            continue
+    return out
+
+
+@pytest.fixture(scope="module")
+def spheres(tmp_path_factory) -> Path:
+    p = tmp_path_factory.mktemp("hostile") / "spheres.usda"
+    p.write_text(instanced_spheres(20000))  # 247 KB, 19.2 M triangles once expanded
+    return p
+
+
+# -- isolated loads -------------------------------------------------------------------------------------
+
+def test_an_isolated_load_returns_what_an_in_process_load_does():
+    ref = load_scene(DEMO, sandbox=True)
+    got = load_isolated(DEMO, sandbox=True, limits=LoadLimits())
+    assert got.scene_hash == ref.scene_hash
+    assert got.geometry.triangle_count == ref.geometry.triangle_count > 0
+    assert (got.geometry.vertices == ref.geometry.vertices).all()
+    assert [c.usd_path for c in got.cameras] == [c.usd_path for c in ref.cameras]
+
+
+def test_a_loader_error_comes_back_with_its_code_and_no_server_path(tmp_path):
+    bad = tmp_path / "garbage.usda"
+    bad.write_bytes(b"#usda 1.0\n(\n def Xform \"W\" {{{{ \x00\x01 nonsense")
+    with pytest.raises(SceneError) as ref:
+        load_scene(bad, sandbox=True)
+    with pytest.raises(SceneError) as got:
+        load_isolated(bad, sandbox=True, limits=LoadLimits())
+    assert got.value.code == ref.value.code
+    assert str(tmp_path) not in got.value.message and "garbage.usda" in got.value.message
+
+
+def test_a_memory_hungry_load_is_refused_and_the_server_keeps_no_memory(spheres):
+    """The issue's 20,000-instance upload: refused (by the triangle count while loading, or by the child's
+    memory limit when the count is set out of reach), within seconds, and the parent's RSS is unchanged."""
+    load_isolated(DEMO, limits=LoadLimits())  # the first isolated load imports what later ones reuse
+    before = rss()
+    t0 = time.monotonic()
+    with pytest.raises(SceneError) as e:
+        load_isolated(spheres, sandbox=True, limits=LoadLimits(max_triangles=10**9, memory_bytes=2 * GiB,
+                                                               timeout_s=120))
+    took = time.monotonic() - t0
+    assert e.value.code == "memory_limit", e.value.message
+    assert "memory" in e.value.message and str(spheres.parent) not in e.value.message
+    assert took < 60, took
+    if LOADER_COUNTS:
+        with pytest.raises(SceneError) as e:
+            load_isolated(spheres, sandbox=True, limits=LoadLimits(max_triangles=1_000_000, timeout_s=120))
+        assert e.value.code == "too_many_triangles", e.value.message
+    grown = rss() - before
+    print(f"refused in {took:.1f} s; parent RSS {before / 2**20:.0f} MB, grew by {grown / 2**20:.1f} MB")
+    assert grown < 64 * 2**20, grown  # the child's gigabytes went back to the system with it
+
+
+@pytest.mark.skipif(not LOADER_COUNTS, reason="the loader does not count triangles while loading yet")
+def test_the_triangle_limit_reaches_the_loader_in_the_child(spheres):
+    t0 = time.monotonic()
+    with pytest.raises(SceneError) as e:
+        load_isolated(spheres, sandbox=True, limits=LoadLimits(max_triangles=100_000))
+    assert e.value.code == "too_many_triangles" and "100000" in e.value.message.replace(",", "")
+    assert time.monotonic() - t0 < 10
+
+
+def test_a_load_over_its_time_limit_is_killed(spheres):
+    t0 = time.monotonic()
+    with pytest.raises(SceneError) as e:  # a real load (gigabytes allowed) cut short by the clock
+        load_isolated(spheres, sandbox=True, limits=LoadLimits(max_triangles=10**9, memory_bytes=16 * GiB,
+                                                               timeout_s=1.5))
+    assert e.value.code == "load_timeout" and "1.5 s" in e.value.message
+    assert time.monotonic() - t0 < 4
+    assert not [p for p in isolation.multiprocessing.active_children() if p.name == "shadowopt-isolated-load"]
+
+
+def test_a_child_that_sleeps_past_the_limit_is_gone_after_the_refusal():
+    seen = []
+    before = set(children_of(os.getpid()))  # the resource tracker, say
+
+    def watch():  # the child's pid while it runs
+        deadline = time.monotonic() + 3
+        while time.monotonic() < deadline and not seen:
+            seen.extend(p for p in children_of(os.getpid()) if p not in before)
+            time.sleep(0.05)
+
+    t = threading.Thread(target=watch)
+    t.start()
+    t0 = time.monotonic()
+    with pytest.raises(SceneError) as e:
+        run_isolated(time.sleep, (60,), timeout_s=1.0)
+    assert e.value.code == "load_timeout" and time.monotonic() - t0 < 3
+    t.join()
+    assert seen and not any(alive(p) for p in seen)
+
+
+def test_a_child_that_crashes_is_a_corrupt_scene():
+    """A segfault in the child (USD on a damaged file would be one) is a refusal, not a dead server."""
+    with pytest.raises(SceneError) as e:
+        run_isolated(ctypes.string_at, (8, 1), what="scene 'broken.usdc'")  # reads address 8: SIGSEGV
+    assert e.value.code == "corrupt" and "SIGSEGV" in e.value.message and "broken.usdc" in e.value.message
+
+
+def test_limits_below_what_a_loader_child_needs_are_refused():
+    with pytest.raises(ValueError, match="memory_bytes"):
+        LoadLimits(memory_bytes=256 << 20)
+    with pytest.raises(ValueError, match="timeout_s"):
+        LoadLimits(timeout_s=0)
+
+
+# -- dying with the parent ------------------------------------------------------------------------------
+
+def test_a_pool_worker_outlives_the_thread_that_started_it():
+    """PDEATHSIG follows the spawning thread: the pool's workers are started on the spawner thread, so a
+    submitting thread that ends does not take its worker with it."""
+    import multiprocessing
+
+    from shadowopt.service.batches import _worker_init
+
+    assert isolation.DyingProcessPool.pdeathsig_safe()
+    pool = isolation.DyingProcessPool(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                                      initializer=_worker_init, initargs=(None, 1, os.getpid(), True))
+    try:
+        spawns = isolation.SPAWNER.spawns
+        out = {}
+        t = threading.Thread(target=lambda: out.update(pid=pool.submit(os.getpid).result(timeout=60)))
+        t.start()
+        t.join()
+        assert isolation.SPAWNER.spawns == spawns + 1  # started by the spawner thread
+        time.sleep(1.0)  # the submitting thread is gone: a PDEATHSIG tied to it would have fired by now
+        assert alive(out["pid"])
+        assert pool.submit(os.getpid).result(timeout=30) == out["pid"]
+    finally:
+        pool.shutdown(wait=True)
+
+
+def test_pool_workers_use_the_parent_death_signal():
+    from shadowopt.service.batches import _LocalBackend
+
+    be = _LocalBackend(1)
+    try:
+        pool = be._ensure_pool()
+        assert isinstance(pool, isolation.DyingProcessPool)
+        assert pool._initargs[2] == os.getpid() and pool._initargs[3] is isolation.DyingProcessPool.pdeathsig_safe()
+    finally:
+        be.close()
+
+
+PARENT = textwrap.dedent("""
+    import sys, time, threading
+    from shadowopt.service.isolation import run_isolated
+    if __name__ == "__main__":
+        threading.Thread(target=run_isolated, args=(time.sleep, (120,)), kwargs={"timeout_s": 120}, daemon=True).start()
+        time.sleep(120)
+""")
+
+
+def test_a_loader_child_dies_with_its_parent(tmp_path):
+    script = tmp_path / "parent.py"
+    script.write_text(PARENT)
+    proc = subprocess.Popen([sys.executable, str(script)], start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        kids = {}
+        while time.monotonic() < deadline:
+            kids = {p: c for p, c in children_of(proc.pid).items() if "spawn_main" in c and "resource_tracker" not in c}
+            if kids:
+                break
+            time.sleep(0.1)
+        assert kids, "the parent never spawned its loader child"
+        time.sleep(1.5)  # past its start-up: the watchdog runs
+        everyone = set(children_of(proc.pid))
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=10)
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and any(alive(p) for p in everyone):
+            time.sleep(0.1)
+        assert not [p for p in everyone if alive(p)], {p: c for p, c in children_of(1).items() if p in everyone}
+    finally:
+        for p in list(children_of(proc.pid)) + [proc.pid]:
+            try:
+                os.kill(p, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
+def test_sigkill_of_the_server_leaves_no_worker_and_no_resource_tracker(tmp_path):
+    """The issue: after a SIGKILL the resource tracker and 2 batch workers lived on under PID 1."""
+    server = launch(tmp_path / "data", env={"SHADOWOPT_BATCH_WORKERS": "2", "SHADOWOPT_RATE_LIMIT_PER_S": "0"},
+                    new_session=True)
+    everyone: dict[int, str] = {}
+    try:
+        wait_ready(server)
+        sid = upload(server.base, "alice").json()["scene_id"]
+        rig = {**TINY_RIG, "coarse_long_side": 96}
+        configs = [{"rig": {**rig, "lights": [{"type": "directional", "direction": [0.1 + 0.05 * k, -1.0, 0.3]}]}}
+                   for k in range(40)]
+        r = httpx.post(f"{server.base}/v1/batches", json={"scene_id": sid, "configurations": configs},
+                       headers=auth("alice"), timeout=60)
+        assert r.status_code == 202, r.text
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:  # both workers and the tracker started
+            everyone = children_of(server.proc.pid)
+            workers = [p for p, c in everyone.items() if "spawn_main" in c]
+            if len(workers) >= 2 and any("resource_tracker" in c for c in everyone.values()):
+                break
+            time.sleep(0.1)
+        else:
+            pytest.fail(f"the batch workers never started: {everyone}\n{server.log()[-3000:]}")
+        time.sleep(0.5)
+        everyone = children_of(server.proc.pid)
+        os.kill(server.proc.pid, signal.SIGKILL)  # the server alone, not its process group
+        server.proc.wait(timeout=10)
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 5 and any(alive(p) for p in everyone):
+            time.sleep(0.1)
+        left = {p: c for p, c in everyone.items() if alive(p)}
+        print(f"{len(everyone)} children of the server; all gone {time.monotonic() - t0:.2f} s after the SIGKILL")
+        assert not left, left
+    finally:
+        if server.proc.poll() is None:
+            os.kill(server.proc.pid, signal.SIGKILL)
+            server.proc.wait(timeout=10)
+        for p in everyone:
+            if alive(p):
+                os.kill(p, signal.SIGKILL)
