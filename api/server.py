@@ -720,8 +720,10 @@ def check_eval_size(svc: Service, rig: dict, screen, solution: dict | None) -> N
     if budget is not None and budget > limit * max(int(cascades or 1), 1):  # compare sizes maps from the budget
         raise ApiError(413, "too_many_texels", f"rig.shadow.texel_budget: {budget} texels is over the limit of "
                        f"{limit} per map", "rig.shadow.texel_budget")
-    for li, light in enumerate((solution or {}).get("lights") or []):
-        for ci, c in enumerate((light.get("cascades") or []) if isinstance(light, dict) else []):
+    lights = (solution or {}).get("lights")  # other shapes: service.solution_check names the field later
+    for li, light in enumerate(lights if isinstance(lights, list) else []):
+        cascades = light.get("cascades") if isinstance(light, dict) else None
+        for ci, c in enumerate(cascades if isinstance(cascades, list) else []):
             res = c.get("resolution") if isinstance(c, dict) else None
             field = f"solution.lights.{li}.cascades.{ci}.resolution"
             if not (isinstance(res, (list, tuple)) and len(res) == 2
