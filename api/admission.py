@@ -31,11 +31,8 @@ class FairPool:
     def __init__(self, name: str, size: int):
         self.name, self.size = name, size
         self.busy = 0
+        self.waiting = 0  # requests waiting for a slot (kept as a count: /metrics reads it from another thread)
         self._waiting: OrderedDict[str, deque[asyncio.Future]] = OrderedDict()  # tenant -> its waiters, in turn
-
-    @property
-    def waiting(self) -> int:
-        return sum(len(q) for q in self._waiting.values())
 
     async def acquire(self, tenant: str) -> None:
         if self.busy < self.size and not self._waiting:
@@ -43,6 +40,7 @@ class FairPool:
             return
         fut = asyncio.get_running_loop().create_future()
         self._waiting.setdefault(tenant, deque()).append(fut)
+        self.waiting += 1
         try:
             await fut
         except asyncio.CancelledError:
@@ -52,6 +50,7 @@ class FairPool:
                 q = self._waiting.get(tenant)
                 if q is not None and fut in q:
                     q.remove(fut)
+                    self.waiting -= 1
                     if not q:
                         del self._waiting[tenant]
             raise
@@ -61,6 +60,7 @@ class FairPool:
         while self._waiting:
             tenant, q = next(iter(self._waiting.items()))
             fut = q.popleft()
+            self.waiting -= 1
             del self._waiting[tenant]
             if q:
                 self._waiting[tenant] = q  # to the back of the line

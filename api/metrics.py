@@ -98,7 +98,7 @@ class Registry:
 class ServerMetrics:
     """The metrics the REST service exports."""
 
-    def __init__(self, queue_length: Callable[[], float], inflight: Callable[[], float]):
+    def __init__(self, queue_length: Callable[[], float], inflight: Callable[[], float], admission=None):
         self.registry = r = Registry()
         self.requests = r.add(Counter("shadowopt_requests_total", "HTTP requests by route, method and status",
                                       ("route", "method", "status")))
@@ -108,8 +108,20 @@ class ServerMetrics:
                                         "request, by method", ("method",)))
         self.queue = r.add(Gauge("shadowopt_batch_queue_length", "batch configurations waiting or running",
                                  queue_length))
-        self.inflight = r.add(Gauge("shadowopt_inflight_requests", "optimize/evaluate/compare requests "
-                                    "being served or waiting for a solver thread", inflight))
+        self.inflight = r.add(Gauge("shadowopt_inflight_requests", "heavy requests (upload loads, optimize, "
+                                    "evaluate, compare, batch creation) admitted: running or waiting for a slot",
+                                    inflight))
+        self.refusals = r.add(Counter("shadowopt_admission_refusals_total", "heavy requests refused at admission, "
+                                      "by code (busy: max_inflight; tenant_quota: tenant_max_inflight)", ("code",)))
+        if admission is not None:
+            for pool in (admission.solve, admission.load):
+                r.add(Gauge(f"shadowopt_{pool.name}_slots_busy", f"{pool.name} slots in use",
+                            lambda p=pool: p.busy))
+                r.add(Gauge(f"shadowopt_{pool.name}_waiting", f"admitted requests waiting for a {pool.name} slot",
+                            lambda p=pool: p.waiting))
 
-    def render(self) -> str:
+    def render(self, skip_slow: bool = False) -> str:
+        """The exposition text; `skip_slow` leaves out the gauges that query the database."""
+        if skip_slow:
+            return "\n".join(line for m in self.registry.metrics if m is not self.queue for line in m.render()) + "\n"
         return self.registry.render()

@@ -3,22 +3,33 @@
 Every request is authenticated by a bearer token (the tenant is the token's name), rate-limited per
 token, logged as one JSON line with its request id (echoed in X-Request-ID) and counted in /metrics.
 Every 4xx is `{"error": {"code", "message", "field"}}` and is listed in the route's OpenAPI responses.
-The solver work runs in worker threads (never on the event loop), at most `solve_threads` at a time.
+Heavy requests (an upload's load, optimize, evaluate, compare, batch creation) pass admission control on
+the event loop (api/admission.py): refused at once when the server or the tenant is at its limit, else
+they wait as asyncio futures for a slot, the tenants taking turns, and only then run in a worker thread
+(at most `solve_threads` solves and `load_threads` scene loads at a time). /healthz and /metrics are
+async and read the database on their own small executor: they never wait behind queued work.
+Every message a client sees has server paths (data directory, scene storage, repository, Python prefix)
+cut down to file names (`redact`).
 """
 
+import asyncio
 import base64
+import concurrent.futures
 import contextlib
 import hmac
 import json
 import logging
 import math
 import os
+import re
+import sqlite3
 import sys
 import tempfile
 import threading
 import time
 import traceback
 import uuid
+import weakref
 from collections import OrderedDict
 from pathlib import Path
 from typing import Annotated
@@ -31,6 +42,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from . import schemas as S
+from .admission import Admission, Refused
 from .metrics import ServerMetrics
 from .settings import Settings, is_loopback, load_settings
 
@@ -46,9 +58,12 @@ LOCAL_TENANT = "local"  # the tenant of every request when no tokens are configu
 DESCRIPTIONS = {
     400: "malformed request", 401: "missing or unknown bearer token", 404: "no such resource for this tenant",
     409: "the resource is in a state that does not allow this", 413: "too large (upload size, triangles, "
-    "pixels or texels over the server's limits)", 422: "invalid request: the message names the field",
-    429: "rate limit of this token exceeded; retry after Retry-After seconds",
-    503: "busy (queue full) or warming up; retry after Retry-After seconds",
+    "load memory or time, pixels or texels over the server's limits)",
+    422: "invalid request: the message names the field",
+    429: "rate limit or a per-tenant quota of this token exceeded (the message names the quota setting); "
+    "retry after Retry-After seconds",
+    503: "busy (max_inflight heavy requests in, queue full), warming up or the database unavailable; retry "
+    "after Retry-After seconds",
 }
 RETRY_AFTER = {"Retry-After": {"description": "seconds to wait before retrying", "schema": {"type": "integer"}}}
 
@@ -75,11 +90,11 @@ class ApiError(StarletteHTTPException):
         self.code, self.message, self.field = code, message, field
 
     def body(self) -> dict:
-        return {"error": {"code": self.code, "message": self.message, "field": self.field}}
+        return {"error": {"code": self.code, "message": redact(self.message), "field": self.field}}
 
 
 def error_json(status: int, code: str, message: str, field: str | None = None, headers=None) -> JSONResponse:
-    return JSONResponse({"error": {"code": code, "message": message, "field": field}}, status_code=status,
+    return JSONResponse({"error": {"code": code, "message": redact(message), "field": field}}, status_code=status,
                         headers=headers)
 
 
@@ -113,6 +128,55 @@ def validation_error_response(exc) -> JSONResponse:
     return error_json(422, "invalid_request", S.format_validation_error(_Errors(errors)), field)
 
 
+# --- no server paths in what a client sees -------------------------------------------------------
+
+class Redactor:
+    """Cuts server filesystem paths in client-visible text down to their file name: anything under the data
+    directory (scene storage `<data>/scenes/<tenant hash>/<id>/x.usda` -> `x.usda`), the repository, the
+    Python prefix (the virtual environment) or the temporary directory."""
+
+    def __init__(self):
+        self._roots: set[str] = set()
+        self._pattern: re.Pattern | None = None
+        self._lock = threading.Lock()
+        for root in (REPO, sys.prefix, sys.base_prefix, sys.exec_prefix, tempfile.gettempdir()):
+            self.add(root)
+
+    def add(self, root) -> None:
+        with self._lock:
+            for r in {os.path.abspath(os.fspath(root)), os.path.realpath(os.fspath(root))}:
+                r = r.rstrip("/")
+                if len(r) > 1:
+                    self._roots.add(r)
+            alternatives = "|".join(re.escape(r) for r in sorted(self._roots, key=len, reverse=True))
+            self._pattern = re.compile(f"(?:file://)?(?:{alternatives})(?![^/\\s'\"@<>\\[\\](){{}},;:])"
+                                       f"(?:/[^\\s'\"@<>\\[\\](){{}},;:]*)?")
+
+    def text(self, value: str) -> str:
+        if not value or "/" not in value:
+            return value
+        return self._pattern.sub(lambda m: os.path.basename(m.group(0).rstrip("/")) or "file", value)
+
+    def obj(self, obj):
+        """Every string of a JSON-ready object (keys too), except base64 payloads (`*_base64`)."""
+        if isinstance(obj, str):
+            return self.text(obj)
+        if isinstance(obj, dict):
+            return {self.text(k) if isinstance(k, str) else k: (v if isinstance(k, str) and k.endswith("_base64")
+                                                                else self.obj(v)) for k, v in obj.items()}
+        if isinstance(obj, list):
+            return [self.obj(v) for v in obj]
+        return obj
+
+
+REDACT = Redactor()
+
+
+def redact(text: str) -> str:
+    """`text` with every server path cut to its file name (the one function every client message goes through)."""
+    return REDACT.text(text)
+
+
 # --- JSON output --------------------------------------------------------------------------------
 
 def finite(obj):
@@ -131,7 +195,7 @@ def finite(obj):
 
 
 def json_response(obj, status: int = 200, headers=None) -> Response:
-    body = json.dumps(finite(obj), separators=(",", ":"), allow_nan=False)
+    body = json.dumps(REDACT.obj(finite(obj)), separators=(",", ":"), allow_nan=False)
     return Response(body, status_code=status, media_type="application/json", headers=headers)
 
 
@@ -174,12 +238,17 @@ class Service:
         self.warm_errors: dict[str, str] = {}
         self.warm_s: float | None = None
         self.limiter = RateLimiter(settings.rate_limit_per_s, settings.rate_limit_burst)
-        self.solve_slots = threading.BoundedSemaphore(settings.solve_threads)
-        self._inflight = 0
-        self._inflight_lock = threading.Lock()
-        self.metrics = ServerMetrics(self.queue_length, lambda: self._inflight)
+        self.admission = Admission(settings.max_inflight, settings.tenant_max_inflight, settings.solve_threads,
+                                   settings.load_threads)
+        self.metrics = ServerMetrics(self.queue_length, lambda: self.admission.inflight, admission=self.admission)
         self.tokens = dict(settings.tokens)
         self.batch_lock = threading.Lock()
+        # /healthz and /metrics read the database here, never on the event loop nor in the request threadpool
+        self.probe_pool = concurrent.futures.ThreadPoolExecutor(2, thread_name_prefix="probe")
+        self._reserved: dict[str, int] = {}  # tenant -> bytes of uploads being stored (tenant_max_stored_bytes)
+        self._reserved_lock = threading.Lock()
+        self._live_scenes: "weakref.WeakValueDictionary[tuple, object]" = weakref.WeakValueDictionary()
+        REDACT.add(settings.data_dir)
 
     # lifecycle
     def start(self) -> None:
@@ -187,9 +256,14 @@ class Service:
         from ..service.store import Store
 
         import_native_stack()
+        configure_scene_cache(self.settings)
         Path(self.settings.data_dir).mkdir(parents=True, exist_ok=True)
         self.store = Store(self.settings.data_dir, retention_days=self.settings.retention_days,
                            max_bytes=self.settings.max_data_bytes)
+        swept = self.store.sweep_partial_uploads()  # before any request: what a killed upload left behind
+        if swept["rows"] or swept["files"]:
+            log.warning("swept partial uploads", extra={"fields": {"rows": len(swept["rows"]),
+                                                                   "files": len(swept["files"])}})
         self.runner = BatchRunner(self.store, backend=self.settings.batch_backend,
                                   workers=self.settings.batch_workers, ray_address=self.settings.ray_address)
         log.info("store ready", extra={"fields": {"data_dir": str(self.settings.data_dir)}})
@@ -218,6 +292,7 @@ class Service:
         self.stopping.set()
         if self.runner is not None:
             self.runner.shutdown()
+        self.probe_pool.shutdown(wait=False, cancel_futures=True)
 
     def warm_up(self) -> None:
         """Load the warm-up scenes, run one optimize and one small evaluate each, so the kernels are compiled
@@ -242,20 +317,35 @@ class Service:
         self.ready.set()
 
     # limits
-    @contextlib.contextmanager
-    def heavy(self):
-        """Admission (503 when `max_inflight` requests are already in) and a solver thread slot."""
-        with self._inflight_lock:
-            if self._inflight >= self.settings.max_inflight:
-                raise ApiError(503, "busy", f"{self._inflight} solver requests in flight (limit "
-                               f"{self.settings.max_inflight}); retry shortly", headers={"Retry-After": "1"})
-            self._inflight += 1
+    @contextlib.asynccontextmanager
+    async def heavy(self, tenant: str):
+        """Admission of a heavy request, answered at once: 503 when `max_inflight` heavy requests are in, 429
+        when this tenant has `tenant_max_inflight` in. The request counts as in flight until it leaves; its
+        work then waits for a slot (`solve_slot`, `load_slot`) on the event loop."""
         try:
-            with self.solve_slots:
-                yield
+            ticket = self.admission.admit(tenant)
+        except Refused as e:
+            self.metrics.refusals.inc(e.code)
+            raise ApiError(e.status, e.code, e.message, headers={"Retry-After": str(e.retry_after)}) from None
+        try:
+            yield ticket
         finally:
-            with self._inflight_lock:
-                self._inflight -= 1
+            ticket.release()
+
+    async def in_slot(self, pool, tenant: str, fn, *args, **kwargs):
+        """`fn(*args, **kwargs)` in a worker thread once `pool` (admission.solve or .load) gives this tenant a slot."""
+        async with pool.slot(tenant):
+            return await run_in_threadpool(fn, *args, **kwargs)
+
+    async def probe(self, fn, timeout: float = 2.0):
+        """`fn()` on the probe executor (database reads for /healthz and /metrics), within `timeout` seconds."""
+        loop = asyncio.get_running_loop()
+        return await asyncio.wait_for(loop.run_in_executor(self.probe_pool, fn), timeout)
+
+    def probe_database(self) -> int:
+        """The queue length after a cheap check that the database answers (raises sqlite3.DatabaseError)."""
+        self.store.check_database()
+        return self.store.pending_configurations()
 
     def time_budget(self, requested: float | None) -> float:
         """A request's time budget in ms, capped by the server's max_time_budget_ms (the cap when none is asked)."""
@@ -277,6 +367,18 @@ class Service:
             if hmac.compare_digest(tok.encode(), token.encode()):
                 found = name
         return found
+
+
+def configure_scene_cache(settings: Settings) -> None:
+    """Size the process-wide scene cache from the settings (entries, bytes, one tenant's share)."""
+    from ..service.scenes import SCENES
+
+    configure = getattr(SCENES, "configure", None)
+    if configure is None:  # TODO(issue 9, part B): remove once service/scenes.py has SceneCache.configure
+        SCENES.capacity = settings.scene_cache_entries
+        return
+    configure(capacity=settings.scene_cache_entries, max_bytes=settings.scene_cache_bytes,
+              tenant_share=settings.tenant_cache_share)
 
 
 def import_native_stack() -> None:
@@ -505,6 +607,12 @@ def install_error_handlers(app: FastAPI) -> None:
         request.state.error_code = "invalid_request"
         return validation_error_response(exc)
 
+    @app.exception_handler(sqlite3.DatabaseError)
+    async def database_error(request: Request, exc: sqlite3.DatabaseError):
+        request.state.error_code = "database_unavailable"
+        log.error("database error", extra={"fields": {"error": f"{type(exc).__name__}: {exc}"}})
+        return error_json(503, "database_unavailable", database_message(exc), None, {"Retry-After": "5"})
+
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException):
         if exc.status_code == 400:  # FastAPI's "error parsing the body" (e.g. bytes that are not UTF-8)
@@ -516,23 +624,44 @@ def install_error_handlers(app: FastAPI) -> None:
         return error_json(exc.status_code, code, str(exc.detail), None, getattr(exc, "headers", None))
 
 
+def database_message(exc: BaseException) -> str:
+    return redact(f"the database is unavailable ({exc or type(exc).__name__}); retry later or ask the operator")
+
+
 def add_system_routes(app: FastAPI, svc: Service) -> None:
-    @app.get("/healthz", summary="Readiness: 200 once the scene cache and the Dr.Jit kernels are warm, else 503",
-             response_model=S.Health, responses=error_responses(503), tags=["system"])
-    def healthz():
+    @app.get("/healthz", summary="Readiness: 200 once the scene cache and the Dr.Jit kernels are warm and the "
+             "database answers, else 503", response_model=S.Health, responses=error_responses(503), tags=["system"])
+    async def healthz():
+        queued, db_error = 0, None
+        if svc.store is not None:
+            try:
+                queued = await svc.probe(svc.probe_database)
+            except asyncio.TimeoutError:
+                db_error = "the database did not answer within 2 s"
+            except (sqlite3.Error, OSError) as e:
+                db_error = database_message(e)
         body = {"status": "ok" if svc.ready.is_set() else "warming", "warm_s": svc.warm_s,
-                "warm_errors": svc.warm_errors, "queue_length": svc.queue_length(), "version": _version()}
+                "warm_errors": svc.warm_errors, "queue_length": queued, "version": _version()}
+        if db_error is not None:
+            body["status"] = "unavailable"
+            return JSONResponse(REDACT.obj({"error": {"code": "database_unavailable", "message": db_error,
+                                                      "field": None}, **body}), status_code=503,
+                                headers={"Retry-After": "5"})
         if not svc.ready.is_set():
-            return JSONResponse({"error": {"code": "warming_up", "message": "the scene cache and kernels are "
-                                           "warming up", "field": None}, **body}, status_code=503,
-                                headers={"Retry-After": "1"})
-        return body
+            return JSONResponse(REDACT.obj({"error": {"code": "warming_up", "message": "the scene cache and "
+                                                      "kernels are warming up", "field": None}, **body}),
+                                status_code=503, headers={"Retry-After": "1"})
+        return json_response(body)
 
     @app.get("/metrics", summary="Prometheus metrics: request counts and latencies per route, optimize time, "
-             "queue length", response_class=Response, tags=["system"],
-             responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}})
-    def metrics():
-        return Response(svc.metrics.render(), media_type="text/plain; version=0.0.4; charset=utf-8")
+             "queue length, heavy requests in flight and waiting, admission refusals", response_class=Response,
+             tags=["system"], responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}})
+    async def metrics():
+        try:
+            text = await svc.probe(svc.metrics.render)
+        except asyncio.TimeoutError:  # the queue gauge's query hung: the rest without it
+            text = svc.metrics.render(skip_slow=True)
+        return Response(text, media_type="text/plain; version=0.0.4; charset=utf-8")
 
 
 # --- scenes -------------------------------------------------------------------------------------
@@ -555,7 +684,8 @@ def add_scene_routes(app: FastAPI, svc: Service, Tenant) -> None:
                                                                  "(its extension says the format)")] = None,
                            x_filename: Annotated[str | None, Header(max_length=255)] = None):
         data, name = await read_upload(request, svc.settings.max_upload_bytes, filename or x_filename)
-        info, created = await run_in_threadpool(store_and_load, svc, tenant, data, name)
+        async with svc.heavy(tenant):
+            info, created = await store_and_load(svc, tenant, data, name)
         return json_response({**info, "created": created}, status=201 if created else 200)
 
     @app.get("/v1/scenes", summary="This tenant's scenes", response_model=S.SceneList, tags=["scenes"],
@@ -628,49 +758,162 @@ async def read_upload(request: Request, limit: int, name: str | None) -> tuple[b
     return body, name
 
 
-def store_and_load(svc: Service, tenant: str, data: bytes, name: str) -> tuple[dict, bool]:
-    """Store the file, load it in upload mode (nothing outside the upload is read), record what was found."""
-    from ..renderers.scene_data import SceneError
-    from ..service.scenes import SCENES
+SCENE_413 = ("too_many_triangles", "memory_limit", "load_timeout")  # over a resource limit: too large
 
-    scene_id, created = svc.store.put_scene(tenant, data, name)
-    rec = svc.store.scene_record(tenant, scene_id) or {}
-    if not created and rec.get("info"):
-        return scene_info(rec, scene_id), False
-    path = svc.store.scene_path(tenant, scene_id)
+
+def scene_error(e, field: str) -> ApiError:
+    """A SceneError as the HTTP error: 413 over a resource limit (triangles, load memory or time), else 422
+    (sandbox limits, damaged or unsupported files); the message names the field and no server path."""
+    status = 413 if e.code in SCENE_413 else 422
+    return ApiError(status, e.code, f"{field}: {e.message}", field)
+
+
+def load_limits(settings: Settings):
     try:
-        with svc.heavy():
-            entry = SCENES.get(path, sandbox=svc.store.scene_sandboxed(tenant, scene_id))
-    except SceneError as e:
-        if created:  # only what this request stored: a concurrent upload of the same bytes keeps its scene
-            svc.store.delete_scene(tenant, scene_id)
-        raise ApiError(422, e.code, f"file: {e.message}", "file") from e
-    except ApiError:
-        if created:
-            svc.store.delete_scene(tenant, scene_id)
-        raise
-    info = entry.loaded.info()
-    if info["triangles"] > svc.settings.max_triangles:
-        if created:
-            svc.store.delete_scene(tenant, scene_id)
-        raise ApiError(413, "too_many_triangles", f"file: the scene has {info['triangles']} triangles, over the "
-                       f"limit of {svc.settings.max_triangles}", "file")
-    svc.store.set_scene_info(tenant, scene_id, finite(info))
-    return scene_info({"info": info, "filename": name}, scene_id), True
+        from ..service.isolation import LoadLimits
+    except ImportError:  # TODO(issue 9, part B): drop the fallback once service/isolation.py is committed
+        from ..service.scenes import LoadLimits
+    return LoadLimits(settings.max_triangles, settings.load_memory_bytes, settings.load_timeout_s)
 
 
-def scene_entry_for(svc: Service, tenant: str, scene_id: str):
-    """The loaded scene (from the cache, reloaded if evicted) or 404."""
+def scene_options(svc: Service, tenant: str, sandboxed: bool) -> dict:
+    """SCENES.get keywords: uploads load sandboxed, in a child with the load limits, counted to the tenant."""
+    import inspect
+
+    from ..service.scenes import SCENES
+
+    opts = {"sandbox": sandboxed}
+    if sandboxed and "limits" in inspect.signature(SCENES.get).parameters:  # TODO(issue 9, part B): always
+        opts.update(tenant=tenant, limits=load_limits(svc.settings))
+    return opts
+
+
+def load_entry(svc: Service, path, opts: dict, field: str):
+    """SCENES.get (cache, single flight, isolated load) in a worker thread; SceneError -> 413/422."""
     from ..renderers.scene_data import SceneError
     from ..service.scenes import SCENES
 
-    path = svc.store.scene_path(tenant, scene_id)
+    try:
+        entry = SCENES.get(path, **opts)
+    except SceneError as e:
+        raise scene_error(e, field) from e
+    svc._live_scenes[_scene_key(path, opts)] = entry
+    return entry
+
+
+def _scene_key(path, opts: dict) -> tuple:
+    try:
+        st = os.stat(path)
+        ident = (st.st_size, st.st_mtime_ns)
+    except OSError:
+        ident = None
+    return (os.path.realpath(path), ident, opts.get("sandbox"), opts.get("tenant"))
+
+
+def cached_entry(svc: Service, path, opts: dict):
+    """The loaded scene when it is in memory (no load, nothing blocks), else None."""
+    from ..service.scenes import SCENES
+
+    peek = getattr(SCENES, "peek", None)
+    if peek is not None:
+        return peek(path, **opts)
+    # TODO(issue 9, part B): use SCENES.peek once the cache has one; until then its own key and entries
+    try:
+        key = SCENES._key(path, opts.get("time_code"), opts.get("asset_root"), opts.get("sandbox", False))
+        with SCENES._lock:
+            slot = SCENES._entries.get(key)
+            if slot is None:
+                return None
+            SCENES._entries.move_to_end(key)
+            return getattr(slot, "entry", slot)
+    except AttributeError:
+        return svc._live_scenes.get(_scene_key(path, opts))
+    except Exception:  # the file is gone, say: the load reports it
+        return None
+
+
+async def store_and_load(svc: Service, tenant: str, data: bytes, name: str) -> tuple[dict, bool]:
+    """Store the file, load it in upload mode (nothing outside the upload is read, limits enforced while
+    loading), then record it with what was found in one transaction; a load that fails leaves nothing.
+    Runs under the request's admission: the write in a worker thread, the load in a scene-load slot."""
+    from ..service.store import scene_id_for
+
+    def prepare():
+        scene_id = scene_id_for(data, name)
+        rec = svc.store.scene_record(tenant, scene_id)
+        if rec is not None and rec.get("info"):
+            return scene_id, rec, None
+        reserve_upload(svc, tenant, len(data))
+        try:
+            _, path, _ = svc.store.write_upload(tenant, data, name)
+        except BaseException:
+            unreserve_upload(svc, tenant, len(data))
+            raise
+        return scene_id, None, path
+
+    scene_id, rec, path = await run_in_threadpool(prepare)
+    if rec is not None:
+        return scene_info(rec, scene_id), False
+    try:
+        try:
+            entry = await svc.in_slot(svc.admission.load, tenant, load_entry, svc, path,
+                                      scene_options(svc, tenant, True), "file")
+            info = finite(entry.loaded.info())
+            if info["triangles"] > svc.settings.max_triangles:  # the loader stops at the limit; a safety net
+                raise ApiError(413, "too_many_triangles", f"file: the scene has {info['triangles']} triangles, "
+                               f"over the limit of {svc.settings.max_triangles}", "file")
+        except BaseException:
+            await run_in_threadpool(svc.store.discard_upload, tenant, scene_id, path)
+            raise
+        created = await run_in_threadpool(svc.store.register_upload, tenant, scene_id, path, len(data), info)
+    finally:
+        unreserve_upload(svc, tenant, len(data))
+    if not created:  # a concurrent upload of the same bytes was recorded first
+        await run_in_threadpool(svc.store.discard_upload, tenant, scene_id, path)
+        rec = await run_in_threadpool(svc.store.scene_record, tenant, scene_id)
+        return scene_info(rec or {"info": info, "filename": path.name}, scene_id), False
+    return scene_info({"info": info, "filename": path.name}, scene_id), True
+
+
+def reserve_upload(svc: Service, tenant: str, nbytes: int) -> None:
+    """Count an upload's bytes to the tenant's quota (stored plus being stored); 413/429 when over it."""
+    quota = svc.settings.tenant_max_stored_bytes
+    if nbytes > quota:
+        raise ApiError(413, "tenant_quota", f"file: {nbytes} bytes is over the per-tenant storage quota "
+                       f"tenant_max_stored_bytes = {quota}", "file")
+    with svc._reserved_lock:
+        stored = svc.store.tenant_stored_bytes(tenant) + svc._reserved.get(tenant, 0)
+        if stored + nbytes > quota:
+            raise ApiError(429, "tenant_quota", f"file: this token stores {stored} bytes of scenes; {nbytes} more "
+                           f"would be over the per-tenant quota tenant_max_stored_bytes = {quota}; delete scenes "
+                           f"to make room", "file", headers={"Retry-After": "60"})
+        svc._reserved[tenant] = svc._reserved.get(tenant, 0) + nbytes
+
+
+def unreserve_upload(svc: Service, tenant: str, nbytes: int) -> None:
+    with svc._reserved_lock:
+        left = svc._reserved.get(tenant, 0) - nbytes
+        if left > 0:
+            svc._reserved[tenant] = left
+        else:
+            svc._reserved.pop(tenant, None)
+
+
+async def scene_entry_for(svc: Service, tenant: str, scene_id: str):
+    """The loaded scene or 404. From memory when it is there; else reloaded (an evicted upload) under the
+    request's admission in a scene-load slot, never a solver slot."""
+    def lookup():
+        path = svc.store.scene_path(tenant, scene_id)
+        return path, (svc.store.scene_sandboxed(tenant, scene_id) if path is not None else True)
+
+    path, sandboxed = await run_in_threadpool(lookup)
     if path is None:
         raise scene_not_found(scene_id)
-    try:
-        return SCENES.get(path, sandbox=svc.store.scene_sandboxed(tenant, scene_id))
-    except SceneError as e:
-        raise ApiError(422, e.code, f"scene_id: {e.message}", "scene_id") from e
+    opts = scene_options(svc, tenant, sandboxed)
+    entry = cached_entry(svc, path, opts)
+    if entry is not None:
+        return entry
+    return await svc.in_slot(svc.admission.load, tenant, load_entry, svc, path, opts, "scene_id")
 
 
 # --- optimize, evaluate, compare, analyze -------------------------------------------------------
@@ -739,47 +982,58 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
 
     @app.post("/v1/optimize", summary="Shadow setup for a scene and rig: matrices, warp, cascades, predicted error",
               response_model=S.Solution, responses=error_responses(*AUTHED, 404, 413, 422, 503), tags=["solve"])
-    def optimize(req: S.OptimizeRequest, tenant: Tenant):
-        entry = scene_entry_for(svc, tenant, req.scene_id)
+    async def optimize(req: S.OptimizeRequest, tenant: Tenant):
+        rig = rig_dict(req.rig)
         budget = svc.time_budget(req.time_budget_ms)
-        t0 = time.perf_counter()
-        with svc.heavy(), solver_errors(req.previous is not None):
-            sol = solve(entry, rig_dict(req.rig), method=req.method, solver=req.solver, time_budget_ms=budget,
-                        previous=req.previous, hysteresis=req.hysteresis)
-        svc.metrics.optimize.observe(time.perf_counter() - t0, req.method)
+        async with svc.heavy(tenant):
+            entry = await scene_entry_for(svc, tenant, req.scene_id)
+            t0 = time.perf_counter()
+            with solver_errors(req.previous is not None):
+                sol = await svc.in_slot(svc.admission.solve, tenant, solve, entry, rig, method=req.method,
+                                        solver=req.solver, time_budget_ms=budget, previous=req.previous,
+                                        hysteresis=req.hysteresis)
+            svc.metrics.optimize.observe(time.perf_counter() - t0, req.method)
         return json_response(sol)
 
     @app.post("/v1/evaluate", summary="Measure a solution against exact ray-traced shadows (optional heatmap PNG)",
               response_model=S.Evaluation, responses=error_responses(*AUTHED, 404, 413, 422, 503), tags=["solve"])
-    def evaluate(req: S.EvaluateRequest, tenant: Tenant):
+    async def evaluate(req: S.EvaluateRequest, tenant: Tenant):
         from ..service.evaluation import evaluate_solution
 
-        entry = scene_entry_for(svc, tenant, req.scene_id)
         rig = rig_dict(req.rig)
         check_eval_size(svc, rig, req.screen, req.solution)
-        with tempfile.TemporaryDirectory(prefix="shadowopt-heatmap-") as tmp:
-            path = str(Path(tmp) / "heatmap.png") if req.heatmap else None
-            with svc.heavy(), solver_errors():
+
+        def run(entry):
+            with tempfile.TemporaryDirectory(prefix="shadowopt-heatmap-") as tmp:
+                path = str(Path(tmp) / "heatmap.png") if req.heatmap else None
                 res = evaluate_solution(entry, rig, req.solution, screen=req.screen, heatmap_path=path,
                                         grid_every=req.grid_every)
-            if path:
-                res["heatmap_png_base64"] = [base64.b64encode(p.read_bytes()).decode()
-                                             for p in sorted(Path(tmp).glob("heatmap*.png"))]
+                if path:
+                    res["heatmap_png_base64"] = [base64.b64encode(p.read_bytes()).decode()
+                                                 for p in sorted(Path(tmp).glob("heatmap*.png"))]
+            return res
+
+        async with svc.heavy(tenant):
+            entry = await scene_entry_for(svc, tenant, req.scene_id)
+            with solver_errors():
+                res = await svc.in_slot(svc.admission.solve, tenant, run, entry)
         return json_response(res)
 
     @app.post("/v1/compare", summary="Methods side by side: predicted and measured error, setup time",
               response_model=S.Comparison, responses=error_responses(*AUTHED, 404, 413, 422, 503), tags=["solve"])
-    def compare(req: S.CompareRequest, tenant: Tenant):
+    async def compare(req: S.CompareRequest, tenant: Tenant):
         from ..service.compare import compare as compare_methods
 
-        entry = scene_entry_for(svc, tenant, req.scene_id)
         rig = rig_dict(req.rig)
-        check_eval_size(svc, rig, req.screen, {"lights": [{"cascades": [{"resolution": rig["shadow"].get(
-            "resolution")}]}]})
+        resolution = (rig.get("shadow") or {}).get("resolution")  # None with a texel_budget: sized from it
+        check_eval_size(svc, rig, req.screen, {"lights": [{"cascades": [{"resolution": resolution}]}]}
+                        if resolution is not None else None)
         methods = list(dict.fromkeys(req.methods))
-        with svc.heavy(), solver_errors():
-            res = compare_methods(entry, rig, methods, screen=req.screen,
-                                  solve_options={"time_budget_ms": svc.time_budget(None)})
+        async with svc.heavy(tenant):
+            entry = await scene_entry_for(svc, tenant, req.scene_id)
+            with solver_errors():
+                res = await svc.in_slot(svc.admission.solve, tenant, compare_methods, entry, rig, methods,
+                                        screen=req.screen, solve_options={"time_budget_ms": svc.time_budget(None)})
         return json_response(res)
 
     @app.post("/v1/analyze", summary="Lloyd's scene-independent critical resolution and storage factors",
@@ -803,11 +1057,15 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
     @app.post("/v1/batches", summary="Precompute many camera/light configurations; answers 202 with the batch id",
               response_model=S.BatchCreated, status_code=202, tags=["batches"],
               responses=error_responses(*AUTHED, 404, 413, 422, 503))
-    def create_batch(req: S.BatchRequest, tenant: Tenant):
+    async def create_batch(req: S.BatchRequest, tenant: Tenant):
+        async with svc.heavy(tenant):
+            entry = await scene_entry_for(svc, tenant, req.scene_id)
+            return await run_in_threadpool(queue_batch, svc, tenant, req, entry)
+
+    def queue_batch(svc: Service, tenant: str, req: S.BatchRequest, entry) -> Response:
         from ..service.batches import BatchError, expand_configurations, expansion_shape
         from ..service.rigs import resolve_rig
 
-        entry = scene_entry_for(svc, tenant, req.scene_id)
         body = req.model_dump(by_alias=True, exclude_none=True,
                               exclude={"scene_id", "method", "solver", "time_budget_ms"})
         try:
@@ -819,6 +1077,7 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
         if len(configs) > limit:  # before the per-configuration validation: its cost grows with the count
             raise ApiError(413, "too_many_configurations", f"configurations: {len(configs)} configurations is "
                            f"over the queue's capacity of {limit}", "configurations")
+        check_tenant_queue(svc, tenant, len(configs))  # also before the validation
         try:
             configs = S.validate_configurations(configs)
         except S.ConfigurationError as e:
@@ -830,6 +1089,7 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
                 field = f"configurations.{k}.rig" + (f".{e.field}" if getattr(e, "field", None) else "")
                 raise ApiError(422, "invalid_rig", f"{field}: {getattr(e, 'message', e)}", field) from e
         with svc.batch_lock:  # the check and the insert together: two requests cannot both take the last room
+            check_tenant_queue(svc, tenant, len(configs))
             queued = svc.queue_length()
             if queued + len(configs) > limit:
                 raise ApiError(503, "queue_full", f"the batch queue holds {queued} of {limit} configurations; "
@@ -861,7 +1121,7 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
         if svc.store.batch(tenant, batch_id) is None:
             raise batch_not_found(batch_id)
         rows = svc.store.results(tenant, batch_id, offset=offset, limit=limit)
-        body = "".join(json.dumps(finite(r), separators=(",", ":")) + "\n" for r in rows)
+        body = "".join(json.dumps(REDACT.obj(finite(r)), separators=(",", ":")) + "\n" for r in rows)
         return Response(body, media_type="application/x-ndjson")
 
     @app.delete("/v1/batches/{batch_id}", summary="Cancel a batch (results so far are kept)",
@@ -871,6 +1131,17 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
             raise batch_not_found(batch_id)
         svc.runner.cancel(tenant, batch_id)
         return json_response(status_json(svc, tenant, svc.store.batch(tenant, batch_id)))
+
+
+def check_tenant_queue(svc: Service, tenant: str, n: int) -> None:
+    """429 when this tenant's queued configurations plus `n` are over tenant_max_queued: one tenant cannot fill
+    the queue for everyone."""
+    quota = svc.settings.tenant_max_queued
+    mine = svc.store.pending_configurations(tenant) if n <= quota else 0
+    if mine + n > quota:
+        raise ApiError(429, "tenant_quota", f"configurations: this token has {mine} batch configurations queued; "
+                       f"{n} more would be over the per-tenant quota tenant_max_queued = {quota}", "configurations",
+                       headers={"Retry-After": str(retry_after(mine))})
 
 
 def batch_not_found(batch_id: str) -> ApiError:

@@ -42,10 +42,15 @@ def server(tmp_path_factory):
         yield s
 
 
-def post_scene(base: str, who: str | None, text: str, name: str = "box.usda") -> httpx.Response:
+SEEN: list[httpx.Response] = []  # every answer to an upload in this module: none may name a server path
+
+
+def post_scene(base: str, who: str | None, text: str | bytes, name: str = "box.usda") -> httpx.Response:
     headers = auth(who) if who else {}
-    return httpx.post(f"{base}/v1/scenes", params={"filename": name}, content=text.encode(), headers=headers,
-                      timeout=60)
+    r = httpx.post(f"{base}/v1/scenes", params={"filename": name},
+                   content=text.encode() if isinstance(text, str) else text, headers=headers, timeout=60)
+    SEEN.append(r)
+    return r
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +115,9 @@ def test_upload_referencing_a_file_elsewhere_is_refused_with_a_warning(server):
     assert r.status_code == 201, r.text
     info = r.json()
     assert info["triangles"] == 14  # the box and ground only: the demo's 2442 triangles were not read
-    assert any(str(target) in w and "not read" in w for w in info["warnings"]), info["warnings"]
+    # named by its file name: the repository's path is not echoed back (issue 9, no server paths)
+    assert any("demo_scene.usda" in w and "not read" in w for w in info["warnings"]), info["warnings"]
+    assert not any(str(REPO) in w for w in info["warnings"]), info["warnings"]
     assert any("../../../etc/shadowopt-secret.usda" in w for w in info["warnings"]), info["warnings"]
     assert info["cameras"] == [] and info["lights"] == []  # the demo's camera and sun stayed outside
 
@@ -161,9 +168,11 @@ def test_json_body_limit_413_and_time_budget_cap(server, alice_box):
 def test_triangle_limit_413_and_nothing_kept(server):
     r = upload(server.base, "alice", DEMO)
     err = error_of(r, 413)
-    assert err["code"] == "too_many_triangles" and "2442" in err["message"] and err["field"] == "file"
+    # the loader stops counting at the limit (it never builds the 2442 triangles): the message names the limit
+    assert err["code"] == "too_many_triangles" and "1000" in err["message"] and err["field"] == "file"
     listed = httpx.get(server.base + "/v1/scenes", headers=auth("alice")).json()["scenes"]
     assert all(s["triangles"] != 2442 for s in listed)
+    assert not list(server.data_dir.glob("scenes/*/*/demo_scene.usda"))  # nor its file
 
 
 def slow_configurations(n: int) -> list[dict]:
@@ -222,3 +231,56 @@ def test_ground_truth_size_limits_cover_budgets_and_malformed_resolutions(server
                    headers=auth("alice"), timeout=60)
     err = error_of(r, 422)
     assert err["code"] == "invalid_solution" and err["field"] == "solution.lights.0.cascades.0.resolution"
+
+
+def test_no_server_path_in_any_answer(server, alice_box):
+    """issue 9: load errors carried the storage path (<data>/scenes/<tenant hash>/<id>/x.usda) and a warning a
+    path inside the virtual environment. Damaged files (USD's own parse errors name the layer's full path),
+    references to missing files, and every upload answer of this module: none holds the data directory, the
+    repository, the Python prefix or the temporary directory; the file is named by its own name."""
+    import sys
+    import tempfile
+
+    from shadowopt.service import hostile_corpus as H
+
+    cases = [("broken.usda", "#usda 1.0\ndef Xform \"World\" {\n    def Mesh \"M\" { int[] faceVertexCounts = [3\n"),
+             ("garbage.usdc", b"PXR-USDC" + bytes(range(256)) * 8),
+             ("garbage.usdz", b"PK\x03\x04" + b"\x00" * 200),
+             ("missing.usda", BOX % '    def "Gone" (\n        prepend references = @./not-there.usda@\n    ) {}\n'),
+             ("chain.usdz", H.layer_chain_usdz(70, str(REPO / "configs" / "demo_scene.usda")))]
+    answers = [post_scene(server.base, "alice", text, name) for name, text in cases]
+    for name, r in zip(("broken.usda", "garbage.usdc", "garbage.usdz"), answers):
+        err = error_of(r, 422)
+        assert err["field"] == "file" and name in err["message"], err  # named by its own name
+    roots = {str(server.data_dir), str(server.data_dir.resolve()), str(REPO), sys.prefix, sys.base_prefix,
+             tempfile.gettempdir() + "/"}
+    for r in SEEN:
+        for root in roots:
+            assert root not in r.text, (root, r.text)
+    assert len(SEEN) > len(cases)
+
+
+def test_redact_cuts_every_server_path_to_its_file_name(tmp_path):
+    """The server's safety net under every client message (errors, warnings, batch errors): whatever a
+    loader or a library put in a message, the data directory, the scene storage layout, the repository, the
+    Python prefix and the temporary directory come out as file names."""
+    import sys
+
+    from shadowopt.api.server import REDACT, ApiError, Service, redact, scene_error
+    from shadowopt.api.settings import Settings
+    from shadowopt.renderers.scene_data import SceneError
+
+    data = tmp_path / "data"
+    Service(Settings(data_dir=str(data)))  # registers its data directory
+    stored = data / "scenes" / "0123456789abcdef" / "fedcba9876543210" / "x.usda"
+    venv = f"{sys.prefix}/lib/python3.12/site-packages/pxr/Usd/__init__.py"
+    assert redact(f"@{stored}@ failed to open; see {venv}:12") == "@x.usda@ failed to open; see __init__.py:12"
+    assert redact(f"file://{stored.parent}/a.usdz[inner/b.usda]") == "a.usdz[inner/b.usda]"
+    assert redact(f"{REPO}/configs/demo_scene.usda, /usr/share/doc stays") == "demo_scene.usda, /usr/share/doc stays"
+    e = scene_error(SceneError("corrupt", f"cannot read {stored}"), "file")
+    assert e.status_code == 422 and e.body()["error"]["message"] == "file: cannot read x.usda"
+    assert scene_error(SceneError("memory_limit", "over"), "file").status_code == 413
+    assert scene_error(SceneError("sandbox_limit", "deep"), "file").status_code == 422
+    body = REDACT.obj({"warnings": [str(stored)], str(stored): 1, "heatmap_png_base64": [str(stored)]})
+    assert body == {"warnings": ["x.usda"], "x.usda": 1, "heatmap_png_base64": [str(stored)]}  # payloads untouched
+    assert str(data) not in ApiError(422, "x", f"{data}/shadowopt.db is locked").body()["error"]["message"]
