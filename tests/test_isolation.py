@@ -77,6 +77,19 @@ def test_an_isolated_load_returns_what_an_in_process_load_does():
     assert [c.usd_path for c in got.cameras] == [c.usd_path for c in ref.cameras]
 
 
+def test_the_next_isolated_load_runs_in_a_warm_spare():
+    load_isolated(DEMO, limits=LoadLimits())
+    spare = isolation.SPARES.pid()
+    assert spare is not None and alive(spare)
+    warm = isolation.STATS["warm"]
+    time.sleep(2)  # a load arriving later than this one did: the spare has imported usd-core
+    t0 = time.perf_counter()
+    got = load_isolated(DEMO, limits=LoadLimits())
+    print(f"warm isolated load of the demo scene: {time.perf_counter() - t0:.2f} s")
+    assert isolation.STATS["warm"] == warm + 1 and got.geometry.triangle_count > 0
+    assert not alive(spare) and isolation.SPARES.pid() not in (None, spare)  # used once, replaced
+
+
 def test_a_loader_error_comes_back_with_its_code_and_no_server_path(tmp_path):
     bad = tmp_path / "garbage.usda"
     bad.write_bytes(b"#usda 1.0\n(\n def Xform \"W\" {{{{ \x00\x01 nonsense")
@@ -126,10 +139,12 @@ def test_a_load_over_its_time_limit_is_killed(spheres):
                                                                timeout_s=1.5))
     assert e.value.code == "load_timeout" and "1.5 s" in e.value.message
     assert time.monotonic() - t0 < 4
-    assert not [p for p in isolation.multiprocessing.active_children() if p.name == "shadowopt-isolated-load"]
+    assert not [p for p in isolation.multiprocessing.active_children()
+                if p.name.startswith("shadowopt-") and p.pid != isolation.SPARES.pid()]  # only the next spare
 
 
 def test_a_child_that_sleeps_past_the_limit_is_gone_after_the_refusal():
+    isolation.SPARES.close()  # a cold child, started for this job
     seen = []
     before = set(children_of(os.getpid()))  # the resource tracker, say
 
@@ -146,6 +161,7 @@ def test_a_child_that_sleeps_past_the_limit_is_gone_after_the_refusal():
         run_isolated(time.sleep, (60,), timeout_s=1.0)
     assert e.value.code == "load_timeout" and time.monotonic() - t0 < 3
     t.join()
+    seen = [p for p in seen if p != isolation.SPARES.pid()]  # the spare started for the next load
     assert seen and not any(alive(p) for p in seen)
 
 

@@ -50,14 +50,14 @@ def test_concurrent_gets_of_one_scene_share_one_isolated_load(tmp_path):
     """Six requests for a scene not yet cached: one child process loads it, all six get that entry."""
     path = write(tmp_path, "scene.usda", tiny_scene(1))
     cache = SceneCache()
-    spawns = isolation.SPAWNER.spawns
+    jobs = isolation.STATS["jobs"]
     got = concurrently(6, lambda: cache.get(path, sandbox=True, tenant="alice", limits=LoadLimits()))
     assert all(not isinstance(g, BaseException) for g in got), got
     assert all(g is got[0] for g in got)
-    assert isolation.SPAWNER.spawns - spawns == 1  # processes actually started: one load
+    assert isolation.STATS["jobs"] - jobs == 1  # child processes that ran a load: one
     assert cache.stats()["loads"] == 1 and cache.stats()["shared"] == 5
     assert cache.get(path, sandbox=True, tenant="alice", limits=LoadLimits()) is got[0]  # then a hit
-    assert isolation.SPAWNER.spawns - spawns == 1
+    assert isolation.STATS["jobs"] - jobs == 1
     assert got[0].loaded.geometry.triangle_count == load_scene(path, sandbox=True).geometry.triangle_count
 
 
@@ -65,15 +65,15 @@ def test_a_failed_load_reaches_every_waiter_and_is_not_cached(tmp_path):
     bad = tmp_path / "broken.usda"
     bad.write_bytes(b"#usda 1.0\n(\n def Mesh \"M\" {{{ \x00\xff")
     cache = SceneCache()
-    spawns = isolation.SPAWNER.spawns
+    jobs = isolation.STATS["jobs"]
     got = concurrently(4, lambda: cache.get(bad, sandbox=True, tenant="bob", limits=LoadLimits()))
     assert all(isinstance(g, SceneError) for g in got), got
     assert len({(g.code, g.message) for g in got}) == 1 and got[0].code in ("corrupt", "not_usd")
     assert str(tmp_path) not in got[0].message
-    assert isolation.SPAWNER.spawns - spawns == 1 and cache.stats()["loads"] == 1
+    assert isolation.STATS["jobs"] - jobs == 1 and cache.stats()["loads"] == 1
     with pytest.raises(SceneError):  # the next get tries again (a new load), nothing was kept
         cache.get(bad, sandbox=True, tenant="bob", limits=LoadLimits())
-    assert isolation.SPAWNER.spawns - spawns == 2 and cache.stats()["entries"] == 0
+    assert isolation.STATS["jobs"] - jobs == 2 and cache.stats()["entries"] == 0
     # the same file repaired: it loads (the key follows the file's size and mtime)
     bad.write_text(tiny_scene(2))
     assert cache.get(bad, sandbox=True, tenant="bob").loaded.geometry.triangle_count > 0
