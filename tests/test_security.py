@@ -233,6 +233,26 @@ def test_ground_truth_size_limits_cover_budgets_and_malformed_resolutions(server
     assert err["code"] == "invalid_solution" and err["field"] == "solution.lights.0.cascades.0.resolution"
 
 
+def test_compare_and_evaluate_accept_a_texel_budget_rig_as_optimize_does(server, alice_box):
+    """issue 9: /v1/compare refused every rig with `texel_budget` (422 "cascades.0.resolution ... got None").
+    A budget rig (two cascades under 2 x 256^2 texels) is accepted by optimize, compare and evaluate alike."""
+    rig = {**BOX_RIG, "shadow": {"texel_budget": 2 * 256 * 256, "cascades": 2}}
+    sol = httpx.post(server.base + "/v1/optimize", json={"scene_id": alice_box, "rig": rig, "method": "focused"},
+                     headers=auth("alice"), timeout=60)
+    assert sol.status_code == 200, sol.text
+    res = [c["resolution"] for c in sol.json()["lights"][0]["cascades"]]
+    assert len(res) == 2 and sum(w * h for w, h in res) <= 2 * 256 * 256
+    cmp = httpx.post(server.base + "/v1/compare", json={"scene_id": alice_box, "rig": rig, "screen": [160, 90],
+                                                        "methods": ["uniform", "focused"]},
+                     headers=auth("alice"), timeout=60)
+    assert cmp.status_code == 200, cmp.text
+    assert set(cmp.json()["methods"]) == {"uniform", "focused"}
+    ev = httpx.post(server.base + "/v1/evaluate", json={"scene_id": alice_box, "rig": rig, "solution": sol.json(),
+                                                        "screen": [160, 90]}, headers=auth("alice"), timeout=60)
+    assert ev.status_code == 200, ev.text
+    assert ev.json()["receiver_pixels"] > 0
+
+
 def test_no_server_path_in_any_answer(server, alice_box):
     """issue 9: load errors carried the storage path (<data>/scenes/<tenant hash>/<id>/x.usda) and a warning a
     path inside the virtual environment. Damaged files (USD's own parse errors name the layer's full path),
