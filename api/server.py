@@ -862,10 +862,11 @@ async def store_and_load(svc: Service, tenant: str, data: bytes, name: str) -> t
             if info["triangles"] > svc.settings.max_triangles:  # the loader stops at the limit; a safety net
                 raise ApiError(413, "too_many_triangles", f"file: the scene has {info['triangles']} triangles, "
                                f"over the limit of {svc.settings.max_triangles}", "file")
+            created = await run_in_threadpool(svc.store.register_upload, tenant, scene_id, path, len(data), info)
         except BaseException:
-            await run_in_threadpool(svc.store.discard_upload, tenant, scene_id, path)
+            with contextlib.suppress(Exception):  # a database that fails here: the start-up sweep removes it
+                await run_in_threadpool(svc.store.discard_upload, tenant, scene_id, path)
             raise
-        created = await run_in_threadpool(svc.store.register_upload, tenant, scene_id, path, len(data), info)
     finally:
         unreserve_upload(svc, tenant, len(data))
     if not created:  # a concurrent upload of the same bytes was recorded first

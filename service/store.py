@@ -115,8 +115,20 @@ class Store:
         with self._write_lock:
             conn.executescript(_SCHEMA)
 
+    def _check_file(self) -> None:
+        """sqlite3.DatabaseError when the database file's header is not SQLite's: an open connection keeps
+        answering from its page cache after the file was damaged, a new one would fail (16 bytes read)."""
+        try:
+            with open(self.db_path, "rb") as f:
+                head = f.read(16)
+        except OSError as e:
+            raise sqlite3.DatabaseError(f"cannot read the database file ({e.strerror})") from e
+        if head != b"SQLite format 3\x00":
+            raise sqlite3.DatabaseError("file is not a database (its header is damaged)")
+
     def _write(self, statements: list[tuple[str, tuple]]) -> list[int]:
         """Run statements in one transaction; the rowcount of each."""
+        self._check_file()
         conn = self._conn()
         counts = []
         with self._write_lock:
@@ -131,6 +143,7 @@ class Store:
         return counts
 
     def _query(self, sql: str, params: tuple = ()) -> list[sqlite3.Row]:
+        self._check_file()
         return self._conn().execute(sql, params).fetchall()
 
     def close(self) -> None:
@@ -258,14 +271,7 @@ class Store:
     def check_database(self) -> None:
         """A cheap check that the database answers (its header and one query); raises sqlite3.DatabaseError
         naming the reason."""
-        try:
-            with open(self.db_path, "rb") as f:
-                head = f.read(16)
-        except OSError as e:
-            raise sqlite3.DatabaseError(f"cannot read the database file ({e.strerror})") from e
-        if head != b"SQLite format 3\x00":
-            raise sqlite3.DatabaseError("file is not a database (its header is damaged)")
-        self._query("SELECT COUNT(*) FROM (SELECT 1 FROM scenes LIMIT 1)")
+        self._query("SELECT COUNT(*) FROM (SELECT 1 FROM scenes LIMIT 1)")  # _query checks the header first
 
     def link_scene(self, tenant: str, path: str | Path) -> str:
         """Record a scene file in place (not copied, loaded without the upload sandbox): for the CLI."""
