@@ -11,6 +11,13 @@ Variable expressions (`"${VAR}.usda"` in backquotes) are refused whenever a rest
 since what they resolve to is only known inside USD.
 Decisions here are pure functions of strings and folder names; nothing is read (except the zip
 directory in `unsafe_usdz_entries` / `usdz_entries`).
+
+`resolve_asset_path` is what the loader uses in the restricted modes: the same decision, plus the exact
+layer identifier the asset path stands for (anchored by hand, never through USD's search paths), which
+is checked again (inside the asset root / an entry of the uploaded archive) and is what USD is then told
+to open. It also refuses what a restricted mode cannot check before USD opens it: file format arguments,
+formats other than USD's own (a .mtlx, say, which MaterialX reads with its own includes), and packages
+nested in packages.
 """
 from __future__ import annotations
 
@@ -75,6 +82,62 @@ def check_asset_path(asset_path: str, anchor: str, mode: str, asset_root: str | 
     if joined.startswith("../") or joined == ".." or joined.startswith("/"):
         return False, f"{asset_path!r} leaves the uploaded archive"
     return True, "ok"
+
+
+USD_LAYER_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")
+
+
+def resolve_asset_path(asset_path: str, anchor: str, mode: str, asset_root: str | None = None,
+                       archive: str | None = None, entries=None) -> tuple[str | None, str]:
+    """(identifier of the layer `asset_path` names, "ok") or (None, reason) in a restricted mode.
+
+    `anchor` is the identifier of the layer that names it: a file path or 'pkg.usdz[inner]' (the
+    archive's root layer is anchored as its first entry). `entries`: the entry names of `archive`
+    (sandbox: a path naming no entry is refused). The identifier is absolute and normalised: a file
+    path, 'pkg.usdz' (a whole package, local mode) or 'pkg.usdz[inner]'."""
+    ok, why = check_asset_path(asset_path, anchor, mode, asset_root, archive)
+    if not ok:
+        return None, why
+    if mode == "local" and asset_root is None:
+        raise ValueError("resolve_asset_path is for the restricted modes (sandbox, or an asset root)")
+    if ":SDF_FORMAT_ARGS:" in asset_path:
+        return None, f"{asset_path!r} carries file format arguments"
+    pkg, inner = split_package_path(asset_path)
+    if inner is not None and "[" in inner:
+        return None, f"{asset_path!r} names a package inside a package"
+    last = (inner if inner is not None else pkg).replace("\\", "/")
+    if not last.lower().endswith(USD_LAYER_EXTENSIONS):
+        return None, (f"{asset_path!r} is not a USD layer (.usd, .usda, .usdc, .usdz); other formats are read "
+                      "by plug-ins this check cannot follow")
+    anchor_pkg, anchor_inner = split_package_path(anchor)
+    if anchor_inner is not None and inner is None and not os.path.isabs(pkg) and not pkg.startswith("\\"):
+        # relative to a layer inside a package: another entry of that package
+        joined = posixpath.normpath(posixpath.join(posixpath.dirname(anchor_inner), pkg.replace("\\", "/")))
+        if joined == ".." or joined.startswith(("../", "/")):
+            return None, f"{asset_path!r} leaves the package {os.path.basename(anchor_pkg)!r}"
+        if joined.lower().endswith(".usdz"):
+            return None, f"{asset_path!r} names a package inside a package"
+        package = os.path.normpath(os.path.abspath(anchor_pkg))
+        if mode == "sandbox":
+            if archive is None or os.path.realpath(package) != os.path.realpath(archive):
+                return None, f"{asset_path!r} is not inside the uploaded archive"
+            if entries is not None and joined not in entries:
+                return None, f"{asset_path!r}: the archive has no entry {joined!r}"
+        elif not is_inside(package, asset_root):
+            return None, f"{asset_path!r} resolves outside the asset root {asset_root!r}"
+        return f"{package}[{joined}]", "ok"
+    if mode == "sandbox":  # a sandboxed layer outside a package may not name anything
+        return None, f"{asset_path!r}: only entries of the uploaded archive may be opened"
+    base = os.path.dirname(os.path.abspath(anchor_pkg))
+    target = os.path.normpath(pkg if os.path.isabs(pkg) else os.path.join(base, pkg))
+    if not is_inside(target, asset_root):
+        return None, f"{asset_path!r} resolves outside the asset root {asset_root!r}"
+    if inner is not None:
+        inner = posixpath.normpath(inner.replace("\\", "/"))
+        if inner == ".." or inner.startswith(("../", "/")):
+            return None, f"{asset_path!r} leaves the package it names"
+        return f"{target}[{inner}]", "ok"
+    return target, "ok"
 
 
 def is_unsafe_entry_name(name: str) -> bool:

@@ -1,20 +1,41 @@
 """USD stage -> LoadedScene: every renderable triangle merged into one mesh in the world frame,
 plus cameras and lights with their USD paths.
 
-- Composition (sublayers, references, payloads) as USD does it. With `asset_root` or `sandbox`, every
-  asset path (composition arcs and value clips) is first checked by renderers.asset_resolver and the
-  layers naming refused ones are replaced by anonymous copies without them, so USD never opens them.
+- Composition (sublayers, references, payloads) as USD does it, in the unrestricted local mode.
+- Restricted modes (`sandbox`, or `asset_root` given) fail closed: before USD may open any layer, the
+  loader walks the layer graph itself (sublayers, references and payloads, inside variants too, and
+  value clips), checks every asset path with renderers.asset_resolver, opens only the layers it
+  accepted, and hands USD anonymous copies whose every asset path is the exact, absolute identifier
+  of a layer it checked (refused ones removed). Internal references (`</Proto>`) are legal and left
+  alone. Before Usd.Stage.Open the rewritten graph is verified to name nothing unchecked, and after
+  it the stage's layers are verified to be the checked ones. Reaching a limit refuses the whole
+  load with SceneError("sandbox_limit", "<which limit>: ...; refused"):
+    SANDBOX_MAX_DEPTH = 32          layers nested below the root (sublayer/reference/payload arcs);
+    SANDBOX_MAX_LAYERS = 256        distinct layers (value-clip layers included);
+    SANDBOX_MAX_LAYER_BYTES = 512 MiB  the layers' sizes added up (file size, or the usdz entry's
+                                    size), each counted before it is opened.
+  Real assets stay far below them (the OpenChessSet composes 40 layers, 5 deep).
+- Budget: `max_triangles` is charged prim by prim during the traversal, before anything is
+  tessellated, triangulated or copied: meshes by faceVertexCounts (a face of n corners is n - 2
+  triangles), implicit prims by their fixed tessellation counts, point instancers as visible
+  instances x prototype triangles; SceneError("too_many_triangles") as soon as the count exceeds it.
 - Traversal includes instance proxies (instanceable prims) and expands PointInstancers (masked ids
   skipped); invisible prims are skipped with their subtrees; gprims are drawn when their computed
   purpose is default or render.
 - Meshes are triangulated as authored (subdivision meshes as their cage): triangles and quads
-  vectorised, larger faces fanned when a vectorised check finds them convex, ear-clipped otherwise.
+  vectorised, larger faces fanned when a vectorised check finds them convex, the others projected on
+  their Newell plane and triangulated by earcut (mapbox-earcut, C++).
 - Implicit prims (Cube, Sphere, Cylinder, Cone, Capsule, Plane, and the *_1 variants) are tessellated.
 - Units: the stage's upAxis and metersPerUnit (USD's fallbacks: Y and 0.01) -> solvers.frames world.
 - At the default time code, attributes with time samples but no default are read at their first sample.
 - usd-core's diagnostics (missing files, MaterialX it cannot read) become scene warnings.
+- Messages and warnings name files as the scene knows them (the file's base name, a usdz entry, a
+  path relative to the scene's folder), never by a server path: every message leaving load_scene is
+  scrubbed of the scene's folder, the asset root, the Python installation, the working and temporary
+  folders, and any absolute path ending in a file name.
 Malformed input raises SceneError with a machine-readable code (not_found, not_usd, corrupt,
-unsafe_archive, empty_stage, bad_option, too_large, internal); nothing else escapes.
+unsafe_archive, empty_stage, bad_option, too_large, too_many_triangles, sandbox_limit, internal);
+nothing else escapes.
 """
 from __future__ import annotations
 
@@ -22,8 +43,8 @@ import contextlib
 import hashlib
 import math
 import os
-import posixpath
 import re
+import sys
 import tempfile
 import threading
 import time
@@ -33,11 +54,14 @@ import numpy as np
 
 from ..solvers.frames import stage_to_world as _stage_to_world
 from ..solvers.frames import transform_directions, transform_points
-from .asset_resolver import check_asset_path, is_unsafe_entry_name, usdz_entries
+from .asset_resolver import is_unsafe_entry_name, resolve_asset_path, split_package_path, usdz_entries
 from .scene_data import LoadedScene, SceneError, SceneGeometry, UsdCamera, UsdLight
 
 SEGMENTS = 32  # tessellation of implicit round prims (around), half of it along
 MAX_WARNINGS = 50
+SANDBOX_MAX_DEPTH = 32
+SANDBOX_MAX_LAYERS = 256
+SANDBOX_MAX_LAYER_BYTES = 512 * 1024 * 1024
 _USD_EXT = (".usd", ".usda", ".usdc", ".usdz")
 
 
@@ -84,108 +108,317 @@ def _summarize_diagnostics(text: str) -> list[str]:
         line = re.sub(r"^(Warning|Error|Coding Error|Runtime Error): in \S+ at line \d+ of \S+ -- ", r"\1: ", line)
         line = re.sub(r" \(instantiating stage on stage @[^@]*@ <0x[0-9a-f]+>\)", "", line)
         line = re.sub(r" <0x[0-9a-f]+>", "", line)
+        line = re.sub(r"anon:0x[0-9a-f]+:([^@\s]*?)\.checked\.usda", r"\1", line)
         if line not in out:
             out.append(line)
     return out
 
 
+_FILE_EXT = (r"usd|usda|usdc|usdz|mtlx|abc|obj|vdb|so|dylib|dll|py|pyc|cpp|cc|h|hpp|json|txt|png|jpe?g"
+             r"|exr|hdr|tiff?|tx|osl|oso|glslfx|zip|sqlite|db")
+_ABS_FILE = re.compile(r"(?<![\w.<>/])(?:/[^\s@'\"<>\[\]/:,;()]+)+\.(?:" + _FILE_EXT + r")\b")
+
+
+class _Scrubber:
+    """Turns server paths in a message into names the scene knows (see the module docstring)."""
+
+    def __init__(self, scene_dir: str, asset_root: str | None = None):
+        rel_dirs = [scene_dir] + ([asset_root] if asset_root else [])
+        others = [sys.prefix, sys.base_prefix, sys.exec_prefix, os.getcwd(), tempfile.gettempdir(),
+                  os.path.expanduser("~")]
+        dirs: dict[str, bool] = {}
+        for d, rel in [(d, True) for d in rel_dirs] + [(d, False) for d in others]:
+            for v in {os.path.abspath(d), os.path.realpath(d)}:
+                v = v.rstrip("/")
+                if v.count("/") >= (1 if rel or v == tempfile.gettempdir().rstrip("/") else 2) and v not in dirs:
+                    dirs[v] = rel
+        self._dirs = sorted(dirs.items(), key=lambda kv: -len(kv[0]))
+        self._pattern = re.compile(r"(?<![\w.<>])(" + "|".join(re.escape(d) for d, _ in self._dirs)
+                                   + r")(/[^\s@'\"<>\[\],;()]*)?") if self._dirs else None
+        self._rel = dict(self._dirs)
+
+    def __call__(self, text: str) -> str:
+        if self._pattern is not None:
+            text = self._pattern.sub(self._sub, text)
+        return _ABS_FILE.sub(lambda m: os.path.basename(m.group(0)), text)
+
+    def _sub(self, m) -> str:
+        rest = (m.group(2) or "").strip("/")
+        rest = rest.rstrip(":")
+        tail = (m.group(2) or "")[len((m.group(2) or "").rstrip(":")):]
+        if not rest:
+            return "." if self._rel[m.group(1)] else "<server folder>"
+        return (rest if self._rel[m.group(1)] else os.path.basename(rest)) + tail
+
+
 # ---------------------------------------------------------------- pre-checks
 def _check_file(path: str) -> None:
+    name = os.path.basename(path) or path
     if not os.path.exists(path):
-        raise SceneError("not_found", f"{path}: no such file")
+        raise SceneError("not_found", f"{name}: no such file")
     if os.path.isdir(path):
-        raise SceneError("not_usd", f"{path}: is a folder, not a USD file")
+        raise SceneError("not_usd", f"{name}: is a folder, not a USD file")
     ext = os.path.splitext(path)[1].lower()
     if ext not in _USD_EXT:
-        raise SceneError("not_usd", f"{path}: not a USD file (extension {ext or 'none'}; expected .usd, .usda, .usdc or .usdz)")
+        raise SceneError("not_usd", f"{name}: not a USD file (extension {ext or 'none'}; expected .usd, .usda, .usdc or .usdz)")
     try:
         with open(path, "rb") as f:
             head = f.read(64)
     except OSError as e:
-        raise SceneError("not_found", f"{path}: cannot read ({e.strerror})") from e
+        raise SceneError("not_found", f"{name}: cannot read ({e.strerror})") from e
     if not head:
-        raise SceneError("not_usd", f"{path}: the file is empty")
+        raise SceneError("not_usd", f"{name}: the file is empty")
     kind = "usda" if head.startswith(b"#usda") else "usdc" if head.startswith(b"PXR-USDC") else \
         "usdz" if head.startswith(b"PK\x03\x04") else None
     expected = {".usda": ("usda",), ".usdc": ("usdc",), ".usdz": ("usdz",), ".usd": ("usda", "usdc")}[ext]
     if kind not in expected:
-        raise SceneError("not_usd", f"{path}: not a {ext} file (it does not start with a USD header)")
+        raise SceneError("not_usd", f"{name}: not a {ext} file (it does not start with a USD header)")
     if kind == "usdz" and not zipfile.is_zipfile(path):
-        raise SceneError("corrupt", f"{path}: the usdz archive is damaged")
+        raise SceneError("corrupt", f"{name}: the usdz archive is damaged")
+    if kind == "usdz":
+        try:
+            entries = usdz_entries(path)
+        except (OSError, zipfile.BadZipFile, ValueError) as e:
+            raise SceneError("corrupt", f"{name}: the usdz archive is damaged ({type(e).__name__})") from e
+        if not entries:
+            raise SceneError("empty_stage", f"{name}: the usdz archive has no entries")
 
 
 # ---------------------------------------------------------------- asset resolution
-def _rewrite_dependencies(root: str, mode: str, asset_root: str | None, warnings: list[str], keep: list):
-    """Walk the layer graph; refused asset paths are removed from anonymous copies of the layers that
-    name them (re-anchoring the rest), so USD never opens them. Value clips (which USD opens for
-    attribute values, outside composition) are checked the same way. Returns the root layer to open."""
-    from pxr import Sdf, Tf
+def _limit(which: str, detail: str) -> SceneError:
+    return SceneError("sandbox_limit", f"{which}: {detail}; refused")
 
-    archive = root if root.lower().endswith(".usdz") else None
-    first_entry = usdz_entries(archive)[0] if archive else None
-    memo: dict[str, str] = {}
 
-    def refuse(dep, layer_id, reason):
-        warnings.append(f"refused asset @{dep}@ named in {_short(layer_id)}: {reason}; it was not read")
+class _LayerWalk:
+    """The restricted modes' layer graph, walked before USD opens anything (fail closed).
 
-    def visit(layer_id: str, depth: int = 0) -> str:
-        if layer_id in memo or depth > 64:
-            return memo.get(layer_id, layer_id)
-        memo[layer_id] = layer_id
+    Every layer is reached through an asset path accepted by asset_resolver.resolve_asset_path, is
+    counted against the limits (depth, number of layers, total bytes) BEFORE it is opened, and is
+    opened alone with Sdf (which reads no dependency). A layer naming dependencies or value clips is
+    replaced by an anonymous copy in which each asset path is the identifier of the checked layer (or
+    removed), so USD resolves nothing by itself: no search path, no unvisited depth."""
+
+    def __init__(self, root: str, mode: str, asset_root: str | None, warnings: list[str], name):
+        self.mode, self.asset_root, self.warnings, self.name = mode, asset_root, warnings, name
+        self.archive = root if root.lower().endswith(".usdz") else None
+        self.memo: dict[str, str | None] = {}  # checked identifier -> identifier to compose (None: unreadable)
+        self.originals: dict[str, object] = {}  # checked identifier -> its Sdf.Layer (kept alive)
+        self.copies: dict[str, object] = {}  # anonymous identifier -> the copy
+        self.origin: dict[str, str] = {}  # anonymous identifier -> the checked identifier it copies
+        self.total_bytes = 0
+        self._zips: dict[str, dict[str, int]] = {}
+        self.root = self.visit(os.path.normpath(root), 0)
+
+    # --- bookkeeping
+    def entries(self, package: str) -> dict[str, int]:
+        if package not in self._zips:
+            try:
+                with zipfile.ZipFile(package) as z:
+                    self._zips[package] = {i.filename: i.file_size for i in z.infolist()}
+            except (OSError, zipfile.BadZipFile):
+                self._zips[package] = {}
+        return self._zips[package]
+
+    def anchor(self, identifier: str) -> str:
+        """The identifier relative asset paths in this layer are anchored to (a whole .usdz: its first entry)."""
+        pkg, inner = split_package_path(identifier)
+        if inner is None and identifier.lower().endswith(".usdz"):
+            names = list(self.entries(identifier))
+            return f"{identifier}[{names[0]}]" if names else identifier
+        return identifier
+
+    def size(self, identifier: str) -> int:
+        pkg, inner = split_package_path(identifier)
+        if inner is not None:
+            return self.entries(pkg).get(inner, 0)
+        if identifier.lower().endswith(".usdz"):
+            sizes = list(self.entries(identifier).values())
+            return sizes[0] if sizes else 0
+        try:
+            return os.stat(identifier).st_size
+        except OSError:
+            return 0
+
+    def charge(self, identifier: str, depth: int) -> None:
+        """Count one more layer, before it is opened; raise when a limit is reached."""
+        if depth > SANDBOX_MAX_DEPTH:
+            raise _limit(f"layer depth limit {SANDBOX_MAX_DEPTH}",
+                         f"{self.name(identifier)} is nested {depth} layers deep (sublayers, references and "
+                         f"payloads may nest at most {SANDBOX_MAX_DEPTH} deep below the scene's root layer)")
+        n = len(self.memo) + 1
+        if n > SANDBOX_MAX_LAYERS:
+            raise _limit(f"layer count limit {SANDBOX_MAX_LAYERS}",
+                         f"the scene names more than {SANDBOX_MAX_LAYERS} layers (reached at {self.name(identifier)})")
+        size = self.size(identifier)
+        if self.total_bytes + size > SANDBOX_MAX_LAYER_BYTES:
+            raise _limit(f"layer bytes limit {SANDBOX_MAX_LAYER_BYTES} ({SANDBOX_MAX_LAYER_BYTES // 2**20} MiB)",
+                         f"the scene's layers add up to more than {SANDBOX_MAX_LAYER_BYTES} bytes "
+                         f"(reached at {self.name(identifier)}, {size} bytes)")
+        self.total_bytes += size
+
+    def refuse(self, dep: str, identifier: str, reason: str) -> None:
+        self.warnings.append(f"refused asset @{dep}@ named in {self.name(identifier)}: {reason}; it was not read")
+
+    # --- the walk
+    def visit(self, identifier: str, depth: int) -> str | None:
+        from pxr import Sdf, Tf
+
+        if identifier in self.memo:
+            return self.memo[identifier]
+        self.charge(identifier, depth)
+        self.memo[identifier] = None
         if depth == 0:
-            layer = _open_fresh(layer_id)  # the root: failing to read it is the caller's error
+            layer = _open_fresh(identifier)  # the root: failing to read it is the caller's error
+            if layer is None:
+                return None
         else:
             try:
-                layer = _open_fresh(layer_id)
-            except Tf.ErrorException as e:  # an unreadable dependency: USD will warn when composing
-                warnings.append(f"{_short(layer_id)} could not be read: {_usd_error_text(str(e))[:200]}")
+                layer = _open_fresh(identifier)
+            except Tf.ErrorException as e:
                 layer = None
-        if layer is None:
-            return layer_id
-        anchor = f"{archive}[{first_entry}]" if archive and layer_id == archive else layer_id
+                why = _usd_error_text(str(e))[:200]
+            else:
+                pkg, inner = split_package_path(identifier)
+                why = "no such file" if not os.path.exists(pkg) else \
+                    "no such entry" if inner is not None and inner not in self.entries(pkg) else "USD could not open it"
+            if layer is None:
+                self.warnings.append(f"{self.name(identifier)} could not be read ({why}); it was not composed")
+                return None
+        self.originals[identifier] = layer
+        anchor = self.anchor(identifier)
+        deps = [d for d in layer.GetCompositionAssetDependencies() if d]  # '': internal references, legal
+        clip_prims = _clip_prims(layer)
+        if not deps and not clip_prims:
+            self.memo[identifier] = identifier
+            return identifier
+        copy = Sdf.Layer.CreateAnonymous(os.path.basename(split_package_path(identifier)[1] or identifier)
+                                         + ".checked.usda")
+        copy.TransferContent(layer)
+        self.memo[identifier] = copy.identifier  # before the dependencies: a cycle comes back to the copy
+        self.copies[copy.identifier] = copy
+        self.origin[copy.identifier] = identifier
         new_paths: dict[str, str] = {}
-        for dep in layer.GetCompositionAssetDependencies():
-            ok, reason = check_asset_path(dep, anchor, mode, asset_root, archive)
-            if not ok:
-                refuse(dep, layer_id, reason)
+        for dep in deps:
+            target, reason = resolve_asset_path(dep, anchor, self.mode, self.asset_root, self.archive,
+                                                self.entries(self.archive) if self.archive else None)
+            if target is None:
+                self.refuse(dep, identifier, reason)
                 new_paths[dep] = ""
                 continue
-            resolved = layer.ComputeAbsolutePath(dep)
-            sub = visit(resolved, depth + 1)
-            if sub != resolved:
-                new_paths[dep] = sub
-        bad_clips, clip_prims = _refused_clip_sets(layer, anchor, mode, asset_root, archive, refuse, layer_id)
-        if not new_paths and not bad_clips:
-            return layer_id
-        copy = Sdf.Layer.CreateAnonymous(os.path.basename(layer_id) + ".sandboxed.usda")
-        copy.TransferContent(layer)
-        for dep in copy.GetCompositionAssetDependencies():
-            copy.UpdateCompositionAssetDependency(dep, new_paths.get(dep, layer.ComputeAbsolutePath(dep)))
-        for prim_path in clip_prims:  # drop refused clip sets; anchor the others to the original layer
-            spec = copy.GetObjectAtPath(prim_path)
-            clips = {}
-            for name, clip in dict(spec.GetInfo("clips")).items():
-                if (prim_path, name) in bad_clips:
-                    continue
-                clip = dict(clip)
-                if clip.get("assetPaths"):
-                    clip["assetPaths"] = Sdf.AssetPathArray(
-                        [Sdf.AssetPath(layer.ComputeAbsolutePath(getattr(a, "path", str(a)))) for a in clip["assetPaths"]])
-                if clip.get("manifestAssetPath"):
-                    m = clip["manifestAssetPath"]
-                    clip["manifestAssetPath"] = Sdf.AssetPath(layer.ComputeAbsolutePath(getattr(m, "path", str(m))))
-                if clip.get("templateAssetPath"):
-                    clip["templateAssetPath"] = layer.ComputeAbsolutePath(str(clip["templateAssetPath"]))
-                clips[name] = clip
-            if clips:
-                spec.SetInfo("clips", clips)
-            else:
-                spec.ClearInfo("clips")
-        keep.append(copy)
-        memo[layer_id] = copy.identifier
+            sub = self.visit(target, depth + 1)
+            new_paths[dep] = sub or ""
+        changed = [dep for dep in deps if new_paths[dep] != dep]
+        for _ in range(8):  # one call may rewrite only the sublayers (usd-core 26.11): repeat until done
+            for dep in changed:
+                copy.UpdateCompositionAssetDependency(dep, new_paths[dep])
+            left = set(copy.GetCompositionAssetDependencies())
+            changed = [dep for dep in changed if dep in left]
+            if not changed:
+                break
+        for prim_path in clip_prims:
+            self.rewrite_clips(copy, prim_path, anchor, identifier, depth)
         return copy.identifier
 
-    return visit(root)
+    def clip_target(self, asset: str, anchor: str, identifier: str, what: str, depth: int) -> str | None:
+        """The identifier a value clip's asset path is rewritten to: the clip layer walked like any
+        other layer (its own dependencies checked too), or None when refused or unreadable."""
+        target, reason = resolve_asset_path(asset, anchor, self.mode, self.asset_root, self.archive,
+                                            self.entries(self.archive) if self.archive else None)
+        if target is None:
+            self.refuse(asset, identifier, f"{what}: {reason}")
+            return None
+        return self.visit(target, depth + 1)
+
+    def rewrite_clips(self, copy, prim_path, anchor: str, identifier: str, depth: int) -> None:
+        """Value-clip sets of one prim spec: a set naming a refused asset (or a template, whose files
+        cannot be listed before USD expands it) is dropped; the others get checked identifiers."""
+        from pxr import Sdf
+
+        spec = copy.GetObjectAtPath(prim_path)
+        kept = {}
+        for name, clip in dict(spec.GetInfo("clips")).items():
+            clip = dict(clip) if clip else {}
+            what = f"value clip set {name!r} of {prim_path}"
+            ok = True
+            if clip.get("templateAssetPath"):
+                self.refuse(str(clip["templateAssetPath"]), identifier,
+                            f"{what}: clip templates can name any file matching a pattern")
+                ok = False
+            paths = [getattr(a, "path", str(a)) for a in (clip.get("assetPaths") or [])]
+            targets = [self.clip_target(a, anchor, identifier, what, depth) for a in paths]
+            manifest = clip.get("manifestAssetPath")
+            m_target = None
+            if manifest:
+                m_target = self.clip_target(getattr(manifest, "path", str(manifest)), anchor, identifier, what, depth)
+                ok = ok and m_target is not None
+            if not ok or any(t is None for t in targets):
+                continue
+            if paths:
+                clip["assetPaths"] = Sdf.AssetPathArray([Sdf.AssetPath(t) for t in targets])
+            if manifest:
+                clip["manifestAssetPath"] = Sdf.AssetPath(m_target)
+            kept[name] = clip
+        if kept:
+            spec.SetInfo("clips", kept)
+        else:
+            spec.ClearInfo("clips")
+
+    # --- verification
+    def allowed(self, identifier: str) -> bool:
+        """A checked layer USD may open as it is (no dependencies) or a copy."""
+        return identifier in self.copies or self.memo.get(identifier) == identifier
+
+    def verify_graph(self) -> None:
+        """Before Usd.Stage.Open: every asset path left in the layers USD will compose is a checked layer."""
+        for ident, layer in list(self.copies.items()) + [(i, l) for i, l in self.originals.items()
+                                                          if self.memo.get(i) == i]:
+            for dep in layer.GetCompositionAssetDependencies():
+                if dep and not self.allowed(dep):
+                    raise SceneError("internal", f"{self.name(self.origin.get(ident, ident))} still names "
+                                     f"@{dep}@, which was not checked; refused")
+            for prim_path in _clip_prims(layer):
+                for clip in dict(layer.GetObjectAtPath(prim_path).GetInfo("clips")).values():
+                    clip = dict(clip) if clip else {}
+                    assets = [getattr(a, "path", str(a)) for a in (clip.get("assetPaths") or [])]
+                    if clip.get("manifestAssetPath"):
+                        assets.append(getattr(clip["manifestAssetPath"], "path", str(clip["manifestAssetPath"])))
+                    if clip.get("templateAssetPath") or any(not self.allowed(a) for a in assets):
+                        raise SceneError("internal", f"{self.name(self.origin.get(ident, ident))} still names a "
+                                         "value clip that was not checked; refused")
+
+    def verify_stage(self, stage) -> None:
+        """After Usd.Stage.Open: the stage composed checked layers (or their copies) only."""
+        for used in stage.GetUsedLayers():
+            if used.anonymous and (used.identifier in self.copies or used == stage.GetSessionLayer()):
+                continue
+            if used.anonymous and all(not d or self.allowed(d) for d in used.GetCompositionAssetDependencies()):
+                continue  # made by USD in memory (a value clip's generated manifest)
+            if not used.anonymous and self.memo.get(used.identifier) == used.identifier:
+                continue
+            raise SceneError("internal", f"the stage composed {self.name(used.identifier)}, which was not "
+                             "checked; refused")
+
+    def file_layers(self):
+        """The checked, file-backed layers (for the scene hash)."""
+        return [self.originals[i] for i in sorted(self.originals)]
+
+    def display(self, layer) -> str:
+        return self.name(self.origin.get(layer.identifier, layer.identifier))
+
+
+def _clip_prims(layer) -> list:
+    """Paths of the prim specs (variants included) of `layer` that author value clips."""
+    found = []
+
+    def on_spec(path):
+        if not path.IsPrimPath() and not path.IsPrimVariantSelectionPath():
+            return
+        spec = layer.GetObjectAtPath(path)
+        if spec is not None and spec.HasInfo("clips"):
+            found.append(path)
+
+    layer.Traverse(layer.pseudoRoot.path, on_spec)
+    return found
 
 
 def _open_fresh(identifier: str):
@@ -201,41 +434,15 @@ def _open_fresh(identifier: str):
     return Sdf.Layer.FindOrOpen(identifier)
 
 
-def _refused_clip_sets(layer, anchor, mode, asset_root, archive, refuse, layer_id):
-    """(prim path, clip set name) of value-clip sets in `layer` naming an asset that may not be read,
-    and the paths of every prim spec that has clips."""
-    found, prims = set(), []
-
-    def on_spec(path):
-        if not path.IsPrimPath() and not path.IsPrimVariantSelectionPath():
-            return
-        spec = layer.GetObjectAtPath(path)
-        if spec is None or not spec.HasInfo("clips"):
-            return
-        prims.append(path)
-        for name, clip in dict(spec.GetInfo("clips")).items():
-            clip = dict(clip) if clip else {}
-            paths = [getattr(a, "path", str(a)) for a in (clip.get("assetPaths") or [])]
-            if clip.get("manifestAssetPath"):
-                paths.append(getattr(clip["manifestAssetPath"], "path", str(clip["manifestAssetPath"])))
-            verdicts = [check_asset_path(a, anchor, mode, asset_root, archive) for a in paths]
-            tmpl = clip.get("templateAssetPath")
-            if tmpl:
-                verdicts.append((False, f"clip template {tmpl!r} can name any file matching a pattern")
-                                if mode == "sandbox" else
-                                check_asset_path(posixpath.dirname(str(tmpl)) + "/x.usd", anchor, mode, asset_root, archive))
-            bad = [(a, why) for a, (ok, why) in zip(paths + ([tmpl] if tmpl else []), verdicts) if not ok]
-            if bad:
-                for a, why in bad:
-                    refuse(a, layer_id, f"value clip set {name!r} of {path}: {why}")
-                found.add((path, name))
-
-    layer.Traverse(layer.pseudoRoot.path, on_spec)
-    return found, prims
-
-
-def _short(identifier: str) -> str:
-    return os.path.basename(identifier) if "[" not in identifier else identifier.rsplit("/", 1)[-1]
+def _scene_name(identifier: str, scene_dir: str) -> str:
+    """How a message names a layer: relative to the scene's folder when inside it (a usdz entry as
+    'archive.usdz[entry]'), else by its base name; anonymous layers by their tag."""
+    if identifier.startswith("anon:"):
+        return identifier.rsplit(":", 1)[-1]
+    pkg, inner = split_package_path(identifier)
+    rel = os.path.relpath(pkg, scene_dir) if os.path.isabs(pkg) else pkg
+    name = rel if not rel.startswith("..") else os.path.basename(pkg)
+    return f"{name}[{inner}]" if inner is not None else name
 
 
 # ---------------------------------------------------------------- triangulation
@@ -261,60 +468,90 @@ def _project_ccw(pts: np.ndarray) -> np.ndarray | None:
     return np.stack([c @ u, c @ v], axis=1)
 
 
-def ear_clip(pts: np.ndarray) -> list[tuple[int, int, int]]:
-    """Triangulate one simple polygon (n, 3) given in order, concave or not; returns local index triples.
+_SPLIT_MIN = 256  # polygons with more corners are first cut along diagonals into pieces of at most this size
 
-    Ears are cut in the polygon's best-fit plane (Newell normal). A corner is an ear when it is convex
-    and no other remaining reflex corner lies in its triangle. Self-intersecting leftovers are fanned.
-    """
-    n = len(pts)
-    if n < 3:
-        return []
-    if n == 3:
-        return [(0, 1, 2)]
-    p2 = _project_ccw(np.asarray(pts, dtype=np.float64))
-    if p2 is None:
-        return [(0, i, i + 1) for i in range(1, n - 1)]  # degenerate: any fan has zero area
-    scale = float(np.abs(p2).max()) or 1.0
-    eps = 1e-12 * scale * scale
-    idx = list(range(n))
-    tris: list[tuple[int, int, int]] = []
+
+def _earcut(p2: np.ndarray) -> np.ndarray:
+    import mapbox_earcut
+
+    tris = mapbox_earcut.triangulate_float64(np.ascontiguousarray(p2), np.array([len(p2)], np.uint32))
+    return np.asarray(tris, dtype=np.int64).reshape(-1, 3)
+
+
+def _is_diagonal(p2: np.ndarray, i: int, j: int, eps: float) -> bool:
+    """Does the segment between corners i and j of the counter-clockwise polygon p2 lie inside it?
+    (O'Rourke's Diagonal: inside the corner's cone at both ends, and crossing or touching no edge
+    that is not incident to i or j; near-touching counts as touching, so the answer errs on no.)"""
+    n = len(p2)
 
     def cross(o, a, b):
-        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+        return (a[..., 0] - o[..., 0]) * (b[..., 1] - o[..., 1]) - (a[..., 1] - o[..., 1]) * (b[..., 0] - o[..., 0])
 
-    k = 0
-    stall = 0
-    while len(idx) > 3 and stall <= len(idx):
-        m = len(idx)
-        k %= m
-        i0, i1, i2 = idx[k - 1], idx[k], idx[(k + 1) % m]
-        a, b, c = p2[i0], p2[i1], p2[i2]
-        is_ear = cross(a, b, c) > eps
-        if is_ear:
-            others = np.array([j for j in idx if j not in (i0, i1, i2)], dtype=np.int64)
-            q = p2[others]
-            # only points not coincident with the ear's corners can block it
-            same = (np.all(np.isclose(q, a), axis=1) | np.all(np.isclose(q, b), axis=1)
-                    | np.all(np.isclose(q, c), axis=1))
-            q = q[~same]
-            if len(q):
-                d1 = (b[0] - a[0]) * (q[:, 1] - a[1]) - (b[1] - a[1]) * (q[:, 0] - a[0])
-                d2 = (c[0] - b[0]) * (q[:, 1] - b[1]) - (c[1] - b[1]) * (q[:, 0] - b[0])
-                d3 = (a[0] - c[0]) * (q[:, 1] - c[1]) - (a[1] - c[1]) * (q[:, 0] - c[0])
-                is_ear = not np.any((d1 >= -eps) & (d2 >= -eps) & (d3 >= -eps))
-        if is_ear:
-            tris.append((i0, i1, i2))
-            idx.pop(k)
-            stall = 0
-        else:
-            k += 1
-            stall += 1
-    if len(idx) > 3:
-        # No ear left (a self-intersecting or numerically flat remainder): fan it.
-        tris += [(idx[0], idx[i], idx[i + 1]) for i in range(1, len(idx) - 1)]
-    elif len(idx) == 3:
-        tris.append((idx[0], idx[1], idx[2]))
+    def in_cone(a, b):
+        prev, nxt = p2[(a - 1) % n], p2[(a + 1) % n]
+        pa, pb = p2[a], p2[b]
+        if cross(pa, nxt, prev) >= 0:  # convex corner
+            return cross(pa, pb, prev) > eps and cross(pb, pa, nxt) > eps
+        return not (cross(pa, pb, nxt) >= -eps and cross(pb, pa, prev) >= -eps)
+
+    if not (in_cone(i, j) and in_cone(j, i)):
+        return False
+    k = np.arange(n)
+    k1 = (k + 1) % n
+    edges = (k != i) & (k1 != i) & (k != j) & (k1 != j)
+    a, b = p2[k[edges]], p2[k1[edges]]
+    pi, pj = p2[i][None, :], p2[j][None, :]
+    o1, o2 = cross(pi, pj, a), cross(pi, pj, b)
+    o3, o4 = cross(a, b, pi), cross(a, b, pj)
+    touching = (np.minimum(o1, o2) <= eps) & (np.maximum(o1, o2) >= -eps) \
+        & (np.minimum(o3, o4) <= eps) & (np.maximum(o3, o4) >= -eps)
+    return not bool(np.any(touching))
+
+
+def _triangulate_ccw(p2: np.ndarray, idx: np.ndarray, eps: float, tries: int = 8) -> list[np.ndarray]:
+    """Triangles (indices into p2) of the sub-polygon p2[idx]: a big one is cut along a diagonal
+    between roughly opposite corners (checked against every edge) and both halves are triangulated
+    on their own, so earcut, quadratic on spiky polygons such as stars, only sees small pieces."""
+    m = len(idx)
+    if m > _SPLIT_MIN:
+        sub = p2[idx]
+        for t in range(tries * 4):  # corners about half-way round, neighbours too (a spike's tip rarely sees far)
+            i = ((t // 4) * m) // (2 * tries) + t % 2
+            j = (m // 2) + ((t // 4) * m) // (2 * tries) + (t // 2) % 2
+            if _is_diagonal(sub, i, j, eps):
+                first = idx[i:j + 1]
+                second = np.concatenate([idx[j:], idx[:i + 1]])
+                return _triangulate_ccw(p2, first, eps, tries) + _triangulate_ccw(p2, second, eps, tries)
+    return [idx[_earcut(p2[idx])]]
+
+
+def ear_clip(pts: np.ndarray) -> np.ndarray:
+    """Triangulate one simple polygon (n, 3) given in order, concave or not; returns (T, 3) local indices.
+
+    The polygon is projected on its best-fit plane (Newell normal), counter-clockwise, cut along
+    checked diagonals into pieces of about _SPLIT_MIN corners when it is bigger, and each piece
+    triangulated by earcut (mapbox-earcut, C++); every triangle keeps the polygon's winding. A
+    polygon earcut cannot cover (self-intersecting, e.g. a pentagram: its triangles do not add up to
+    the polygon's signed area) is fanned, as is a degenerate one: there is no right answer."""
+    n = len(pts)
+    fan = np.stack([np.zeros(max(n - 2, 0), np.int64), np.arange(1, n - 1), np.arange(2, n)], axis=1)
+    if n < 3:
+        return np.zeros((0, 3), np.int64)
+    if n == 3:
+        return fan
+    p2 = _project_ccw(np.asarray(pts, dtype=np.float64))
+    if p2 is None or not np.all(np.isfinite(p2)):
+        return fan  # degenerate: any fan has zero area
+    scale = float(np.abs(p2).max()) or 1.0
+    eps = 1e-12 * scale * scale
+    tris = np.concatenate(_triangulate_ccw(p2, np.arange(n), eps))
+    a, b, c = p2[tris[:, 0]], p2[tris[:, 1]], p2[tris[:, 2]]
+    cross = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    tris[cross < 0] = tris[cross < 0][:, [0, 2, 1]]
+    nxt = np.roll(p2, -1, axis=0)
+    area2 = float(np.sum(p2[:, 0] * nxt[:, 1] - nxt[:, 0] * p2[:, 1]))  # shoelace: twice the signed area
+    if len(tris) != n - 2 and not math.isclose(float(np.abs(cross).sum()), area2, rel_tol=1e-6, abs_tol=eps):
+        return fan
     return tris
 
 
@@ -343,7 +580,7 @@ def triangulate(points: np.ndarray, counts: np.ndarray, indices: np.ndarray) -> 
     """Polygon soup -> (T, 3) vertex indices, in face order within each face size.
 
     Triangles and quads are vectorised; larger faces are grouped by size, checked for convexity in
-    one vectorised pass and fanned, and only the concave ones are ear-clipped one by one."""
+    one vectorised pass and fanned, and only the concave ones go to earcut (ear_clip) one by one."""
     counts = np.asarray(counts, dtype=np.int64)
     indices = np.asarray(indices, dtype=np.int64)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
@@ -374,8 +611,8 @@ def triangulate(points: np.ndarray, counts: np.ndarray, indices: np.ndarray) -> 
             out.append(fan.reshape(-1, 3))
         for pl in poly[~convex]:
             t = ear_clip(points[pl])
-            if t:
-                out.append(pl[np.array(t, dtype=np.int64)])
+            if len(t):
+                out.append(pl[t])
     return np.concatenate(out).astype(np.int64) if out else np.zeros((0, 3), np.int64)
 
 
@@ -411,6 +648,20 @@ def _revolve(profile: list[tuple[float, float]], seg: int = SEGMENTS):
             if len(rb) > 1:
                 faces.append((a1, b1, b0) if len(ra) > 1 else (a0, b1, b0))
     return np.array(verts, float), np.array(faces, np.int64)
+
+
+def implicit_triangle_count(type_name: str) -> int:
+    """Triangles implicit_mesh makes for a prim of this type (0: not an implicit prim), known without
+    tessellating: a revolved profile of k points whose ends are poles gives 2 * SEGMENTS * (k - 2)."""
+    half = SEGMENTS // 2
+    profile = {"Sphere": half + 1, "Cylinder": 4, "Cylinder_1": 4, "Cone": 3,
+               "Capsule": 2 * (max(half // 2, 2) + 1), "Capsule_1": 2 * (max(half // 2, 2) + 1)}
+    if type_name == "Cube":
+        return 12
+    if type_name == "Plane":
+        return 2
+    k = profile.get(type_name)
+    return 2 * SEGMENTS * (k - 2) if k else 0
 
 
 def implicit_mesh(prim, time_code, warnings: list[str] | None = None):
@@ -501,7 +752,44 @@ def _as_array(value, cols: int | None, dtype):
     return None
 
 
-def _mesh_triangles(prim, time_code, warnings):
+class _Budget:
+    """The running triangle count of one load; `charge` raises as soon as it exceeds the limit."""
+
+    def __init__(self, limit: int | None):
+        self.limit = limit
+        self.count = 0
+
+    def charge(self, n: int, what: str) -> None:
+        self.count += int(n)
+        if self.limit is not None and self.count > self.limit:
+            raise SceneError("too_many_triangles", f"the scene has more than {self.limit} triangles "
+                             f"(limit {self.limit}); counted before tessellating, the limit was passed at {what}")
+
+
+def _face_triangles(counts) -> int:
+    """Triangles a faceVertexCounts array stands for: n - 2 per face of n >= 3 corners."""
+    c = _as_array(counts, None, np.int64)
+    if c is None or not len(c):
+        return 0
+    c = c[c >= 3]
+    return int(np.sum(c - 2)) if len(c) else 0
+
+
+def _mesh_triangles(prim, time_code, warnings, charge=None):
+    """(points, triangles) of a Mesh or None; with `charge`, its faces are charged from
+    faceVertexCounts before points and indices are read or anything is triangulated."""
+    from pxr import UsdGeom
+
+    if charge is None:
+        return _mesh_geometry(prim, time_code, warnings)
+    est = _face_triangles(_get(UsdGeom.Mesh(prim).GetFaceVertexCountsAttr(), time_code))
+    charge(est, str(prim.GetPath()))
+    r = _mesh_geometry(prim, time_code, warnings)
+    charge((len(r[1]) if r is not None else 0) - est, str(prim.GetPath()))  # what it really made
+    return r
+
+
+def _mesh_geometry(prim, time_code, warnings):
     from pxr import UsdGeom
 
     path = str(prim.GetPath())
@@ -552,67 +840,105 @@ def _mesh_triangles(prim, time_code, warnings):
 
 
 def load_scene(path, *, time_code: float | None = None, asset_root: str | None = None,
-               sandbox: bool = False) -> LoadedScene:
-    """Open a USD file and return its triangles, cameras and lights in the world frame."""
+               sandbox: bool = False, max_triangles: int | None = None) -> LoadedScene:
+    """Open a USD file and return its triangles, cameras and lights in the world frame.
+
+    Restricted (sandbox, or asset_root given): the layer graph is checked before USD opens anything
+    and the limits SANDBOX_MAX_* apply. max_triangles: refuse (too_many_triangles) as soon as the
+    running count passes it, before the prim that passes it is tessellated."""
     t_start = time.perf_counter()
     path = os.fspath(path)
+    scrub = _Scrubber(os.path.dirname(os.path.abspath(path)), asset_root)
+    try:
+        scene = _load(path, time_code, asset_root, sandbox, max_triangles, scrub)
+    except SceneError as e:
+        raise SceneError(e.code, scrub(e.message)) from e.__cause__
+    scene.warnings = [scrub(w) for w in scene.warnings]
+    scene.load_s = time.perf_counter() - t_start
+    return scene
+
+
+def _load(path, time_code, asset_root, sandbox, max_triangles, scrub) -> LoadedScene:
+    name = os.path.basename(path) or path
     _check_file(path)
     warnings: list[str] = []
     diag: list[str] = []
-    keep: list = []
+    walk = None
     try:
-        from pxr import Sdf, Tf, Usd, UsdGeom
+        from pxr import Tf, Usd
     except ImportError as e:  # pragma: no cover - set-up problem
         raise SceneError("unavailable", f"usd-core is not installed: {e}") from e
     mode = "sandbox" if sandbox else "local"
+    restricted = sandbox or asset_root is not None
     if asset_root is not None and not sandbox and not os.path.isdir(asset_root):
-        raise SceneError("bad_option", f"asset root {asset_root!r} is not a folder")
+        raise SceneError("bad_option", f"asset root {os.path.basename(os.path.normpath(asset_root))!r} is not a folder")
+    if max_triangles is not None and (isinstance(max_triangles, bool) or not isinstance(max_triangles, int)
+                                      or max_triangles < 0):
+        raise SceneError("bad_option", f"max_triangles must be a non-negative integer, got {max_triangles!r}")
+    scene_dir = os.path.dirname(os.path.abspath(path))
+
+    def layer_name(identifier: str) -> str:
+        return _scene_name(identifier, scene_dir)
+
     try:
         with captured_stderr(diag):
             if path.lower().endswith(".usdz") and sandbox:
                 names = usdz_entries(path)
                 bad = [n for n in names if is_unsafe_entry_name(n)]
                 if names and names[0] in bad:
-                    raise SceneError("unsafe_archive", f"{path}: the archive's root layer has an unsafe entry name "
+                    raise SceneError("unsafe_archive", f"{name}: the archive's root layer has an unsafe entry name "
                                      f"{names[0]!r} (absolute or climbing out with '..'); refused")
                 if bad:
                     warnings.append(f"usdz entries with unsafe names refused and not read: {', '.join(bad[:5])}")
             root = os.path.abspath(path)
-            if sandbox or asset_root is not None:
-                root = _rewrite_dependencies(root, mode, asset_root, warnings, keep)
-            layer = _open_fresh(root)
+            if restricted:
+                walk = _LayerWalk(root, mode, asset_root, warnings, layer_name)
+                if walk.root is None:
+                    raise SceneError("corrupt", f"{name}: USD could not read the file (truncated or damaged)")
+                walk.verify_graph()
+                root = walk.root
+            layer = (walk.copies.get(root) or walk.originals.get(root)) if walk else _open_fresh(root)
             if layer is None:
-                raise SceneError("corrupt", f"{path}: USD could not read the file (truncated or damaged)")
+                raise SceneError("corrupt", f"{name}: USD could not read the file (truncated or damaged)")
             stage = Usd.Stage.Open(layer, Usd.Stage.LoadAll)
             if stage is None:
-                raise SceneError("corrupt", f"{path}: USD could not open the stage")
-            if not (sandbox or asset_root is not None):
+                raise SceneError("corrupt", f"{name}: USD could not open the stage")
+            if walk is not None:
+                walk.verify_stage(stage)
+            else:
                 # Unrestricted mode: layers other stages still hold may be older than their files.
                 for used in stage.GetUsedLayers():
                     if not used.anonymous and not used.dirty:
                         used.Reload()
-            scene = _extract(stage, path, time_code, warnings)
+
+            def shown(layer_):
+                if walk is not None:
+                    return walk.display(layer_) if (not layer_.anonymous or layer_.identifier in walk.copies) else None
+                return None if layer_.anonymous else layer_name(layer_.identifier)
+
+            scene = _extract(stage, path, time_code, warnings, _Budget(max_triangles), name, shown)
     except SceneError:
         raise
     except Tf.ErrorException as e:
         msg = _usd_error_text(str(e))
-        raise SceneError("corrupt", f"{path}: USD could not read the file: {msg[:300]}") from e
+        raise SceneError("corrupt", f"{name}: USD could not read the file: {msg[:300]}") from e
+    except RecursionError as e:
+        raise SceneError("too_large", f"{name}: the scene nests too deeply to be read") from e
     except (RuntimeError, ValueError, OSError, zipfile.BadZipFile) as e:
-        raise SceneError("corrupt", f"{path}: {type(e).__name__}: {str(e)[:300]}") from e
+        raise SceneError("corrupt", f"{name}: {type(e).__name__}: {str(e)[:300]}") from e
     except MemoryError as e:
-        raise SceneError("too_large", f"{path}: the scene does not fit in memory") from e
+        raise SceneError("too_large", f"{name}: the scene does not fit in memory") from e
     except Exception as e:  # never let anything else escape: the caller handles SceneError only
-        raise SceneError("internal", f"{path}: the loader failed ({type(e).__name__}: {str(e)[:300]})") from e
+        raise SceneError("internal", f"{name}: the loader failed ({type(e).__name__}: {str(e)[:300]})") from e
     all_warnings = _dedupe(warnings + diag)
     scene.warnings = all_warnings[:MAX_WARNINGS]
     if len(all_warnings) > MAX_WARNINGS:
         scene.warnings.append(f"... and {len(all_warnings) - MAX_WARNINGS} more warnings")
     try:
-        scene.scene_hash = _scene_hash(stage, path)
+        scene.scene_hash = _scene_hash(stage, path, walk.file_layers() if walk is not None else None)
     except OSError as e:
-        raise SceneError("not_found", f"{path}: a layer could not be read for hashing ({e})") from e
-    scene.load_s = time.perf_counter() - t_start
-    del keep
+        raise SceneError("not_found", f"{name}: a layer could not be read for hashing ({e.strerror})") from e
+    del walk
     return scene
 
 
@@ -635,16 +961,16 @@ def _usd_error_text(text: str) -> str:
     return text or "unreadable"
 
 
-def _scene_hash(stage, path) -> str:
+def _scene_hash(stage, path, layers=None) -> str:
     """sha256 of the root file's bytes, then of every file-backed layer the stage composed, sorted by
     identifier (each as its name inside the scene folder and its own digest). Anonymous layers (the
     session layer, sandboxed copies) are derived from those files and left out, so the hash does not
-    depend on memory addresses."""
+    depend on memory addresses; in the restricted modes `layers` are the checked originals."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         h.update(f.read())
     base = os.path.dirname(os.path.abspath(path))
-    for layer in sorted(stage.GetUsedLayers(), key=lambda l: l.identifier):
+    for layer in sorted(stage.GetUsedLayers() if layers is None else layers, key=lambda l: l.identifier):
         if layer.anonymous:
             continue
         ident = layer.identifier
@@ -659,7 +985,7 @@ def _scene_hash(stage, path) -> str:
     return h.hexdigest()
 
 
-def _stage_frame(stage, warnings):
+def _stage_frame(stage, warnings, layer_name=None):
     from pxr import UsdGeom
 
     layer = stage.GetRootLayer()
@@ -679,23 +1005,27 @@ def _stage_frame(stage, warnings):
         warnings.append(f"metersPerUnit not authored: USD's fallback {mpu} (centimetres) used")
     # USD does not rescale layers authored in other units: say so when a composed layer differs.
     for other in stage.GetUsedLayers():
-        if other == layer or other.anonymous:
+        shown = layer_name(other) if layer_name else (None if other.anonymous else os.path.basename(other.identifier))
+        if other == layer or shown is None:
             continue
         try:
             info = other.pseudoRoot.GetInfo("metersPerUnit") if other.pseudoRoot.HasInfo("metersPerUnit") else None
         except Exception:  # noqa: BLE001 - metadata we cannot read is not worth failing for
             info = None
         if info is not None and not math.isclose(float(info), mpu, rel_tol=1e-9):
-            warnings.append(f"layer {_short(other.identifier)} is authored with metersPerUnit {float(info):g} but "
+            warnings.append(f"layer {shown} is authored with metersPerUnit {float(info):g} but "
                             f"the stage uses {mpu:g}; USD does not rescale it, so it is read in the stage's units")
     return up, mpu
 
 
-def _extract(stage, path, time_code, warnings) -> LoadedScene:
+def _extract(stage, path, time_code, warnings, budget: _Budget | None = None, name=None,
+             layer_name=None) -> LoadedScene:
     from pxr import Usd, UsdGeom, UsdLux
 
+    budget = budget or _Budget(None)
+    name = name or os.path.basename(path)
     tc = Usd.TimeCode.Default() if time_code is None else Usd.TimeCode(time_code)
-    up, mpu = _stage_frame(stage, warnings)
+    up, mpu = _stage_frame(stage, warnings, layer_name)
     s2w = _stage_to_world(up, mpu)
     dp = stage.GetRootLayer().defaultPrim
     if dp and not stage.GetPrimAtPath("/" + dp if not dp.startswith("/") else dp):
@@ -723,17 +1053,29 @@ def _extract(stage, path, time_code, warnings) -> LoadedScene:
         prim_paths.append(prim_path)
         nverts += len(local_pts)
 
-    def geometry_of(prim):
+    def geometry_of(prim, charged: bool = False):
+        """The prim's (points, triangles), charged to the budget first unless `charged` (instancer
+        prototypes: their instances were charged)."""
         if not prim.IsA(UsdGeom.Gprim) or not renderable_purpose(prim):
             return None
         if prim.IsA(UsdGeom.Mesh):
-            return _mesh_triangles(prim, tc, warnings)
+            return _mesh_triangles(prim, tc, warnings, None if charged else budget.charge)
         else:
+            if not charged:
+                budget.charge(implicit_triangle_count(prim.GetTypeName()), str(prim.GetPath()))
             r = implicit_mesh(prim, tc, warnings)
             if r is None and not prim.IsA(UsdGeom.Curves) and not prim.IsA(UsdGeom.Points):
                 warnings.append(f"{prim.GetPath()}: {prim.GetTypeName()} is not supported, skipped")
             return r
         return None
+
+    def triangles_of(prim) -> int:
+        """What geometry_of(prim) would make, without tessellating (meshes: faceVertexCounts only)."""
+        if not prim.IsA(UsdGeom.Gprim) or not renderable_purpose(prim):
+            return 0
+        if prim.IsA(UsdGeom.Mesh):
+            return _face_triangles(_get(UsdGeom.Mesh(prim).GetFaceVertexCountsAttr(), tc))
+        return implicit_triangle_count(prim.GetTypeName())
 
     def skip_subtree(prim) -> bool:
         """Invisible prims hide their whole subtree (visibility is inherited)."""
@@ -760,7 +1102,8 @@ def _extract(stage, path, time_code, warnings) -> LoadedScene:
         if prim.IsA(UsdGeom.PointInstancer):
             it.PruneChildren()
             if renderable_purpose(prim):
-                _expand_instancer(prim, tc, xcache, add, geometry_of, skip_subtree, warnings)
+                _expand_instancer(prim, tc, xcache, add, geometry_of, triangles_of, skip_subtree, warnings,
+                                  budget)
             continue
         if prim.IsA(UsdGeom.Camera):
             cameras.append(_camera(prim, tc, xcache, s2w, mpu, warnings))
@@ -775,12 +1118,12 @@ def _extract(stage, path, time_code, warnings) -> LoadedScene:
             add(g[0], g[1], _np_matrix(xcache.GetLocalToWorldTransform(prim)), str(prim.GetPath()))
 
     if not verts:
-        raise SceneError("empty_stage", f"{path}: the stage has no renderable triangles"
+        raise SceneError("empty_stage", f"{name}: the stage has no renderable triangles"
                          + (f" ({len(warnings)} warnings: {warnings[0]})" if warnings else ""))
     V = np.concatenate(verts)
     F = np.concatenate(faces)
     if not np.all(np.isfinite(V)):
-        raise SceneError("bad_mesh", f"{path}: transformed points are not finite (a degenerate transform?)")
+        raise SceneError("bad_mesh", f"{name}: transformed points are not finite (a degenerate transform?)")
     geometry = SceneGeometry(V, F.astype(np.int32), np.concatenate(prims), prim_paths)
     return LoadedScene(path, "", geometry, cameras, lights, up, mpu, s2w,
                        None if time_code is None else float(time_code), [])
@@ -829,9 +1172,12 @@ class _DefaultTimeXforms:
         return m
 
 
-def _expand_instancer(prim, tc, xcache, add, geometry_of, skip_subtree, warnings):
+def _expand_instancer(prim, tc, xcache, add, geometry_of, triangles_of, skip_subtree, warnings, budget):
     """Every visible instance of a PointInstancer: prototype geometry placed by the instance
-    transforms (which include each prototype root's own transform); invisibleIds/inactiveIds masked."""
+    transforms (which include each prototype root's own transform); invisibleIds/inactiveIds masked.
+
+    The budget is charged visible instances x prototype triangles (counted without tessellating)
+    before any instance transform is computed or any prototype tessellated."""
     from pxr import Usd, UsdGeom
 
     inst = UsdGeom.PointInstancer(prim)
@@ -844,24 +1190,47 @@ def _expand_instancer(prim, tc, xcache, add, geometry_of, skip_subtree, warnings
         if attr.Get(tc) is None and attr.GetNumTimeSamples() > 0:
             t = Usd.TimeCode(attr.GetTimeSamples()[0])
             warnings.append(f"{ipath}: instance positions have only time samples: read at t={t.GetValue():g}")
-    xforms = inst.ComputeInstanceTransformsAtTime(t, t, UsdGeom.PointInstancer.IncludeProtoXform,
-                                                  UsdGeom.PointInstancer.IgnoreMask)
     indices = _as_array(inst.GetProtoIndicesAttr().Get(t), None, np.int64)
-    if xforms is None or indices is None or len(xforms) != len(indices):
-        if indices is not None and len(indices):
-            warnings.append(f"{ipath}: instance transforms could not be computed (mismatched array sizes?); skipped")
+    if indices is None or not len(indices):
         return
     mask = inst.ComputeMaskAtTime(t)
     visible = np.ones(len(indices), bool) if not mask else np.asarray(mask, bool)
     if len(visible) != len(indices):
         visible = np.ones(len(indices), bool)
-    inst_world = _np_matrix(xcache.GetLocalToWorldTransform(prim))
     stage = prim.GetStage()
-    proto_geo = []
-    for target in protos:
-        root = stage.GetPrimAtPath(target)
-        parts = []
+    roots = [stage.GetPrimAtPath(target) for target in protos]
+    proto_tris = np.zeros(len(roots), np.int64)
+    for k, root in enumerate(roots):
         if root and not skip_subtree(root):
+            rng = iter(Usd.PrimRange(root, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
+            for p in rng:
+                if skip_subtree(p):
+                    rng.PruneChildren()
+                    continue
+                proto_tris[k] += triangles_of(p)
+    named = visible & (indices >= 0) & (indices < len(roots))
+    per_proto = np.bincount(indices[named], minlength=len(roots)) if named.any() else np.zeros(len(roots), np.int64)
+    total = int(np.dot(per_proto.astype(np.int64), proto_tris))
+    budget.charge(total, f"{ipath} ({int(named.sum())} instances of prototypes with "
+                  f"{', '.join(str(int(x)) for x in proto_tris[:4])}{'...' if len(proto_tris) > 4 else ''} triangles)")
+    bad = int((visible & ~named).sum())
+    if bad:
+        warnings.append(f"{ipath}: {bad} instances name prototypes that do not exist; skipped")
+    for target, root in zip(protos, roots):
+        if not root:
+            warnings.append(f"{ipath}: prototype {target} does not exist")
+    if total == 0:
+        return
+    xforms = inst.ComputeInstanceTransformsAtTime(t, t, UsdGeom.PointInstancer.IncludeProtoXform,
+                                                  UsdGeom.PointInstancer.IgnoreMask)
+    if xforms is None or len(xforms) != len(indices):
+        warnings.append(f"{ipath}: instance transforms could not be computed (mismatched array sizes?); skipped")
+        return
+    inst_world = _np_matrix(xcache.GetLocalToWorldTransform(prim))
+    proto_geo = []
+    for k, root in enumerate(roots):
+        parts = []
+        if root and per_proto[k] and proto_tris[k] and not skip_subtree(root):
             # relative to the prototype root: its own transform comes with the instance transforms
             root_inv = np.linalg.inv(_np_matrix(xcache.GetLocalToWorldTransform(root)))
             rng = iter(Usd.PrimRange(root, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
@@ -869,26 +1238,19 @@ def _expand_instancer(prim, tc, xcache, add, geometry_of, skip_subtree, warnings
                 if skip_subtree(p):
                     rng.PruneChildren()
                     continue
-                g = geometry_of(p)
+                g = geometry_of(p, charged=True)
                 if g is not None:
                     rel = root_inv @ _np_matrix(xcache.GetLocalToWorldTransform(p))
                     parts.append((g, rel, str(p.GetPath())))
-        elif not root:
-            warnings.append(f"{ipath}: prototype {target} does not exist")
         proto_geo.append(parts)
-    bad = 0
-    for k, (pi, xf) in enumerate(zip(indices, xforms)):
-        if not visible[k]:
+    for k in np.flatnonzero(named):
+        pi = indices[k]
+        if not proto_geo[pi]:
             continue
-        if pi < 0 or pi >= len(proto_geo):
-            bad += 1
-            continue
-        m = inst_world @ _np_matrix(xf)
+        m = inst_world @ _np_matrix(xforms[int(k)])
         for (pts, tris), rel, ppath in proto_geo[pi]:
             sub = ppath[len(ipath):] if ppath.startswith(ipath) else ppath
             add(pts, tris, m @ rel, f"{ipath}[{k}]{sub}")
-    if bad:
-        warnings.append(f"{ipath}: {bad} instances name prototypes that do not exist; skipped")
 
 
 def _camera(prim, tc, xcache, s2w, mpu, warnings) -> UsdCamera:
