@@ -10,7 +10,8 @@
   (the server and these children) is gone.
 - `load_isolated(path, ..., limits=LoadLimits(...))` runs renderers.usd_loader.load_scene in a child
   started with the spawn method (never fork: the server holds LLVM and threads), with RLIMIT_AS set
-  before the load, killed after `timeout_s` of wall clock (counted from when the job is handed over). The
+  once numpy and usd-core are imported (a fixed cost the limit still counts) and before the scene's
+  first byte is read, killed after `timeout_s` of wall clock (counted from when the job is handed over). The
   LoadedScene comes back pickled over a pipe (40 MB for the chess set: 0.05 s), and the child's memory
   goes back to the system when it exits. Over the memory limit -> SceneError("memory_limit"), over time
   -> SceneError("load_timeout"), a child that crashes (a signal: USD segfaulting on a damaged file)
@@ -39,17 +40,22 @@ from dataclasses import dataclass
 from ..renderers.scene_data import SceneError
 
 WATCH_INTERVAL_S = 0.5
-# RLIMIT_AS of a loader child. A spawned child that imported numpy and usd-core and loaded the demo scene
-# peaks at 1.19 GB of address space (VmPeak; its RSS is only 0.13 GB: most is reserved, not used); the
-# chess set (1.43 M triangles, 40 MB of geometry) peaks at 1.33 GB. Measured on 2 cores, USD's work
-# threads and malloc's arenas capped (below) so the number does not grow with the core count.
-MEMORY_FLOOR_BYTES = 3 << 29  # 1.5 GiB: below this even a tiny scene cannot load, LoadLimits refuses it
+# RLIMIT_AS of a loader child. A child that imported numpy and usd-core maps 0.68 GB of address space;
+# the first property path (USD's path pools reserve 383 MB each) and the work threads with their malloc
+# arenas take it to 1.20 GB before any scene is read (its RSS is only ~0.12 GB: reserved, not used).
+# The demo scene peaks at 1.19-1.20 GB (the smallest limit it loads under: 1184 MB), the chess set
+# (1.43 M triangles, 38 MB of arrays) at 1.33 GB. Measured on 2 cores; USD's work threads and malloc's
+# arenas are capped (below) so the floor does not grow with the core count.
+MEMORY_FLOOR_BYTES = 1 << 30  # LoadLimits refuses less (as api.settings does); under ~1.2 GB every load fails
 DEFAULT_MEMORY_BYTES = 3 << 30
 DEFAULT_TIMEOUT_S = 60.0
 DEFAULT_MAX_TRIANGLES = 5_000_000
 CHILD_THREADS = 4  # USD's work threads in a loader child (each one maps a stack)
 CPU_SLACK_S = 10  # RLIMIT_CPU = timeout * threads + this: a backstop should the parent not kill the child
 PDEATHSIG = sys.platform.startswith("linux")
+PEAK_STEP, PEAK_POLL_S = 16 << 20, 0.01  # a loader child reports its mapped memory in 16 MB steps
+CRASH_MEMORY_SHARE = 0.8  # a child that crashed having mapped this share of its limit ran out of memory
+ALLOCATION_CODES = ("corrupt", "internal", "too_large", "not_usd")  # loader codes a failed allocation can cause
 
 
 @dataclass(frozen=True)
@@ -204,24 +210,54 @@ def _limit_self(memory_bytes: int, timeout_s: float) -> None:
     resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 5))
 
 
+class _PeakReporter:
+    """Sends ("peak", VmPeak) to the parent whenever the child's mapped memory grows by PEAK_STEP: a child
+    that dies of a failed allocation (a segfault or abort rather than a MemoryError) then still reads as
+    over the memory limit, even when it dies between two of the parent's polls."""
+
+    def __init__(self, conn, lock: threading.Lock):
+        self.conn, self.lock, self.done = conn, lock, False
+        self.last = 0
+        threading.Thread(target=self._run, name="peak-reporter", daemon=True).start()
+
+    def _run(self) -> None:
+        while not self.done:
+            v = _status().get("VmPeak", 0)
+            if v >= self.last + PEAK_STEP:
+                with self.lock:
+                    if self.done:
+                        return
+                    self.conn.send(("peak", v))
+                self.last = v
+            time.sleep(PEAK_POLL_S)
+
+
+def _near(memory_bytes: int) -> bool:
+    return _status().get("VmPeak", 0) >= CRASH_MEMORY_SHARE * memory_bytes
+
+
 def _run_job(conn, fn, args: tuple, kwargs: dict, memory_bytes: int, timeout_s: float) -> None:
-    """In the child: limits, then fn(*args, **kwargs); one message back, then the child exits."""
+    """In the child: limits, then fn(*args, **kwargs); one answer back, then the child exits."""
+    lock = threading.Lock()
+    reporter = _PeakReporter(conn, lock)
     _limit_self(memory_bytes, timeout_s)
     try:
         msg = ("ok", fn(*args, **kwargs))
     except SceneError as e:
-        if e.code == "too_large" and isinstance(e.__cause__, MemoryError):
-            msg = ("memory", "")
+        if isinstance(e.__cause__, MemoryError) or (e.code in ALLOCATION_CODES and _near(memory_bytes)):
+            msg = ("memory", "")  # USD's failed allocations surface as read errors: near the limit, they are
         else:
             msg = ("error", e.code, e.message)
     except MemoryError:
         msg = ("memory", "")
     except BaseException as e:  # noqa: BLE001 - reported to the parent, which raises SceneError
-        msg = ("error", "internal", f"the loader failed ({type(e).__name__})")
-    try:
-        conn.send(msg)
-    except MemoryError:
-        conn.send(("memory", ""))
+        msg = ("memory", "") if _near(memory_bytes) else ("error", "internal", f"the loader failed ({type(e).__name__})")
+    with lock:
+        reporter.done = True
+        try:
+            conn.send(msg)
+        except MemoryError:
+            conn.send(("memory", ""))
     conn.close()
 
 
@@ -229,6 +265,7 @@ def _child_main(conn, parent_pid: int, job: tuple) -> None:
     """A child started for one job."""
     die_with_parent(parent_pid, pdeathsig=True)  # started by SPAWNER's thread
     _cap_threads()
+    _preload()  # the fixed cost first (RLIMIT_AS counts it all the same): a tight limit then fails cleanly
     _run_job(conn, *job)
 
 
@@ -237,6 +274,15 @@ def _preload() -> None:
     from pxr import Sdf, Tf, Usd, UsdGeom, UsdLux, Work  # noqa: F401
 
     from ..renderers import usd_loader  # noqa: F401
+
+    # What every load needs, once: USD's plugin, schema and file-format registries (~0.1-0.2 s), its
+    # path pools (the first property path reserves 383 MB of address space, as the first prim path did
+    # at import) and its work threads with their malloc arenas.
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.Mesh.Define(stage, "/Warm").CreatePointsAttr([(0.0, 0.0, 0.0)])
+    UsdLux.DistantLight.Define(stage, "/WarmLight")
+    for fmt in ("usda", "usdc"):
+        Sdf.Layer.CreateAnonymous(f"warm.{fmt}")
 
 
 def _spare_main(conn, parent_pid: int) -> None:
@@ -371,8 +417,13 @@ def run_isolated(fn, args: tuple = (), kwargs: dict | None = None, *, memory_byt
                     msg = conn.recv()
                 except (EOFError, OSError):
                     msg = None
+                if msg is not None and msg[0] == "peak":
+                    peak = max(peak, msg[1])
+                    continue
                 break
             peak = max(peak, _status(proc.pid).get("VmPeak", 0))
+        if msg is not None:
+            proc.kill()  # its answer is in: no need to wait for usd-core's exit-time destructors
         proc.join(timeout=5)
         if msg is None:
             if proc.exitcode is None:
@@ -400,7 +451,7 @@ def _crashed(exitcode, peak: int, memory_bytes: int, what: str):
     sig = -exitcode if isinstance(exitcode, int) and exitcode < 0 else None
     if sig == signal.SIGXCPU:
         raise SceneError("load_timeout", f"loading {what} used more CPU time than the load time limit allows; refused")
-    if peak >= 0.8 * memory_bytes or sig == signal.SIGKILL:
+    if peak >= CRASH_MEMORY_SHARE * memory_bytes or sig == signal.SIGKILL:
         raise _memory_error(memory_bytes, what)
     how = f"signal {signal.Signals(sig).name}" if sig else f"exit status {exitcode}"
     raise SceneError("corrupt", f"the loader crashed reading {what} ({how}): the file is damaged or not valid USD")

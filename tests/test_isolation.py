@@ -172,6 +172,14 @@ def test_a_child_that_crashes_is_a_corrupt_scene():
     assert e.value.code == "corrupt" and "SIGSEGV" in e.value.message and "broken.usdc" in e.value.message
 
 
+def test_a_limit_under_the_fixed_floor_reads_as_memory_not_as_a_damaged_file():
+    """usd-core alone maps ~1.2 GB (its path pools reserve 383 MB each): under a 1 GiB limit the demo
+    scene's load fails inside USD, and that is the memory limit speaking."""
+    with pytest.raises(SceneError) as e:
+        load_isolated(DEMO, limits=LoadLimits(memory_bytes=GiB))
+    assert e.value.code == "memory_limit", e.value.message
+
+
 def test_limits_below_what_a_loader_child_needs_are_refused():
     with pytest.raises(ValueError, match="memory_bytes"):
         LoadLimits(memory_bytes=256 << 20)
