@@ -140,6 +140,21 @@ class SceneCache:
             raise SceneError("not_found", f"cannot open scene {name!r}: {e.strerror}") from None
         return (os.path.realpath(path), st.st_size, st.st_mtime_ns, time_code, asset_root, sandbox)
 
+    def peek(self, path, *, time_code: float | None = None, asset_root: str | None = None, sandbox: bool = False,
+             tenant: str | None = None, limits: LoadLimits | None = None) -> SceneEntry | None:
+        """The cached entry (counted as a use), or None: never loads, never waits for a load."""
+        try:
+            key = self._key(path, time_code, asset_root, sandbox)
+        except SceneError:
+            return None
+        with self._lock:
+            slot = self._entries.get(key)
+            if slot is None:
+                return None
+            self._entries.move_to_end(key)
+            self.hits += 1
+            return slot.entry
+
     def get(self, path, *, time_code: float | None = None, asset_root: str | None = None, sandbox: bool = False,
             tenant: str | None = None, limits: LoadLimits | None = None) -> SceneEntry:
         key = self._key(path, time_code, asset_root, sandbox)

@@ -57,6 +57,8 @@ def test_concurrent_gets_of_one_scene_share_one_isolated_load(tmp_path):
     assert isolation.STATS["jobs"] - jobs == 1  # child processes that ran a load: one
     assert cache.stats()["loads"] == 1 and cache.stats()["shared"] == 5
     assert cache.get(path, sandbox=True, tenant="alice", limits=LoadLimits()) is got[0]  # then a hit
+    assert cache.peek(path, sandbox=True, tenant="alice", limits=LoadLimits()) is got[0]
+    assert cache.peek(path) is None  # other options: another key, and peek never loads
     assert isolation.STATS["jobs"] - jobs == 1
     assert got[0].loaded.geometry.triangle_count == load_scene(path, sandbox=True).geometry.triangle_count
 
