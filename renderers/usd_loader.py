@@ -14,7 +14,10 @@ plus cameras and lights with their USD paths.
     SANDBOX_MAX_LAYERS = 256        distinct layers (value-clip layers included);
     SANDBOX_MAX_LAYER_BYTES = 512 MiB  the layers' sizes added up (file size, or the usdz entry's
                                     size), each counted before it is opened.
-  Real assets stay far below them (the OpenChessSet composes 40 layers, 5 deep).
+  Real assets stay far below them (the OpenChessSet: 29 layers, 3 deep, 8.3 MiB; the Intent VFX
+  teapot scene: 11 layers, 6 deep). Fail-closed choices: dependencies other than USD layers (.mtlx,
+  whose includes MaterialX follows itself), file format arguments, packages nested in packages and
+  value-clip templates (their files are only known once USD expands the pattern) are refused.
 - Budget: `max_triangles` is charged prim by prim during the traversal, before anything is
   tessellated, triangulated or copied: meshes by faceVertexCounts (a face of n corners is n - 2
   triangles), implicit prims by their fixed tessellation counts, point instancers as visible
