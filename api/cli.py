@@ -141,7 +141,11 @@ def cmd_bench(args) -> int:
         result = benchmarks.bench_trust(validate_rig, rigs=args.lights, write=not args.no_write)
     elif args.bench == "quality":
         parts = ("single", "cascades") if args.part == "all" else (args.part,)
-        result = benchmarks.bench_quality(validate_rig, lights=args.lights, write=not args.no_write, parts=parts)
+        if args.corpus:
+            result = benchmarks.bench_quality_corpus(validate_rig, lights=args.lights, scenes=args.scenes, parts=parts,
+                                                     write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
+        else:
+            result = benchmarks.bench_quality(validate_rig, lights=args.lights, write=not args.no_write, parts=parts)
     elif args.bench == "batch":
         from ..service.batch_benchmark import bench_batch
 
@@ -401,7 +405,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--part", choices=["single", "cascades", "all"], default="all",
                     help="quality: one map per method, 4 cascades under one budget, or both")
     sp.add_argument("--runs", type=int, default=20, help="warm runs per scene (median reported)")
-    sp.add_argument("--scenes", default=None, help="comma-separated scene names from configs/benchmarks.json")
+    sp.add_argument("--scenes", default=None, help="comma-separated scene names from configs/benchmarks.json "
+                    "(quality --corpus: from configs/corpus.json)")
+    sp.add_argument("--corpus", action="store_true", help="quality: every scene of configs/corpus.json")
     sp.add_argument("--no-write", action="store_true", help="do not update BENCHMARKS.md")
     sp.add_argument("--json", action="store_true", help="print the results as one JSON object")
     sp.set_defaults(func=cmd_bench)

@@ -158,41 +158,70 @@ def _ratios_line(tot: dict, ref: str, others) -> str:
     return ", ".join(f"{ref}/{m} = {tot[ref] / max(tot[m], 1):.3f}" for m in others if m in tot)
 
 
-def bench_quality(validate_rig, lights: int | None = None, write: bool = True, parts=("single", "cascades")) -> dict:
-    """Chong & Gortler 2007 §3's protocol: N light directions on the upper hemisphere, misclassified
-    pixels per method against exact ray-traced visibility; totals, the worst-10% rows, setup time.
-    `single`: one map per method; `cascades`: 4 cascades under one texel budget (configs/benchmarks.json)."""
-    import numpy as np
-
-    from ..renderers.ground_truth import evaluate_buffers
-    from ..service.rigs import resolve_rig
-    from ..service.scenes import SceneCache
-    from ..service.solve import maps_from_solution, solve
-
-    spec = definitions()["quality"]
-    n = lights or spec["lights"]
-    entry = SceneCache().get(ROOT / spec["scene"])
-    dirs = hemisphere_directions(n, spec["min_elevation_deg"], spec["seed"])
+def quality_configs(spec: dict, parts=("single", "cascades")) -> dict:
+    """The configurations of Chong & Gortler's protocol, per part: `single`: one map per method;
+    `cascades`: 4 cascades under one texel budget (configs/benchmarks.json's `quality`)."""
     configs = {}
     if "single" in parts:
         configs["single"] = {m: {"method": m, "shadow": {"resolution": spec["map"], "cascades": 1}} for m in spec["methods"]}
     if "cascades" in parts:
         configs["cascades"] = spec["cascades"]["configs"]
-    mis = {part: {name: [] for name in c} for part, c in configs.items()}
-    setup = {part: {name: [] for name in c} for part, c in configs.items()}
-    bar = _progress(n * sum(len(c) for c in configs.values()), "quality")
-    for d in dirs:
+    return configs
+
+
+def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict, bar=None) -> dict:
+    """One scene and camera under Chong & Gortler 2007 §3's protocol: for every light direction and
+    every configuration, the solution (`solve`) scored against exact ray-traced visibility
+    (`evaluate_buffers` at the rig's resolution `screen`). Per part and configuration, one entry per
+    direction: misclassified, outside and boundary pixels, setup time (ms, coarse pass excluded) and
+    the predicted objective. `dirs`: one array for every part, or {part: array}."""
+    from ..renderers.ground_truth import evaluate_buffers
+    from ..service.rigs import resolve_rig
+    from ..service.solve import maps_from_solution, solve
+
+    keys = ("misclassified", "outside", "boundary", "receivers", "setup_ms", "objective")
+    rec = {k: {part: {name: [] for name in c} for part, c in configs.items()} for k in keys}
+    per_part = dirs if isinstance(dirs, dict) else {part: dirs for part in configs}
+    for i in range(max(len(v) for v in per_part.values())):
         for part, cfgs in configs.items():
+            if i >= len(per_part[part]):
+                continue
+            d = per_part[part][i]
             for name, c in cfgs.items():
-                rig = validate_rig({"camera": {**spec["camera"], "resolution": spec["screen"]},
-                                    "lights": [{"type": "directional", "direction": d.tolist()}], "shadow": c["shadow"]})
+                rig = validate_rig({"camera": {**camera, "resolution": list(screen)},
+                                    "lights": [{"type": "directional", "direction": [float(v) for v in d]}],
+                                    "shadow": c["shadow"]})
                 resolved = resolve_rig(rig, entry.loaded)
                 sol = solve(entry, rig, method=c["method"])
-                setup[part][name].append(sol["timings_ms"]["optimize"])
-                gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps_from_solution(sol)[0])
-                mis[part][name].append(gt.result["misclassified_pixels"])
-                bar.update(1)
+                gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps_from_solution(sol)[0]).result
+                for k, v in (("misclassified", gt["misclassified_pixels"]), ("outside", gt["outside_pixels"]),
+                             ("boundary", gt["boundary_pixels"]), ("receivers", gt["receiver_pixels"]),
+                             ("setup_ms", sol["timings_ms"]["optimize"]),
+                             ("objective", sol["lights"][0]["predicted_error"]["objective"])):
+                    rec[k][part][name].append(v)
+                if bar is not None:
+                    bar.update(1)
+    return rec
+
+
+def bench_quality(validate_rig, lights: int | None = None, write: bool = True, parts=("single", "cascades")) -> dict:
+    """Chong & Gortler 2007 §3's protocol on the demo scene: N light directions on the upper hemisphere,
+    misclassified pixels per method against exact ray-traced visibility; totals, the worst-10% rows,
+    setup time. `single`: one map per method; `cascades`: 4 cascades under one texel budget
+    (configs/benchmarks.json). `bench_quality_corpus` runs the same per-scene loop on the corpus."""
+    import numpy as np
+
+    from ..service.scenes import SceneCache
+
+    spec = definitions()["quality"]
+    n = lights or spec["lights"]
+    entry = SceneCache().get(ROOT / spec["scene"])
+    dirs = hemisphere_directions(n, spec["min_elevation_deg"], spec["seed"])
+    configs = quality_configs(spec, parts)
+    bar = _progress(n * sum(len(c) for c in configs.values()), "quality")
+    rec = quality_scene(validate_rig, entry, spec["camera"], spec["screen"], dirs, configs, bar)
     bar.close()
+    mis, setup = rec["misclassified"], rec["setup_ms"]
     out = {"benchmark": "quality", "machine": machine(), "lights": n, "screen": spec["screen"], "map": spec["map"],
            "scene": spec["scene"], "misclassified": mis, "totals": {}, "setup_ms_p50": {}}
     sections = []
@@ -216,6 +245,243 @@ def bench_quality(validate_rig, lights: int | None = None, write: bool = True, p
                           f"shadowopt bench quality --lights {n} --part {part}")
     out["table"] = "\n\n".join(sections)
     return out
+
+
+def corpus_definitions() -> dict:
+    return json.loads((ROOT / definitions()["quality_corpus"]["corpus"]).read_text())
+
+
+def corpus_scenes(names=None, cache_dir=None) -> tuple[dict, dict]:
+    """The corpus's scenes (configs/corpus.json) as {name: (path, scene spec)}, generated ones built
+    into the cache folder (renderers.corpus.ensure_scene), plus {name: why} for those that are absent
+    (../shared/usd-assets not mounted). `names` picks some, in the given order."""
+    from ..renderers.corpus import ensure_scene
+
+    spec = corpus_definitions()["scenes"]
+    wanted = list(names) if names else list(spec)
+    unknown = [n for n in wanted if n not in spec]
+    if unknown:
+        raise ValueError(f"--scenes: unknown corpus scene {unknown[0]!r} (known: {', '.join(spec)})")
+    found, skipped = {}, {}
+    for name in wanted:
+        s = spec[name]
+        if "build" in s:
+            found[name] = (ensure_scene(s["build"], cache_dir), s)
+        else:
+            path = (ROOT / s["path"]).resolve()
+            if path.exists():
+                found[name] = (path, s)
+            else:
+                skipped[name] = f"{s['path']} is absent"
+    return found, skipped
+
+
+def _scene_stats(rec: dict, dirs, spec: dict) -> dict:
+    """Per scene and rig: what the corpus tables print (totals, ratios, losses, worst suns, outside
+    pixels, setup medians, the pooled Spearman) and the verdict per target."""
+    import numpy as np
+
+    t = spec["targets"]
+    out = {}
+    for part in rec["misclassified"]:
+        mis = {m: np.asarray(v, float) for m, v in rec["misclassified"][part].items()}
+        p = {"suns": len(next(iter(mis.values()))), "totals": {m: int(v.sum()) for m, v in mis.items()},
+             "outside": {m: int(np.sum(v)) for m, v in rec["outside"][part].items()},
+             "outside_max": {m: int(np.max(v)) for m, v in rec["outside"][part].items()},
+             "setup_ms_p50": {m: float(statistics.median(v)) for m, v in rec["setup_ms"][part].items()}}
+        pred = np.concatenate([rec["objective"][part][m] for m in mis])
+        meas = np.concatenate([mis[m] for m in mis])
+        p["spearman_pooled"] = spearman(pred, meas) if len(pred) > 2 else float("nan")
+        per_sun = [spearman([rec["objective"][part][m][i] for m in mis], [mis[m][i] for m in mis]) for i in range(p["suns"])]
+        p["spearman_within_sun_mean"] = float(np.nanmean(per_sun)) if np.isfinite(per_sun).any() else float("nan")
+        out[part] = p
+    if "single" in out:
+        p, mis = out["single"], {m: np.asarray(v, float) for m, v in rec["misclassified"]["single"].items()}
+        opt, base = mis["optimized"], [m for m in t["baselines"] if m in mis]
+        tot = p["totals"]
+        best_name = min(base, key=lambda m: tot[m])
+        best_per_sun = np.min(np.stack([mis[m] for m in base]), axis=0)
+        others = np.min(np.stack([mis[m] for m in mis if m != "optimized"]), axis=0)
+        p["best_baseline"] = best_name
+        p["ratios"] = {f"optimized/{m}": tot["optimized"] / max(tot[m], 1) for m in ("focused", "lispsm", "logpsm") if m in tot}
+        p["ratios"]["optimized/best_baseline"] = tot["optimized"] / max(tot[best_name], 1)
+        p["suns_not_lowest"] = int(np.sum(opt > others))
+        bound = t["per_sun_factor"] * best_per_sun + t["per_sun_pixels"]
+        p["suns_over_per_sun_bound"] = int(np.sum(opt > bound))
+        order = np.argsort(-(opt - best_per_sun))[:spec["worst_suns"]]
+        p["worst_suns"] = [{"index": int(i), "elevation_deg": round(float(np.degrees(np.arcsin(-dirs[i][1]))), 1),
+                            "azimuth_deg": round(float(np.degrees(np.arctan2(dirs[i][2], dirs[i][0])) % 360), 1),
+                            "optimized": int(opt[i]), "best_baseline": int(best_per_sun[i]),
+                            "best_baseline_method": min(base, key=lambda m: mis[m][i]),
+                            "boundary_pixels": int(rec["boundary"]["single"]["optimized"][i])} for i in order]
+    if "cascades" in out:
+        c = out["cascades"]
+        ref, opt = t["cascades_reference"], t["cascades_optimized"]
+        c["ratios"] = {f"{m}/{ref}": c["totals"][m] / max(c["totals"][ref], 1) for m in c["totals"] if m != ref}
+    out["verdicts"] = _verdicts(out, t)
+    return out
+
+
+def _verdicts(s: dict, t: dict) -> dict:
+    """True/False per target of issue 10 (None when the part was not run)."""
+    v = {}
+    v["outside_0"] = all(n == 0 for p in ("single", "cascades") if p in s for n in s[p]["outside"].values())
+    one, cas = s.get("single"), s.get("cascades")
+    v["one_map_vs_best"] = None if one is None else one["ratios"]["optimized/best_baseline"] <= t["one_map_vs_best_baseline"]
+    v["per_sun_bound"] = None if one is None else one["suns_over_per_sun_bound"] == 0
+    v["cascades"] = None if cas is None else (
+        cas["totals"][t["cascades_optimized"]] <= t["cascades_vs_reference"] * max(cas["totals"][t["cascades_reference"]], 0))
+    v["spearman"] = None if one is None else bool(one["spearman_pooled"] >= t["spearman"])
+    v["speed_one_map"] = None if one is None else one["setup_ms_p50"]["optimized"] <= t["setup_ms_one_map"]
+    v["speed_cascades_practical"] = None if cas is None else (
+        cas["setup_ms_p50"][t["cascades_practical_optimized"]] <= t["setup_ms_cascades_practical"])
+    v["speed_cascades_optimized_splits"] = None if cas is None else (
+        cas["setup_ms_p50"][t["cascades_optimized"]] <= t["setup_ms_cascades_optimized_splits"])
+    return v
+
+
+def _mark(ok) -> str:
+    return "n/a" if ok is None else ("yes" if ok else "**no**")
+
+
+def _tables_corpus(stats: dict, skipped: dict, spec: dict, corpus_ratio, corpus_ok) -> str:
+    t = spec["targets"]
+    rows_single = [(k, s["single"]) for k, s in stats.items() if "single" in s]
+    rows_cas = [(k, s["cascades"]) for k, s in stats.items() if "cascades" in s]
+    lines = []
+    if rows_single:
+        methods = list(rows_single[0][1]["totals"])
+        lines += ["**One map: misclassified pixels summed over the suns**, the ratios of optimized's total, the suns "
+                  "where optimized is not the lowest of all methods, and the Spearman correlation of predicted objective "
+                  "against measured misclassified pixels pooled over suns and methods (within one sun: the mean).", "",
+                  "| scene | " + " | ".join(methods) + " | opt/focused | opt/lispsm | opt/best baseline | not lowest "
+                  "| Spearman pooled | within sun |",
+                  "|---|" + "---:|" * (len(methods) + 6)]
+        for k, p in rows_single:
+            r = p["ratios"]
+            lines.append(f"| {k} | " + " | ".join(f"{p['totals'][m]:,}" for m in methods) +
+                         f" | {r.get('optimized/focused', float('nan')):.3f} | {r.get('optimized/lispsm', float('nan')):.3f} | "
+                         f"{r['optimized/best_baseline']:.3f} ({p['best_baseline']}) | {p['suns_not_lowest']} of {p['suns']} | "
+                         f"{p['spearman_pooled']:.2f} | {p['spearman_within_sun_mean']:.2f} |")
+        lines += ["", "**One map: outside pixels** (receiver pixels outside every map; summed over the suns, the worst "
+                  "sun in brackets) **and setup time** (median ms per light, `timings_ms.optimize`: coarse pass excluded).", "",
+                  "| scene | " + " | ".join(f"outside {m}" for m in methods) + " | " + " | ".join(f"ms {m}" for m in methods) + " |",
+                  "|---|" + "---:|" * (2 * len(methods))]
+        for k, p in rows_single:
+            lines.append(f"| {k} | " + " | ".join(f"{p['outside'][m]} ({p['outside_max'][m]})" for m in methods) + " | "
+                         + " | ".join(f"{p['setup_ms_p50'][m]:.1f}" for m in methods) + " |")
+        lines += ["", f"**One map: the worst suns** (largest excess of optimized over the best of "
+                  f"{', '.join(t['baselines'])} on that sun; elevation and azimuth of the light's travel direction).", "",
+                  "| scene | sun | elevation | azimuth | optimized | best baseline | boundary pixels |", "|---|---:|---:|---:|---:|---|---:|"]
+        for k, p in rows_single:
+            for w in p["worst_suns"]:
+                lines.append(f"| {k} | {w['index']} | {w['elevation_deg']:.1f} | {w['azimuth_deg']:.1f} | {w['optimized']:,} | "
+                             f"{w['best_baseline']:,} ({w['best_baseline_method']}) | {w['boundary_pixels']:,} |")
+    if rows_cas:
+        names = list(rows_cas[0][1]["totals"])
+        ref = t["cascades_reference"]
+        lines += ["", f"**Four cascades** ({spec['cascades_note']}): misclassified pixels summed over the suns, ratio to {ref}, "
+                  "outside pixels (sum), setup ms (median), pooled Spearman.", "",
+                  "| scene | " + " | ".join(names) + " | " + " | ".join(f"/{ref}: {m}" for m in names if m != ref) + " | "
+                  + " | ".join(f"outside {m}" for m in names) + " | " + " | ".join(f"ms {m}" for m in names) + " | Spearman |",
+                  "|---|" + "---:|" * (len(names) * 4)]
+        for k, c in rows_cas:
+            lines.append(f"| {k} | " + " | ".join(f"{c['totals'][m]:,}" for m in names) + " | "
+                         + " | ".join(f"{c['ratios'][f'{m}/{ref}']:.3f}" for m in names if m != ref) + " | "
+                         + " | ".join(f"{c['outside'][m]}" for m in names) + " | "
+                         + " | ".join(f"{c['setup_ms_p50'][m]:.1f}" for m in names) + f" | {c['spearman_pooled']:.2f} |")
+    cols = [("outside_0", "outside pixels 0"),
+            ("one_map_vs_best", f"1 map: opt <= {t['one_map_vs_best_baseline']}x best baseline"),
+            ("per_sun_bound", f"1 map: no sun > {t['per_sun_factor']}x best + {t['per_sun_pixels']}"),
+            ("cascades", f"4 cascades: opt <= {t['cascades_vs_reference']}x {t['cascades_reference']}"),
+            ("spearman", f"Spearman >= {t['spearman']}"),
+            ("speed_one_map", f"setup 1 map <= {t['setup_ms_one_map']:g} ms"),
+            ("speed_cascades_practical", f"4 cascades practical <= {t['setup_ms_cascades_practical']:g} ms"),
+            ("speed_cascades_optimized_splits", f"optimized splits <= {t['setup_ms_cascades_optimized_splits']:g} ms")]
+    lines += ["", "**Verdicts per target** (issue 10; `yes` = met on this scene).", "",
+              "| scene | " + " | ".join(c for _, c in cols) + " |", "|---|" + "---|" * len(cols)]
+    for k, s in stats.items():
+        lines.append(f"| {k} | " + " | ".join(_mark(s["verdicts"][key]) for key, _ in cols) + " |")
+    if corpus_ratio is not None:
+        lines.append(f"| **whole corpus** | {_mark(all(s['verdicts']['outside_0'] for s in stats.values()))} | "
+                     f"opt / best baseline pooled {corpus_ratio:.3f}: {_mark(corpus_ok)} (target <= {t['corpus_vs_best_baseline']}) | | | | | | |")
+    for name, why in skipped.items():
+        lines.append(f"| {name} | skipped: {why} |")
+    return "\n".join(lines)
+
+
+def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | None = None, write: bool = True,
+                         parts=("single", "cascades"), screen=None, log=None) -> dict:
+    """Chong & Gortler's protocol on every corpus scene (configs/corpus.json) with the same
+    configurations as `bench_quality` (one map per method, 4 cascades), the same seeded suns on every
+    scene; per scene and rig: totals, ratios, losses, worst suns, outside pixels, setup time, the
+    pooled Spearman, and a verdict per target of issue 10 (configs/benchmarks.json `quality_corpus`)."""
+    from ..service.scenes import SceneCache
+
+    qspec, spec = definitions()["quality"], definitions()["quality_corpus"]
+    n = lights or spec["lights"]
+    screen = list(screen or spec["screen"])
+    qspec = {**qspec, "map": spec.get("map", qspec["map"]), "methods": spec.get("methods", qspec["methods"])}
+    configs = quality_configs(qspec, parts)
+    n_cascades = min(n, spec["cascade_lights"])
+    dirs = hemisphere_directions(n, spec["min_elevation_deg"], spec["seed"])
+    part_dirs = {"single": dirs, "cascades": dirs[:n_cascades]}
+    part_dirs = {p: v for p, v in part_dirs.items() if p in configs}
+    found, skipped = corpus_scenes(scenes.split(",") if scenes else None)
+    spec = {**spec, "cascades_note": qspec["cascades"]["note"]}
+    stats, raw, timing, load_s = {}, {}, {}, {}
+    total_rigs = sum(len(s["rigs"]) for _, s in found.values())
+    bar = _progress(total_rigs * sum(len(part_dirs[p]) * len(c) for p, c in configs.items()), "quality corpus")
+    for name, (path, sspec) in found.items():
+        t0 = time.perf_counter()
+        cache = SceneCache()
+        entry = cache.get(path)
+        t_load = time.perf_counter() - t0
+        for rig_name, rig in sspec["rigs"].items():
+            key = name if len(sspec["rigs"]) == 1 else f"{name}/{rig_name}"
+            t1 = time.perf_counter()
+            rec = quality_scene(validate_rig, entry, rig["camera"], screen, part_dirs, configs, bar)
+            raw[key] = rec
+            stats[key] = {**_scene_stats(rec, dirs, spec), "dirs": dirs.tolist(),
+                          "triangles": entry.loaded.geometry.triangle_count}
+            timing[key] = round(time.perf_counter() - t1, 1)
+            if log:
+                log(f"{key}: " + ", ".join(f"{len(part_dirs[p])} suns x {len(c)} ({p})" for p, c in configs.items())
+                    + f" in {timing[key]:.0f} s")
+            if write:  # a checkpoint: what a long run has measured so far
+                _dump_corpus({"scenes": stats, "raw": raw, "wall_s": timing, "partial": True}, "quality-corpus.partial.json")
+        cache.clear()  # one scene in memory at a time (the chess set is 1.4M triangles)
+        del entry, cache
+        load_s[name] = round(t_load, 2)
+    bar.close()
+    corpus_ratio = corpus_ok = None
+    if stats and "single" in parts:
+        base = spec["targets"]["baselines"]
+        opt = sum(s["single"]["totals"]["optimized"] for s in stats.values())
+        per_method = {m: sum(s["single"]["totals"][m] for s in stats.values()) for m in base}
+        corpus_ratio = opt / max(min(per_method.values()), 1)
+        corpus_ok = bool(corpus_ratio <= spec["targets"]["corpus_vs_best_baseline"])
+    head = (f"Corpus configs/corpus.json ({len(stats)} scene rigs: {', '.join(stats)}), screen {screen[0]}x{screen[1]} "
+            f"(the rig's resolution), one {qspec['map'][0]}x{qspec['map'][1]} map; {n} sun directions uniform on the "
+            f"hemisphere above {spec['min_elevation_deg']} deg (seed {spec['seed']}, the same on every scene; 4 cascades: "
+            f"the first {n_cascades} of them); "
+            "misclassified pixels against exact ray-traced visibility (renderers.ground_truth.evaluate_buffers). "
+            f"Best baseline: the best of {', '.join(spec['targets']['baselines'])} by total.")
+    table = head + "\n\n" + _tables_corpus(stats, skipped, spec, corpus_ratio, corpus_ok)
+    out = {"benchmark": "quality-corpus", "machine": machine(), "lights": n, "screen": screen, "map": qspec["map"],
+           "cascade_lights": n_cascades, "scenes": stats, "skipped": skipped, "raw": raw, "corpus_optimized_over_best_baseline": corpus_ratio,
+           "wall_s": timing, "load_s": load_s, "table": table}
+    if write:
+        cmd = "shadowopt bench quality --corpus" + (f" --scenes {scenes}" if scenes else "") + (f" --lights {n}" if lights else "")
+        write_section("quality-corpus", table, cmd)
+        _dump_corpus(out, "quality-corpus.json")
+    return out
+
+
+def _dump_corpus(obj: dict, name: str) -> None:
+    dest = ROOT / "out" / "bench"
+    dest.mkdir(parents=True, exist_ok=True)
+    (dest / name).write_text(json.dumps(obj, indent=1, default=float))
 
 
 def bench_solvers(validate_rig, lights: int = 5, write: bool = True) -> dict:
@@ -349,7 +615,11 @@ def spearman(a, b) -> float:
     """Spearman's rank correlation (scipy.stats.spearmanr), NaN when a side is constant."""
     from scipy.stats import spearmanr
 
-    r = spearmanr(a, b).statistic
+    import warnings
+
+    with warnings.catch_warnings():  # a constant side is NaN, reported as such
+        warnings.simplefilter("ignore")
+        r = spearmanr(a, b).statistic
     return float(r)
 
 
