@@ -37,7 +37,8 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
-from ..renderers.scene_data import SceneError
+# No numpy here (renderers.scene_data imports it): a child imports this module before its first line
+# runs, and OpenBLAS sizes its thread pool (each thread maps buffers RLIMIT_AS counts) at import.
 
 WATCH_INTERVAL_S = 0.5
 # RLIMIT_AS of a loader child. A child that imported numpy and usd-core maps 0.68 GB of address space;
@@ -238,6 +239,8 @@ def _near(memory_bytes: int) -> bool:
 
 def _run_job(conn, fn, args: tuple, kwargs: dict, memory_bytes: int, timeout_s: float) -> None:
     """In the child: limits, then fn(*args, **kwargs); one answer back, then the child exits."""
+    from ..renderers.scene_data import SceneError
+
     lock = threading.Lock()
     reporter = _PeakReporter(conn, lock)
     _limit_self(memory_bytes, timeout_s)
@@ -378,6 +381,8 @@ def run_isolated(fn, args: tuple = (), kwargs: dict | None = None, *, memory_byt
     memory_bytes, killed after timeout_s of wall clock. fn must be importable by name (the child imports
     its module) and return a picklable value. Raises SceneError memory_limit / load_timeout / corrupt
     (a crash), or fn's own SceneError with its code and message."""
+    from ..renderers.scene_data import SceneError
+
     job = (fn, args, kwargs or {}, memory_bytes, timeout_s)
     spare = SPARES.take()
     proc = conn = None
@@ -440,7 +445,9 @@ def run_isolated(fn, args: tuple = (), kwargs: dict | None = None, *, memory_byt
         _dispose(proc, conn)
 
 
-def _memory_error(memory_bytes: int, what: str) -> SceneError:
+def _memory_error(memory_bytes: int, what: str):
+    from ..renderers.scene_data import SceneError
+
     return SceneError("memory_limit", f"loading {what} needs more than {memory_bytes / 2**30:.3g} GiB of memory "
                       f"(the load memory limit); refused")
 
@@ -448,6 +455,8 @@ def _memory_error(memory_bytes: int, what: str) -> SceneError:
 def _crashed(exitcode, peak: int, memory_bytes: int, what: str):
     """A child that died without answering: a failed allocation (std::bad_alloc aborts; the kernel's OOM
     killer sends SIGKILL) when it had mapped most of its limit, else a crash on a damaged file."""
+    from ..renderers.scene_data import SceneError
+
     sig = -exitcode if isinstance(exitcode, int) and exitcode < 0 else None
     if sig == signal.SIGXCPU:
         raise SceneError("load_timeout", f"loading {what} used more CPU time than the load time limit allows; refused")
@@ -459,6 +468,8 @@ def _crashed(exitcode, peak: int, memory_bytes: int, what: str):
 
 def _load_in_child(path: str, options: dict, max_triangles: int | None):
     from pxr import Work
+
+    from ..renderers.scene_data import SceneError
 
     Work.SetConcurrencyLimit(max(1, min(CHILD_THREADS, os.cpu_count() or 1)))
     from ..renderers.usd_loader import load_scene
@@ -475,6 +486,8 @@ def load_isolated(path, *, time_code: float | None = None, asset_root: str | Non
                   limits: LoadLimits):
     """renderers.usd_loader.load_scene(path, ..., max_triangles=limits.max_triangles) in a spawned child
     with limits.memory_bytes of address space and limits.timeout_s of wall clock; the LoadedScene."""
+    from ..renderers.scene_data import SceneError
+
     path = os.fspath(path)
     options = {"time_code": time_code, "asset_root": asset_root, "sandbox": sandbox}
     name = os.path.basename(path)
