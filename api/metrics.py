@@ -83,6 +83,18 @@ class Gauge:
         return [f"# HELP {self.name} {self.help}", f"# TYPE {self.name} gauge", f"{self.name} {_num(value)}"]
 
 
+class _StatMetric(Gauge):
+    """One number read when scraped, exposed as a gauge or a counter."""
+
+    def __init__(self, name: str, help: str, kind: str, read: Callable[[], float]):
+        super().__init__(name, help, read)
+        self.kind = kind
+
+    def render(self) -> list[str]:
+        return [line.replace("# TYPE " + self.name + " gauge", f"# TYPE {self.name} {self.kind}")
+                for line in super().render()]
+
+
 class Registry:
     def __init__(self):
         self.metrics: list = []
@@ -98,7 +110,8 @@ class Registry:
 class ServerMetrics:
     """The metrics the REST service exports."""
 
-    def __init__(self, queue_length: Callable[[], float], inflight: Callable[[], float], admission=None):
+    def __init__(self, queue_length: Callable[[], float], inflight: Callable[[], float], admission=None,
+                 scene_stats: Callable[[], dict] | None = None):
         self.registry = r = Registry()
         self.requests = r.add(Counter("shadowopt_requests_total", "HTTP requests by route, method and status",
                                       ("route", "method", "status")))
@@ -119,6 +132,15 @@ class ServerMetrics:
                             lambda p=pool: p.busy))
                 r.add(Gauge(f"shadowopt_{pool.name}_waiting", f"admitted requests waiting for a {pool.name} slot",
                             lambda p=pool: p.waiting))
+
+        if scene_stats is not None:  # the scene cache: what it holds and how often it loaded
+            for key, kind, help in (("entries", "gauge", "loaded scenes held in memory"),
+                                    ("bytes", "gauge", "bytes of loaded scenes held in memory (estimated)"),
+                                    ("loads", "counter", "scene loads (uploads and reloads after eviction)"),
+                                    ("shared", "counter", "requests that shared another request's load"),
+                                    ("evictions", "counter", "scenes evicted from memory")):
+                name = f"shadowopt_scene_cache_{key}" + ("_total" if kind == "counter" else "")
+                r.add(_StatMetric(name, help, kind, lambda k=key: scene_stats()[k]))
 
     def render(self, skip_slow: bool = False) -> str:
         """The exposition text; `skip_slow` leaves out the gauges that query the database."""

@@ -240,7 +240,8 @@ class Service:
         self.limiter = RateLimiter(settings.rate_limit_per_s, settings.rate_limit_burst)
         self.admission = Admission(settings.max_inflight, settings.tenant_max_inflight, settings.solve_threads,
                                    settings.load_threads)
-        self.metrics = ServerMetrics(self.queue_length, lambda: self.admission.inflight, admission=self.admission)
+        self.metrics = ServerMetrics(self.queue_length, lambda: self.admission.inflight, admission=self.admission,
+                                     scene_stats=scene_cache_stats)
         self.tokens = dict(settings.tokens)
         self.batch_lock = threading.Lock()
         # /healthz and /metrics read the database here, never on the event loop nor in the request threadpool
@@ -367,6 +368,12 @@ class Service:
             if hmac.compare_digest(tok.encode(), token.encode()):
                 found = name
         return found
+
+
+def scene_cache_stats() -> dict:
+    from ..service.scenes import SCENES
+
+    return SCENES.stats()
 
 
 def configure_scene_cache(settings: Settings) -> None:

@@ -21,7 +21,8 @@ FLOOD = 48  # heavy requests one tenant has in flight (issue 9's number)
 LIMITS = {"SHADOWOPT_MAX_INFLIGHT": "60", "SHADOWOPT_TENANT_MAX_INFLIGHT": str(FLOOD), "SHADOWOPT_SOLVE_THREADS": "2",
           "SHADOWOPT_RATE_LIMIT_PER_S": "0", "SHADOWOPT_MAX_TIME_BUDGET_MS": "300", "SHADOWOPT_BATCH_WORKERS": "1",
           "SHADOWOPT_MAX_QUEUE": "20", "SHADOWOPT_TENANT_MAX_QUEUED": "6",
-          "SHADOWOPT_TENANT_MAX_STORED_BYTES": "3000"}
+          "SHADOWOPT_TENANT_MAX_STORED_BYTES": "3000", "SHADOWOPT_SCENE_CACHE_ENTRIES": "4",
+          "SHADOWOPT_TENANT_CACHE_SHARE": "0.5"}
 
 
 # --- the pools in process -------------------------------------------------------------------------
@@ -203,3 +204,22 @@ def test_stored_bytes_quota_per_tenant(server):
     assert post_scene(server.base, "bob", BOX % "    # bob's own\n").status_code == 201  # his own quota
     assert httpx.delete(f"{server.base}/v1/scenes/{ids[0]}", headers=auth("carol")).status_code == 200
     assert post_scene(server.base, "carol", text).status_code == 201  # room again
+    for s in httpx.get(server.base + "/v1/scenes", headers=auth("carol")).json()["scenes"]:
+        httpx.delete(f"{server.base}/v1/scenes/{s['scene_id']}", headers=auth("carol"))
+
+
+def test_an_evicted_scene_is_reloaded_once_for_six_concurrent_optimizes(server):
+    """issue 9: after a tenant's uploads evicted a scene, 6 concurrent optimizes did 6 full reloads and
+    shadowopt_inflight_requests stayed 0. The reload runs under the requests' admission, in a scene-load slot,
+    and the cache's single flight: one load for all six."""
+    first = box_scene(server, "carol", "    # first\n")
+    fillers = [box_scene(server, "carol", f"    # filler {k}\n") for k in range(3)]  # her share: 2 entries
+    loads = gauge(server.base, "shadowopt_scene_cache_loads_total")
+    body = {"scene_id": first, "rig": BOX_RIG, "method": "focused"}
+    with ThreadPoolExecutor(6) as pool:
+        answers = list(pool.map(lambda _: httpx.post(server.base + "/v1/optimize", json=body, headers=auth("carol"),
+                                                     timeout=120), range(6)))
+    assert [r.status_code for r in answers] == [200] * 6, [r.text[:200] for r in answers]
+    assert gauge(server.base, "shadowopt_scene_cache_loads_total") - loads == 1  # evicted, then loaded once
+    for sid in [first, *fillers]:
+        httpx.delete(f"{server.base}/v1/scenes/{sid}", headers=auth("carol"))
