@@ -192,7 +192,8 @@ def _terrain_height(x: float, z: float) -> float:
 
 
 def terrain(stage) -> None:
-    """A 240 m height field with a hill at (-80, -80), trees and rocks."""
+    """A 240 m height field with a hill at (-80, -80), trees and rocks; the rig stands on the hill's
+    slope at (-65, -65) looking down into the valley."""
     rng = random.Random(23)
     g = MeshAccumulator()
     g.heightfield(-120.0, 120.0, -120.0, 120.0, 150, _terrain_height)
@@ -201,7 +202,7 @@ def terrain(stage) -> None:
     placed = 0
     while placed < 160:
         x, z = rng.uniform(-115, 115), rng.uniform(-115, 115)
-        if (x + 80) ** 2 + (z + 80) ** 2 < 12.0 ** 2:  # keep the hilltop (the camera) clear
+        if (x + 65) ** 2 + (z + 65) ** 2 < 6.0 ** 2:  # keep the camera's spot on the hillside clear
             continue
         y = _terrain_height(x, z) - 0.2
         h = rng.uniform(4.0, 12.0)

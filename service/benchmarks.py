@@ -183,6 +183,7 @@ def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict
     rec = {k: {part: {name: [] for name in c} for part, c in configs.items()} for k in keys}
     per_part = dirs if isinstance(dirs, dict) else {part: dirs for part in configs}
     for i in range(max(len(v) for v in per_part.values())):
+        resolved = {}  # camera and light do not depend on the shadow settings: resolved once per direction
         for part, cfgs in configs.items():
             if i >= len(per_part[part]):
                 continue
@@ -191,9 +192,12 @@ def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict
                 rig = validate_rig({"camera": {**camera, "resolution": list(screen)},
                                     "lights": [{"type": "directional", "direction": [float(v) for v in d]}],
                                     "shadow": c["shadow"]})
-                resolved = resolve_rig(rig, entry.loaded)
+                key = tuple(rig["lights"][0]["direction"])
+                if key not in resolved:
+                    resolved[key] = resolve_rig(rig, entry.loaded)
+                r = resolved[key]
                 sol = solve(entry, rig, method=c["method"])
-                gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps_from_solution(sol)[0]).result
+                gt = evaluate_buffers(entry.rays, r.camera, r.lights[0], maps_from_solution(sol)[0]).result
                 for k, v in (("misclassified", gt["misclassified_pixels"]), ("outside", gt["outside_pixels"]),
                              ("boundary", gt["boundary_pixels"]), ("receivers", gt["receiver_pixels"]),
                              ("setup_ms", sol["timings_ms"]["optimize"]),
