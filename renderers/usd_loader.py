@@ -481,51 +481,75 @@ def _earcut(p2: np.ndarray) -> np.ndarray:
     return np.asarray(tris, dtype=np.int64).reshape(-1, 3)
 
 
-def _is_diagonal(p2: np.ndarray, i: int, j: int, eps: float) -> bool:
-    """Does the segment between corners i and j of the counter-clockwise polygon p2 lie inside it?
-    (O'Rourke's Diagonal: inside the corner's cone at both ends, and crossing or touching no edge
-    that is not incident to i or j; near-touching counts as touching, so the answer errs on no.)"""
+def _cross2(o, a, b):
+    return (a[..., 0] - o[..., 0]) * (b[..., 1] - o[..., 1]) - (a[..., 1] - o[..., 1]) * (b[..., 0] - o[..., 0])
+
+
+def _in_cone(p2: np.ndarray, a, b, eps: float):
+    """Does the segment from corner a towards corner b start into the polygon (O'Rourke's InCone;
+    counter-clockwise p2; near the cone's sides counts as outside)? a, b: ints or index arrays."""
     n = len(p2)
+    a, b = np.asarray(a), np.asarray(b)
+    prev, nxt, pa, pb = p2[(a - 1) % n], p2[(a + 1) % n], p2[a % n], p2[b % n]
+    convex = _cross2(pa, nxt, prev) >= 0
+    inside_convex = (_cross2(pa, pb, prev) > eps) & (_cross2(pb, pa, nxt) > eps)
+    inside_reflex = ~((_cross2(pa, pb, nxt) >= -eps) & (_cross2(pb, pa, prev) >= -eps))
+    return np.where(convex, inside_convex, inside_reflex)
 
-    def cross(o, a, b):
-        return (a[..., 0] - o[..., 0]) * (b[..., 1] - o[..., 1]) - (a[..., 1] - o[..., 1]) * (b[..., 0] - o[..., 0])
 
-    def in_cone(a, b):
-        prev, nxt = p2[(a - 1) % n], p2[(a + 1) % n]
-        pa, pb = p2[a], p2[b]
-        if cross(pa, nxt, prev) >= 0:  # convex corner
-            return cross(pa, pb, prev) > eps and cross(pb, pa, nxt) > eps
-        return not (cross(pa, pb, nxt) >= -eps and cross(pb, pa, prev) >= -eps)
-
-    if not (in_cone(i, j) and in_cone(j, i)):
-        return False
+def _crosses_no_edge(p2: np.ndarray, i: int, j: int, eps: float) -> bool:
+    """Does the segment between corners i and j cross or touch no edge that is not incident to i or j
+    (near-touching counts as touching, so the answer errs on no)?"""
+    n = len(p2)
     k = np.arange(n)
     k1 = (k + 1) % n
     edges = (k != i) & (k1 != i) & (k != j) & (k1 != j)
     a, b = p2[k[edges]], p2[k1[edges]]
     pi, pj = p2[i][None, :], p2[j][None, :]
-    o1, o2 = cross(pi, pj, a), cross(pi, pj, b)
-    o3, o4 = cross(a, b, pi), cross(a, b, pj)
+    o1, o2 = _cross2(pi, pj, a), _cross2(pi, pj, b)
+    o3, o4 = _cross2(a, b, pi), _cross2(a, b, pj)
     touching = (np.minimum(o1, o2) <= eps) & (np.maximum(o1, o2) >= -eps) \
         & (np.minimum(o3, o4) <= eps) & (np.maximum(o3, o4) >= -eps)
     return not bool(np.any(touching))
 
 
-def _triangulate_ccw(p2: np.ndarray, idx: np.ndarray, eps: float, tries: int = 8) -> list[np.ndarray]:
-    """Triangles (indices into p2) of the sub-polygon p2[idx]: a big one is cut along a diagonal
-    between roughly opposite corners (checked against every edge) and both halves are triangulated
-    on their own, so earcut, quadratic on spiky polygons such as stars, only sees small pieces."""
+def _is_diagonal(p2: np.ndarray, i: int, j: int, eps: float) -> bool:
+    """Does the segment between corners i and j of the counter-clockwise polygon p2 lie inside it?
+    (O'Rourke's Diagonal: in the cone at both ends, crossing no edge.)"""
+    return bool(_in_cone(p2, i, j, eps) and _in_cone(p2, j, i, eps)) and _crosses_no_edge(p2, i, j, eps)
+
+
+def _split(p2: np.ndarray, idx: np.ndarray, eps: float, pieces: list) -> bool:
+    """Cut the sub-polygon p2[idx] along diagonals between roughly opposite corners (each checked
+    against every edge) until every piece has at most _SPLIT_MIN corners; False when some piece has
+    no such diagonal. Candidates are screened by the cone test (vectorised); at most 12 per piece
+    get the O(m) edge test."""
     m = len(idx)
-    if m > _SPLIT_MIN:
-        sub = p2[idx]
-        for t in range(tries * 4):  # corners about half-way round, neighbours too (a spike's tip rarely sees far)
-            i = ((t // 4) * m) // (2 * tries) + t % 2
-            j = (m // 2) + ((t // 4) * m) // (2 * tries) + (t // 2) % 2
-            if _is_diagonal(sub, i, j, eps):
-                first = idx[i:j + 1]
-                second = np.concatenate([idx[j:], idx[:i + 1]])
-                return _triangulate_ccw(p2, first, eps, tries) + _triangulate_ccw(p2, second, eps, tries)
-    return [idx[_earcut(p2[idx])]]
+    if m <= _SPLIT_MIN:
+        pieces.append(idx)
+        return True
+    sub = p2[idx]
+    i = np.repeat((np.arange(64) * m) // 128, 7)  # starts over the first half, partners about half-way
+    j = i + m // 2 + np.tile([0, 1, -1, 2, -2, 3, -3], 64)
+    ok = _in_cone(sub, i, j, eps) & _in_cone(sub, j, i, eps)
+    for a, b in list(zip(i[ok].tolist(), j[ok].tolist()))[:12]:
+        if _crosses_no_edge(sub, a, b, eps):
+            return (_split(p2, idx[a:b + 1], eps, pieces)
+                    and _split(p2, np.concatenate([idx[b:], idx[:a + 1]]), eps, pieces))
+    return False
+
+
+def _triangulate_ccw(p2: np.ndarray, eps: float) -> np.ndarray:
+    """Triangles of the counter-clockwise polygon p2. earcut is quadratic on spiky polygons such as
+    stars (every needle's bounding box spans many corners), so a big polygon is first cut into
+    pieces of at most _SPLIT_MIN corners along checked diagonals, each piece cut by earcut; when the
+    polygon has no such cut all the way down (a comb, say, on which earcut is fast anyway), earcut
+    takes it whole."""
+    idx = np.arange(len(p2))
+    pieces: list[np.ndarray] = []
+    if len(p2) > _SPLIT_MIN and _split(p2, idx, eps, pieces):
+        return np.concatenate([piece[_earcut(p2[piece])] for piece in pieces])
+    return _earcut(p2)
 
 
 def ear_clip(pts: np.ndarray) -> np.ndarray:
@@ -547,7 +571,7 @@ def ear_clip(pts: np.ndarray) -> np.ndarray:
         return fan  # degenerate: any fan has zero area
     scale = float(np.abs(p2).max()) or 1.0
     eps = 1e-12 * scale * scale
-    tris = np.concatenate(_triangulate_ccw(p2, np.arange(n), eps))
+    tris = _triangulate_ccw(p2, eps)
     a, b, c = p2[tris[:, 0]], p2[tris[:, 1]], p2[tris[:, 2]]
     cross = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
     tris[cross < 0] = tris[cross < 0][:, [0, 2, 1]]

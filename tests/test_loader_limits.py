@@ -439,7 +439,12 @@ def test_the_thirty_thousand_corner_star_loads_with_its_own_area(tmp_path):
 
 
 @pytest.mark.parametrize("shape", ["star", "comb", "spiral"])
-def test_big_concave_polygons_are_cut_into_a_valid_triangulation(shape):
+def test_big_concave_polygons_are_cut_into_a_valid_triangulation(shape, monkeypatch):
+    """Both paths: cut along diagonals into pieces (the star) and earcut whole (the comb, which has no
+    long diagonal); the spiral takes whichever the cut search finds."""
+    pieces = []
+    real = usd_loader._earcut
+    monkeypatch.setattr(usd_loader, "_earcut", lambda p: pieces.append(len(p)) or real(p))
     n = 3000
     if shape == "star":
         a = 2 * np.pi * np.arange(n) / n
@@ -462,6 +467,10 @@ def test_big_concave_polygons_are_cut_into_a_valid_triangulation(shape):
     pts = np.concatenate([p2, np.zeros((len(p2), 1))], 1) @ tilt.T
     t = ear_clip(pts)
     _check_triangulation(p2, t)
+    if shape == "comb":
+        assert pieces == [len(p2)]
+    elif shape == "star":
+        assert len(pieces) > 1 and max(pieces) <= usd_loader._SPLIT_MIN and sum(pieces) == len(p2) + 2 * (len(pieces) - 1)
 
 
 # ------------------------------------------------------------------ 4. no server paths
