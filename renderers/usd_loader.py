@@ -127,17 +127,20 @@ class _Scrubber:
 
     def __init__(self, scene_dir: str, asset_root: str | None = None):
         rel_dirs = [scene_dir] + ([asset_root] if asset_root else [])
-        others = [sys.prefix, sys.base_prefix, sys.exec_prefix, os.getcwd(), tempfile.gettempdir(),
-                  os.path.expanduser("~")]
+        try:
+            cwd = [os.getcwd()]
+        except OSError:  # the working folder was removed
+            cwd = []
+        others = [sys.prefix, sys.base_prefix, sys.exec_prefix, *cwd, tempfile.gettempdir(), os.path.expanduser("~")]
         dirs: dict[str, bool] = {}
         for d, rel in [(d, True) for d in rel_dirs] + [(d, False) for d in others]:
             for v in {os.path.abspath(d), os.path.realpath(d)}:
                 v = v.rstrip("/")
-                if v.count("/") >= (1 if rel or v == tempfile.gettempdir().rstrip("/") else 2) and v not in dirs:
+                if v and v.count("/") >= (1 if rel or v == tempfile.gettempdir().rstrip("/") else 2) and v not in dirs:
                     dirs[v] = rel
         self._dirs = sorted(dirs.items(), key=lambda kv: -len(kv[0]))
         self._pattern = re.compile(r"(?<![\w.<>])(" + "|".join(re.escape(d) for d, _ in self._dirs)
-                                   + r")(/[^\s@'\"<>\[\],;()]*)?") if self._dirs else None
+                                   + r")(?![\w.-])(/[^\s@'\"<>\[\],;()]*)?") if self._dirs else None
         self._rel = dict(self._dirs)
 
     def __call__(self, text: str) -> str:
@@ -146,9 +149,9 @@ class _Scrubber:
         return _ABS_FILE.sub(lambda m: os.path.basename(m.group(0)), text)
 
     def _sub(self, m) -> str:
-        rest = (m.group(2) or "").strip("/")
-        rest = rest.rstrip(":")
-        tail = (m.group(2) or "")[len((m.group(2) or "").rstrip(":")):]
+        full = m.group(2) or ""
+        rest = full.rstrip(":").strip("/")
+        tail = full[len(full.rstrip(":")):]  # 'file.usda:3:26:' keeps its trailing colon
         if not rest:
             return "." if self._rel[m.group(1)] else "<server folder>"
         return (rest if self._rel[m.group(1)] else os.path.basename(rest)) + tail
