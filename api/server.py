@@ -380,12 +380,8 @@ def configure_scene_cache(settings: Settings) -> None:
     """Size the process-wide scene cache from the settings (entries, bytes, one tenant's share)."""
     from ..service.scenes import SCENES
 
-    configure = getattr(SCENES, "configure", None)
-    if configure is None:  # TODO(issue 9, part B): remove once service/scenes.py has SceneCache.configure
-        SCENES.capacity = settings.scene_cache_entries
-        return
-    configure(capacity=settings.scene_cache_entries, max_bytes=settings.scene_cache_bytes,
-              tenant_share=settings.tenant_cache_share)
+    SCENES.configure(capacity=settings.scene_cache_entries, max_bytes=settings.scene_cache_bytes,
+                     tenant_share=settings.tenant_cache_share)
 
 
 def import_native_stack() -> None:
@@ -776,21 +772,15 @@ def scene_error(e, field: str) -> ApiError:
 
 
 def load_limits(settings: Settings):
-    try:
-        from ..service.isolation import LoadLimits
-    except ImportError:  # TODO(issue 9, part B): drop the fallback once service/isolation.py is committed
-        from ..service.scenes import LoadLimits
+    from ..service.isolation import LoadLimits
+
     return LoadLimits(settings.max_triangles, settings.load_memory_bytes, settings.load_timeout_s)
 
 
 def scene_options(svc: Service, tenant: str, sandboxed: bool) -> dict:
     """SCENES.get keywords: uploads load sandboxed, in a child with the load limits, counted to the tenant."""
-    import inspect
-
-    from ..service.scenes import SCENES
-
     opts = {"sandbox": sandboxed}
-    if sandboxed and "limits" in inspect.signature(SCENES.get).parameters:  # TODO(issue 9, part B): always
+    if sandboxed:
         opts.update(tenant=tenant, limits=load_limits(svc.settings))
     return opts
 
@@ -943,7 +933,7 @@ def solver_errors(previous_given: bool = False):
     except SolutionError as e:
         raise ApiError(422, e.code, str(e), e.field) from e
     except SceneError as e:
-        raise ApiError(422, e.code, f"scene_id: {e.message}", "scene_id") from e
+        raise scene_error(e, "scene_id") from e
     except (KeyError, TypeError, IndexError) as e:
         if not previous_given:
             raise
