@@ -173,13 +173,13 @@ def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict
     """One scene and camera under Chong & Gortler 2007 §3's protocol: for every light direction and
     every configuration, the solution (`solve`) scored against exact ray-traced visibility
     (`evaluate_buffers` at the rig's resolution `screen`). Per part and configuration, one entry per
-    direction: misclassified, outside and boundary pixels, setup time (ms, coarse pass excluded) and
-    the predicted objective. `dirs`: one array for every part, or {part: array}."""
+    direction: misclassified, outside and boundary pixels, setup time (ms, coarse pass excluded),
+    the predicted objective, and the wall time of the run (solve and evaluation, s). `dirs`: one array for every part, or {part: array}."""
     from ..renderers.ground_truth import evaluate_buffers
     from ..service.rigs import resolve_rig
     from ..service.solve import maps_from_solution, solve
 
-    keys = ("misclassified", "outside", "boundary", "receivers", "setup_ms", "objective")
+    keys = ("misclassified", "outside", "boundary", "receivers", "setup_ms", "objective", "run_s")
     rec = {k: {part: {name: [] for name in c} for part, c in configs.items()} for k in keys}
     per_part = dirs if isinstance(dirs, dict) else {part: dirs for part in configs}
     for i in range(max(len(v) for v in per_part.values())):
@@ -196,8 +196,10 @@ def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict
                 if key not in resolved:
                     resolved[key] = resolve_rig(rig, entry.loaded)
                 r = resolved[key]
+                t0 = time.perf_counter()
                 sol = solve(entry, rig, method=c["method"])
                 gt = evaluate_buffers(entry.rays, r.camera, r.lights[0], maps_from_solution(sol)[0]).result
+                rec["run_s"][part][name].append(time.perf_counter() - t0)
                 for k, v in (("misclassified", gt["misclassified_pixels"]), ("outside", gt["outside_pixels"]),
                              ("boundary", gt["boundary_pixels"]), ("receivers", gt["receiver_pixels"]),
                              ("setup_ms", sol["timings_ms"]["optimize"]),
@@ -292,7 +294,8 @@ def _scene_stats(rec: dict, dirs, spec: dict) -> dict:
         p = {"suns": len(next(iter(mis.values()))), "totals": {m: int(v.sum()) for m, v in mis.items()},
              "outside": {m: int(np.sum(v)) for m, v in rec["outside"][part].items()},
              "outside_max": {m: int(np.max(v)) for m, v in rec["outside"][part].items()},
-             "setup_ms_p50": {m: float(statistics.median(v)) for m, v in rec["setup_ms"][part].items()}}
+             "setup_ms_p50": {m: float(statistics.median(v)) for m, v in rec["setup_ms"][part].items()},
+             "run_s_p50": {m: float(statistics.median(v)) for m, v in rec["run_s"][part].items()}}
         pred = np.concatenate([rec["objective"][part][m] for m in mis])
         meas = np.concatenate([mis[m] for m in mis])
         p["spearman_pooled"] = spearman(pred, meas) if len(pred) > 2 else float("nan")
@@ -368,12 +371,15 @@ def _tables_corpus(stats: dict, skipped: dict, spec: dict, corpus_ratio, corpus_
                          f"{r['optimized/best_baseline']:.3f} ({p['best_baseline']}) | {p['suns_not_lowest']} of {p['suns']} | "
                          f"{p['spearman_pooled']:.2f} | {p['spearman_within_sun_mean']:.2f} |")
         lines += ["", "**One map: outside pixels** (receiver pixels outside every map; summed over the suns, the worst "
-                  "sun in brackets) **and setup time** (median ms per light, `timings_ms.optimize`: coarse pass excluded).", "",
-                  "| scene | " + " | ".join(f"outside {m}" for m in methods) + " | " + " | ".join(f"ms {m}" for m in methods) + " |",
-                  "|---|" + "---:|" * (2 * len(methods))]
+                  "sun in brackets), **setup time** (median ms per light, `timings_ms.optimize`: coarse pass excluded) "
+                  "and the benchmark's cost: wall seconds of one (scene, sun, method) run, solve and evaluation, median over methods.", "",
+                  "| scene | triangles | " + " | ".join(f"outside {m}" for m in methods) + " | " + " | ".join(f"ms {m}" for m in methods)
+                  + " | s per run |",
+                  "|---|" + "---:|" * (2 * len(methods) + 2)]
         for k, p in rows_single:
-            lines.append(f"| {k} | " + " | ".join(f"{p['outside'][m]} ({p['outside_max'][m]})" for m in methods) + " | "
-                         + " | ".join(f"{p['setup_ms_p50'][m]:.1f}" for m in methods) + " |")
+            lines.append(f"| {k} | {stats[k]['triangles']:,} | " + " | ".join(f"{p['outside'][m]} ({p['outside_max'][m]})" for m in methods)
+                         + " | " + " | ".join(f"{p['setup_ms_p50'][m]:.1f}" for m in methods)
+                         + f" | {statistics.median(p['run_s_p50'].values()):.2f} |")
         lines += ["", f"**One map: the worst suns** (largest excess of optimized over the best of "
                   f"{', '.join(t['baselines'])} on that sun; elevation and azimuth of the light's travel direction).", "",
                   "| scene | sun | elevation | azimuth | optimized | best baseline | boundary pixels |", "|---|---:|---:|---:|---:|---|---:|"]
@@ -414,12 +420,37 @@ def _tables_corpus(stats: dict, skipped: dict, spec: dict, corpus_ratio, corpus_
     return "\n".join(lines)
 
 
+def _corpus_fingerprint(path: Path, camera: dict, screen, configs: dict, part_dirs: dict) -> str:
+    """What a scene's corpus result depends on: the scene file, the rig, the protocol's settings and
+    the code that solves and evaluates (solvers/, the renderers' ray casting and ground truth, the
+    solve step). `--reuse` takes a stored result only when this matches."""
+    import hashlib
+
+    import numpy as np
+
+    h = hashlib.sha256()
+    st = path.stat()
+    h.update(json.dumps([str(path), st.st_size, st.st_mtime_ns, camera, list(screen), configs,
+                         {p: np.asarray(v).round(12).tolist() for p, v in part_dirs.items()}],
+                        sort_keys=True, default=str).encode())
+    code = sorted((ROOT / "solvers").glob("*.py")) + [
+        ROOT / "renderers" / f for f in ("ground_truth.py", "coarse.py", "ray_scene.py", "mitsuba_setup.py")] + [
+        ROOT / "service" / f for f in ("solve.py", "rigs.py", "pipeline.py", "scenes.py")]
+    for f in code:
+        if f.exists():
+            h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
 def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | None = None, write: bool = True,
-                         parts=("single", "cascades"), screen=None, log=None) -> dict:
+                         parts=("single", "cascades"), screen=None, log=None, reuse: bool = False) -> dict:
     """Chong & Gortler's protocol on every corpus scene (configs/corpus.json) with the same
     configurations as `bench_quality` (one map per method, 4 cascades), the same seeded suns on every
-    scene; per scene and rig: totals, ratios, losses, worst suns, outside pixels, setup time, the
-    pooled Spearman, and a verdict per target of issue 10 (configs/benchmarks.json `quality_corpus`)."""
+    scene (4 cascades: the first `cascade_lights`); per scene and rig: totals, ratios, losses, worst
+    suns, outside pixels, setup time, the pooled Spearman, and a verdict per target of issue 10
+    (configs/benchmarks.json `quality_corpus`). Each scene's measurements are stored in
+    out/bench/quality-corpus/; `reuse` takes them instead of measuring again when the scene, rig,
+    settings and code are unchanged (a long run split over processes, or resumed)."""
     from ..service.scenes import SceneCache
 
     qspec, spec = definitions()["quality"], definitions()["quality_corpus"]
@@ -429,34 +460,46 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
     configs = quality_configs(qspec, parts)
     n_cascades = min(n, spec["cascade_lights"])
     dirs = hemisphere_directions(n, spec["min_elevation_deg"], spec["seed"])
-    part_dirs = {"single": dirs, "cascades": dirs[:n_cascades]}
-    part_dirs = {p: v for p, v in part_dirs.items() if p in configs}
+    part_dirs = {p: v for p, v in {"single": dirs, "cascades": dirs[:n_cascades]}.items() if p in configs}
     found, skipped = corpus_scenes(scenes.split(",") if scenes else None)
     spec = {**spec, "cascades_note": qspec["cascades"]["note"]}
-    stats, raw, timing, load_s = {}, {}, {}, {}
+    stats, raw, timing, load_s, reused = {}, {}, {}, {}, []
+    store = ROOT / "out" / "bench" / "quality-corpus"
+    store.mkdir(parents=True, exist_ok=True)
     total_rigs = sum(len(s["rigs"]) for _, s in found.values())
     bar = _progress(total_rigs * sum(len(part_dirs[p]) * len(c) for p, c in configs.items()), "quality corpus")
     for name, (path, sspec) in found.items():
-        t0 = time.perf_counter()
-        cache = SceneCache()
-        entry = cache.get(path)
-        t_load = time.perf_counter() - t0
+        cache = entry = None
         for rig_name, rig in sspec["rigs"].items():
             key = name if len(sspec["rigs"]) == 1 else f"{name}/{rig_name}"
-            t1 = time.perf_counter()
-            rec = quality_scene(validate_rig, entry, rig["camera"], screen, part_dirs, configs, bar)
+            fp = _corpus_fingerprint(Path(path), rig["camera"], screen, configs, part_dirs)
+            file = store / f"{key.replace('/', '--')}.json"
+            old = json.loads(file.read_text()) if reuse and file.exists() else None
+            if old is not None and old.get("fingerprint") == fp:
+                rec, timing[key], triangles = old["rec"], old["wall_s"], old["triangles"]
+                load_s.setdefault(name, old.get("load_s"))
+                reused.append(key)
+            else:
+                if entry is None:
+                    t0 = time.perf_counter()
+                    cache = SceneCache()
+                    entry = cache.get(path)
+                    load_s[name] = round(time.perf_counter() - t0, 2)
+                t1 = time.perf_counter()
+                rec = quality_scene(validate_rig, entry, rig["camera"], screen, part_dirs, configs, bar)
+                timing[key] = round(time.perf_counter() - t1, 1)
+                triangles = entry.loaded.geometry.triangle_count
+                file.write_text(json.dumps({"fingerprint": fp, "scene": name, "rig": rig_name, "rec": rec,
+                                            "wall_s": timing[key], "load_s": load_s[name], "triangles": triangles,
+                                            "measured": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}, default=float))
             raw[key] = rec
-            stats[key] = {**_scene_stats(rec, dirs, spec), "dirs": dirs.tolist(),
-                          "triangles": entry.loaded.geometry.triangle_count}
-            timing[key] = round(time.perf_counter() - t1, 1)
+            stats[key] = {**_scene_stats(rec, dirs, spec), "dirs": dirs.tolist(), "triangles": triangles}
             if log:
                 log(f"{key}: " + ", ".join(f"{len(part_dirs[p])} suns x {len(c)} ({p})" for p, c in configs.items())
-                    + f" in {timing[key]:.0f} s")
-            if write:  # a checkpoint: what a long run has measured so far
-                _dump_corpus({"scenes": stats, "raw": raw, "wall_s": timing, "partial": True}, "quality-corpus.partial.json")
-        cache.clear()  # one scene in memory at a time (the chess set is 1.4M triangles)
+                    + (" reused" if key in reused else f" in {timing[key]:.0f} s"))
+        if cache is not None:
+            cache.clear()  # one scene in memory at a time (the chess set is 1.4M triangles)
         del entry, cache
-        load_s[name] = round(t_load, 2)
     bar.close()
     corpus_ratio = corpus_ok = None
     if stats and "single" in parts:
@@ -473,10 +516,12 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
             f"Best baseline: the best of {', '.join(spec['targets']['baselines'])} by total.")
     table = head + "\n\n" + _tables_corpus(stats, skipped, spec, corpus_ratio, corpus_ok)
     out = {"benchmark": "quality-corpus", "machine": machine(), "lights": n, "screen": screen, "map": qspec["map"],
-           "cascade_lights": n_cascades, "scenes": stats, "skipped": skipped, "raw": raw, "corpus_optimized_over_best_baseline": corpus_ratio,
-           "wall_s": timing, "load_s": load_s, "table": table}
+           "cascade_lights": n_cascades, "scenes": stats, "skipped": skipped, "raw": raw,
+           "corpus_optimized_over_best_baseline": corpus_ratio, "wall_s": timing, "load_s": load_s, "reused": reused,
+           "table": table}
     if write:
-        cmd = "shadowopt bench quality --corpus" + (f" --scenes {scenes}" if scenes else "") + (f" --lights {n}" if lights else "")
+        cmd = ("shadowopt bench quality --corpus" + (f" --scenes {scenes}" if scenes else "")
+               + (f" --lights {n}" if lights else ""))
         write_section("quality-corpus", table, cmd)
         _dump_corpus(out, "quality-corpus.json")
     return out
