@@ -27,7 +27,8 @@ plus cameras and lights with their USD paths.
   purpose is default or render.
 - Meshes are triangulated as authored (subdivision meshes as their cage): triangles and quads
   vectorised, larger faces fanned when a vectorised check finds them convex, the others projected on
-  their Newell plane and triangulated by earcut (mapbox-earcut, C++).
+  their Newell plane and triangulated by earcut (mapbox-earcut, C++); a face of more than 256
+  corners is first cut along checked diagonals into pieces (earcut is quadratic on star-like faces).
 - Implicit prims (Cube, Sphere, Cylinder, Cone, Capsule, Plane, and the *_1 variants) are tessellated.
 - Units: the stage's upAxis and metersPerUnit (USD's fallbacks: Y and 0.01) -> solvers.frames world.
 - At the default time code, attributes with time samples but no default are read at their first sample.
@@ -516,15 +517,9 @@ def _crosses_no_edge(p2: np.ndarray, i: int, j: int, eps: float) -> bool:
     return not bool(np.any(touching))
 
 
-def _is_diagonal(p2: np.ndarray, i: int, j: int, eps: float) -> bool:
-    """Does the segment between corners i and j of the counter-clockwise polygon p2 lie inside it?
-    (O'Rourke's Diagonal: in the cone at both ends, crossing no edge.)"""
-    return bool(_in_cone(p2, i, j, eps) and _in_cone(p2, j, i, eps)) and _crosses_no_edge(p2, i, j, eps)
-
-
 def _split(p2: np.ndarray, idx: np.ndarray, eps: float, pieces: list) -> bool:
-    """Cut the sub-polygon p2[idx] along diagonals between roughly opposite corners (each checked
-    against every edge) until every piece has at most _SPLIT_MIN corners; False when some piece has
+    """Cut the sub-polygon p2[idx] along diagonals between roughly opposite corners (O'Rourke's
+    Diagonal: in the cone at both ends, crossing no edge) until every piece has at most _SPLIT_MIN corners; False when some piece has
     no such diagonal. Candidates are screened by the cone test (vectorised); at most 12 per piece
     get the O(m) edge test."""
     m = len(idx)
