@@ -281,6 +281,10 @@ def "Args" (
     references = @./leaf.usda:SDF_FORMAT_ARGS:target=usda@
 ) {
 }
+def "Anon" (
+    references = @anon:0x7f0000001000:secret.usda@
+) {
+}
 """
 
 
@@ -309,6 +313,7 @@ def test_references_payloads_and_clips_inside_variants_are_checked(data, watch, 
     refused = " | ".join(x for x in sc.warnings if x.startswith("refused asset"))
     assert "value clip" in refused and "look.mtlx" in refused and "not a USD layer" in refused
     assert "SDF_FORMAT_ARGS" in refused and "parse error" not in " ".join(sc.warnings)
+    assert "@anon:0x7f0000001000:secret.usda@" in refused  # another load's in-memory layer: not by name either
 
 
 def test_internal_references_are_legal_and_not_warned_about(tmp_path):
