@@ -435,11 +435,26 @@ def _corpus_fingerprint(path: Path, camera: dict, screen, configs: dict, part_di
                         sort_keys=True, default=str).encode())
     code = sorted((ROOT / "solvers").glob("*.py")) + [
         ROOT / "renderers" / f for f in ("ground_truth.py", "coarse.py", "ray_scene.py", "mitsuba_setup.py")] + [
-        ROOT / "service" / f for f in ("solve.py", "rigs.py", "pipeline.py", "scenes.py")]
+        ROOT / "service" / f for f in ("solve.py", "rigs.py", "pipeline.py")]
     for f in code:
         if f.exists():
             h.update(f.read_bytes())
     return h.hexdigest()[:16]
+
+
+def code_state() -> str:
+    """The commit measured, and the files the working tree changes (other engineers' work in progress)."""
+    import subprocess
+
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                              timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--short", "--untracked-files=no"], cwd=ROOT, capture_output=True,
+                               text=True, timeout=10).stdout.split("\n")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    changed = [ln[3:] for ln in dirty if ln.strip() and ln[3:].endswith(".py")]
+    return f"commit {head}" + (f" (working tree also changes {', '.join(changed)})" if changed else "")
 
 
 def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | None = None, write: bool = True,
@@ -513,7 +528,10 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
             f"hemisphere above {spec['min_elevation_deg']} deg (seed {spec['seed']}, the same on every scene; 4 cascades: "
             f"the first {n_cascades} of them); "
             "misclassified pixels against exact ray-traced visibility (renderers.ground_truth.evaluate_buffers). "
-            f"Best baseline: the best of {', '.join(spec['targets']['baselines'])} by total.")
+            f"Best baseline: the best of {', '.join(spec['targets']['baselines'])} by total. Code: {code_state()}.")
+    if reused:
+        head += (f" Taken from this code's stored runs (`--reuse`, out/bench/quality-corpus/): {', '.join(reused)}; "
+                 "wall seconds per scene rig: " + ", ".join(f"{k} {v:.0f}" for k, v in timing.items()) + ".")
     table = head + "\n\n" + _tables_corpus(stats, skipped, spec, corpus_ratio, corpus_ok)
     out = {"benchmark": "quality-corpus", "machine": machine(), "lights": n, "screen": screen, "map": qspec["map"],
            "cascade_lights": n_cascades, "scenes": stats, "skipped": skipped, "raw": raw,
