@@ -41,7 +41,7 @@ class Settings:
     scene_cache_entries: int = 8  # loaded scenes kept in memory
     scene_cache_bytes: int = 2 * 1024 ** 3  # bytes of loaded scenes kept in memory
     tenant_cache_share: float = 0.5  # fraction of the scene cache (entries and bytes) one tenant's scenes may hold
-    tenant_max_inflight: int = 16  # one tenant's heavy requests admitted at once; more get 429
+    tenant_max_inflight: int = 32  # one tenant's heavy requests admitted at once (half of max_inflight); more get 429
     tenant_max_queued: int = 25_000  # one tenant's batch configurations waiting or running; more get 429
     tenant_max_stored_bytes: int = 1024 ** 3  # bytes of uploaded files one tenant may keep; more get 429 (413 when
     # one upload alone is larger)

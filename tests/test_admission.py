@@ -165,7 +165,8 @@ def test_one_tenant_over_its_queue_quota_gets_429_while_another_proceeds(server)
                                                          "method": "optimized"}, headers=auth("alice"), timeout=60)
     assert hog.status_code == 429, hog.text
     err = hog.json()["error"]
-    assert err["code"] == "tenant_quota" and "tenant_max_queued = 6" in err["message"] and err["field"] == "configurations"
+    assert err["code"] == "tenant_quota" and err["field"] == "configurations"
+    assert "tenant_max_queued = 6" in err["message"]
     assert int(hog.headers["retry-after"]) >= 1
     first = httpx.post(server.base + "/v1/batches", json={"scene_id": alice, "configurations": slow_configurations(5),
                                                            "method": "optimized"}, headers=auth("alice"), timeout=60)
@@ -195,7 +196,8 @@ def test_stored_bytes_quota_per_tenant(server):
         assert k < 20, "the quota never applied"
     assert r.status_code == 429, r.text
     err = r.json()["error"]
-    assert err["code"] == "tenant_quota" and "tenant_max_stored_bytes = 3000" in err["message"] and err["field"] == "file"
+    assert err["code"] == "tenant_quota" and err["field"] == "file"
+    assert "tenant_max_stored_bytes = 3000" in err["message"]
     assert int(r.headers["retry-after"]) >= 1 and sizes + len(text.encode()) > 3000 >= sizes
     listed = httpx.get(server.base + "/v1/scenes", headers=auth("carol")).json()["scenes"]
     assert sorted(s["scene_id"] for s in listed) == sorted(ids)  # the refused one left no record
