@@ -118,13 +118,21 @@ def test_settings_from_file_env_and_flags(tmp_path):
     assert load_settings(js, env={}).batch_backend == "ray"
     assert load_settings(env={"SHADOWOPT_TOKENS": "a=tok-aaaa, b=tok-bbbb"}).tokens == {"a": "tok-aaaa", "b": "tok-bbbb"}
     for env, words in [({"SHADOWOPT_TOKENS": "justatoken"}, "name=token"), ({"SHADOWOPT_MAX_QUEUE": "lots"}, "max_queue"),
-                       ({"SHADOWOPT_TOKENS": "a=short"}, "at least 8"), ({"SHADOWOPT_BATCH_BACKEND": "dask"}, "batch_backend")]:
+                       ({"SHADOWOPT_TOKENS": "a=short"}, "at least 8"), ({"SHADOWOPT_BATCH_BACKEND": "dask"}, "batch_backend"),
+                       ({"SHADOWOPT_TENANT_CACHE_SHARE": "1.5"}, "tenant_cache_share"),
+                       ({"SHADOWOPT_LOAD_MEMORY_BYTES": "1000000"}, "load_memory_bytes"),
+                       ({"SHADOWOPT_LOAD_TIMEOUT_S": "0"}, "load_timeout_s"),
+                       ({"SHADOWOPT_TENANT_MAX_QUEUED": "0"}, "tenant_max_queued"),
+                       ({"SHADOWOPT_LOAD_THREADS": "0"}, "load_threads")]:
         with pytest.raises(SettingsError, match=words):
             load_settings(env=env)
     (tmp_path / "bad.toml").write_text("max_qeue = 3\n")
     with pytest.raises(SettingsError, match="unknown setting.*max_qeue"):
         load_settings(tmp_path / "bad.toml", env={})
     assert parse_tokens("") == {} and not Settings().auth_enabled
+    q = load_settings(env={"SHADOWOPT_TENANT_MAX_INFLIGHT": "3", "SHADOWOPT_TENANT_MAX_STORED_BYTES": "5000",
+                           "SHADOWOPT_SCENE_CACHE_BYTES": "1000"})
+    assert (q.tenant_max_inflight, q.tenant_max_stored_bytes, q.scene_cache_bytes, q.load_threads) == (3, 5000, 1000, 1)
     assert is_loopback("127.0.0.1") and is_loopback("::1") and not is_loopback("0.0.0.0")
 
 
