@@ -323,7 +323,7 @@ def _scene_stats(rec: dict, dirs, spec: dict) -> dict:
                             "boundary_pixels": int(rec["boundary"]["single"]["optimized"][i])} for i in order]
     if "cascades" in out:
         c = out["cascades"]
-        ref, opt = t["cascades_reference"], t["cascades_optimized"]
+        ref = t["cascades_reference"]
         c["ratios"] = {f"{m}/{ref}": c["totals"][m] / max(c["totals"][ref], 1) for m in c["totals"] if m != ref}
     out["verdicts"] = _verdicts(out, t)
     return out
