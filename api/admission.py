@@ -5,9 +5,11 @@ Everything here runs on the event loop and never blocks a thread:
   429 when this tenant has `tenant_max_inflight` in) or a ticket that counts the request as in flight
   until it is released (queued and running requests alike: `shadowopt_inflight_requests`);
 - a ticket then waits for a slot of a `FairPool` (solver slots, `solve_threads`; scene-load slots,
-  `load_threads`) as an asyncio future. A freed slot goes to the tenants in turn (round robin over the
-  tenants with waiting requests, FIFO within a tenant), so one tenant's 40 waiting requests do not all go
-  before another tenant's one. Only a request holding a slot takes a worker thread.
+  `load_threads`) as an asyncio future. A freed slot goes to the waiting tenant that holds the fewest slots
+  of the pool, ties taken in turn (round robin over the tenants with waiting requests, FIFO within a
+  tenant): one tenant's 40 waiting requests do not all go before another tenant's one, and a tenant that
+  arrives while another holds every slot gets the next one. Only a request holding a slot takes a worker
+  thread.
 """
 from __future__ import annotations
 
@@ -26,17 +28,19 @@ class Refused(Exception):
 
 
 class FairPool:
-    """`size` slots handed out on the event loop, taking turns between tenants."""
+    """`size` slots handed out on the event loop, shared fairly between tenants."""
 
     def __init__(self, name: str, size: int):
         self.name, self.size = name, size
         self.busy = 0
+        self.held: dict[str, int] = {}  # tenant -> slots it holds
         self.waiting = 0  # requests waiting for a slot (kept as a count: /metrics reads it from another thread)
         self._waiting: OrderedDict[str, deque[asyncio.Future]] = OrderedDict()  # tenant -> its waiters, in turn
 
     async def acquire(self, tenant: str) -> None:
         if self.busy < self.size and not self._waiting:
             self.busy += 1
+            self.held[tenant] = self.held.get(tenant, 0) + 1
             return
         fut = asyncio.get_running_loop().create_future()
         self._waiting.setdefault(tenant, deque()).append(fut)
@@ -45,7 +49,7 @@ class FairPool:
             await fut
         except asyncio.CancelledError:
             if fut.done() and not fut.cancelled():  # handed a slot and cancelled at the same time: give it on
-                self.release()
+                self.release(tenant)
             else:
                 q = self._waiting.get(tenant)
                 if q is not None and fut in q:
@@ -55,17 +59,24 @@ class FairPool:
                         del self._waiting[tenant]
             raise
 
-    def release(self) -> None:
-        """Free a slot: it goes to the first waiter of the tenant whose turn it is (then at the back)."""
+    def release(self, tenant: str) -> None:
+        """`tenant` frees a slot: it goes to the first waiter of the waiting tenant holding the fewest slots,
+        the first in turn among equals (who then goes to the back of the line)."""
+        left = self.held.get(tenant, 1) - 1
+        if left > 0:
+            self.held[tenant] = left
+        else:
+            self.held.pop(tenant, None)
         while self._waiting:
-            tenant, q = next(iter(self._waiting.items()))
+            nxt = min(self._waiting, key=lambda t: self.held.get(t, 0))  # min keeps the first of equals
+            q = self._waiting.pop(nxt)
             fut = q.popleft()
             self.waiting -= 1
-            del self._waiting[tenant]
             if q:
-                self._waiting[tenant] = q  # to the back of the line
+                self._waiting[nxt] = q  # to the back of the line
             if not fut.done():
                 fut.set_result(None)  # the slot passes on: `busy` is unchanged
+                self.held[nxt] = self.held.get(nxt, 0) + 1
                 return
         self.busy -= 1
 
@@ -75,7 +86,7 @@ class FairPool:
         try:
             yield
         finally:
-            self.release()
+            self.release(tenant)
 
 
 @dataclass

@@ -51,6 +51,26 @@ def test_slots_go_to_the_tenants_in_turn_and_a_cancelled_waiter_gives_its_place_
     assert pool.busy == 0 and pool.waiting == 0  # c's cancelled wait left nothing behind
 
 
+def test_a_tenant_holding_every_slot_gives_the_next_one_to_a_newcomer():
+    async def main():
+        pool, order = FairPool("solve", 2), []
+
+        async def request(tenant, i):
+            async with pool.slot(tenant):
+                order.append(f"{tenant}{i}")
+                await asyncio.sleep(0.001)
+
+        tasks = [asyncio.create_task(request("a", i)) for i in range(5)]
+        await asyncio.sleep(0)  # a0 and a1 run, a2..a4 wait
+        tasks.append(asyncio.create_task(request("b", 0)))
+        await asyncio.gather(*tasks)
+        return order, pool
+
+    order, pool = asyncio.run(main())
+    assert order[:3] == ["a0", "a1", "b0"], order  # a was first in line, but b held no slot
+    assert pool.busy == 0 and pool.held == {}
+
+
 def test_admission_refuses_at_once_naming_the_limit():
     adm = Admission(max_inflight=3, tenant_max_inflight=2, solve_threads=1, load_threads=1)
     first = adm.admit("a")
