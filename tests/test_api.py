@@ -146,7 +146,7 @@ def test_optimize_errors_name_the_field(api, scene):
     err = error_of(api.post("/v1/optimize", json={"scene_id": "0123456789abcdef", "rig": TINY_RIG}), 404)
     assert err["code"] == "scene_not_found" and err["field"] == "scene_id"
     err = error_of(api.post("/v1/optimize", json={"scene_id": sid, "rig": TINY_RIG, "previous": {"solver": {"x": 5}}}), 422)
-    assert err["field"] == "previous"
+    assert err["code"] == "invalid_previous" and err["field"] == "previous.solver.x"  # the exact field
     assert error_of(api.get("/v1/nowhere"), 404)["code"] == "not_found"
 
 
