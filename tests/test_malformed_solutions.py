@@ -346,3 +346,20 @@ def test_server_answers_422_naming_the_field(server):
                 failures.append((("previous",) + path, value, r.status_code, r.text[:300]))
         assert not failures, "\n".join(map(str, failures))
         assert httpx.get(server.base + "/healthz").status_code == 200
+
+
+def test_compare_and_evaluate_accept_what_optimize_accepts(server):
+    """Issue 9, item 9: a rig with a texel budget (no resolution) was refused by /v1/compare (422 "cascades.0.
+    resolution ... got None") while /v1/optimize accepted it; all three answer 200 now."""
+    sid = upload(server.base, "alice").json()["scene_id"]
+    rig = {**TINY_RIG, "shadow": {"texel_budget": 200_000, "cascades": 2}}
+    with httpx.Client(base_url=server.base, headers=auth("alice"), timeout=120) as api:
+        sol = api.post("/v1/optimize", json={"scene_id": sid, "rig": rig, "method": "focused"})
+        assert sol.status_code == 200, sol.text
+        texels = sum(w * h for w, h in (c["resolution"] for c in sol.json()["lights"][0]["cascades"]))
+        assert 0 < texels <= 200_000
+        r = api.post("/v1/evaluate", json={"scene_id": sid, "rig": rig, "solution": sol.json()})
+        assert r.status_code == 200 and r.json()["receiver_pixels"] > 0, r.text
+        r = api.post("/v1/compare", json={"scene_id": sid, "rig": rig, "methods": ["focused", "lispsm"]})
+        assert r.status_code == 200, r.text
+        assert set(r.json()["methods"]) == {"focused", "lispsm"}
