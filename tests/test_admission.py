@@ -122,19 +122,26 @@ def test_probes_answer_at_once_and_another_tenant_gets_its_turn_while_one_floods
             "methods": ["uniform", "focused", "lispsm", "optimized"]}
     done: list[float] = []  # completion times of alice's requests
     statuses: list[int] = []
+    blocker = {**body, "screen": [960, 540]}  # two slow ones hold both solver slots while the rest queue up
 
-    def one(_):
-        r = httpx.post(server.base + "/v1/compare", json=body, headers=auth("alice"), timeout=300)
+    def one(i):
+        r = httpx.post(server.base + "/v1/compare", json=blocker if i < 2 else body, headers=auth("alice"),
+                       timeout=300)
         done.append(time.monotonic())
         statuses.append(r.status_code)
 
-    pool = ThreadPoolExecutor(FLOOD)
-    futures = [pool.submit(one, i) for i in range(FLOOD)]
-    try:
+    def wait_for(name: str, value: int) -> None:
         deadline = time.monotonic() + 60
-        while gauge(server.base, "shadowopt_inflight_requests") < FLOOD:
-            assert time.monotonic() < deadline, "the flood never got in"
-            time.sleep(0.02)
+        while gauge(server.base, name) < value:
+            assert time.monotonic() < deadline, f"{name} never reached {value}"
+            time.sleep(0.01)
+
+    pool = ThreadPoolExecutor(FLOOD)
+    futures = [pool.submit(one, i) for i in range(2)]
+    try:
+        wait_for("shadowopt_solve_slots_busy", 2)
+        futures += [pool.submit(one, i) for i in range(2, FLOOD)]
+        wait_for("shadowopt_inflight_requests", FLOOD)
         assert gauge(server.base, "shadowopt_solve_waiting") >= FLOOD - 4  # queued, not running: the case of issue 9
         health, metrics = [], []
         with httpx.Client(base_url=server.base, timeout=30) as c:
