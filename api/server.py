@@ -794,7 +794,8 @@ def load_entry(svc: Service, path, opts: dict, field: str):
         entry = SCENES.get(path, **opts)
     except SceneError as e:
         raise scene_error(e, field) from e
-    svc._live_scenes[_scene_key(path, opts)] = entry
+    with contextlib.suppress(TypeError):  # an entry type without weak references: the fallback is off
+        svc._live_scenes[_scene_key(path, opts)] = entry
     return entry
 
 
@@ -813,7 +814,8 @@ def cached_entry(svc: Service, path, opts: dict):
 
     peek = getattr(SCENES, "peek", None)
     if peek is not None:
-        return peek(path, **opts)
+        with contextlib.suppress(TypeError):
+            return peek(path, **opts)
     # TODO(issue 9, part B): use SCENES.peek once the cache has one; until then its own key and entries
     try:
         key = SCENES._key(path, opts.get("time_code"), opts.get("asset_root"), opts.get("sandbox", False))
