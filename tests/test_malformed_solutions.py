@@ -363,3 +363,28 @@ def test_compare_and_evaluate_accept_what_optimize_accepts(server):
         r = api.post("/v1/compare", json={"scene_id": sid, "rig": rig, "methods": ["focused", "lispsm"]})
         assert r.status_code == 200, r.text
         assert set(r.json()["methods"]) == {"focused", "lispsm"}
+
+
+def test_two_light_solutions_and_previous(entry):
+    """With two lights: the count and each light's kind are checked against the rig, and a previous solution's
+    per-light solver entries (solver.lights) are named one by one."""
+    two = Rig.model_validate({**TINY_RIG, "lights": [TINY_RIG["lights"][0],
+                                                     {"type": "directional", "direction": [0.3, -1.0, 0.2]}]}
+                             ).model_dump(by_alias=True)
+    sol = as_client_sees(solve(entry, two, "optimized", time_budget_ms=50))
+    assert evaluate_solution(entry, two, sol, screen=SCREEN)["lights"][1]["receiver_pixels"] > 0
+    cases = [(replaced(sol, ("lights",), sol["lights"][:1]), "solution.lights", "has 1 lights but the rig has 2"),
+             (replaced(sol, ("lights", 1, "type"), "spot"), "solution.lights.1.type", "rig's light is directional")]
+    for bad, field, words in cases:
+        with pytest.raises(SolutionError) as e:
+            evaluate_solution(entry, two, bad, screen=SCREEN)
+        assert e.value.field == field and words in str(e.value), e.value
+    assert "lights" in sol["solver"] and len(sol["solver"]["lights"]) == 2
+    for path, value, field in ((("solver", "lights"), sol["solver"]["lights"][:1], "previous.solver.lights"),
+                               (("solver", "lights", 1), "x", "previous.solver.lights.1"),
+                               (("solver", "lights", 1, "x", 0), [math.nan, 1.0], "previous.solver.lights.1.x.0.0")):
+        with pytest.raises(SolutionError) as e:
+            solve(entry, two, "optimized", previous=replaced(sol, path, value), time_budget_ms=50)
+        assert e.value.code == "invalid_previous" and e.value.field == field, e.value
+    again = solve(entry, two, "optimized", previous=sol, time_budget_ms=50)
+    assert len(again["lights"]) == 2
