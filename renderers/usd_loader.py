@@ -283,7 +283,7 @@ class _LayerWalk:
                 layer = _open_fresh(identifier)
             except Tf.ErrorException as e:
                 layer = None
-                why = _usd_error_text(str(e))[:200]
+                why = _usd_error_text(_tf_text(e))[:200]
             else:
                 pkg, inner = split_package_path(identifier)
                 why = "no such file" if not os.path.exists(pkg) else \
@@ -945,7 +945,7 @@ def _load(path, time_code, asset_root, sandbox, max_triangles, scrub) -> LoadedS
     except SceneError:
         raise
     except Tf.ErrorException as e:
-        msg = _usd_error_text(str(e))
+        msg = _usd_error_text(_tf_text(e))
         raise SceneError("corrupt", f"{name}: USD could not read the file: {msg[:300]}") from e
     except RecursionError as e:
         raise SceneError("too_large", f"{name}: the scene nests too deeply to be read") from e
@@ -974,6 +974,14 @@ def _dedupe(items: list[str]) -> list[str]:
             seen.add(w)
             out.append(w)
     return out
+
+
+def _tf_text(e) -> str:
+    """str() of a Tf error: USD's parser message quotes the damaged file, whose bytes may not be UTF-8."""
+    try:
+        return str(e)
+    except UnicodeDecodeError:
+        return "the file is not valid UTF-8 text"
 
 
 def _usd_error_text(text: str) -> str:
