@@ -292,7 +292,7 @@ def git_commit() -> str | None:
 def load_table(results: dict, clients: int, seconds: float, seq_n: int = 200, seq_s: float = 20.0,
                load_avg: list[float] | None = None) -> str:
     head = ("| workload | clients | requests | errors | p50 ms | p95 ms | p99 ms | max ms | req/s | "
-            "server p50 ms | queue + HTTP p50 ms | target (issue 5) |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|")
+            "server p50 ms | queue + HTTP p50 ms | target |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     rows = []
     for name, r in results.items():
         for kind, s in (("sequential", r["sequential"]), ("concurrent", r["concurrent"])):
