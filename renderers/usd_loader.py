@@ -34,9 +34,10 @@ plus cameras and lights with their USD paths.
 - At the default time code, attributes with time samples but no default are read at their first sample.
 - usd-core's diagnostics (missing files, MaterialX it cannot read) become scene warnings.
 - Messages and warnings name files as the scene knows them (the file's base name, a usdz entry, a
-  path relative to the scene's folder), never by a server path: every message leaving load_scene is
-  scrubbed of the scene's folder, the asset root, the Python installation, the working and temporary
-  folders, and any absolute path ending in a file name.
+  path relative to the scene's folder), never by a server path: every message leaving load_scene goes
+  once through renderers.redaction.PathRedactor (the scene's folder and the asset root dropped, the
+  Python installation, the repository, the working, temporary and home folders and any absolute path
+  ending in a file name cut to base names).
 Malformed input raises SceneError with a machine-readable code (not_found, not_usd, corrupt,
 unsafe_archive, empty_stage, bad_option, too_large, too_many_triangles, sandbox_limit, internal);
 nothing else escapes.
@@ -48,7 +49,6 @@ import hashlib
 import math
 import os
 import re
-import sys
 import tempfile
 import threading
 import time
@@ -59,6 +59,7 @@ import numpy as np
 from ..solvers.frames import stage_to_world as _stage_to_world
 from ..solvers.frames import transform_directions, transform_points
 from .asset_resolver import is_unsafe_entry_name, resolve_asset_path, split_package_path, usdz_entries
+from .redaction import PathRedactor
 from .scene_data import LoadedScene, SceneError, SceneGeometry, UsdCamera, UsdLight
 
 SEGMENTS = 32  # tessellation of implicit round prims (around), half of it along
@@ -116,46 +117,6 @@ def _summarize_diagnostics(text: str) -> list[str]:
         if line not in out:
             out.append(line)
     return out
-
-
-_FILE_EXT = (r"usd|usda|usdc|usdz|mtlx|abc|obj|vdb|so|dylib|dll|py|pyc|cpp|cc|h|hpp|json|txt|png|jpe?g"
-             r"|exr|hdr|tiff?|tx|osl|oso|glslfx|zip|sqlite|db")
-_ABS_FILE = re.compile(r"(?<![\w.<>/])(?:/[^\s@'\"<>\[\]/:,;()]+)+\.(?:" + _FILE_EXT + r")\b")
-
-
-class _Scrubber:
-    """Turns server paths in a message into names the scene knows (see the module docstring)."""
-
-    def __init__(self, scene_dir: str, asset_root: str | None = None):
-        rel_dirs = [scene_dir] + ([asset_root] if asset_root else [])
-        try:
-            cwd = [os.getcwd()]
-        except OSError:  # the working folder was removed
-            cwd = []
-        others = [sys.prefix, sys.base_prefix, sys.exec_prefix, *cwd, tempfile.gettempdir(), os.path.expanduser("~")]
-        dirs: dict[str, bool] = {}
-        for d, rel in [(d, True) for d in rel_dirs] + [(d, False) for d in others]:
-            for v in {os.path.abspath(d), os.path.realpath(d)}:
-                v = v.rstrip("/")
-                if v and v.count("/") >= (1 if rel or v == tempfile.gettempdir().rstrip("/") else 2) and v not in dirs:
-                    dirs[v] = rel
-        self._dirs = sorted(dirs.items(), key=lambda kv: -len(kv[0]))
-        self._pattern = re.compile(r"(?<![\w.<>])(" + "|".join(re.escape(d) for d, _ in self._dirs)
-                                   + r")(?![\w.-])(/[^\s@'\"<>\[\],;()]*)?") if self._dirs else None
-        self._rel = dict(self._dirs)
-
-    def __call__(self, text: str) -> str:
-        if self._pattern is not None:
-            text = self._pattern.sub(self._sub, text)
-        return _ABS_FILE.sub(lambda m: os.path.basename(m.group(0)), text)
-
-    def _sub(self, m) -> str:
-        full = m.group(2) or ""
-        rest = full.rstrip(":").strip("/")
-        tail = full[len(full.rstrip(":")):]  # 'file.usda:3:26:' keeps its trailing colon
-        if not rest:
-            return "." if self._rel[m.group(1)] else "<server folder>"
-        return (rest if self._rel[m.group(1)] else os.path.basename(rest)) + tail
 
 
 # ---------------------------------------------------------------- pre-checks
@@ -873,9 +834,9 @@ def load_scene(path, *, time_code: float | None = None, asset_root: str | None =
     running count passes it, before the prim that passes it is tessellated."""
     t_start = time.perf_counter()
     path = os.fspath(path)
-    scrub = _Scrubber(os.path.dirname(os.path.abspath(path)), asset_root)
+    scrub = PathRedactor([os.path.dirname(os.path.abspath(path)), asset_root]).text
     try:
-        scene = _load(path, time_code, asset_root, sandbox, max_triangles, scrub)
+        scene = _load(path, time_code, asset_root, sandbox, max_triangles)
     except SceneError as e:
         raise SceneError(e.code, scrub(e.message)) from e.__cause__
     scene.warnings = [scrub(w) for w in scene.warnings]
@@ -883,7 +844,7 @@ def load_scene(path, *, time_code: float | None = None, asset_root: str | None =
     return scene
 
 
-def _load(path, time_code, asset_root, sandbox, max_triangles, scrub) -> LoadedScene:
+def _load(path, time_code, asset_root, sandbox, max_triangles) -> LoadedScene:
     name = os.path.basename(path) or path
     _check_file(path)
     warnings: list[str] = []

@@ -25,7 +25,6 @@
 from __future__ import annotations
 
 import concurrent.futures
-import inspect
 import math
 import multiprocessing
 import os
@@ -36,6 +35,8 @@ import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+
+from ..renderers.redaction import PathRedactor
 
 # No numpy here (renderers.scene_data imports it): a child imports this module before its first line
 # runs, and OpenBLAS sizes its thread pool (each thread maps buffers RLIMIT_AS counts) at import.
@@ -364,17 +365,6 @@ STATS = {"jobs": 0, "warm": 0}  # isolated jobs run, of which in a warm spare
 _stats_lock = threading.Lock()
 
 
-def _scrub(message: str, path: str) -> str:
-    """The message with the scene's server path (and its folder) replaced by the file's base name."""
-    name = os.path.basename(path)
-    full = [os.path.abspath(path), os.path.realpath(path), path]
-    for p in sorted({p for p in full if p}, key=len, reverse=True):
-        message = message.replace(p, name)
-    for d in sorted({os.path.dirname(p) for p in full if os.path.dirname(p)}, key=len, reverse=True):
-        message = message.replace(d + os.sep, "")
-    return message
-
-
 def run_isolated(fn, args: tuple = (), kwargs: dict | None = None, *, memory_bytes: int = DEFAULT_MEMORY_BYTES,
                  timeout_s: float = DEFAULT_TIMEOUT_S, what: str = "the scene"):
     """fn(*args, **kwargs) in a child process (a warm spare, or one spawned for it) with RLIMIT_AS =
@@ -469,17 +459,10 @@ def _crashed(exitcode, peak: int, memory_bytes: int, what: str):
 def _load_in_child(path: str, options: dict, max_triangles: int | None):
     from pxr import Work
 
-    from ..renderers.scene_data import SceneError
-
-    Work.SetConcurrencyLimit(max(1, min(CHILD_THREADS, os.cpu_count() or 1)))
     from ..renderers.usd_loader import load_scene
 
-    if max_triangles is not None and "max_triangles" in inspect.signature(load_scene).parameters:
-        options = {**options, "max_triangles": max_triangles}
-    try:
-        return load_scene(path, **options)
-    except SceneError as e:
-        raise SceneError(e.code, _scrub(e.message, path)) from e.__cause__
+    Work.SetConcurrencyLimit(max(1, min(CHILD_THREADS, os.cpu_count() or 1)))
+    return load_scene(path, **options, max_triangles=max_triangles)  # its messages are redacted already
 
 
 def load_isolated(path, *, time_code: float | None = None, asset_root: str | None = None, sandbox: bool = False,
@@ -494,5 +477,6 @@ def load_isolated(path, *, time_code: float | None = None, asset_root: str | Non
     try:
         return run_isolated(_load_in_child, (path, options, limits.max_triangles), memory_bytes=limits.memory_bytes,
                             timeout_s=limits.timeout_s, what=f"scene {name!r}")
-    except SceneError as e:
-        raise SceneError(e.code, _scrub(e.message, path)) from None
+    except SceneError as e:  # the one redaction of what the child reported (the loader's own pass aside)
+        redactor = PathRedactor([os.path.dirname(os.path.abspath(path)), asset_root])
+        raise SceneError(e.code, redactor.text(e.message)) from None
