@@ -39,7 +39,8 @@ plus cameras and lights with their USD paths.
   Python installation, the repository, the working, temporary and home folders and any absolute path
   ending in a file name cut to base names).
 Malformed input raises SceneError with a machine-readable code (not_found, not_usd, corrupt,
-unsafe_archive, empty_stage, bad_option, too_large, too_many_triangles, sandbox_limit, internal);
+unsafe_archive, empty_stage, bad_option, too_large, too_many_triangles, sandbox_limit, sandbox_unchecked
+(the last checks before and after USD opens the stage found a layer the walk did not check), internal);
 nothing else escapes.
 """
 from __future__ import annotations
@@ -342,7 +343,7 @@ class _LayerWalk:
                                                           if self.memo.get(i) == i]:
             for dep in layer.GetCompositionAssetDependencies():
                 if dep and not self.allowed(dep):
-                    raise SceneError("internal", f"{self.name(self.origin.get(ident, ident))} still names "
+                    raise SceneError("sandbox_unchecked", f"{self.name(self.origin.get(ident, ident))} still names "
                                      f"@{dep}@, which was not checked; refused")
             for prim_path in _clip_prims(layer):
                 for clip in dict(layer.GetObjectAtPath(prim_path).GetInfo("clips")).values():
@@ -351,7 +352,7 @@ class _LayerWalk:
                     if clip.get("manifestAssetPath"):
                         assets.append(getattr(clip["manifestAssetPath"], "path", str(clip["manifestAssetPath"])))
                     if clip.get("templateAssetPath") or any(not self.allowed(a) for a in assets):
-                        raise SceneError("internal", f"{self.name(self.origin.get(ident, ident))} still names a "
+                        raise SceneError("sandbox_unchecked", f"{self.name(self.origin.get(ident, ident))} still names a "
                                          "value clip that was not checked; refused")
 
     def verify_stage(self, stage) -> None:
@@ -363,7 +364,7 @@ class _LayerWalk:
                 continue  # made by USD in memory (a value clip's generated manifest)
             if not used.anonymous and self.memo.get(used.identifier) == used.identifier:
                 continue
-            raise SceneError("internal", f"the stage composed {self.name(used.identifier)}, which was not "
+            raise SceneError("sandbox_unchecked", f"the stage composed {self.name(used.identifier)}, which was not "
                              "checked; refused")
 
     def file_layers(self):

@@ -335,6 +335,25 @@ def test_internal_references_are_legal_and_not_warned_about(tmp_path):
         "refused asset @./other.usda@ named in s.usdz: './other.usda': the archive has no entry 'other.usda'; it was not read"]
 
 
+def test_the_last_checks_before_and_after_usd_opens_refuse_with_a_sandbox_code(tmp_path):
+    """verify_graph (before Usd.Stage.Open) and verify_stage (after) are the fail-closed backstops: what
+    they catch is a refused upload (sandbox_unchecked, a 422), not an internal error."""
+    from pxr import Usd
+
+    (tmp_path / "s.usda").write_text(CUBE.format(name="Own"))
+    (tmp_path / "other.usda").write_text(CUBE.format(name="Other"))
+    walk = usd_loader._LayerWalk(str(tmp_path / "s.usda"), "sandbox", None, [], os.path.basename)
+    walk.verify_graph()  # a checked graph passes
+    layer = walk.copies.get(walk.root) or walk.originals[walk.root]
+    layer.subLayerPaths.append(str(tmp_path / "other.usda"))  # a dependency the walk never checked
+    with pytest.raises(SceneError) as e:
+        walk.verify_graph()
+    assert e.value.code == "sandbox_unchecked" and "which was not checked" in e.value.message
+    with pytest.raises(SceneError) as e:
+        walk.verify_stage(Usd.Stage.Open(str(tmp_path / "other.usda")))
+    assert e.value.code == "sandbox_unchecked" and "other.usda" in e.value.message
+
+
 # ------------------------------------------------------------------ 2. budgets while loading
 def _peak_rss_of_a_load(path: Path, max_triangles: int) -> dict:
     """Load in a fresh interpreter: wall time of load_scene and how much its peak RSS grew past the
