@@ -140,6 +140,17 @@ class SceneCache:
             raise SceneError("not_found", f"cannot open scene {name!r}: {e.strerror}") from None
         return (os.path.realpath(path), st.st_size, st.st_mtime_ns, time_code, asset_root, sandbox)
 
+    def loading(self, path, *, time_code: float | None = None, asset_root: str | None = None, sandbox: bool = False,
+                tenant: str | None = None, limits: LoadLimits | None = None) -> bool:
+        """True while a load of this key is in flight (a get now would wait for it instead of loading):
+        the server lets only a load's leader hold a load slot. tenant and limits are not part of the key."""
+        try:
+            key = self._key(path, time_code, asset_root, sandbox)
+        except SceneError:
+            return False
+        with self._lock:
+            return key in self._inflight
+
     def peek(self, path, *, time_code: float | None = None, asset_root: str | None = None, sandbox: bool = False,
              tenant: str | None = None, limits: LoadLimits | None = None) -> SceneEntry | None:
         """The cached entry (counted as a use), or None: never loads, never waits for a load."""

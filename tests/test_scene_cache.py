@@ -178,3 +178,32 @@ def test_configure_shrinks_and_validates(tmp_path):
     for bad in ({"capacity": 0}, {"max_bytes": -1}, {"tenant_share": 0}, {"tenant_share": 1.5}):
         with pytest.raises(ValueError):
             cache.configure(**{"capacity": 4, "max_bytes": BIG, "tenant_share": 0.5, **bad})
+
+
+def test_loading_is_true_exactly_while_a_load_of_that_key_is_in_flight(tmp_path):
+    """The server asks this to let only a load's leader hold a load slot (waiters of a shared load wait
+    outside it)."""
+    path = write(tmp_path, "scene.usda", tiny_scene(3))
+    cache = SceneCache()
+    started, release = threading.Event(), threading.Event()
+    real = cache._load
+
+    def slow(*args, **kwargs):
+        started.set()
+        release.wait(60)
+        return real(*args, **kwargs)
+
+    cache._load = slow
+    assert not cache.loading(path, sandbox=True, tenant="alice")
+    t = threading.Thread(target=lambda: cache.get(path, sandbox=True, tenant="alice"))
+    t.start()
+    try:
+        assert started.wait(60)
+        assert cache.loading(path, sandbox=True, tenant="bob", limits=LoadLimits())  # tenant, limits: not the key
+        assert not cache.loading(path, sandbox=False)  # other options: another key
+        assert not cache.loading(tmp_path / "gone.usda")  # no file: nothing in flight, no error
+    finally:
+        release.set()
+        t.join(60)
+    assert not cache.loading(path, sandbox=True)
+    assert cache.peek(path, sandbox=True) is not None  # done and cached
