@@ -1,7 +1,10 @@
 """Persistence: a data directory with uploaded scene files and one SQLite database.
 
 Layout: `<data_dir>/scenes/<tenant hash>/<scene_id>/<sanitised file name>` and `<data_dir>/shadowopt.db`
-(WAL mode). Tables: scenes, batches, configurations, results, errors. Every write of a configuration's
+(WAL mode). Tables: scenes, batches, configurations, results, errors. An uploaded scene's row holds its
+path relative to `<data_dir>/scenes` (`<tenant hash>/<scene_id>/<name>`), so the data directory can be opened
+from any working directory, under any absolute path, or after it was moved or restored; rows written before
+(absolute or working-directory-relative paths) are migrated when the store opens. Every write of a configuration's
 outcome is `INSERT OR IGNORE` keyed by (batch_id, index): a result once stored is never overwritten or
 duplicated. Each thread gets its own connection, so a Store is safe to share between server threads.
 Times are stored as Unix seconds and returned as ISO 8601 UTC strings.
@@ -9,6 +12,7 @@ Times are stored as Unix seconds and returned as ISO 8601 UTC strings.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import hashlib
 import json
 import logging
@@ -29,6 +33,12 @@ UNFINISHED = ("queued", "running")
 DB_NAME = "shadowopt.db"
 MAX_ERRORS_LISTED = 100
 RETENTION_INTERVAL_S = 60.0  # automatic enforcement (on start, uploads, finished batches) at most this often
+SWEEP_GRACE_S = 3600.0  # while another server uses the data directory, the sweep spares what is younger than this
+LOCKS_DIR = ".locks"  # <data_dir>/.locks/<instance>.lock: held (flock) by each open Store, released when it dies
+SCHEMA_VERSION = 1  # PRAGMA user_version: 1 = upload paths relative to the scenes folder
+_TMP_NAME = re.compile(r"^\..+\.[0-9a-f]{32}\.tmp$")  # write_upload's temporary files
+_HEX16 = re.compile(r"^[0-9a-f]{16}$")
+_STRIPES = 64  # per-(tenant, scene_id) upload locks, striped
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS scenes (
@@ -80,7 +90,7 @@ class Store:
     """Scenes and batches of one data directory. See the module docstring for the layout."""
 
     def __init__(self, data_dir: str | Path, retention_days: float | None = None, max_bytes: int | None = None):
-        self.data_dir = Path(data_dir)
+        self.data_dir = Path(os.path.abspath(data_dir))  # pinned: a later chdir changes nothing
         self.retention_days = retention_days
         self.max_bytes = max_bytes
         self.scenes_dir = self.data_dir / "scenes"
@@ -92,7 +102,15 @@ class Store:
         self._write_lock = threading.Lock()  # one writer at a time within this process
         self._last_retention = -math.inf
         self._retention_lock = threading.Lock()  # one retention pass at a time (writes and a server timer)
+        # Uploads: write/register/discard/delete of one (tenant, scene_id) are serialised by a striped lock,
+        # and the files that requests of this process are still loading are counted (never unlinked under them).
+        self._stripes = [threading.RLock() for _ in range(_STRIPES)]
+        self._inflight: dict[tuple[str, str, str], int] = {}
+        self._own_tmp: set[str] = set()
+        self._lock_file = None
+        self._hold_instance_lock()
         self._init_schema()
+        self._migrate_paths()
         self.auto_retention()
 
     # -- connections -----------------------------------------------------------------------------
@@ -114,6 +132,101 @@ class Store:
         conn = self._conn()
         with self._write_lock:
             conn.executescript(_SCHEMA)
+
+    def _migrate_paths(self) -> None:
+        """Rows from before SCHEMA_VERSION 1 hold absolute or working-directory-relative paths: each becomes
+        relative to the scenes folder, taken from the old path when that file is inside this store's scenes
+        folder, else rebuilt from tenant, scene_id and filename (the layout write_upload always used)."""
+        conn = self._conn()
+        if conn.execute("PRAGMA user_version").fetchone()[0] >= SCHEMA_VERSION:
+            return
+        with self._write_lock:
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                if conn.execute("PRAGMA user_version").fetchone()[0] < SCHEMA_VERSION:  # another process did it
+                    rows = conn.execute("SELECT tenant, scene_id, filename, path FROM scenes "
+                                        "WHERE source = 'upload'").fetchall()
+                    for r in rows:
+                        rel = self._migrated_path(r["tenant"], r["scene_id"], r["filename"], r["path"])
+                        conn.execute("UPDATE scenes SET path = ? WHERE tenant = ? AND scene_id = ?",
+                                     (rel, r["tenant"], r["scene_id"]))
+                    conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+                conn.execute("COMMIT")
+            except BaseException:
+                conn.execute("ROLLBACK")
+                raise
+
+    def _migrated_path(self, tenant: str, scene_id: str, filename: str, old: str) -> str:
+        canonical = f"{tenant_dir_name(tenant)}/{scene_id}/{filename}"
+        p = Path(old)
+        if p.is_file():  # absolute, or relative to this process's working directory
+            rel = self._relative(p)
+            if rel is not None:
+                return rel
+        if not (self.scenes_dir / canonical).is_file():
+            log.warning("scene %s of a tenant: its file is missing (kept; recorded as %s)", scene_id, canonical)
+        return canonical
+
+    def _relative(self, path: Path) -> str | None:
+        """`path` relative to the scenes folder (posix), or None when it is not inside it."""
+        for base, p in ((self.scenes_dir, Path(os.path.abspath(path))),
+                        (Path(os.path.realpath(self.scenes_dir)), Path(os.path.realpath(path)))):
+            try:
+                rel = p.relative_to(base)
+            except ValueError:
+                continue
+            if rel.parts and ".." not in rel.parts:
+                return rel.as_posix()
+        return None
+
+    def _row_path(self, row) -> Path:
+        """The file of a scene row: uploads are relative to the scenes folder, linked files absolute."""
+        p = Path(row["path"])
+        return p if p.is_absolute() else self.scenes_dir / p
+
+    # -- this process's claim on the data directory (for the sweep) -------------------------------
+    def _hold_instance_lock(self) -> None:
+        """Create and flock <data_dir>/.locks/<uuid>.lock for the Store's lifetime: the kernel releases it when
+        the process dies, however it dies, so the sweep can tell a live server from a dead one."""
+        d = self.data_dir / LOCKS_DIR
+        d.mkdir(parents=True, exist_ok=True)
+        path = d / f"{uuid.uuid4().hex}.lock"
+        f = open(path, "w")  # not inherited across exec (PEP 446)
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        f.write(f"{os.getpid()}\n")
+        f.flush()
+        self._lock_file = f
+
+    def _release_instance_lock(self) -> None:
+        f, self._lock_file = self._lock_file, None
+        if f is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(f.name)
+            with contextlib.suppress(OSError):
+                fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+            f.close()
+
+    def other_live_stores(self) -> int:
+        """How many other Stores (in this or another process) hold the data directory open now; lock files
+        of dead ones are removed on the way."""
+        live = 0
+        own = self._lock_file.name if self._lock_file is not None else None
+        for path in sorted((self.data_dir / LOCKS_DIR).glob("*.lock")):
+            if str(path) == own:
+                continue
+            try:
+                f = open(path, "r+")
+            except OSError:
+                continue
+            with f:
+                try:
+                    fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    live += 1
+                    continue
+                with contextlib.suppress(OSError):
+                    path.unlink()  # its owner is gone
+        return live
 
     def _check_file(self) -> None:
         """sqlite3.DatabaseError when the database file's header is not SQLite's: an open connection keeps
@@ -147,6 +260,7 @@ class Store:
         return self._conn().execute(sql, params).fetchall()
 
     def close(self) -> None:
+        self._release_instance_lock()
         with self._conns_lock:
             for c in self._conns:
                 try:
@@ -156,116 +270,165 @@ class Store:
             self._conns.clear()
         self._local = threading.local()
 
-    # -- scenes ----------------------------------------------------------------------------------
-    def put_scene(self, tenant: str, data: bytes, filename: str) -> tuple[str, bool]:
-        """Store an uploaded file; (scene_id, created). The same bytes again return the same id, created=False."""
-        scene_id = scene_id_for(data, filename)
-        if self.scene_record(tenant, scene_id) is not None:
-            return scene_id, False
-        name = sanitise_filename(filename)
-        folder = self.scenes_dir / tenant_dir_name(tenant) / scene_id
-        folder.mkdir(parents=True, exist_ok=True)
-        path = folder / name
-        tmp = folder / f".{name}.{uuid.uuid4().hex}.tmp"
-        tmp.write_bytes(data)
-        os.replace(tmp, path)
-        (n,) = self._write([("INSERT OR IGNORE INTO scenes (tenant, scene_id, filename, bytes, path, source, "
-                             "created_at) VALUES (?, ?, ?, ?, ?, 'upload', ?)",
-                             (tenant, scene_id, name, len(data), str(path), time.time()))])
-        if n == 1:
-            self.auto_retention()
-        return scene_id, n == 1
-
     # -- uploads, registered atomically ---------------------------------------------------------
     # An upload is written under a temporary name and renamed into its folder (never a partial file
     # there), loaded, and only then recorded, in one INSERT that carries its info. Until that INSERT the
     # file is invisible (no row); a SIGKILL at any point leaves either no row or a complete one, and
     # sweep_partial_uploads() (at server start) removes what an interrupted upload left behind.
+    # Concurrent requests for the same bytes share one file: write_upload counts each request on it,
+    # register_upload (when it records the row) and discard_upload release the request, and the file is
+    # unlinked only by the last request to let go when no row holds it; all under the (tenant, scene_id)
+    # lock, so a failed upload never removes the file of a concurrent one that succeeds.
     def scene_folder(self, tenant: str, scene_id: str) -> Path:
         return self.scenes_dir / tenant_dir_name(tenant) / scene_id
 
+    def _stripe(self, tenant: str, scene_id: str) -> threading.RLock:
+        return self._stripes[hash((tenant, scene_id)) % _STRIPES]
+
+    def _release(self, tenant: str, scene_id: str, name: str) -> int:
+        """One request less on a file (never below zero); how many are left. Caller holds the stripe."""
+        k = (tenant, scene_id, name)
+        left = self._inflight.get(k, 0) - 1
+        if left > 0:
+            self._inflight[k] = left
+        else:
+            self._inflight.pop(k, None)
+        return max(left, 0)
+
     def write_upload(self, tenant: str, data: bytes, filename: str) -> tuple[str, Path, bool]:
         """Write an upload's bytes to their final path, not yet recorded: (scene_id, path, wrote). `wrote` is
-        False when the same file is already there (same content hash and name), which is then left as is."""
+        False when the same file is already there (same content hash and name), which is then left as is.
+        The request counts on the file until register_upload records it or discard_upload lets it go."""
         scene_id = scene_id_for(data, filename)
         folder = self.scene_folder(tenant, scene_id)
         path = folder / sanitise_filename(filename)
-        if path.is_file() and path.stat().st_size == len(data):
-            return scene_id, path, False
-        folder.mkdir(parents=True, exist_ok=True)
-        tmp = folder / f".{path.name}.{uuid.uuid4().hex}.tmp"
-        try:
-            with open(tmp, "wb") as f:
-                f.write(data)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
-        return scene_id, path, True
+        with self._stripe(tenant, scene_id):
+            wrote = False
+            if not (path.is_file() and path.stat().st_size == len(data)):
+                folder.mkdir(parents=True, exist_ok=True)
+                tmp = folder / f".{path.name}.{uuid.uuid4().hex}.tmp"
+                self._own_tmp.add(str(tmp))
+                try:
+                    with open(tmp, "wb") as f:
+                        f.write(data)
+                        f.flush()
+                        os.fsync(f.fileno())
+                    os.replace(tmp, path)
+                except BaseException:
+                    tmp.unlink(missing_ok=True)
+                    raise
+                finally:
+                    self._own_tmp.discard(str(tmp))
+                wrote = True
+            k = (tenant, scene_id, path.name)
+            self._inflight[k] = self._inflight.get(k, 0) + 1
+        return scene_id, path, wrote
 
     def register_upload(self, tenant: str, scene_id: str, path: Path, nbytes: int, info: dict) -> bool:
         """Record a written and checked upload with its info in one transaction; False when it was
-        recorded already (a concurrent upload of the same bytes won)."""
-        (n,) = self._write([("INSERT OR IGNORE INTO scenes (tenant, scene_id, filename, bytes, path, source, "
-                             "created_at, info) VALUES (?, ?, ?, ?, ?, 'upload', ?, ?)",
-                             (tenant, scene_id, path.name, nbytes, str(path), time.time(), json.dumps(info)))])
+        recorded already (a concurrent upload of the same bytes won: call discard_upload then)."""
+        path = Path(path)
+        rel = self._relative(path)
+        if rel is None:
+            raise ValueError("register_upload: the file is not inside the store's scenes folder")
+        with self._stripe(tenant, scene_id):
+            if not path.is_file():
+                raise FileNotFoundError(f"register_upload: the upload of scene {scene_id} has no file")
+            (n,) = self._write([("INSERT OR IGNORE INTO scenes (tenant, scene_id, filename, bytes, path, source, "
+                                 "created_at, info) VALUES (?, ?, ?, ?, ?, 'upload', ?, ?)",
+                                 (tenant, scene_id, path.name, nbytes, rel, time.time(), json.dumps(info)))])
+            if n == 1:
+                self._release(tenant, scene_id, path.name)
         if n == 1:
-            self.auto_retention()
+            self.auto_retention()  # outside the stripe: retention takes stripes of the scenes it deletes
         return n == 1
 
     def discard_upload(self, tenant: str, scene_id: str, path: Path) -> None:
-        """Remove an upload's file that was never recorded (its load failed); a recorded file stays."""
-        row = self._scene_row(tenant, scene_id)
-        if row is not None and Path(row["path"]) == path:
-            return
-        path.unlink(missing_ok=True)
-        with contextlib.suppress(OSError):
-            path.parent.rmdir()  # only when empty: another name of the same bytes may be in there
+        """A request lets go of an upload's file that it did not record (its load failed, or another request
+        recorded the same bytes first). The file is removed only when no other request of this store is
+        still on it and no row holds it; a recorded file stays."""
+        path = Path(path)
+        with self._stripe(tenant, scene_id):
+            if self._release(tenant, scene_id, path.name) > 0:
+                return
+            row = self._scene_row(tenant, scene_id)
+            if row is not None and os.path.abspath(self._row_path(row)) == os.path.abspath(path):
+                return
+            path.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                path.parent.rmdir()  # only when empty: another name of the same bytes may be in there
 
     def tenant_stored_bytes(self, tenant: str) -> int:
         """Bytes of the uploaded files this tenant keeps."""
         return int(self._query("SELECT COALESCE(SUM(bytes), 0) FROM scenes WHERE tenant = ? AND source = 'upload'",
                                (tenant,))[0][0])
 
-    def sweep_partial_uploads(self) -> dict:
-        """Remove what interrupted uploads left: temporary files, upload rows without info (and their files),
-        rows whose file is gone, and files or folders no row refers to. For a server's start, before it takes
-        requests (an upload in progress in another process would look partial). Returns what was removed."""
-        removed = {"rows": [], "files": []}
-        rows = self._query("SELECT tenant, scene_id, path, info FROM scenes WHERE source = 'upload'")
+    def sweep_partial_uploads(self, grace_s: float = SWEEP_GRACE_S) -> dict:
+        """Remove what interrupted uploads left, and nothing else. For a server's start.
+
+        Removed: write_upload's temporary files; files in a scene folder that no row holds (written, never
+        recorded: the upload was killed while loading); rows without info (from before uploads were
+        recorded with their info) with their files. When no other Store holds the data directory (their
+        .locks files, see other_live_stores) all of these belong to dead processes and go at once; while
+        another server is alive only those older than `grace_s` go, so its uploads in progress survive.
+        Never removed: a recorded scene whose file is missing (logged and listed under "missing": a data
+        directory restored without its files must not lose its records), anything outside the
+        <tenant hash>/<scene_id>/ layout, and this store's own uploads in progress.
+        Returns {"rows": [[tenant, scene_id], ...], "files": [names], "missing": [[tenant, scene_id], ...]}."""
+        removed = {"rows": [], "files": [], "missing": []}
+        others = self.other_live_stores()
+        min_age = grace_s if others else 0.0
+        now = time.time()
+
+        def old_enough(t: float) -> bool:
+            return now - t >= min_age
+
+        rows = self._query("SELECT tenant, scene_id, filename, path, info, created_at FROM scenes "
+                           "WHERE source = 'upload'")
         keep = set()
         for r in rows:
-            path = Path(r["path"])
-            if r["info"] is None or not path.is_file():
-                self._write([("DELETE FROM scenes WHERE tenant = ? AND scene_id = ?", (r["tenant"], r["scene_id"]))])
+            path = self._row_path(r)
+            busy = any(k[:2] == (r["tenant"], r["scene_id"]) for k in self._inflight)
+            if r["info"] is None and old_enough(r["created_at"]) and not busy:
+                with self._stripe(r["tenant"], r["scene_id"]):
+                    self._write([("DELETE FROM scenes WHERE tenant = ? AND scene_id = ? AND info IS NULL",
+                                  (r["tenant"], r["scene_id"]))])
                 removed["rows"].append([r["tenant"], r["scene_id"]])
-            else:
-                keep.add(os.path.realpath(path))
-        for tenant_dir in sorted(p for p in self.scenes_dir.iterdir()):
-            if not tenant_dir.is_dir():
-                if tenant_dir.name.endswith(".tmp") or tenant_dir.name.startswith("."):
-                    tenant_dir.unlink(missing_ok=True)
-                    removed["files"].append(tenant_dir.name)
+                continue
+            keep.add(os.path.abspath(path))
+            if not path.is_file():
+                removed["missing"].append([r["tenant"], r["scene_id"]])
+        if removed["missing"]:
+            log.warning("%d recorded scenes have no file (kept): %s", len(removed["missing"]),
+                        ", ".join(sid for _, sid in removed["missing"][:10]))
+        for tenant_dir in sorted(self.scenes_dir.iterdir()):
+            if not (tenant_dir.is_dir() and _HEX16.match(tenant_dir.name)):
                 continue
             for folder in sorted(tenant_dir.iterdir()):
-                files = [folder] if not folder.is_dir() else sorted(folder.rglob("*"))
-                for f in files:
-                    if f.is_file() and os.path.realpath(f) not in keep:
-                        f.unlink(missing_ok=True)
-                        removed["files"].append(f"{folder.name}/{f.name}")
-                if folder.is_dir() and not any(folder.rglob("*")):
-                    shutil.rmtree(folder, ignore_errors=True)
-                elif folder.is_dir():  # empty sub-folders of a kept scene
-                    for d in sorted((d for d in folder.rglob("*") if d.is_dir()), reverse=True):
-                        with contextlib.suppress(OSError):
-                            d.rmdir()
+                if not (folder.is_dir() and _HEX16.match(folder.name)):
+                    continue
+                for f in sorted(folder.iterdir()):
+                    try:
+                        st = f.lstat()
+                    except OSError:
+                        continue
+                    if not f.is_file() or f.is_symlink() or not old_enough(st.st_mtime):
+                        continue
+                    if _TMP_NAME.match(f.name):
+                        if str(f) in self._own_tmp:
+                            continue
+                    elif os.path.abspath(f) in keep or any(
+                            k[2] == f.name and self.scene_folder(k[0], k[1]) == folder for k in self._inflight):
+                        continue
+                    f.unlink(missing_ok=True)
+                    removed["files"].append(f"{folder.name}/{f.name}")
+                with contextlib.suppress(OSError):
+                    folder.rmdir()  # only when empty
             with contextlib.suppress(OSError):
                 tenant_dir.rmdir()
         if removed["rows"] or removed["files"]:
-            log.warning("swept %d partial upload records and %d stray files", len(removed["rows"]),
-                        len(removed["files"]))
+            log.warning("swept %d partial upload records and %d stray files (%d other live stores)",
+                        len(removed["rows"]), len(removed["files"]), others)
         return removed
 
     def check_database(self) -> None:
@@ -288,7 +451,7 @@ class Store:
 
     def scene_path(self, tenant: str, scene_id: str) -> Path | None:
         row = self._scene_row(tenant, scene_id)
-        return Path(row["path"]) if row is not None else None
+        return self._row_path(row) if row is not None else None
 
     def scene_record(self, tenant: str, scene_id: str) -> dict | None:
         """{scene_id, filename, bytes, created_at, info, source} or None (also for another tenant's scene)."""
@@ -300,17 +463,23 @@ class Store:
         row = self._scene_row(tenant, scene_id)
         return row is None or row["source"] == "upload"
 
-    def set_scene_info(self, tenant: str, scene_id: str, info: dict) -> None:
-        self._write([("UPDATE scenes SET info = ? WHERE tenant = ? AND scene_id = ?",
-                      (json.dumps(info), tenant, scene_id))])
-
     def delete_scene(self, tenant: str, scene_id: str) -> bool:
-        row = self._scene_row(tenant, scene_id)
-        if row is None:
-            return False
-        self._write([("DELETE FROM scenes WHERE tenant = ? AND scene_id = ?", (tenant, scene_id))])
-        if row["source"] == "upload":
-            shutil.rmtree(Path(row["path"]).parent, ignore_errors=True)
+        """Remove a scene's row and, for an upload, its file and folder (a file another request of this store
+        is uploading again stays for that request)."""
+        with self._stripe(tenant, scene_id):
+            row = self._scene_row(tenant, scene_id)
+            if row is None:
+                return False
+            self._write([("DELETE FROM scenes WHERE tenant = ? AND scene_id = ?", (tenant, scene_id))])
+            if row["source"] == "upload":
+                folder = self.scene_folder(tenant, scene_id)
+                busy = {k[2] for k in self._inflight if k[:2] == (tenant, scene_id)}
+                if not busy:
+                    shutil.rmtree(folder, ignore_errors=True)
+                else:
+                    for f in folder.iterdir() if folder.is_dir() else ():
+                        if f.name not in busy and not _TMP_NAME.match(f.name):
+                            f.unlink(missing_ok=True)
         return True
 
     def list_scenes(self, tenant: str) -> list[dict]:

@@ -19,6 +19,7 @@ from shadowopt.api.cli import validate_rig
 from shadowopt.service.batches import (BatchError, BatchRunner, expand_configurations, expansion_shape,
                                        interpolation_hints, sun_arc)
 from shadowopt.service.store import Store
+from storekit import add_upload
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO = REPO / "configs" / "demo_scene.usda"
@@ -146,7 +147,7 @@ def pool(tmp_path_factory):
 
 def test_a_batch_runs_to_done_in_index_order_and_a_bad_configuration_is_only_an_error(pool):
     store, runner = pool
-    sid, _ = store.put_scene("alice", DEMO.read_bytes(), "demo_scene.usda")  # an upload: sandboxed load
+    sid, _ = add_upload(store, "alice", DEMO.read_bytes(), "demo_scene.usda")  # an upload: sandboxed load
     configs = arc_configs(6)
     configs[3]["rig"]["camera"]["usd_path"] = "/World/NoSuchCamera"  # valid schema, not in this scene
     b = store.create_batch("alice", sid, configs, {"method": "optimized"})
@@ -176,7 +177,7 @@ def test_a_passing_runner_failure_is_retried_not_turned_into_errors(pool, monkey
     import shadowopt.service.batches as B
 
     store, runner = pool
-    sid, _ = store.put_scene("alice", DEMO.read_bytes(), "demo_scene.usda")
+    sid, _ = add_upload(store, "alice", DEMO.read_bytes(), "demo_scene.usda")
     real, calls = runner._run, []
 
     def flaky(tenant, batch_id):
@@ -201,14 +202,14 @@ def test_a_small_batch_is_not_stuck_behind_a_big_one(pool, monkeypatch):
 
     store, runner = pool
     monkeypatch.setattr(B, "SLICE", 4)
-    sid, _ = store.put_scene("alice", DEMO.read_bytes(), "demo_scene.usda")
+    sid, _ = add_upload(store, "alice", DEMO.read_bytes(), "demo_scene.usda")
     big = store.create_batch("alice", sid, arc_configs(40), {"method": "focused"})
     runner.submit("alice", big)
     deadline = time.monotonic() + 120
     while store.batch("alice", big)["done"] < 2:  # the big batch is under way
         assert time.monotonic() < deadline
         time.sleep(0.02)
-    bob_sid, _ = store.put_scene("bob", DEMO.read_bytes(), "demo_scene.usda")
+    bob_sid, _ = add_upload(store, "bob", DEMO.read_bytes(), "demo_scene.usda")
     small = store.create_batch("bob", bob_sid, arc_configs(2), {"method": "focused"})
     runner.submit("bob", small)
     assert runner.wait(small, timeout=120) == "done"
@@ -220,9 +221,9 @@ def test_a_small_batch_is_not_stuck_behind_a_big_one(pool, monkeypatch):
 
 def test_cancel_stops_a_batch_and_the_runner_goes_on(pool):
     store, runner = pool
-    sid, _ = store.put_scene("bob", DEMO.read_bytes(), "demo_scene.usda")
+    sid, _ = add_upload(store, "bob", DEMO.read_bytes(), "demo_scene.usda")
     big = store.create_batch("bob", sid, arc_configs(40), {"method": "optimized"})
-    bob_sid, _ = store.put_scene("bob", DEMO.read_bytes(), "demo_scene.usda")
+    bob_sid, _ = add_upload(store, "bob", DEMO.read_bytes(), "demo_scene.usda")
     small = store.create_batch("bob", bob_sid, arc_configs(2), {"method": "focused"})
     runner.submit("bob", big)
     runner.submit("bob", small)
@@ -257,7 +258,7 @@ def _stored(db: Path, batch_id: str) -> dict[int, str]:
 def test_resume_after_sigkill_computes_only_what_was_missing(tmp_path):
     data = tmp_path / "data"
     store = Store(data)
-    sid, _ = store.put_scene("t", DEMO.read_bytes(), "demo_scene.usda")
+    sid, _ = add_upload(store, "t", DEMO.read_bytes(), "demo_scene.usda")
     n = 16
     b = store.create_batch("t", sid, arc_configs(n), {"method": "optimized"})
     env = {**os.environ, "DRJIT_LIBLLVM_PATH": os.environ.get("DRJIT_LIBLLVM_PATH", "")}
@@ -301,7 +302,7 @@ def test_ray_backend_on_a_local_instance(tmp_path):
     if ray.is_initialized():
         pytest.skip("a Ray instance is already running in this process")
     store = Store(tmp_path / "data")
-    sid, _ = store.put_scene("t", DEMO.read_bytes(), "demo_scene.usda")  # shipped to the actors as bytes
+    sid, _ = add_upload(store, "t", DEMO.read_bytes(), "demo_scene.usda")  # shipped to the actors as bytes
     configs = arc_configs(5)
     configs[1]["rig"]["lights"][0] = {"usd_path": "/World/NoSuchLight"}
     b = store.create_batch("t", sid, configs, {"method": "optimized"})

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from storekit import add_upload
+
 from shadowopt.service.store import Store, tenant_dir_name
 
 DEMO = Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda"
@@ -30,20 +32,19 @@ def _age(store: Store, table: str, days: float) -> None:
 
 def test_scene_round_trip_on_disk_and_in_the_database(store, tmp_path):
     data = DEMO.read_bytes()
-    sid, created = store.put_scene("alice", data, "demo_scene.usda")
+    sid, created = add_upload(store, "alice", data, "demo_scene.usda", {"triangles": 2442})
     assert created and len(sid) == 16 and all(c in "0123456789abcdef" for c in sid)
     path = store.scene_path("alice", sid)
     assert path == tmp_path / "data" / "scenes" / tenant_dir_name("alice") / sid / "demo_scene.usda"
     assert path.read_bytes() == data
     rec = store.scene_record("alice", sid)
     assert rec["scene_id"] == sid and rec["filename"] == "demo_scene.usda" and rec["bytes"] == len(data)
-    assert rec["info"] is None and rec["created_at"].endswith("Z")
-    store.set_scene_info("alice", sid, {"triangles": 2442})
-    assert store.scene_record("alice", sid)["info"] == {"triangles": 2442}
-    assert store.put_scene("alice", data, "renamed.usda") == (sid, False)  # same bytes: same id, no new record
+    assert rec["info"] == {"triangles": 2442} and rec["created_at"].endswith("Z")
+    assert add_upload(store, "alice", data, "renamed.usda") == (sid, False)  # same bytes: same id, no new record
+    assert sorted(p.name for p in path.parent.iterdir()) == ["demo_scene.usda"]  # and no second file
     assert [s["scene_id"] for s in store.list_scenes("alice")] == [sid]
     # Same bytes with another extension are another scene (the loader reads the format from it).
-    other, _ = store.put_scene("alice", data, "demo_scene.usd")
+    other, _ = add_upload(store, "alice", data, "demo_scene.usd")
     assert other != sid
     assert store.delete_scene("alice", sid) and not path.exists()
     assert store.scene_record("alice", sid) is None and store.delete_scene("alice", sid) is False
@@ -51,11 +52,11 @@ def test_scene_round_trip_on_disk_and_in_the_database(store, tmp_path):
 
 def test_a_tenant_never_sees_another_tenants_scene_or_batch(store):
     data = DEMO.read_bytes()
-    sid, _ = store.put_scene("alice", data, "demo_scene.usda")
+    sid, _ = add_upload(store, "alice", data, "demo_scene.usda")
     assert store.scene_record("bob", sid) is None and store.scene_path("bob", sid) is None
     assert store.list_scenes("bob") == [] and store.delete_scene("bob", sid) is False
     # Bob uploading the same bytes gets his own record and file; deleting it leaves Alice's.
-    sid_b, created = store.put_scene("bob", data, "demo_scene.usda")
+    sid_b, created = add_upload(store, "bob", data, "demo_scene.usda")
     assert created and sid_b == sid and store.scene_path("bob", sid) != store.scene_path("alice", sid)
     assert store.delete_scene("bob", sid)
     assert store.scene_path("alice", sid).read_bytes() == data
@@ -66,11 +67,11 @@ def test_a_tenant_never_sees_another_tenants_scene_or_batch(store):
 
 
 def test_upload_names_cannot_leave_the_scene_folder(store):
-    sid, _ = store.put_scene("t", b"#usda 1.0\n", "../../../etc/pass wd.usda")
+    sid, _ = add_upload(store, "t", b"#usda 1.0\n", "../../../etc/pass wd.usda")
     path = store.scene_path("t", sid)
     assert path.parent == store.scenes_dir / tenant_dir_name("t") / sid
     assert path.name == "pass_wd.usda"
-    sid2, _ = store.put_scene("t", b"#usda 1.0\n#x\n", ".hidden.USDA")
+    sid2, _ = add_upload(store, "t", b"#usda 1.0\n#x\n", ".hidden.USDA")
     assert store.scene_path("t", sid2).name == "hidden.usda"
 
 
@@ -146,7 +147,7 @@ def test_pending_configurations_count_what_unfinished_batches_still_owe(tmp_path
 
 def test_the_database_survives_reopening_and_uses_wal(tmp_path):
     s1 = Store(tmp_path / "d")
-    sid, _ = s1.put_scene("t", DEMO.read_bytes(), "demo_scene.usda")
+    sid, _ = add_upload(s1, "t", DEMO.read_bytes(), "demo_scene.usda")
     b = s1.create_batch("t", sid, [{"rig": {"n": 1}}, {"rig": {"n": 2}}], {"method": "optimized"})
     s1.set_state(b, "running")
     s1.put_result(b, 0, {"v": 0})
@@ -182,8 +183,8 @@ def test_concurrent_writers_from_threads_store_each_index_once(store):
 
 def test_retention_by_age_keeps_running_batches_and_their_scenes(tmp_path):
     s = Store(tmp_path / "d", retention_days=7)
-    old_scene, _ = s.put_scene("t", b"#usda 1.0\n#old\n", "old.usda")
-    busy_scene, _ = s.put_scene("t", b"#usda 1.0\n#busy\n", "busy.usda")
+    old_scene, _ = add_upload(s, "t", b"#usda 1.0\n#old\n", "old.usda")
+    busy_scene, _ = add_upload(s, "t", b"#usda 1.0\n#busy\n", "busy.usda")
     done = s.create_batch("t", old_scene, [{"rig": {}}], {})
     s.put_result(done, 0, {"v": 1})
     s.finish_batch(done)
@@ -191,7 +192,7 @@ def test_retention_by_age_keeps_running_batches_and_their_scenes(tmp_path):
     s.set_state(running, "running")
     _age(s, "batches", 10)
     _age(s, "scenes", 10)
-    fresh, _ = s.put_scene("t", b"#usda 1.0\n#fresh\n", "fresh.usda")
+    fresh, _ = add_upload(s, "t", b"#usda 1.0\n#fresh\n", "fresh.usda")
     removed = s.enforce_retention()
     assert removed["batches"] == [done] and removed["scenes"] == [["t", old_scene]]
     assert s.batch("t", done) is None and s.batch("t", running)["state"] == "running"
@@ -203,7 +204,7 @@ def test_retention_by_size_drops_the_oldest_until_under_the_limit(tmp_path):
     s = Store(tmp_path / "d", max_bytes=None)
     ids = []
     for k in range(5):
-        sid, _ = s.put_scene("t", bytes([k]) * 200_000, f"s{k}.usdc")
+        sid, _ = add_upload(s, "t", bytes([k]) * 200_000, f"s{k}.usdc")
         ids.append(sid)
         time.sleep(0.01)
     s.max_bytes = 450_000 + s.disk_bytes() - 5 * 200_000  # room for two scenes plus the database
@@ -216,7 +217,7 @@ def test_retention_by_size_drops_the_oldest_until_under_the_limit(tmp_path):
 
 def test_a_size_limit_is_enforced_when_the_store_opens(tmp_path):
     s = Store(tmp_path / "d")
-    ids = [s.put_scene("t", bytes([k]) * 300_000, f"s{k}.usdc")[0] for k in range(3)]
+    ids = [add_upload(s, "t", bytes([k]) * 300_000, f"s{k}.usdc")[0] for k in range(3)]
     s.close()
     s = Store(tmp_path / "d", max_bytes=400_000)  # a server restarted with a tighter limit
     assert [r["scene_id"] for r in s.list_scenes("t")] == ids[2:]
