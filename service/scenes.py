@@ -6,7 +6,10 @@
   which covers the Mitsuba copy of the mesh and its acceleration structure; measured below), and each
   owner (a tenant; None is the CLI, warm-up and the batch workers) holds at most `tenant_share` of
   either: an owner inserting past its share loses its own least recently used entries first, so one
-  tenant's many small uploads cannot push out another tenant's scene.
+  tenant's many small uploads cannot push out another tenant's scene. A tenant's scene whose entry
+  would exceed that share is refused, SceneError("too_large_for_cache") (the server answers 413), before
+  the Mitsuba build and without a reload on the next request (the refusal is remembered by file
+  identity); the other owners' are served uncached.
 - With `limits` (uploaded scenes) the USD load runs in a spawned child with a memory and a wall-clock
   limit (service.isolation.load_isolated); the Mitsuba scene is then built here, in the parent.
 """
@@ -37,6 +40,11 @@ BYTES_FACTOR = 5.0
 DEFAULT_CAPACITY = 8
 DEFAULT_MAX_BYTES = 2 << 30
 DEFAULT_TENANT_SHARE = 0.5
+TOO_LARGE_MEMO = 256  # scenes remembered as too large for the cache (a refusal repeated without a load)
+
+
+def _mib(n: int) -> str:
+    return f"{n / 2**20:.1f} MiB ({n} bytes)"
 
 
 @dataclass
@@ -76,6 +84,7 @@ class SceneCache:
                  tenant_share: float = DEFAULT_TENANT_SHARE):
         self._entries: OrderedDict[tuple, _Slot] = OrderedDict()
         self._inflight: dict[tuple, _Flight] = {}
+        self._too_large: OrderedDict[tuple, int] = OrderedDict()  # keys refused as too_large_for_cache -> bytes
         self._lock = threading.Lock()
         self.loads = 0  # loads started (a hit or a shared load does not count)
         self.hits = 0
@@ -175,6 +184,10 @@ class SceneCache:
                 self._entries.move_to_end(key)
                 self.hits += 1
                 return slot.entry
+            if tenant is not None and key in self._too_large:  # refused before: do not load it again
+                refusal = self._too_large_error(self._too_large[key])
+                if refusal is not None:
+                    raise refusal
             flight = self._inflight.get(key)
             leader = flight is None
             if leader:
@@ -192,8 +205,13 @@ class SceneCache:
                 raise RuntimeError(f"the shared load failed: {type(e).__name__}: {e}") from e
             return flight.entry
         try:
-            entry = self._load(path, time_code, asset_root, sandbox, limits)
+            entry = self._load(path, time_code, asset_root, sandbox, limits, tenant)
         except BaseException as e:
+            if isinstance(e, SceneError) and e.code == "too_large_for_cache":
+                with self._lock:
+                    self._too_large[key] = e.nbytes
+                    while len(self._too_large) > TOO_LARGE_MEMO:
+                        self._too_large.popitem(last=False)
             with self._lock:
                 flight.error = e
                 del self._inflight[key]
@@ -206,16 +224,32 @@ class SceneCache:
         flight.done.set()
         return entry
 
-    @staticmethod
-    def _load(path, time_code, asset_root, sandbox, limits) -> SceneEntry:
+    def _too_large_error(self, nbytes: int) -> SceneError | None:
+        """The refusal of a tenant's scene whose entry would not fit in one tenant's share of the cache."""
+        _, max_b = self.owner_limits()
+        if nbytes <= max_b:
+            return None
+        e = SceneError("too_large_for_cache",
+                       f"the scene needs about {_mib(nbytes)} in the scene cache, more than one tenant's share of it, "
+                       f"{_mib(max_b)} (scene_cache_bytes {self.max_bytes} x tenant_cache_share "
+                       f"{self.tenant_share:g}); refused, as it would be loaded again for every request")
+        e.nbytes = nbytes
+        return e
+
+    def _load(self, path, time_code, asset_root, sandbox, limits, tenant=None) -> SceneEntry:
         t0 = time.perf_counter()
         if limits is not None:
             loaded = load_isolated(path, time_code=time_code, asset_root=asset_root, sandbox=sandbox, limits=limits)
         else:
             loaded = load_scene(path, time_code=time_code, asset_root=asset_root, sandbox=sandbox)
         t1 = time.perf_counter()
+        nbytes = entry_bytes(loaded)
+        if tenant is not None:  # before the Mitsuba build: a tenant's scene is cached or refused, never rebuilt
+            refusal = self._too_large_error(nbytes)
+            if refusal is not None:
+                raise refusal
         rays = build_ray_scene(loaded.geometry)
-        return SceneEntry(loaded, rays, t1 - t0, time.perf_counter() - t1, entry_bytes(loaded))
+        return SceneEntry(loaded, rays, t1 - t0, time.perf_counter() - t1, nbytes)
 
     # eviction (the lock held)
     def _owner_usage(self, owner) -> tuple[int, int]:
@@ -254,8 +288,9 @@ class SceneCache:
         nbytes = entry.nbytes or entry_bytes(entry.loaded)
         _, max_b = self.owner_limits()
         if nbytes > max_b:
-            # kept by the caller for this request only: caching it would push out everything else
-            log.info("scene not cached: %d estimated bytes over the per-tenant cache share of %d", nbytes, max_b)
+            # the CLI, warm-up and batch workers only (a tenant's is refused in _load): kept by the caller
+            # for this request, as caching it would push out everything else
+            log.info("scene not cached: %d estimated bytes over the per-owner cache share of %d", nbytes, max_b)
             return
         self._trim_owner(owner, nbytes)
         self._trim_all(nbytes)

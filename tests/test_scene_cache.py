@@ -159,9 +159,47 @@ def test_the_cache_is_bounded_in_bytes(tmp_path):
     shared = SceneCache(capacity=100, max_bytes=limit, tenant_share=0.5)  # big > half of the bytes
     for p in small[:2]:
         shared.get(p, tenant="bob")
-    e = shared.get(big, tenant="alice")
-    assert e.loaded.geometry.triangle_count == g.triangle_count  # served...
+    e = shared.get(big)  # the CLI's, warm-up's or a batch worker's (no tenant): served...
+    assert e.loaded.geometry.triangle_count == g.triangle_count
     assert not _cached_plain(shared, big) and all(_cached_plain(shared, p) for p in small[:2])  # ...not kept
+
+
+def test_a_tenants_scene_over_its_cache_share_is_refused_once_and_not_reloaded(tmp_path, monkeypatch):
+    """Review item 6: such a scene was served uncached, i.e. fully reloaded (isolated load + Mitsuba build)
+    on every request. Now: SceneError too_large_for_cache naming the two settings and the sizes, no path,
+    no Mitsuba build, and the next request is refused without a load."""
+    from shadowopt.service import scenes
+
+    big = write(tmp_path, "spheres20.usda", instanced_spheres(20))
+    small = write(tmp_path, "small.usda", tiny_scene(7))
+    need = SceneCache().get(big).nbytes
+    share_bytes = need - 1000  # the share one byte-bound tenant may hold, just under the scene's estimate
+    cache = SceneCache(capacity=100, max_bytes=2 * share_bytes, tenant_share=0.5)
+    builds = []
+    real_build = scenes.build_ray_scene
+    monkeypatch.setattr(scenes, "build_ray_scene", lambda geom: builds.append(1) or real_build(geom))
+    cache.get(small, tenant="bob")
+    assert builds == [1]
+    for attempt in range(2):
+        with pytest.raises(SceneError) as e:
+            cache.get(big, sandbox=True, tenant="alice", limits=LoadLimits())
+        msg = e.value.message
+        assert e.value.code == "too_large_for_cache", msg
+        assert "scene_cache_bytes" in msg and "tenant_cache_share" in msg, msg
+        assert f"({need} bytes)" in msg and f"({share_bytes} bytes)" in msg, msg
+        assert str(tmp_path) not in msg and "/" not in msg, msg
+        assert cache.stats()["loads"] == 2, attempt  # the second refusal did not load it again
+    assert builds == [1]  # no Mitsuba scene was built for it
+    assert not cache.peek(big, sandbox=True) and _cached_plain(cache, small)  # nothing pushed out
+    # concurrent requests share the one refusal too
+    other = SceneCache(capacity=100, max_bytes=2 * share_bytes, tenant_share=0.5)
+    got = concurrently(3, lambda: other.get(big, tenant="carol"))
+    assert all(isinstance(g, SceneError) and g.code == "too_large_for_cache" for g in got), got
+    assert other.stats()["loads"] == 1
+    # a larger share (the operator raised scene_cache_bytes): the same scene now loads and is kept
+    cache.configure(max_bytes=4 * share_bytes)
+    assert cache.get(big, sandbox=True, tenant="alice", limits=LoadLimits()).nbytes == need
+    assert cache.peek(big, sandbox=True) is not None
 
 
 def _cached_plain(cache: SceneCache, p: Path) -> bool:
