@@ -48,7 +48,9 @@ WATCH_INTERVAL_S = 0.5
 # The demo scene peaks at 1.19-1.20 GB (the smallest limit it loads under: 1184 MB), the chess set
 # (1.43 M triangles, 38 MB of arrays) at 1.33 GB. Measured on 2 cores; USD's work threads and malloc's
 # arenas are capped (below) so the floor does not grow with the core count.
-MEMORY_FLOOR_BYTES = 1 << 30  # LoadLimits refuses less (as api.settings does); under ~1.2 GB every load fails
+# The one place the floor is checked: LoadLimits refuses less (api.settings builds its LoadLimits from the
+# settings and reports the ValueError naming the setting). 1.25 GiB: just above the measured 1.20 GB.
+MEMORY_FLOOR_BYTES = 5 << 28
 DEFAULT_MEMORY_BYTES = 3 << 30
 DEFAULT_TIMEOUT_S = 60.0
 DEFAULT_MAX_TRIANGLES = 5_000_000
@@ -62,18 +64,25 @@ ALLOCATION_CODES = ("corrupt", "internal", "too_large", "not_usd")  # loader cod
 
 @dataclass(frozen=True)
 class LoadLimits:
+    """The limits of one uploaded scene's isolated load, validated here and nowhere else: max_triangles a
+    positive integer, memory_bytes at least MEMORY_FLOOR_BYTES, timeout_s a finite positive number of
+    seconds (nan and inf refused). ValueError naming the field otherwise."""
+
     max_triangles: int = DEFAULT_MAX_TRIANGLES
     memory_bytes: int = DEFAULT_MEMORY_BYTES
     timeout_s: float = DEFAULT_TIMEOUT_S
 
     def __post_init__(self):
-        if not isinstance(self.max_triangles, int) or self.max_triangles < 1:
+        if isinstance(self.max_triangles, bool) or not isinstance(self.max_triangles, int) or self.max_triangles < 1:
             raise ValueError(f"max_triangles must be a positive integer, got {self.max_triangles!r}")
-        if not isinstance(self.memory_bytes, int) or self.memory_bytes < MEMORY_FLOOR_BYTES:
-            raise ValueError(f"memory_bytes must be at least {MEMORY_FLOOR_BYTES} (a loader child needs that "
-                             f"much address space for usd-core alone), got {self.memory_bytes!r}")
-        if not (isinstance(self.timeout_s, (int, float)) and self.timeout_s > 0 and math.isfinite(self.timeout_s)):
-            raise ValueError(f"timeout_s must be a positive number of seconds, got {self.timeout_s!r}")
+        if (isinstance(self.memory_bytes, bool) or not isinstance(self.memory_bytes, int)
+                or self.memory_bytes < MEMORY_FLOOR_BYTES):
+            raise ValueError(f"memory_bytes must be an integer of at least {MEMORY_FLOOR_BYTES} "
+                             f"({MEMORY_FLOOR_BYTES / 2**30:g} GiB: a loader child maps ~1.2 GB of address space for "
+                             f"numpy and usd-core alone), got {self.memory_bytes!r}")
+        if (isinstance(self.timeout_s, bool) or not isinstance(self.timeout_s, (int, float))
+                or not math.isfinite(self.timeout_s) or self.timeout_s <= 0):
+            raise ValueError(f"timeout_s must be a finite positive number of seconds, got {self.timeout_s!r}")
 
 
 # -- dying with the parent ---------------------------------------------------------------------------
@@ -328,8 +337,9 @@ class _Spares:
                 return
             ctx = multiprocessing.get_context("spawn")
             mine, theirs = ctx.Pipe(duplex=True)
-            proc = ctx.Process(target=_spare_main, args=(theirs, os.getpid()), name="shadowopt-load-spare", daemon=True)
             try:
+                proc = ctx.Process(target=_spare_main, args=(theirs, os.getpid()), name="shadowopt-load-spare",
+                                   daemon=True)
                 SPAWNER.start(proc)
             except Exception:  # noqa: BLE001 - no spare: the next load spawns its own child
                 mine.close()
@@ -380,25 +390,34 @@ def run_isolated(fn, args: tuple = (), kwargs: dict | None = None, *, memory_byt
         proc, conn = spare
         try:
             conn.send(job)
-        except (OSError, ValueError):
+        except (OSError, ValueError):  # the spare died: a fresh child below
             _dispose(proc, conn)
             proc = conn = None
+        except BaseException:  # the job does not pickle, say: the spare goes, the caller gets the error
+            _dispose(proc, conn)
+            raise
     warm = proc is not None
     if proc is None:
         ctx = multiprocessing.get_context("spawn")
         conn, writer = ctx.Pipe(duplex=False)
-        proc = ctx.Process(target=_child_main, name="shadowopt-isolated-load", daemon=True,
-                           args=(writer, os.getpid(), job))
         try:
+            proc = ctx.Process(target=_child_main, name="shadowopt-isolated-load", daemon=True,
+                               args=(writer, os.getpid(), job))
             SPAWNER.start(proc)
+        except BaseException:
+            conn.close()  # no child: nothing will ever write, and the caller gets the error
+            raise
         finally:
             writer.close()  # the child holds the only write end: EOF when it dies
-    with _stats_lock:
-        STATS["jobs"] += 1
-        STATS["warm"] += warm
-    SPARES.refill()  # for the next load, importing while this one runs
     peak = 0
     try:
+        with _stats_lock:
+            STATS["jobs"] += 1
+            STATS["warm"] += warm
+        try:
+            SPARES.refill()  # for the next load, importing while this one runs
+        except Exception:  # noqa: BLE001 - no spare (out of fds or processes): this load goes on without
+            pass
         deadline = time.monotonic() + timeout_s
         msg = None
         while True:

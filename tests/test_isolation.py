@@ -173,18 +173,67 @@ def test_a_child_that_crashes_is_a_corrupt_scene():
 
 
 def test_a_limit_under_the_fixed_floor_reads_as_memory_not_as_a_damaged_file():
-    """usd-core alone maps ~1.2 GB (its path pools reserve 383 MB each): under a 1 GiB limit the demo
-    scene's load fails inside USD, and that is the memory limit speaking."""
+    """usd-core alone maps ~1.2 GB (its path pools reserve 383 MB each): under a 1 GiB limit (below the
+    floor LoadLimits enforces, so through run_isolated) the demo scene's load fails inside USD, and that is
+    the memory limit speaking."""
     with pytest.raises(SceneError) as e:
-        load_isolated(DEMO, limits=LoadLimits(memory_bytes=GiB))
+        run_isolated(isolation._load_in_child, (str(DEMO), {}, None), memory_bytes=GiB, what="scene 'demo'")
     assert e.value.code == "memory_limit", e.value.message
 
 
-def test_limits_below_what_a_loader_child_needs_are_refused():
-    with pytest.raises(ValueError, match="memory_bytes"):
-        LoadLimits(memory_bytes=256 << 20)
-    with pytest.raises(ValueError, match="timeout_s"):
-        LoadLimits(timeout_s=0)
+def test_the_floor_loads_the_demo_scene():
+    """The floor is not set below what a real load needs (about 1.2 GB of address space)."""
+    sc = load_isolated(DEMO, limits=LoadLimits(memory_bytes=isolation.MEMORY_FLOOR_BYTES))
+    assert sc.geometry.triangle_count == load_scene(DEMO).geometry.triangle_count
+
+
+def test_limits_below_what_a_loader_child_needs_or_not_finite_are_refused():
+    """LoadLimits is the one check of these (api.settings builds its limits through it)."""
+    assert 1.2e9 < isolation.MEMORY_FLOOR_BYTES <= 1.3 * 2**30
+    for bad in (256 << 20, GiB, isolation.MEMORY_FLOOR_BYTES - 1, float(4 * GiB), True):
+        with pytest.raises(ValueError, match="memory_bytes"):
+            LoadLimits(memory_bytes=bad)
+    for bad in (0, -1.0, float("nan"), float("inf"), True, "60"):
+        with pytest.raises(ValueError, match="timeout_s"):
+            LoadLimits(timeout_s=bad)
+    for bad in (0, -5, 1.5, True):
+        with pytest.raises(ValueError, match="max_triangles"):
+            LoadLimits(max_triangles=bad)
+    ok = LoadLimits(max_triangles=1, memory_bytes=isolation.MEMORY_FLOOR_BYTES, timeout_s=0.5)
+    assert ok.timeout_s == 0.5
+
+
+def open_fds() -> set[str]:
+    return set(os.listdir("/proc/self/fd"))
+
+
+def test_no_descriptor_is_left_open_when_the_child_cannot_be_started(monkeypatch):
+    isolation.SPARES.close()  # no warm spare: run_isolated must spawn, and that fails
+    monkeypatch.setattr(isolation.SPARES, "enabled", False)
+
+    def cannot(process):
+        raise OSError(11, "Resource temporarily unavailable")
+
+    monkeypatch.setattr(isolation.SPAWNER, "start", cannot)
+    before = open_fds()
+    for _ in range(3):
+        with pytest.raises(OSError):
+            run_isolated(os.getpid)
+    assert open_fds() - before == set()
+
+
+def test_no_descriptor_is_left_open_when_a_job_does_not_pickle(monkeypatch):
+    isolation.SPARES.close()
+    run_isolated(os.getpid)  # leaves a warm spare behind
+    spare = isolation.SPARES.pid()
+    assert spare is not None
+    monkeypatch.setattr(isolation.SPARES, "enabled", False)
+    before = open_fds()  # the spare's pipe and sentinel among them
+    with pytest.raises(Exception):  # noqa: B017 - a lambda does not pickle
+        run_isolated(os.getpid, (lambda: 0,))
+    after = open_fds()
+    assert after - before == set() and len(after) <= len(before) - 2, (before, after)  # the spare's closed too
+    assert isolation.SPARES.pid() is None and not alive(spare)
 
 
 # -- dying with the parent ------------------------------------------------------------------------------
