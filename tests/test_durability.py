@@ -129,11 +129,11 @@ def test_sweep_spares_a_live_servers_uploads_in_progress_and_removes_stale_lefto
     stale_row = _old_style_row(live, "bob", b"#usda 1.0\n#stale\n", "stale.usda", age_s=2 * 3600)
     _age_file(stale_row, 2 * 3600)
     restarted = Store(d)
-    assert restarted.other_live_stores() == 1
     removed = restarted.sweep_partial_uploads()
+    assert path.read_bytes() == data and young_tmp.exists() and young_row.exists()
     assert removed["rows"] == [["bob", scene_id_for(b"#usda 1.0\n#stale\n", "stale.usda")]]
     assert not stale_tmp.exists() and not stale_row.exists()
-    assert path.read_bytes() == data and young_tmp.exists() and young_row.exists()
+    assert restarted.other_live_stores() == 1
     assert live.register_upload("alice", sid, path, len(data), {"triangles": 2442})  # the upload completes
     assert restarted.scene_path("alice", sid).read_bytes() == data
     live.close()
@@ -155,10 +155,10 @@ def test_a_restart_from_another_working_directory_keeps_every_scene(tmp_path, mo
     for opened in (tmp_path / "a" / "data", Path("../a/data")):
         store = Store(opened)
         removed = store.sweep_partial_uploads()
-        assert (removed["rows"], removed["files"], removed["missing"]) == ([], [], [])
         assert [s["scene_id"] for s in store.list_scenes("alice")] == [sid]
         assert store.scene_path("alice", sid).read_bytes() == data
         assert store.scene_record("alice", sid)["info"] == {"triangles": 2442}
+        assert (removed["rows"], removed["files"], removed["missing"]) == ([], [], [])
         store.close()
 
 
@@ -171,6 +171,7 @@ def test_a_moved_data_directory_keeps_its_scenes(tmp_path):
     shutil.move(tmp_path / "old", tmp_path / "restored")
     store = Store(tmp_path / "restored" / "data")
     removed = store.sweep_partial_uploads()
+    assert store.scene_path("alice", sid) is not None and store.scene_path("alice", sid).read_bytes() == data
     assert (removed["rows"], removed["files"], removed["missing"]) == ([], [], [])
     assert store.scene_path("alice", sid) == tmp_path / "restored" / "data" / "scenes" / path.relative_to(
         tmp_path / "old" / "data" / "scenes")
