@@ -266,7 +266,8 @@ class Service:
             log.warning("swept partial uploads", extra={"fields": {"rows": len(swept["rows"]),
                                                                    "files": len(swept["files"])}})
         self.runner = BatchRunner(self.store, backend=self.settings.batch_backend,
-                                  workers=self.settings.batch_workers, ray_address=self.settings.ray_address)
+                                  workers=self.settings.batch_workers, ray_address=self.settings.ray_address,
+                                  max_triangles=self.settings.max_triangles)
         log.info("store ready", extra={"fields": {"data_dir": str(self.settings.data_dir)}})
         threading.Thread(target=self.warm_up_then_resume, daemon=True, name="warm-up").start()
 

@@ -434,11 +434,26 @@ def _solve_with(get_entry, config: dict, settings: dict) -> dict:
         return {"error": {"code": "internal_error", "message": f"{type(e).__name__}: {e}"}}
 
 
-def solve_configuration(scene_path: str, sandbox: bool, config: dict, settings: dict) -> dict:
-    """Worker entry point (local pool): the scene is loaded once per process by the SCENES cache."""
+def _worker_entry(scene_path: str, sandbox: bool, settings: dict):
+    """The scene in a worker, loaded once per process by the SCENES cache, in-process (the worker is its
+    own process already) but under the server's triangle limit (settings["max_triangles"], set by the
+    runner from its own max_triangles, never from what was stored with the batch): a scene stored before
+    the limit existed, or before it was lowered, is refused as too_many_triangles like a new upload."""
     from .scenes import SCENES
 
-    return _solve_with(lambda: SCENES.get(scene_path, sandbox=sandbox), config, settings)
+    global _WORKER_CACHE_SET
+    if not _WORKER_CACHE_SET:  # a worker's cache has one owner (None): all of it, not a tenant's share, so a
+        SCENES.configure(tenant_share=1.0)  # scene over half of it is still kept rather than reloaded per item
+        _WORKER_CACHE_SET = True
+    return SCENES.get(scene_path, sandbox=sandbox, max_triangles=settings.get("max_triangles"))
+
+
+_WORKER_CACHE_SET = False
+
+
+def solve_configuration(scene_path: str, sandbox: bool, config: dict, settings: dict) -> dict:
+    """Worker entry point (local pool)."""
+    return _solve_with(lambda: _worker_entry(scene_path, sandbox, settings), config, settings)
 
 
 @dataclass
@@ -540,17 +555,9 @@ class SceneSolver:
                 Path(tmp).write_bytes(data)
                 os.replace(tmp, self.path)
         self.sandbox = sandbox
-        self.entry = None
-
-    def _entry(self):
-        if self.entry is None:
-            from .scenes import SCENES
-
-            self.entry = SCENES.get(self.path, sandbox=self.sandbox)
-        return self.entry
 
     def solve(self, config: dict, settings: dict) -> dict:
-        return _solve_with(self._entry, config, settings)
+        return _solve_with(lambda: _worker_entry(self.path, self.sandbox, settings), config, settings)
 
     def pid(self) -> int:
         return os.getpid()
@@ -652,7 +659,10 @@ class _RayBackend:
 class BatchRunner:
     """Runs queued batches one after another on a local spawn pool or Ray, writing each outcome to the store."""
 
-    def __init__(self, store: Store, backend: str = "local", workers: int = 2, ray_address: str | None = None):
+    def __init__(self, store: Store, backend: str = "local", workers: int = 2, ray_address: str | None = None,
+                 max_triangles: int | None = None):
+        """max_triangles: the server's triangle limit, applied to every scene a worker loads (None: none,
+        the CLI's own files)."""
         if backend not in BACKENDS:
             raise BatchError("backend", f"unknown backend {backend!r} (known: {', '.join(BACKENDS)})")
         if not isinstance(workers, int) or workers < 1:
@@ -661,6 +671,10 @@ class BatchRunner:
         self.backend = backend
         self.workers = workers
         self.ray_address = ray_address
+        if max_triangles is not None and (isinstance(max_triangles, bool) or not isinstance(max_triangles, int)
+                                          or max_triangles < 1):
+            raise BatchError("max_triangles", f"expected a positive integer, got {max_triangles!r}")
+        self.max_triangles = max_triangles
         self.stats = {"submitted": 0, "results": 0, "errors": 0}
         self._impl = None
         self._queue: collections.deque[tuple[str, str]] = collections.deque()
@@ -811,6 +825,7 @@ class BatchRunner:
     def _run_slice(self, batch_id: str, job, items: list, settings: dict) -> None:
         """Run some of a batch's pending configurations, storing each outcome as it arrives."""
         self.stats["submitted"] += len(items)
+        settings = {**(settings or {}), "max_triangles": self.max_triangles}  # this server's, not the stored one
         outcomes = self._backend().run(job, items, settings, lambda: self._should_stop(batch_id))
         for index, out in outcomes:
             if "result" in out:

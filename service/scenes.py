@@ -62,6 +62,13 @@ def entry_bytes(loaded: LoadedScene) -> int:
     return int(arrays * BYTES_FACTOR) + 64 * len(g.prim_paths) + 4096
 
 
+def _check_triangles(entry: SceneEntry, max_triangles: int | None) -> None:
+    n = entry.loaded.geometry.triangle_count
+    if max_triangles is not None and n > max_triangles:
+        raise SceneError("too_many_triangles", f"the scene has {n} triangles, more than the limit of "
+                         f"{max_triangles}; refused")
+
+
 @dataclass
 class _Slot:
     entry: SceneEntry
@@ -176,13 +183,22 @@ class SceneCache:
             return slot.entry
 
     def get(self, path, *, time_code: float | None = None, asset_root: str | None = None, sandbox: bool = False,
-            tenant: str | None = None, limits: LoadLimits | None = None) -> SceneEntry:
+            tenant: str | None = None, limits: LoadLimits | None = None,
+            max_triangles: int | None = None) -> SceneEntry:
+        """The entry for (path, options), loaded once. `limits`: the load runs isolated (see the module
+        docstring). `max_triangles` (without limits: an in-process load, as in a batch worker, which is its
+        own process already): the loader refuses the scene while counting; with limits, theirs applies.
+        A cached entry over the triangle limit of this get (loaded before the limit was lowered) is
+        refused too, SceneError("too_many_triangles")."""
+        if limits is not None:
+            max_triangles = limits.max_triangles
         key = self._key(path, time_code, asset_root, sandbox)
         with self._lock:
             slot = self._entries.get(key)
             if slot is not None:
                 self._entries.move_to_end(key)
                 self.hits += 1
+                _check_triangles(slot.entry, max_triangles)
                 return slot.entry
             if tenant is not None and key in self._too_large:  # refused before: do not load it again
                 refusal = self._too_large_error(self._too_large[key])
@@ -203,9 +219,10 @@ class SceneCache:
                 if isinstance(e, SceneError):
                     raise SceneError(e.code, e.message) from None
                 raise RuntimeError(f"the shared load failed: {type(e).__name__}: {e}") from e
+            _check_triangles(flight.entry, max_triangles)  # the leader's limit may have been another
             return flight.entry
         try:
-            entry = self._load(path, time_code, asset_root, sandbox, limits, tenant)
+            entry = self._load(path, time_code, asset_root, sandbox, limits, tenant, max_triangles)
         except BaseException as e:
             if isinstance(e, SceneError) and e.code == "too_large_for_cache":
                 with self._lock:
@@ -236,12 +253,13 @@ class SceneCache:
         e.nbytes = nbytes
         return e
 
-    def _load(self, path, time_code, asset_root, sandbox, limits, tenant=None) -> SceneEntry:
+    def _load(self, path, time_code, asset_root, sandbox, limits, tenant=None, max_triangles=None) -> SceneEntry:
         t0 = time.perf_counter()
         if limits is not None:
             loaded = load_isolated(path, time_code=time_code, asset_root=asset_root, sandbox=sandbox, limits=limits)
         else:
-            loaded = load_scene(path, time_code=time_code, asset_root=asset_root, sandbox=sandbox)
+            loaded = load_scene(path, time_code=time_code, asset_root=asset_root, sandbox=sandbox,
+                                max_triangles=max_triangles)
         t1 = time.perf_counter()
         nbytes = entry_bytes(loaded)
         if tenant is not None:  # before the Mitsuba build: a tenant's scene is cached or refused, never rebuilt

@@ -422,6 +422,45 @@ def test_implicit_triangle_counts_match_the_tessellation(tmp_path):
         assert len(tris) == usd_loader.implicit_triangle_count(k), k
 
 
+def test_batch_workers_load_stored_scenes_under_the_servers_triangle_limit(tmp_path):
+    """Review item 9: batch pool workers loaded uploads in-process with no limit, so a scene stored before
+    the limit existed (or before it was lowered) escaped it. A real spawn pool and store: under the limit
+    the batch is done; with the runner's limit one below the scene's count, every configuration is refused
+    as too_many_triangles, whether the worker loads the scene anew or has it cached already."""
+    from storekit import add_upload
+
+    from shadowopt.api.cli import validate_rig
+    from shadowopt.service.batches import BatchRunner
+    from shadowopt.service.store import Store
+
+    demo = Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda"
+    n = load_scene(demo, sandbox=True).geometry.triangle_count
+    rig = {"camera": {"usd_path": "/World/Camera", "resolution": [64, 36]}, "lights": [{"usd_path": "/World/Sun"}],
+           "shadow": {"resolution": [128, 128]}, "coarse_long_side": 32}
+    configs = [{"rig": validate_rig(rig)} for _ in range(2)]
+    store = Store(tmp_path / "data")
+    runner = BatchRunner(store, backend="local", workers=1, max_triangles=n)
+    try:
+        sid, _ = add_upload(store, "alice", demo.read_bytes(), "demo_scene.usda")  # stored: no limit applied
+        ok = store.create_batch("alice", sid, configs, {"method": "focused"})
+        runner.submit("alice", ok)
+        assert runner.wait(ok, timeout=300) == "done"
+        st = store.batch("alice", ok)
+        assert (st["done"], st["failed"]) == (2, 0), st
+        runner.max_triangles = n - 1  # the limit lowered (the worker has the scene cached)
+        low = store.create_batch("alice", sid, configs, {"method": "focused", "max_triangles": 10**9})
+        runner.submit("alice", low)
+        assert runner.wait(low, timeout=300) == "failed"  # every configuration failed
+        st = store.batch("alice", low)
+        assert st["failed"] == 2 and {e["code"] for e in st["errors"]} == {"too_many_triangles"}, st
+        assert f"limit of {n - 1}" in st["errors"][0]["message"] or f"limit {n - 1}" in st["errors"][0]["message"]
+    finally:
+        runner.shutdown()
+        store.close()
+    with pytest.raises(Exception, match="max_triangles"):
+        BatchRunner(store, max_triangles=0)
+
+
 # ------------------------------------------------------------------ 3. triangulation
 def _shoelace(p2: np.ndarray) -> float:
     q = np.roll(p2, -1, axis=0)

@@ -245,3 +245,22 @@ def test_loading_is_true_exactly_while_a_load_of_that_key_is_in_flight(tmp_path)
         t.join(60)
     assert not cache.loading(path, sandbox=True)
     assert cache.peek(path, sandbox=True) is not None  # done and cached
+
+
+def test_max_triangles_applies_to_a_fresh_load_and_to_a_cached_entry(tmp_path):
+    """What a batch worker does (in-process loads, its own process being the isolation): the loader refuses
+    while counting, and an entry cached under a higher limit is refused under a lower one."""
+    path = write(tmp_path, "spheres20.usda", instanced_spheres(20))
+    n = load_scene(path).geometry.triangle_count
+    cache = SceneCache()
+    with pytest.raises(SceneError) as e:
+        cache.get(path, sandbox=True, max_triangles=n // 2)
+    assert e.value.code == "too_many_triangles" and cache.stats()["entries"] == 0
+    entry = cache.get(path, sandbox=True, max_triangles=n)
+    assert entry.loaded.geometry.triangle_count == n
+    with pytest.raises(SceneError) as e:
+        cache.get(path, sandbox=True, max_triangles=n - 1)  # a hit, but over this get's limit
+    assert e.value.code == "too_many_triangles" and f"limit of {n - 1}" in e.value.message
+    with pytest.raises(SceneError):
+        cache.get(path, sandbox=True, limits=LoadLimits(max_triangles=n - 1))  # the isolated limit likewise
+    assert cache.get(path, sandbox=True) is entry and cache.stats()["loads"] == 2
