@@ -28,12 +28,20 @@ import zipfile
 
 _URL = re.compile(r"^[a-zA-Z][a-zA-Z0-9+.-]*:")  # scheme: (but not a Windows drive in practice)
 _PACKAGE = re.compile(r"^(?P<pkg>.+?\.usdz)\[(?P<inner>.+)\]$")
+USD_LAYER_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")  # USD's own file formats (the loader's too)
 
 
 def split_package_path(path: str) -> tuple[str, str | None]:
     """'a.usdz[b/c.usda]' -> ('a.usdz', 'b/c.usda'); a plain path -> (path, None)."""
     m = _PACKAGE.match(path)
     return (m.group("pkg"), m.group("inner")) if m else (path, None)
+
+
+def join_inside(folder: str, rel: str) -> str | None:
+    """`rel` (backslashes read as slashes) joined to `folder` inside an archive and normalised, or None
+    when the result leaves the archive ('..' above its top, or absolute)."""
+    joined = posixpath.normpath(posixpath.join(folder, rel.replace("\\", "/")))
+    return None if joined == ".." or joined.startswith(("../", "/")) else joined
 
 
 def is_inside(path: str, root: str) -> bool:
@@ -77,14 +85,9 @@ def check_asset_path(asset_path: str, anchor: str, mode: str, asset_root: str | 
     if "[" in asset_path:
         return False, f"{asset_path!r} names a package"
     _, inner_anchor = split_package_path(anchor)
-    anchor_dir = posixpath.dirname(inner_anchor) if inner_anchor else ""
-    joined = posixpath.normpath(posixpath.join(anchor_dir, asset_path.replace("\\", "/")))
-    if joined.startswith("../") or joined == ".." or joined.startswith("/"):
+    if join_inside(posixpath.dirname(inner_anchor) if inner_anchor else "", asset_path) is None:
         return False, f"{asset_path!r} leaves the uploaded archive"
     return True, "ok"
-
-
-USD_LAYER_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")
 
 
 def resolve_asset_path(asset_path: str, anchor: str, mode: str, asset_root: str | None = None,
@@ -112,8 +115,8 @@ def resolve_asset_path(asset_path: str, anchor: str, mode: str, asset_root: str 
     anchor_pkg, anchor_inner = split_package_path(anchor)
     if anchor_inner is not None and inner is None and not os.path.isabs(pkg) and not pkg.startswith("\\"):
         # relative to a layer inside a package: another entry of that package
-        joined = posixpath.normpath(posixpath.join(posixpath.dirname(anchor_inner), pkg.replace("\\", "/")))
-        if joined == ".." or joined.startswith(("../", "/")):
+        joined = join_inside(posixpath.dirname(anchor_inner), pkg)
+        if joined is None:
             return None, f"{asset_path!r} leaves the package {os.path.basename(anchor_pkg)!r}"
         if joined.lower().endswith(".usdz"):
             return None, f"{asset_path!r} names a package inside a package"
@@ -133,8 +136,8 @@ def resolve_asset_path(asset_path: str, anchor: str, mode: str, asset_root: str 
     if not is_inside(target, asset_root):
         return None, f"{asset_path!r} resolves outside the asset root {asset_root!r}"
     if inner is not None:
-        inner = posixpath.normpath(inner.replace("\\", "/"))
-        if inner == ".." or inner.startswith(("../", "/")):
+        inner = join_inside("", inner)
+        if inner is None:
             return None, f"{asset_path!r} leaves the package it names"
         return f"{target}[{inner}]", "ok"
     return target, "ok"
@@ -142,8 +145,7 @@ def resolve_asset_path(asset_path: str, anchor: str, mode: str, asset_root: str 
 
 def is_unsafe_entry_name(name: str) -> bool:
     """A zip entry name that is absolute, names a drive, or climbs out with '..'."""
-    norm = posixpath.normpath(name.replace("\\", "/"))
-    return (name.startswith(("/", "\\")) or norm == ".." or norm.startswith("../")
+    return (name.startswith(("/", "\\")) or join_inside("", name) is None
             or re.match(r"^[A-Za-z]:", name) is not None or "\x00" in name)
 
 

@@ -59,7 +59,8 @@ import numpy as np
 
 from ..solvers.frames import stage_to_world as _stage_to_world
 from ..solvers.frames import transform_directions, transform_points
-from .asset_resolver import is_unsafe_entry_name, resolve_asset_path, split_package_path, usdz_entries
+from .asset_resolver import (USD_LAYER_EXTENSIONS, is_unsafe_entry_name, resolve_asset_path, split_package_path,
+                             usdz_entries)
 from .redaction import PathRedactor
 from .scene_data import LoadedScene, SceneError, SceneGeometry, UsdCamera, UsdLight
 
@@ -68,7 +69,6 @@ MAX_WARNINGS = 50
 SANDBOX_MAX_DEPTH = 32
 SANDBOX_MAX_LAYERS = 256
 SANDBOX_MAX_LAYER_BYTES = 512 * 1024 * 1024
-_USD_EXT = (".usd", ".usda", ".usdc", ".usdz")
 
 
 # ---------------------------------------------------------------- diagnostics
@@ -128,7 +128,7 @@ def _check_file(path: str) -> None:
     if os.path.isdir(path):
         raise SceneError("not_usd", f"{name}: is a folder, not a USD file")
     ext = os.path.splitext(path)[1].lower()
-    if ext not in _USD_EXT:
+    if ext not in USD_LAYER_EXTENSIONS:
         raise SceneError("not_usd", f"{name}: not a USD file (extension {ext or 'none'}; expected .usd, .usda, .usdc or .usdz)")
     try:
         with open(path, "rb") as f:

@@ -183,3 +183,13 @@ def test_usdz_made_by_usd_itself_loads_in_the_sandbox(tmp_path):
     sc = load_scene(tmp_path / "pkg.usdz", sandbox=True)
     assert sorted(sc.geometry.prim_paths) == ["/Own", "/Ref0"]
     assert not any("refused" in w for w in sc.warnings)
+
+
+def test_join_inside_is_the_one_check_that_a_path_stays_in_an_archive():
+    from shadowopt.renderers.asset_resolver import is_unsafe_entry_name, join_inside
+
+    assert join_inside("a/b", "../c.usda") == "a/c.usda"
+    assert join_inside("a", "..\\..\\x.usda") is None  # backslashes read as slashes
+    assert join_inside("", "../x.usda") is None and join_inside("a/b", "../../..") is None
+    assert join_inside("", "/etc/x.usda") is None and join_inside("a", "./b/./c.usda") == "a/b/c.usda"
+    assert is_unsafe_entry_name("a/../../x.usda") and not is_unsafe_entry_name("a/../x.usda")
