@@ -3,7 +3,6 @@ the server: a SIGKILLed server leaves no batch worker, no loader child and no re
 from __future__ import annotations
 
 import ctypes
-import inspect
 import os
 import signal
 import subprocess
@@ -24,7 +23,6 @@ from shadowopt.service.hostile_corpus import instanced_spheres
 from shadowopt.service.isolation import LoadLimits, load_isolated, run_isolated
 
 GiB = 1 << 30
-LOADER_COUNTS = "max_triangles" in inspect.signature(load_scene).parameters
 
 
 def rss() -> int:
@@ -113,23 +111,23 @@ def test_a_memory_hungry_load_is_refused_and_the_server_keeps_no_memory(spheres)
     took = time.monotonic() - t0
     assert e.value.code == "memory_limit", e.value.message
     assert "memory" in e.value.message and str(spheres.parent) not in e.value.message
-    assert took < 60, took
-    if LOADER_COUNTS:
-        with pytest.raises(SceneError) as e:
-            load_isolated(spheres, sandbox=True, limits=LoadLimits(max_triangles=1_000_000, timeout_s=120))
-        assert e.value.code == "too_many_triangles", e.value.message
+    assert took < 60, took  # not minutes (the issue's load took 50 s and kept 3.6 GB)
+    with pytest.raises(SceneError) as e:
+        load_isolated(spheres, sandbox=True, limits=LoadLimits(max_triangles=1_000_000, timeout_s=120))
+    assert e.value.code == "too_many_triangles", e.value.message
     grown = rss() - before
     print(f"refused in {took:.1f} s; parent RSS {before / 2**20:.0f} MB, grew by {grown / 2**20:.1f} MB")
     assert grown < 64 * 2**20, grown  # the child's gigabytes went back to the system with it
 
 
-@pytest.mark.skipif(not LOADER_COUNTS, reason="the loader does not count triangles while loading yet")
 def test_the_triangle_limit_reaches_the_loader_in_the_child(spheres):
+    """Without max_triangles in the child, the 19 M-triangle scene would end as memory_limit (or a
+    timeout), not as too_many_triangles."""
     t0 = time.monotonic()
     with pytest.raises(SceneError) as e:
         load_isolated(spheres, sandbox=True, limits=LoadLimits(max_triangles=100_000))
     assert e.value.code == "too_many_triangles" and "100000" in e.value.message.replace(",", "")
-    assert time.monotonic() - t0 < 10
+    assert time.monotonic() - t0 < 30  # not minutes; how fast it is belongs in BENCHMARKS.md
 
 
 def test_a_load_over_its_time_limit_is_killed(spheres):
@@ -138,7 +136,7 @@ def test_a_load_over_its_time_limit_is_killed(spheres):
         load_isolated(spheres, sandbox=True, limits=LoadLimits(max_triangles=10**9, memory_bytes=16 * GiB,
                                                                timeout_s=1.5))
     assert e.value.code == "load_timeout" and "1.5 s" in e.value.message
-    assert time.monotonic() - t0 < 4
+    assert time.monotonic() - t0 < 30  # killed, not left to run its minutes (a spawn alone costs 1.2-1.5 s under load)
     assert not [p for p in isolation.multiprocessing.active_children()
                 if p.name.startswith("shadowopt-") and p.pid != isolation.SPARES.pid()]  # only the next spare
 
@@ -159,7 +157,7 @@ def test_a_child_that_sleeps_past_the_limit_is_gone_after_the_refusal():
     t0 = time.monotonic()
     with pytest.raises(SceneError) as e:
         run_isolated(time.sleep, (60,), timeout_s=1.0)
-    assert e.value.code == "load_timeout" and time.monotonic() - t0 < 3
+    assert e.value.code == "load_timeout" and time.monotonic() - t0 < 30  # not the 60 s it asked for
     t.join()
     seen = [p for p in seen if p != isolation.SPARES.pid()]  # the spare started for the next load
     assert seen and not any(alive(p) for p in seen)
@@ -262,16 +260,26 @@ def test_a_pool_worker_outlives_the_thread_that_started_it():
         pool.shutdown(wait=True)
 
 
+def how_this_process_dies() -> dict:
+    """Run in a batch worker: its parent-death signal (prctl PR_GET_PDEATHSIG), its parent and whether
+    the die-with-parent watchdog thread runs."""
+    sig = ctypes.c_int(0)
+    ctypes.CDLL(None, use_errno=True).prctl(2, ctypes.byref(sig), 0, 0, 0)  # PR_GET_PDEATHSIG
+    return {"pdeathsig": sig.value, "ppid": os.getppid(),
+            "watchdog": any(t.name == "die-with-parent" and t.is_alive() for t in threading.enumerate())}
+
+
 def test_pool_workers_use_the_parent_death_signal():
+    """Asked of a real worker of the batch backend's pool, not read from the pool's arguments."""
     from shadowopt.service.batches import _LocalBackend
 
     be = _LocalBackend(1)
     try:
-        pool = be._ensure_pool()
-        assert isinstance(pool, isolation.DyingProcessPool)
-        assert pool._initargs[2] == os.getpid() and pool._initargs[3] is isolation.DyingProcessPool.pdeathsig_safe()
+        got = be._ensure_pool().submit(how_this_process_dies).result(timeout=120)
     finally:
         be.close()
+    assert got["ppid"] == os.getpid() and got["watchdog"], got
+    assert got["pdeathsig"] == (signal.SIGKILL if isolation.DyingProcessPool.pdeathsig_safe() else 0), got
 
 
 PARENT = textwrap.dedent("""
