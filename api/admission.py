@@ -1,15 +1,21 @@
 """Admission control for the heavy requests (upload loads, optimize, evaluate, compare, batch creation).
 
 Everything here runs on the event loop and never blocks a thread:
-- `Admission.admit(tenant)` answers at once: a refusal (503 when `max_inflight` heavy requests are in,
-  429 when this tenant has `tenant_max_inflight` in) or a ticket that counts the request as in flight
-  until it is released (queued and running requests alike: `shadowopt_inflight_requests`);
+- `Admission.admit(tenant)` answers at once: a refusal (429 when this tenant has `tenant_max_inflight` in;
+  503 when `max_inflight` heavy requests are in and this tenant has one of them) or a ticket that counts
+  the request as in flight until it is released (queued and running requests alike:
+  `shadowopt_inflight_requests`). Headroom: a tenant with no request in flight is always admitted, so two
+  tenants at their quota cannot lock a third out; the total can exceed `max_inflight` by at most the
+  number of tenants (one request each);
 - a ticket then waits for a slot of a `FairPool` (solver slots, `solve_threads`; scene-load slots,
   `load_threads`) as an asyncio future. A freed slot goes to the waiting tenant that holds the fewest slots
   of the pool, ties taken in turn (round robin over the tenants with waiting requests, FIFO within a
   tenant): one tenant's 40 waiting requests do not all go before another tenant's one, and a tenant that
   arrives while another holds every slot gets the next one. Only a request holding a slot takes a worker
-  thread.
+  thread;
+- a ticket that `watch`es its request's ASGI `receive` notices the client going away (http.disconnect):
+  a wait for a slot (`Ticket.slot`, `Ticket.wait`) then ends at once with `ClientGone`, the ticket is
+  released by the route leaving, and a request whose client left before it got its slot never runs.
 """
 from __future__ import annotations
 
@@ -25,6 +31,10 @@ class Refused(Exception):
     def __init__(self, status: int, code: str, message: str, retry_after: int = 1):
         super().__init__(message)
         self.status, self.code, self.message, self.retry_after = status, code, message, retry_after
+
+
+class ClientGone(Exception):
+    """The client disconnected while its request waited: the request is dropped without running."""
 
 
 class FairPool:
@@ -94,8 +104,65 @@ class Ticket:
     tenant: str
     admission: "Admission"
     released: bool = field(default=False)
+    gone: asyncio.Event | None = field(default=None)  # set once the client has disconnected (when watched)
+    _watcher: asyncio.Task | None = field(default=None, repr=False)
+
+    def watch(self, receive) -> None:
+        """Watch the request's ASGI `receive` for http.disconnect. Call it once the request body has been
+        read (the watcher consumes messages; after the body the only one left is the disconnect)."""
+        if self._watcher is not None:
+            return
+        self.gone = gone = asyncio.Event()
+
+        async def watcher():
+            while True:
+                message = await receive()
+                if message is None or message.get("type") == "http.disconnect":
+                    gone.set()
+                    return
+
+        self._watcher = asyncio.get_running_loop().create_task(watcher())
+
+    @property
+    def client_gone(self) -> bool:
+        return self.gone is not None and self.gone.is_set()
+
+    async def wait(self, aw):
+        """`await aw`, unless the client disconnects first: then `aw` is cancelled and ClientGone raised."""
+        if self.gone is None:
+            return await aw
+        task = asyncio.ensure_future(aw)
+        gone = asyncio.ensure_future(self.gone.wait())
+        try:
+            await asyncio.wait({task, gone}, return_when=asyncio.FIRST_COMPLETED)
+        except BaseException:
+            task.cancel()
+            raise
+        finally:
+            gone.cancel()
+        if task.done():
+            return task.result()
+        task.cancel()  # FairPool.acquire gives back a slot it was handed at the same moment
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        raise ClientGone()
+
+    @contextlib.asynccontextmanager
+    async def slot(self, pool: FairPool):
+        """A slot of `pool` for this ticket's tenant; ClientGone when the client left before it was given
+        (a request whose client is gone never starts its work)."""
+        await self.wait(pool.acquire(self.tenant))
+        try:
+            if self.client_gone:
+                raise ClientGone()
+            yield
+        finally:
+            pool.release(self.tenant)
 
     def release(self) -> None:
+        if self._watcher is not None:
+            self._watcher.cancel()
+            self._watcher = None
         if not self.released:
             self.released = True
             self.admission._release(self.tenant)
@@ -110,19 +177,17 @@ class Admission:
         self.by_tenant: dict[str, int] = {}
         self.solve = FairPool("solve", solve_threads)
         self.load = FairPool("load", load_threads)
-        self.refused: dict[str, int] = {}  # code -> count, for /metrics
 
     def admit(self, tenant: str) -> Ticket:
-        """A ticket, or Refused at once (nothing waits here)."""
-        if self.inflight >= self.max_inflight:
-            self.refused["busy"] = self.refused.get("busy", 0) + 1
-            raise Refused(503, "busy", f"{self.inflight} heavy requests are in flight (server limit "
-                          f"max_inflight = {self.max_inflight}); retry shortly")
+        """A ticket, or Refused at once (nothing waits here). A tenant with nothing in flight is always
+        admitted (headroom: `max_inflight` only refuses tenants that already have a request in)."""
         mine = self.by_tenant.get(tenant, 0)
         if mine >= self.tenant_max_inflight:
-            self.refused["tenant_quota"] = self.refused.get("tenant_quota", 0) + 1
             raise Refused(429, "tenant_quota", f"this token has {mine} heavy requests in flight, the per-tenant "
                           f"quota tenant_max_inflight = {self.tenant_max_inflight}; retry when one has finished")
+        if self.inflight >= self.max_inflight and mine > 0:
+            raise Refused(503, "busy", f"{self.inflight} heavy requests are in flight (server limit "
+                          f"max_inflight = {self.max_inflight}) and this token has {mine} of them; retry shortly")
         self.inflight += 1
         self.by_tenant[tenant] = mine + 1
         return Ticket(tenant, self)

@@ -126,6 +126,11 @@ class ServerMetrics:
                                     inflight))
         self.refusals = r.add(Counter("shadowopt_admission_refusals_total", "heavy requests refused at admission, "
                                       "by code (busy: max_inflight; tenant_quota: tenant_max_inflight)", ("code",)))
+        self.abandoned = r.add(Counter("shadowopt_abandoned_requests_total", "heavy requests dropped because "
+                                       "their client disconnected before they ran, by stage (waiting: for a "
+                                       "slot; body: while sending its upload)", ("stage",)))
+        self.load_followers = r.add(Counter("shadowopt_scene_load_followers_total", "requests that waited for "
+                                            "another request's load of their scene without holding a load slot"))
         if admission is not None:
             for pool in (admission.solve, admission.load):
                 r.add(Gauge(f"shadowopt_{pool.name}_slots_busy", f"{pool.name} slots in use",

@@ -29,7 +29,6 @@ import threading
 import time
 import traceback
 import uuid
-import weakref
 from collections import OrderedDict
 from pathlib import Path
 from typing import Annotated
@@ -40,9 +39,10 @@ from fastapi.responses import JSONResponse, Response
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from . import schemas as S
-from .admission import Admission, Refused
+from .admission import Admission, ClientGone, Refused
 from .metrics import ServerMetrics
 from .settings import Settings, is_loopback, load_settings
 
@@ -248,7 +248,6 @@ class Service:
         self.probe_pool = concurrent.futures.ThreadPoolExecutor(2, thread_name_prefix="probe")
         self._reserved: dict[str, int] = {}  # tenant -> bytes of uploads being stored (tenant_max_stored_bytes)
         self._reserved_lock = threading.Lock()
-        self._live_scenes: "weakref.WeakValueDictionary[tuple, object]" = weakref.WeakValueDictionary()
         REDACT.add(settings.data_dir)
 
     # lifecycle
@@ -320,23 +319,29 @@ class Service:
 
     # limits
     @contextlib.asynccontextmanager
-    async def heavy(self, tenant: str):
-        """Admission of a heavy request, answered at once: 503 when `max_inflight` heavy requests are in, 429
-        when this tenant has `tenant_max_inflight` in. The request counts as in flight until it leaves; its
-        work then waits for a slot (`solve_slot`, `load_slot`) on the event loop."""
+    async def heavy(self, tenant: str, request: Request | None = None, watch: bool = True):
+        """Admission of a heavy request, answered at once: 429 when this tenant has `tenant_max_inflight` in,
+        503 when `max_inflight` heavy requests are in and this tenant has one of them. The request counts as
+        in flight until it leaves; its work then waits for a slot (`in_slot`) on the event loop. With
+        `request` (and `watch`) the ticket watches for the client disconnecting: a wait for a slot then ends
+        at once (ClientGone, answered 499) and the ticket is released; `watch=False` when the route still has
+        the body to read (it calls ticket.watch(request.receive) afterwards)."""
         try:
             ticket = self.admission.admit(tenant)
         except Refused as e:
             self.metrics.refusals.inc(e.code)
             raise ApiError(e.status, e.code, e.message, headers={"Retry-After": str(e.retry_after)}) from None
         try:
+            if request is not None and watch:
+                ticket.watch(request.receive)
             yield ticket
         finally:
             ticket.release()
 
-    async def in_slot(self, pool, tenant: str, fn, *args, **kwargs):
-        """`fn(*args, **kwargs)` in a worker thread once `pool` (admission.solve or .load) gives this tenant a slot."""
-        async with pool.slot(tenant):
+    async def in_slot(self, pool, ticket, fn, *args, **kwargs):
+        """`fn(*args, **kwargs)` in a worker thread once `pool` (admission.solve or .load) gives the ticket's
+        tenant a slot; ClientGone (never run) when the client left while it waited."""
+        async with ticket.slot(pool):
             return await run_in_threadpool(fn, *args, **kwargs)
 
     async def probe(self, fn, timeout: float = 2.0):
@@ -606,6 +611,15 @@ def install_error_handlers(app: FastAPI) -> None:
         request.state.error_code = exc.code
         return JSONResponse(exc.body(), status_code=exc.status_code, headers=exc.headers)
 
+    @app.exception_handler(ClientGone)
+    @app.exception_handler(ClientDisconnect)
+    async def client_gone(request: Request, exc: Exception):
+        """The client disconnected while its request waited for a slot (ClientGone: dropped, never run) or
+        while it sent its upload (ClientDisconnect): nobody reads the answer; logged and counted as 499."""
+        request.state.error_code = "client_closed"
+        request.app.state.service.metrics.abandoned.inc("waiting" if isinstance(exc, ClientGone) else "body")
+        return error_json(499, "client_closed", "the client closed the connection before the request ran")
+
     @app.exception_handler(RequestValidationError)
     async def invalid(request: Request, exc: RequestValidationError):
         request.state.error_code = "invalid_request"
@@ -687,9 +701,11 @@ def add_scene_routes(app: FastAPI, svc: Service, Tenant) -> None:
                            filename: Annotated[str | None, Query(max_length=255, description="the file's name "
                                                                  "(its extension says the format)")] = None,
                            x_filename: Annotated[str | None, Header(max_length=255)] = None):
-        data, name = await read_upload(request, svc.settings.max_upload_bytes, filename or x_filename)
-        async with svc.heavy(tenant):
-            info, created = await store_and_load(svc, tenant, data, name)
+        # admitted before the body is read: max_inflight / tenant_max_inflight bound the upload bytes in memory
+        async with svc.heavy(tenant, request, watch=False) as ticket:
+            data, name = await read_upload(request, svc.settings.max_upload_bytes, filename or x_filename)
+            ticket.watch(request.receive)
+            info, created = await store_and_load(svc, ticket, data, name)
         return json_response({**info, "created": created}, status=201 if created else 200)
 
     @app.get("/v1/scenes", summary="This tenant's scenes", response_model=S.SceneList, tags=["scenes"],
@@ -762,7 +778,9 @@ async def read_upload(request: Request, limit: int, name: str | None) -> tuple[b
     return body, name
 
 
-SCENE_413 = ("too_many_triangles", "memory_limit", "load_timeout")  # over a resource limit: too large
+# over a resource limit: too large (too_large_for_cache: one scene's estimated bytes over the tenant's share of
+# the scene cache, scene_cache_bytes * tenant_cache_share)
+SCENE_413 = ("too_many_triangles", "memory_limit", "load_timeout", "too_large_for_cache")
 
 
 def scene_error(e, field: str) -> ApiError:
@@ -786,57 +804,40 @@ def scene_options(svc: Service, tenant: str, sandboxed: bool) -> dict:
     return opts
 
 
-def load_entry(svc: Service, path, opts: dict, field: str):
+def load_entry(path, opts: dict, field: str):
     """SCENES.get (cache, single flight, isolated load) in a worker thread; SceneError -> 413/422."""
     from ..renderers.scene_data import SceneError
     from ..service.scenes import SCENES
 
     try:
-        entry = SCENES.get(path, **opts)
+        return SCENES.get(path, **opts)
     except SceneError as e:
         raise scene_error(e, field) from e
-    with contextlib.suppress(TypeError):  # an entry type without weak references: the fallback is off
-        svc._live_scenes[_scene_key(path, opts)] = entry
-    return entry
 
 
-def _scene_key(path, opts: dict) -> tuple:
-    try:
-        st = os.stat(path)
-        ident = (st.st_size, st.st_mtime_ns)
-    except OSError:
-        ident = None
-    return (os.path.realpath(path), ident, opts.get("sandbox"), opts.get("tenant"))
-
-
-def cached_entry(svc: Service, path, opts: dict):
+def cached_entry(path, opts: dict):
     """The loaded scene when it is in memory (no load, nothing blocks), else None."""
     from ..service.scenes import SCENES
 
-    peek = getattr(SCENES, "peek", None)
-    if peek is not None:
-        with contextlib.suppress(TypeError):
-            return peek(path, **opts)
-    # TODO(issue 9, part B): use SCENES.peek once the cache has one; until then its own key and entries
-    try:
-        key = SCENES._key(path, opts.get("time_code"), opts.get("asset_root"), opts.get("sandbox", False))
-        with SCENES._lock:
-            slot = SCENES._entries.get(key)
-            if slot is None:
-                return None
-            SCENES._entries.move_to_end(key)
-            return getattr(slot, "entry", slot)
-    except AttributeError:
-        return svc._live_scenes.get(_scene_key(path, opts))
-    except Exception:  # the file is gone, say: the load reports it
-        return None
+    return SCENES.peek(path, **opts)
 
 
-async def store_and_load(svc: Service, tenant: str, data: bytes, name: str) -> tuple[dict, bool]:
+def load_in_flight(path, opts: dict) -> bool:
+    """True while another request loads this scene (the cache's single flight): a follower waits for it
+    without a load slot. False when the cache cannot tell (then every loader takes a slot)."""
+    from ..service.scenes import SCENES
+
+    loading = getattr(SCENES, "loading", None)
+    return bool(loading(path, **opts)) if loading is not None else False
+
+
+async def store_and_load(svc: Service, ticket, data: bytes, name: str) -> tuple[dict, bool]:
     """Store the file, load it in upload mode (nothing outside the upload is read, limits enforced while
     loading), then record it with what was found in one transaction; a load that fails leaves nothing.
     Runs under the request's admission: the write in a worker thread, the load in a scene-load slot."""
     from ..service.store import scene_id_for
+
+    tenant = ticket.tenant
 
     def prepare():
         scene_id = scene_id_for(data, name)
@@ -856,7 +857,7 @@ async def store_and_load(svc: Service, tenant: str, data: bytes, name: str) -> t
         return scene_info(rec, scene_id), False
     try:
         try:
-            entry = await svc.in_slot(svc.admission.load, tenant, load_entry, svc, path,
+            entry = await svc.in_slot(svc.admission.load, ticket, load_entry, path,
                                       scene_options(svc, tenant, True), "file")
             info = finite(entry.loaded.info())
             if info["triangles"] > svc.settings.max_triangles:  # the loader stops at the limit; a safety net
@@ -900,9 +901,16 @@ def unreserve_upload(svc: Service, tenant: str, nbytes: int) -> None:
             svc._reserved.pop(tenant, None)
 
 
-async def scene_entry_for(svc: Service, tenant: str, scene_id: str):
+FOLLOW_POLL_S = 0.02  # how often a request waiting for another request's load of its scene looks again
+
+
+async def scene_entry_for(svc: Service, ticket, scene_id: str):
     """The loaded scene or 404. From memory when it is there; else reloaded (an evicted upload) under the
-    request's admission in a scene-load slot, never a solver slot."""
+    request's admission in a scene-load slot, never a solver slot. Only the leader of a load holds a load
+    slot: while another request loads the same scene (single flight) this one waits on the event loop,
+    holding no slot and no thread, then takes the entry from the cache."""
+    tenant = ticket.tenant
+
     def lookup():
         path = svc.store.scene_path(tenant, scene_id)
         return path, (svc.store.scene_sandboxed(tenant, scene_id) if path is not None else True)
@@ -911,10 +919,24 @@ async def scene_entry_for(svc: Service, tenant: str, scene_id: str):
     if path is None:
         raise scene_not_found(scene_id)
     opts = scene_options(svc, tenant, sandboxed)
-    entry = cached_entry(svc, path, opts)
-    if entry is not None:
+    followed = False
+    while True:
+        entry = cached_entry(path, opts)
+        if entry is not None:
+            if followed:
+                svc.metrics.load_followers.inc()
+            return entry
+        if load_in_flight(path, opts):  # a follower: no slot while the leader loads
+            followed = True
+            await ticket.wait(asyncio.sleep(FOLLOW_POLL_S))
+            continue
+        async with ticket.slot(svc.admission.load):
+            if load_in_flight(path, opts) or cached_entry(path, opts) is not None:
+                continue  # another request started (or finished) the load while this one waited: follow it
+            entry = await run_in_threadpool(load_entry, path, opts, "scene_id")
+        if followed:
+            svc.metrics.load_followers.inc()
         return entry
-    return await svc.in_slot(svc.admission.load, tenant, load_entry, svc, path, opts, "scene_id")
 
 
 # --- optimize, evaluate, compare, analyze -------------------------------------------------------
@@ -924,8 +946,9 @@ def rig_dict(rig: S.Rig) -> dict:
 
 
 @contextlib.contextmanager
-def solver_errors(previous_given: bool = False):
-    """RigError/SolutionError/SceneError and the solvers' ValueErrors -> 422 naming the field."""
+def solver_errors():
+    """RigError/SolutionError/SceneError and the solvers' ValueErrors -> 422 naming the field. Anything else
+    (a KeyError, TypeError, ... from a bug) is a 500 internal_error with the request id, logged."""
     from ..renderers.scene_data import SceneError
     from ..service.rigs import RigError, SolutionError
 
@@ -937,11 +960,6 @@ def solver_errors(previous_given: bool = False):
         raise ApiError(422, e.code, str(e), e.field) from e
     except SceneError as e:
         raise scene_error(e, "scene_id") from e
-    except (KeyError, TypeError, IndexError) as e:
-        if not previous_given:
-            raise
-        raise ApiError(422, "invalid_previous", f"previous: not a usable solution ({type(e).__name__}: {e})",
-                       "previous") from e
     except ValueError as e:
         text = str(e)
         head, sep, rest = text.partition(": ")
@@ -983,14 +1001,14 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
 
     @app.post("/v1/optimize", summary="Shadow setup for a scene and rig: matrices, warp, cascades, predicted error",
               response_model=S.Solution, responses=error_responses(*AUTHED, 404, 413, 422, 503), tags=["solve"])
-    async def optimize(req: S.OptimizeRequest, tenant: Tenant):
+    async def optimize(req: S.OptimizeRequest, tenant: Tenant, request: Request):
         rig = rig_dict(req.rig)
         budget = svc.time_budget(req.time_budget_ms)
-        async with svc.heavy(tenant):
-            entry = await scene_entry_for(svc, tenant, req.scene_id)
+        async with svc.heavy(tenant, request) as ticket:
+            entry = await scene_entry_for(svc, ticket, req.scene_id)
             t0 = time.perf_counter()
-            with solver_errors(req.previous is not None):
-                sol = await svc.in_slot(svc.admission.solve, tenant, solve, entry, rig, method=req.method,
+            with solver_errors():
+                sol = await svc.in_slot(svc.admission.solve, ticket, solve, entry, rig, method=req.method,
                                         solver=req.solver, time_budget_ms=budget, previous=req.previous,
                                         hysteresis=req.hysteresis)
             svc.metrics.optimize.observe(time.perf_counter() - t0, req.method)
@@ -998,7 +1016,7 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
 
     @app.post("/v1/evaluate", summary="Measure a solution against exact ray-traced shadows (optional heatmap PNG)",
               response_model=S.Evaluation, responses=error_responses(*AUTHED, 404, 413, 422, 503), tags=["solve"])
-    async def evaluate(req: S.EvaluateRequest, tenant: Tenant):
+    async def evaluate(req: S.EvaluateRequest, tenant: Tenant, request: Request):
         from ..service.evaluation import evaluate_solution
 
         rig = rig_dict(req.rig)
@@ -1014,15 +1032,15 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
                                                  for p in sorted(Path(tmp).glob("heatmap*.png"))]
             return res
 
-        async with svc.heavy(tenant):
-            entry = await scene_entry_for(svc, tenant, req.scene_id)
+        async with svc.heavy(tenant, request) as ticket:
+            entry = await scene_entry_for(svc, ticket, req.scene_id)
             with solver_errors():
-                res = await svc.in_slot(svc.admission.solve, tenant, run, entry)
+                res = await svc.in_slot(svc.admission.solve, ticket, run, entry)
         return json_response(res)
 
     @app.post("/v1/compare", summary="Methods side by side: predicted and measured error, setup time",
               response_model=S.Comparison, responses=error_responses(*AUTHED, 404, 413, 422, 503), tags=["solve"])
-    async def compare(req: S.CompareRequest, tenant: Tenant):
+    async def compare(req: S.CompareRequest, tenant: Tenant, request: Request):
         from ..service.compare import compare as compare_methods
 
         rig = rig_dict(req.rig)
@@ -1030,10 +1048,10 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
         check_eval_size(svc, rig, req.screen, {"lights": [{"cascades": [{"resolution": resolution}]}]}
                         if resolution is not None else None)
         methods = list(dict.fromkeys(req.methods))
-        async with svc.heavy(tenant):
-            entry = await scene_entry_for(svc, tenant, req.scene_id)
+        async with svc.heavy(tenant, request) as ticket:
+            entry = await scene_entry_for(svc, ticket, req.scene_id)
             with solver_errors():
-                res = await svc.in_slot(svc.admission.solve, tenant, compare_methods, entry, rig, methods,
+                res = await svc.in_slot(svc.admission.solve, ticket, compare_methods, entry, rig, methods,
                                         screen=req.screen, solve_options={"time_budget_ms": svc.time_budget(None)})
         return json_response(res)
 
@@ -1058,10 +1076,12 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
     @app.post("/v1/batches", summary="Precompute many camera/light configurations; answers 202 with the batch id",
               response_model=S.BatchCreated, status_code=202, tags=["batches"],
               responses=error_responses(*AUTHED, 404, 413, 422, 503))
-    async def create_batch(req: S.BatchRequest, tenant: Tenant):
-        async with svc.heavy(tenant):
-            entry = await scene_entry_for(svc, tenant, req.scene_id)
-            return await run_in_threadpool(queue_batch, svc, tenant, req, entry)
+    async def create_batch(req: S.BatchRequest, tenant: Tenant, request: Request):
+        async with svc.heavy(tenant, request) as ticket:
+            entry = await scene_entry_for(svc, ticket, req.scene_id)
+            # the per-configuration validation (up to tenant_max_queued rigs resolved against the scene) is
+            # solver-bound work: it runs in a solve slot like a solve, never beside solve_threads of them
+            return await svc.in_slot(svc.admission.solve, ticket, queue_batch, svc, tenant, req, entry)
 
     def queue_batch(svc: Service, tenant: str, req: S.BatchRequest, entry) -> Response:
         from ..service.batches import BatchError, expand_configurations, expansion_shape

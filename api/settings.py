@@ -31,8 +31,10 @@ class Settings:
     max_eval_pixels: int = 3840 * 2160 * 2  # evaluate/compare: screen pixels
     max_eval_texels: int = 8192 * 8192  # evaluate/compare: texels per shadow map
     max_queue: int = 100_000  # configurations waiting or running over all batches
-    max_inflight: int = 64  # heavy requests (upload loads, optimize, evaluate, compare, batch creation) admitted
-    # at once, running or waiting for a slot; one more is refused at once with 503 busy
+    max_inflight: int = 64  # heavy requests (uploads, optimize, evaluate, compare, batch creation) admitted at
+    # once, running or waiting for a slot; one more is refused at once with 503 busy, except for a tenant with
+    # nothing in flight, which is always admitted (headroom: tenants at their quota cannot lock another out;
+    # the total can exceed max_inflight by at most the number of tenants)
     solve_threads: int = 2  # solves running at the same time
     load_threads: int = 1  # scene loads (uploads and cache-miss reloads) running at the same time: own slots,
     # so an upload never holds a solver slot

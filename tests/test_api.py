@@ -245,6 +245,7 @@ def test_solver_work_does_not_block_the_event_loop(api, scene, server):
     done = {}
     worker = threading.Thread(target=lambda: done.setdefault("r", api.post(
         "/v1/evaluate", json={"scene_id": scene["scene_id"], "rig": rig, "solution": sol})))
+    start = time.perf_counter()
     worker.start()
     latencies = []
     while worker.is_alive():
@@ -253,5 +254,8 @@ def test_solver_work_does_not_block_the_event_loop(api, scene, server):
         latencies.append(time.perf_counter() - t0)
         time.sleep(0.02)
     worker.join()
+    evaluate_s = time.perf_counter() - start
     assert done["r"].status_code == 200 and len(latencies) >= 5
-    assert max(latencies) < 0.5, latencies  # answered while the evaluate ran in a worker thread
+    # answered while the evaluate ran in a worker thread: a blocked event loop would hold one probe for
+    # (nearly) the whole evaluate; no absolute bound (a loaded machine slows both alike)
+    assert max(latencies) < evaluate_s / 2, (latencies, evaluate_s)
