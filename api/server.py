@@ -791,9 +791,7 @@ def scene_error(e, field: str) -> ApiError:
 
 
 def load_limits(settings: Settings):
-    from ..service.isolation import LoadLimits
-
-    return LoadLimits(settings.max_triangles, settings.load_memory_bytes, settings.load_timeout_s)
+    return settings.load_limits()
 
 
 def scene_options(svc: Service, tenant: str, sandboxed: bool) -> dict:

@@ -7,6 +7,7 @@ or a `tokens = {name = "token"}` table; the tenant of a request is the name of i
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -38,8 +39,9 @@ class Settings:
     solve_threads: int = 2  # solves running at the same time
     load_threads: int = 1  # scene loads (uploads and cache-miss reloads) running at the same time: own slots,
     # so an upload never holds a solver slot
-    load_memory_bytes: int = 3 * 1024 ** 3  # address-space limit of the process loading an uploaded scene
-    load_timeout_s: float = 60.0  # wall-clock limit of one uploaded scene's load
+    load_memory_bytes: int = 3 * 1024 ** 3  # address-space limit of the process loading an uploaded scene (the
+    # floor is service.isolation.MEMORY_FLOOR_BYTES, checked by LoadLimits)
+    load_timeout_s: float = 60.0  # wall-clock limit of one uploaded scene's load (finite, > 0)
     scene_cache_entries: int = 8  # loaded scenes kept in memory
     scene_cache_bytes: int = 2 * 1024 ** 3  # bytes of loaded scenes kept in memory
     tenant_cache_share: float = 0.5  # fraction of the scene cache (entries and bytes) one tenant's scenes may hold
@@ -62,6 +64,19 @@ class Settings:
     def auth_enabled(self) -> bool:
         return bool(self.tokens)
 
+    def load_limits(self):
+        """The limits of an uploaded scene's isolated load (service.isolation.LoadLimits, which validates
+        them); SettingsError naming the setting when one is out of range."""
+        from ..service.isolation import LoadLimits  # stdlib only at import: no native stack pulled in
+
+        for name, field_ in (("max_triangles", "max_triangles"), ("load_memory_bytes", "memory_bytes"),
+                             ("load_timeout_s", "timeout_s")):
+            try:
+                LoadLimits(**{field_: getattr(self, name)})
+            except ValueError as e:
+                raise SettingsError(f"{name}: {e}") from None
+        return LoadLimits(self.max_triangles, self.load_memory_bytes, self.load_timeout_s)
+
     def check(self) -> "Settings":
         for name in ("max_upload_bytes", "max_body_bytes", "max_triangles", "max_eval_pixels", "max_eval_texels",
                      "max_queue", "max_inflight", "solve_threads", "load_threads", "load_memory_bytes",
@@ -69,13 +84,14 @@ class Settings:
                      "tenant_max_stored_bytes", "batch_workers", "rate_limit_burst"):
             if getattr(self, name) < 1:
                 raise SettingsError(f"{name}: must be at least 1, got {getattr(self, name)}")
+        for name in ("max_time_budget_ms", "rate_limit_per_s", "retention_interval_s", "tenant_cache_share",
+                     "retention_days"):  # load_timeout_s: LoadLimits checks it (below)
+            value = getattr(self, name)
+            if value is not None and not math.isfinite(value):
+                raise SettingsError(f"{name}: must be a finite number, got {value}")
         if self.max_time_budget_ms <= 0 or self.rate_limit_per_s < 0 or self.retention_interval_s <= 0:
             raise SettingsError("max_time_budget_ms and retention_interval_s must be > 0, rate_limit_per_s >= 0")
-        if self.load_memory_bytes < 1 << 30:
-            raise SettingsError(f"load_memory_bytes: must be at least {1 << 30} (a loader process needs that much "
-                                f"address space for usd-core alone), got {self.load_memory_bytes}")
-        if self.load_timeout_s <= 0:
-            raise SettingsError(f"load_timeout_s: must be > 0, got {self.load_timeout_s}")
+        self.load_limits()  # the floors and bounds of the loader's limits live in one place: LoadLimits
         if not 0 < self.tenant_cache_share <= 1:
             raise SettingsError(f"tenant_cache_share: must be in (0, 1], got {self.tenant_cache_share}")
         if self.batch_backend not in ("local", "ray"):

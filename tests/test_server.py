@@ -145,6 +145,28 @@ def test_serve_bad_config_exits_2(tmp_path):
     assert r.returncode == 2 and "max_queue: must be at least 1" in r.stderr
 
 
+def test_load_limits_are_checked_once_with_the_loaders_own_floor(tmp_path):
+    """review of issue 9: SHADOWOPT_LOAD_TIMEOUT_S=nan (or inf) was accepted and then every upload answered
+    500; the memory floor was checked twice with different numbers. The server now refuses to start naming
+    the setting, and the floor is the loader's own (service.isolation.LoadLimits)."""
+    from shadowopt.service.isolation import MEMORY_FLOOR_BYTES
+
+    exe = Path(sys.executable).with_name("shadowopt")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("SHADOWOPT_")}
+    for value in ("nan", "inf"):
+        r = subprocess.run([str(exe), "serve", "--data-dir", str(tmp_path / "d")], capture_output=True, text=True,
+                           env={**env, "SHADOWOPT_LOAD_TIMEOUT_S": value}, timeout=60)
+        assert r.returncode == 2 and "load_timeout_s" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    for value in ("-inf", "nan"):
+        with pytest.raises(SettingsError, match="^load_timeout_s: "):
+            load_settings(env={"SHADOWOPT_LOAD_TIMEOUT_S": value})
+    assert MEMORY_FLOOR_BYTES >= 1.2 * 2 ** 30  # usd-core alone maps ~1.2 GB in a loader child
+    with pytest.raises(SettingsError, match=f"^load_memory_bytes: .*{MEMORY_FLOOR_BYTES}"):
+        load_settings(env={"SHADOWOPT_LOAD_MEMORY_BYTES": str(MEMORY_FLOOR_BYTES - 1)})
+    ok = load_settings(env={"SHADOWOPT_LOAD_MEMORY_BYTES": str(MEMORY_FLOOR_BYTES), "SHADOWOPT_LOAD_TIMEOUT_S": "5"})
+    assert (ok.load_limits().memory_bytes, ok.load_limits().timeout_s) == (MEMORY_FLOOR_BYTES, 5.0)
+
+
 def test_health_is_503_with_retry_after_until_warm(tmp_path):
     import asyncio
 
