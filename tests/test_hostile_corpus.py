@@ -24,8 +24,9 @@ from shadowopt.service.hostile_corpus import mutations
 CRATE = "full_assets/OpenChessSet/assets/Rook/Rook_geom.usd"  # 759 KB, binary crate (PXR-USDC), 30,528 triangles
 TEXT = "full_assets/Vehicles/USD_Mini_Car_Kit/assets/wheels/wheelNormal/geo/wheelNormalGeo.usda"  # 39 KB, 236 tris
 CASES = {"usdc": 80, "usda": 80, "usdz": 80}  # 240: ~0.3 s per isolated load (300 took 93 s)
-TIME_BOUND_S = 90.0  # the whole corpus
-HARD_STOP_S = 180.0  # the run stops here whatever happens (and fails on TIME_BOUND_S)
+HARD_STOP_S = 500.0  # the run stops here whatever happens, and fails unless every case ran (not a timing
+# bound: 240 cases take ~70 s idle, 173 s in the full suite, 385 s at load average 8 on 2 cores; the elapsed
+# time is printed, -s; under pytest-timeout's 600 s so this test's own message is the one shown)
 RSS_BOUND = 3 * 1024 ** 3  # peak resident memory of the server process over its whole life (warm-up included)
 
 
@@ -90,9 +91,9 @@ def test_the_originals_load(server, originals):
 def test_mutated_files_answer_2xx_or_4xx_and_leak_nothing(server, originals):
     """240 damaged files (the three formats in turn), one after another: each a 2xx or a 4xx refusal with a
     specific code (not `internal`: an exception the loader did not expect), no server path in any answer, the
-    server up and its peak memory under RSS_BOUND afterwards, the whole corpus within TIME_BOUND_S. The run
-    stops at HARD_STOP_S whatever happens (so a slow server costs the suite minutes, not hours) and then
-    fails on the time bound, saying how many cases ran."""
+    server up and its peak memory under RSS_BOUND afterwards. The run stops at HARD_STOP_S whatever happens
+    (so a hanging server costs the suite minutes, not hours) and then fails, saying how many cases ran; the
+    elapsed time is printed (timings belong in BENCHMARKS.md, not in a test under a loaded machine)."""
     pid = server.proc.pid
     rss_before = _proc_status(pid, "VmRSS")
     corpus = {ext: mutations(data, CASES[ext], seed=9) for ext, data in originals.items()}
@@ -141,6 +142,6 @@ def test_mutated_files_answer_2xx_or_4xx_and_leak_nothing(server, originals):
     assert not leaked, f"{len(leaked)} answers name a server path:\n" + "\n".join(map(str, leaked[:10]))
     assert not internal, f"{len(internal)} refusals with code internal:\n" + "\n".join(map(str, internal[:5]))
     assert peak < RSS_BOUND, f"peak RSS {peak / 2**20:.0f} MiB over the bound {RSS_BOUND / 2**20:.0f} MiB"
-    assert ran == len(order) and elapsed < TIME_BOUND_S, (
-        f"{ran} of {len(order)} cases ran in {elapsed:.1f} s (bound {TIME_BOUND_S} s for all; median upload "
+    assert ran == len(order), (
+        f"only {ran} of {len(order)} cases ran before the hard stop at {HARD_STOP_S:.0f} s (median upload "
         f"{times[len(times) // 2]:.2f} s)")

@@ -59,16 +59,11 @@ def solutions(entry):
 
 
 def as_client_sees(obj):
-    """A solution as it reaches a client: JSON, non-finite numbers as null (api.server.finite)."""
-    def fin(v):
-        if isinstance(v, float):
-            return v if math.isfinite(v) else None
-        if isinstance(v, dict):
-            return {str(k): fin(x) for k, x in v.items()}
-        if isinstance(v, (list, tuple)):
-            return [fin(x) for x in v]
-        return v
-    return json.loads(json.dumps(fin(obj), default=float))
+    """A solution as it reaches a client: the server's own JSON conversion (api.server.finite: non-finite
+    numbers as null, NumPy values as Python numbers), serialised as the server does."""
+    from shadowopt.api.server import finite
+
+    return json.loads(json.dumps(finite(obj), allow_nan=False))
 
 
 def walk(node, path=()):
