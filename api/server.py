@@ -8,8 +8,9 @@ the event loop (api/admission.py): refused at once when the server or the tenant
 they wait as asyncio futures for a slot, the tenants taking turns, and only then run in a worker thread
 (at most `solve_threads` solves and `load_threads` scene loads at a time). /healthz and /metrics are
 async and read the database on their own small executor: they never wait behind queued work.
-Every message a client sees has server paths (data directory, scene storage, repository, Python prefix)
-cut down to file names (`redact`).
+Every free-text field a client sees (error messages, warnings, batch error messages, warm-up errors) has
+server paths (data directory, scene storage, repository, Python prefix) cut down to file names (`redact`);
+identifiers (prim paths, usd_path, scene ids, file names) are never rewritten.
 """
 
 import asyncio
@@ -21,7 +22,6 @@ import json
 import logging
 import math
 import os
-import re
 import sqlite3
 import sys
 import tempfile
@@ -42,6 +42,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
 from . import schemas as S
+from ..renderers.redaction import PathRedactor
 from .admission import Admission, ClientGone, Refused
 from .metrics import ServerMetrics
 from .settings import Settings, is_loopback, load_settings
@@ -131,42 +132,37 @@ def validation_error_response(exc) -> JSONResponse:
 # --- no server paths in what a client sees -------------------------------------------------------
 
 class Redactor:
-    """Cuts server filesystem paths in client-visible text down to their file name: anything under the data
-    directory (scene storage `<data>/scenes/<tenant hash>/<id>/x.usda` -> `x.usda`), the repository, the
-    Python prefix (the virtual environment) or the temporary directory."""
+    """The server's redaction of client-visible JSON: renderers.redaction.PathRedactor (the one path
+    redactor: server folders - the data directory, repository, Python prefixes, working, temporary and home
+    folders - and any absolute file path cut to base names) applied to the free-text fields only."""
 
     def __init__(self):
-        self._roots: set[str] = set()
-        self._pattern: re.Pattern | None = None
-        self._lock = threading.Lock()
-        for root in (REPO, sys.prefix, sys.base_prefix, sys.exec_prefix, tempfile.gettempdir()):
-            self.add(root)
+        self.paths = PathRedactor()
 
     def add(self, root) -> None:
-        with self._lock:
-            for r in {os.path.abspath(os.fspath(root)), os.path.realpath(os.fspath(root))}:
-                r = r.rstrip("/")
-                if len(r) > 1:
-                    self._roots.add(r)
-            alternatives = "|".join(re.escape(r) for r in sorted(self._roots, key=len, reverse=True))
-            self._pattern = re.compile(f"(?:file://)?(?:{alternatives})(?![^/\\s'\"@<>\\[\\](){{}},;:])"
-                                       f"(?:/[^\\s'\"@<>\\[\\](){{}},;:]*)?")
+        """Hide one more server folder (the data directory)."""
+        self.paths.add(root)
 
     def text(self, value: str) -> str:
-        if not value or "/" not in value:
-            return value
-        return self._pattern.sub(lambda m: os.path.basename(m.group(0).rstrip("/")) or "file", value)
+        return self.paths.text(value)
 
-    def obj(self, obj):
-        """Every string of a JSON-ready object (keys too), except base64 payloads (`*_base64`)."""
+    def obj(self, obj, _free: bool = False):
+        """A JSON-ready object with the free text redacted: the strings under a FREE_TEXT key (error
+        messages, warnings, batch error messages, warm-up errors, at any depth). Identifiers (prim paths,
+        camera and light usd_path, scene ids, file names) are the caller's own data and pass unchanged,
+        even when they look like a server path (a prim `/tmp/Camera`)."""
         if isinstance(obj, str):
-            return self.text(obj)
+            return self.text(obj) if _free else obj
         if isinstance(obj, dict):
-            return {self.text(k) if isinstance(k, str) else k: (v if isinstance(k, str) and k.endswith("_base64")
-                                                                else self.obj(v)) for k, v in obj.items()}
+            return {(self.text(k) if _free and isinstance(k, str) else k):
+                    self.obj(v, _free or (isinstance(k, str) and k in FREE_TEXT)) for k, v in obj.items()}
         if isinstance(obj, list):
-            return [self.obj(v) for v in obj]
+            return [self.obj(v, _free) for v in obj]
         return obj
+
+
+# the keys whose strings are free text a message writer may have put a server path in (only these are redacted)
+FREE_TEXT = frozenset({"message", "warnings", "warning", "warm_errors", "note", "notes", "reasons"})
 
 
 REDACT = Redactor()

@@ -42,14 +42,10 @@ def server(tmp_path_factory):
         yield s
 
 
-SEEN: list[httpx.Response] = []  # every answer to an upload in this module: none may name a server path
-
-
 def post_scene(base: str, who: str | None, text: str | bytes, name: str = "box.usda") -> httpx.Response:
     headers = auth(who) if who else {}
     r = httpx.post(f"{base}/v1/scenes", params={"filename": name},
                    content=text.encode() if isinstance(text, str) else text, headers=headers, timeout=60)
-    SEEN.append(r)
     return r
 
 
@@ -256,8 +252,9 @@ def test_compare_and_evaluate_accept_a_texel_budget_rig_as_optimize_does(server,
 def test_no_server_path_in_any_answer(server, alice_box):
     """issue 9: load errors carried the storage path (<data>/scenes/<tenant hash>/<id>/x.usda) and a warning a
     path inside the virtual environment. Damaged files (USD's own parse errors name the layer's full path),
-    references to missing files, and every upload answer of this module: none holds the data directory, the
-    repository, the Python prefix or the temporary directory; the file is named by its own name."""
+    references to missing files, a 70-layer chain and a good upload (this test's own answers, so it does not
+    depend on other tests): none holds the data directory, the repository, the Python prefix or the
+    temporary directory; the file is named by its own name."""
     import sys
     import tempfile
 
@@ -272,12 +269,66 @@ def test_no_server_path_in_any_answer(server, alice_box):
     for name, r in zip(("broken.usda", "garbage.usdc", "garbage.usdz"), answers):
         err = error_of(r, 422)
         assert err["field"] == "file" and name in err["message"], err  # named by its own name
+    answers.append(post_scene(server.base, "alice", BOX % ""))  # a successful upload's answer too
+    assert answers[-1].status_code in (200, 201), answers[-1].text
     roots = {str(server.data_dir), str(server.data_dir.resolve()), str(REPO), sys.prefix, sys.base_prefix,
              tempfile.gettempdir() + "/"}
-    for r in SEEN:
+    for r in answers:  # this test's own answers: it does not depend on what other tests uploaded
         for root in roots:
             assert root not in r.text, (root, r.text)
-    assert len(SEEN) > len(cases)
+
+
+PRIMS_UNDER_TMP = """#usda 1.0
+(
+    defaultPrim = "tmp"
+    metersPerUnit = 1
+    upAxis = "Y"
+)
+def Xform "tmp" {
+    def Camera "Camera" {
+        double3 xformOp:translate = (0, 2, 6)
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+    }
+    def DistantLight "Sun" {
+        float3 xformOp:rotateXYZ = (-60, 20, 0)
+        uniform token[] xformOpOrder = ["xformOp:rotateXYZ"]
+    }
+    def Cube "Box" {
+        double size = 1
+    }
+    def Mesh "Ground" {
+        int[] faceVertexCounts = [4]
+        int[] faceVertexIndices = [0, 3, 2, 1]
+        point3f[] points = [(-5, -0.5, -5), (5, -0.5, -5), (5, -0.5, 5), (-5, -0.5, 5)]
+    }
+}
+"""
+
+
+def test_prim_paths_that_look_like_server_paths_come_back_unchanged(server):
+    """review of issue 9: redaction ran over every string of every answer, so a scene whose prims live under
+    /tmp (the server's temporary folder) came back with its camera `/tmp/Camera` as `Camera`. Identifiers are
+    the caller's data: scene info and solutions keep them; free text (error messages) is still redacted."""
+    r = post_scene(server.base, "bob", PRIMS_UNDER_TMP, "tmp_prims.usda")
+    assert r.status_code in (200, 201), r.text
+    info = r.json()
+    assert [c["usd_path"] for c in info["cameras"]] == ["/tmp/Camera"]
+    assert [l["usd_path"] for l in info["lights"]] == ["/tmp/Sun"]
+    again = httpx.get(f"{server.base}/v1/scenes/{info['scene_id']}", headers=auth("bob")).json()
+    assert again["cameras"] == info["cameras"] and again["filename"] == "tmp_prims.usda"
+    rig = {"camera": {"usd_path": "/tmp/Camera", "resolution": [160, 90]}, "lights": [{"usd_path": "/tmp/Sun"}],
+           "shadow": {"resolution": [256, 256]}, "coarse_long_side": 48}
+    sol = httpx.post(server.base + "/v1/optimize", json={"scene_id": info["scene_id"], "rig": rig,
+                                                         "method": "focused"}, headers=auth("bob"), timeout=60)
+    assert sol.status_code == 200, sol.text
+    assert sol.json()["lights"][0]["usd_path"] == "/tmp/Sun"
+    # a message naming the data directory is still cut down (a damaged upload: USD's parse error names
+    # the stored file's full path, the loader's and the server's redaction cut it to its name)
+    bad = post_scene(server.base, "bob", "#usda 1.0\ndef Xform \"tmp\" {\n    def Mesh \"M\" { int[] x = [3\n",
+                     "tmp_broken.usda")
+    err = error_of(bad, 422)
+    assert "tmp_broken.usda" in err["message"] and str(server.data_dir) not in bad.text
+    assert str(server.data_dir.resolve()) not in bad.text
 
 
 def test_redact_cuts_every_server_path_to_its_file_name(tmp_path):
@@ -301,6 +352,17 @@ def test_redact_cuts_every_server_path_to_its_file_name(tmp_path):
     assert e.status_code == 422 and e.body()["error"]["message"] == "file: cannot read x.usda"
     assert scene_error(SceneError("memory_limit", "over"), "file").status_code == 413
     assert scene_error(SceneError("sandbox_limit", "deep"), "file").status_code == 422
-    body = REDACT.obj({"warnings": [str(stored)], str(stored): 1, "heatmap_png_base64": [str(stored)]})
-    assert body == {"warnings": ["x.usda"], "x.usda": 1, "heatmap_png_base64": [str(stored)]}  # payloads untouched
+    # only free text is redacted (messages, warnings, batch error messages, warm-up errors); identifiers and
+    # payloads are the caller's data and pass unchanged, even when they look like server paths
+    body = REDACT.obj({"warnings": [str(stored)], "error": {"code": "corrupt", "message": f"{data}/x.usda: bad",
+                                                            "field": "file"},
+                       "errors": [{"index": 3, "code": "internal_error", "message": f"see {venv}"}],
+                       "warm_errors": {str(stored): f"{stored}: failed"}, "scene_id": "0123456789abcdef",
+                       "cameras": [{"usd_path": "/tmp/Camera"}], "prims": ["/tmp/Geo/Mesh"],
+                       "filename": "x.usda", "heatmap_png_base64": [str(stored)]})
+    assert body == {"warnings": ["x.usda"], "error": {"code": "corrupt", "message": "x.usda: bad", "field": "file"},
+                    "errors": [{"index": 3, "code": "internal_error", "message": "see __init__.py"}],
+                    "warm_errors": {"x.usda": "x.usda: failed"}, "scene_id": "0123456789abcdef",
+                    "cameras": [{"usd_path": "/tmp/Camera"}], "prims": ["/tmp/Geo/Mesh"],
+                    "filename": "x.usda", "heatmap_png_base64": [str(stored)]}
     assert str(data) not in ApiError(422, "x", f"{data}/shadowopt.db is locked").body()["error"]["message"]
