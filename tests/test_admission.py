@@ -270,7 +270,8 @@ def test_an_evicted_scene_is_reloaded_once_for_six_concurrent_optimizes(server):
 # --- a server with room for three heavy requests and one solver slot --------------------------------
 
 SMALL = {"SHADOWOPT_MAX_INFLIGHT": "3", "SHADOWOPT_TENANT_MAX_INFLIGHT": "3", "SHADOWOPT_SOLVE_THREADS": "1",
-         "SHADOWOPT_RATE_LIMIT_PER_S": "0", "SHADOWOPT_MAX_TIME_BUDGET_MS": "300", "SHADOWOPT_BATCH_WORKERS": "1"}
+         "SHADOWOPT_RATE_LIMIT_PER_S": "0", "SHADOWOPT_MAX_TIME_BUDGET_MS": "300", "SHADOWOPT_BATCH_WORKERS": "1",
+         "SHADOWOPT_SCENE_CACHE_BYTES": "40000"}  # one tenant's share: 20000 bytes (a box scene: ~8 KB)
 SLOW_SCREEN = [1280, 720]  # a compare at this size runs for seconds on the box scene
 
 
@@ -429,3 +430,26 @@ def test_a_batch_is_validated_in_a_solver_slot(small):
         httpx.delete(f"{small.base}/v1/batches/{created.json()['batch_id']}", headers=auth("alice"))
     finally:
         pool.shutdown(wait=True)
+
+
+def grid_scene(n: int) -> str:
+    """A ground made of n x n quads (2 n^2 triangles)."""
+    pts = ", ".join(f"({x - n / 2}, 0, {z - n / 2})" for z in range(n + 1) for x in range(n + 1))
+    idx = ", ".join(f"{z * (n + 1) + x}, {z * (n + 1) + x + 1}, {(z + 1) * (n + 1) + x + 1}, {(z + 1) * (n + 1) + x}"
+                    for z in range(n) for x in range(n))
+    return ('#usda 1.0\n(\n    defaultPrim = "World"\n    upAxis = "Y"\n)\ndef Xform "World" {\n'
+            f'    def Mesh "Ground" {{\n        int[] faceVertexCounts = [{", ".join(["4"] * n * n)}]\n'
+            f'        int[] faceVertexIndices = [{idx}]\n        point3f[] points = [{pts}]\n    }}\n}}\n')
+
+
+def test_a_scene_over_the_tenants_cache_share_is_refused_413(small):
+    """review of issue 9: a scene whose loaded size is over one tenant's share of the scene cache was served
+    uncached and reloaded on every request. Its upload is refused, 413 too_large_for_cache, the message naming
+    the settings and field `file`; nothing is stored, and a small scene is still accepted."""
+    r = post_scene(small.base, "bob", grid_scene(40), "grid.usda")  # 3,200 triangles: ~0.4 MB estimated
+    assert r.status_code == 413, r.text
+    err = r.json()["error"]
+    assert err["code"] == "too_large_for_cache" and err["field"] == "file"
+    assert "scene_cache_bytes" in err["message"] and "tenant_cache_share" in err["message"]
+    assert "grid.usda" not in httpx.get(small.base + "/v1/scenes", headers=auth("bob")).text
+    assert post_scene(small.base, "bob", BOX % "    # fits\n").status_code in (200, 201)
