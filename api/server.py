@@ -244,6 +244,9 @@ class Service:
         self.probe_pool = concurrent.futures.ThreadPoolExecutor(2, thread_name_prefix="probe")
         self._reserved: dict[str, int] = {}  # tenant -> bytes of uploads being stored (tenant_max_stored_bytes)
         self._reserved_lock = threading.Lock()
+        # (path, tenant, sandboxed) -> (when, ApiError) of a scene reload that failed: the requests that waited
+        # for that load get its answer instead of loading again (event loop only)
+        self.failed_loads: "OrderedDict[tuple, tuple[float, ApiError]]" = OrderedDict()
         REDACT.add(settings.data_dir)
 
     # lifecycle
@@ -339,6 +342,12 @@ class Service:
         tenant a slot; ClientGone (never run) when the client left while it waited."""
         async with ticket.slot(pool):
             return await run_in_threadpool(fn, *args, **kwargs)
+
+    def note_failed_load(self, key: tuple, error: "ApiError", keep: int = 256) -> None:
+        self.failed_loads.pop(key, None)
+        self.failed_loads[key] = (time.monotonic(), error)
+        while len(self.failed_loads) > keep:
+            self.failed_loads.popitem(last=False)
 
     async def probe(self, fn, timeout: float = 2.0):
         """`fn()` on the probe executor (database reads for /healthz and /metrics), within `timeout` seconds."""
@@ -913,22 +922,34 @@ async def scene_entry_for(svc: Service, ticket, scene_id: str):
     if path is None:
         raise scene_not_found(scene_id)
     opts = scene_options(svc, tenant, sandboxed)
-    followed = False
+    key, followed, since = (os.fspath(path), tenant, sandboxed), None, time.monotonic()
     while True:
         entry = cached_entry(path, opts)
         if entry is not None:
-            if followed:
+            if followed is not None:
                 svc.metrics.load_followers.inc()
             return entry
         if load_in_flight(path, opts):  # a follower: no slot while the leader loads
-            followed = True
+            followed = followed or time.monotonic()
             await ticket.wait(asyncio.sleep(FOLLOW_POLL_S))
             continue
+        failed = svc.failed_loads.get(key)
+        if failed is not None and failed[0] >= since:  # a load that began while this request waited failed:
+            svc.metrics.load_followers.inc()  # the same answer, no second load
+            e = failed[1]
+            raise ApiError(e.status_code, e.code, e.message, e.field)
         async with ticket.slot(svc.admission.load):
-            if load_in_flight(path, opts) or cached_entry(path, opts) is not None:
+            failed = svc.failed_loads.get(key)
+            if load_in_flight(path, opts) or cached_entry(path, opts) is not None or (
+                    failed is not None and failed[0] >= since):
+                followed = followed or time.monotonic()
                 continue  # another request started (or finished) the load while this one waited: follow it
-            entry = await run_in_threadpool(load_entry, path, opts, "scene_id")
-        if followed:
+            try:
+                entry = await run_in_threadpool(load_entry, path, opts, "scene_id")
+            except ApiError as e:
+                svc.note_failed_load(key, e)
+                raise
+        if followed is not None:
             svc.metrics.load_followers.inc()
         return entry
 

@@ -267,6 +267,27 @@ def test_an_evicted_scene_is_reloaded_once_for_six_concurrent_optimizes(server):
         httpx.delete(f"{server.base}/v1/scenes/{sid}", headers=auth("carol"))
 
 
+def test_requests_that_waited_for_a_failed_reload_get_its_answer_without_loading_again(server):
+    """Single flight for failures: an evicted scene whose file was damaged on disk meanwhile fails to reload;
+    the six concurrent optimizes that asked for it all get the leader's 422 (naming the file), and the file is
+    loaded once, not once per request."""
+    first = box_scene(server, "carol", "    # damaged later\n")
+    fillers = [box_scene(server, "carol", f"    # evicts {k}\n") for k in range(3)]  # her share: 2 entries
+    [stored] = [p for p in server.data_dir.rglob("box.usda") if first in str(p)]
+    stored.write_text('#usda 1.0\ndef Xform "World" {\n    def Mesh "M" { int[] faceVertexCounts = [3\n')
+    loads = gauge(server.base, "shadowopt_scene_cache_loads_total")
+    body = {"scene_id": first, "rig": BOX_RIG, "method": "focused"}
+    with ThreadPoolExecutor(6) as pool:
+        answers = list(pool.map(lambda _: httpx.post(server.base + "/v1/optimize", json=body, headers=auth("carol"),
+                                                     timeout=120), range(6)))
+    assert [r.status_code for r in answers] == [422] * 6, [r.text[:200] for r in answers]
+    assert {r.json()["error"]["code"] for r in answers} == {answers[0].json()["error"]["code"]}
+    assert "box.usda" in answers[0].json()["error"]["message"]
+    assert gauge(server.base, "shadowopt_scene_cache_loads_total") - loads == 1
+    for sid in [first, *fillers]:
+        httpx.delete(f"{server.base}/v1/scenes/{sid}", headers=auth("carol"))
+
+
 # --- a server with room for three heavy requests and one solver slot --------------------------------
 
 SMALL = {"SHADOWOPT_MAX_INFLIGHT": "3", "SHADOWOPT_TENANT_MAX_INFLIGHT": "3", "SHADOWOPT_SOLVE_THREADS": "1",
@@ -335,6 +356,7 @@ def test_a_client_that_gives_up_while_waiting_frees_its_place_at_once(small):
     assert gauge(small.base, "shadowopt_inflight_requests") == 0
 
 
+@pytest.mark.slow
 def test_two_tenants_at_max_inflight_do_not_lock_a_third_out(small):
     """review of issue 9: alice holds max_inflight = 3 heavy requests; bob and carol, with nothing in flight,
     are admitted all the same (and answered), while bob's second request at the same time is refused 503
