@@ -183,3 +183,36 @@ def test_health_is_503_with_retry_after_until_warm(tmp_path):
     assert r.json()["status"] == "warming" and r.json()["error"]["code"] == "warming_up"
     app.state.service.ready.set()
     assert asyncio.run(health()).status_code == 200
+
+
+def test_a_bug_under_a_previous_solution_is_a_500_with_the_request_id_not_a_422(tmp_path, monkeypatch, caplog):
+    """review of issue 9: the server turned any KeyError/TypeError/IndexError of a solve with a `previous`
+    into 422 invalid_previous, hiding real bugs (service.solution_check names malformed previous fields
+    itself). A bug is now a 500 internal_error whose message carries the request id, and it is logged."""
+    import asyncio
+
+    import shadowopt.api.server as server_mod
+    import shadowopt.service.solve as solve_mod
+    from shadowopt.api.server import create_app
+
+    def buggy_solve(*args, **kwargs):
+        return {}["a bug"]
+
+    async def any_entry(svc, ticket, scene_id):
+        return object()
+
+    monkeypatch.setattr(solve_mod, "solve", buggy_solve)  # bound when the routes are made
+    monkeypatch.setattr(server_mod, "scene_entry_for", any_entry)
+    app = create_app(Settings(data_dir=str(tmp_path / "d")))
+
+    async def optimize():
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://t") as c:
+            return await c.post("/v1/optimize", json={"scene_id": "0123456789abcdef", "rig": TINY_RIG,
+                                                      "previous": {"lights": []}}, headers={"X-Request-ID": "bug-1"})
+
+    with caplog.at_level("ERROR", logger="shadowopt.server"):
+        r = asyncio.run(optimize())
+    assert r.status_code == 500, r.text
+    err = r.json()["error"]
+    assert err["code"] == "internal_error" and "KeyError" in err["message"] and "bug-1" in err["message"]
+    assert any(getattr(rec, "fields", {}).get("request_id") == "bug-1" for rec in caplog.records)
