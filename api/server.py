@@ -3,11 +3,14 @@
 Every request is authenticated by a bearer token (the tenant is the token's name), rate-limited per
 token, logged as one JSON line with its request id (echoed in X-Request-ID) and counted in /metrics.
 Every 4xx is `{"error": {"code", "message", "field"}}` and is listed in the route's OpenAPI responses.
-Heavy requests (an upload's load, optimize, evaluate, compare, batch creation) pass admission control on
-the event loop (api/admission.py): refused at once when the server or the tenant is at its limit, else
-they wait as asyncio futures for a slot, the tenants taking turns, and only then run in a worker thread
-(at most `solve_threads` solves and `load_threads` scene loads at a time). /healthz and /metrics are
-async and read the database on their own small executor: they never wait behind queued work.
+Heavy requests (uploads, optimize, evaluate, compare, batch creation) pass admission control on the event
+loop (api/admission.py) before any body of theirs is read (uploads): refused at once when the tenant is at
+its quota or the server at max_inflight (a tenant with nothing in flight is always admitted), else they
+wait as asyncio futures for a slot, the tenants taking turns, and only then run in a worker thread (at
+most `solve_threads` solves, batch validations included, and `load_threads` scene loads at a time; only
+the leader of a scene load holds a load slot, requests for the same scene wait for it slotless). A
+request whose client disconnects while it waits is dropped at once (499, never run). /healthz and
+/metrics are async and read the database on their own small executor: they never wait behind queued work.
 Every free-text field a client sees (error messages, warnings, batch error messages, warm-up errors) has
 server paths (data directory, scene storage, repository, Python prefix) cut down to file names (`redact`);
 identifiers (prim paths, usd_path, scene ids, file names) are never rewritten.
