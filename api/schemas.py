@@ -104,7 +104,20 @@ class Rig(_Strict):
     shadow: ShadowSpec = ShadowSpec()
     output: OutputSpec = OutputSpec()
     frame: Literal["world", "stage"] = "world"
-    coarse_long_side: Annotated[int, Field(ge=16, le=1024)] = Field(180, description="coarse buffer's long side, px")
+    coarse_long_side: Annotated[int, Field(ge=16, le=512)] = Field(
+        180, description="coarse buffer's long side, px (the metric's samples: ~180 is the design point, 512 the cap)")
+
+    @model_validator(mode="after")
+    def _work(self):
+        """The one bound on a rig's solve work (service.request_cost: lights x coarse pixels x maps, x6 for
+        point lights, against MAX_SOLVE_WORK); every request and batch configuration with a rig passes here."""
+        from ..service.request_cost import WorkLimit, check_solve_work
+
+        try:
+            check_solve_work(self)
+        except WorkLimit as e:
+            raise ValueError(e.message) from None
+        return self
 
 
 def format_validation_error(err) -> str:
@@ -189,7 +202,9 @@ class OptimizeRequest(_SceneRequest):
     solver: Annotated[str, Field(max_length=64)] | None = Field(
         None, description="optimizer for method optimized (default nlopt:LN_BOBYQA)")
     time_budget_ms: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = Field(
-        None, description="return the best so far after this long (capped by the server)")
+        None, description="the optimizer's search time, ms, from the start of the solve over all lights and "
+        "cascades (capped by the server); when it runs out the best maps so far are returned. It does not "
+        "interrupt the coarse pass or the final fits: those are bounded by the rig's work limit")
     previous: dict | None = Field(None, description="the previous frame's solution (temporal stability)")
     hysteresis: Annotated[float, Field(gt=0, le=1)] = 0.8
 
@@ -224,6 +239,22 @@ class Evaluation(_Open):
 class CompareRequest(_SceneRequest):
     methods: list[Method] = Field(["uniform", "focused", "lispsm", "logpsm"], min_length=1, max_length=5)
     screen: Resolution | None = None
+
+    @model_validator(mode="after")
+    def _work(self):
+        """A compare runs one solve per method plus a warm-up solve: their work together is bounded (the
+        ground truth's work is checked by service.compare, after the server's pixel and texel limits)."""
+        from ..service.request_cost import WorkLimit, check_solve_work
+
+        if self.screen is None:
+            rig = self.rig
+        else:  # the coarse buffers take the screen's aspect
+            rig = self.rig.model_copy(update={"camera": self.rig.camera.model_copy(update={"resolution": self.screen})})
+        try:
+            check_solve_work(rig, solves=len(set(self.methods)) + 1)
+        except WorkLimit as e:
+            raise ValueError(f"{e.message} (methods: {len(set(self.methods))})") from None
+        return self
 
 
 class Comparison(_Open):

@@ -6,7 +6,8 @@ from pathlib import Path
 
 from ..renderers.ground_truth import evaluate_buffers
 from ..renderers.heatmap import ground_truth_heatmap, side_by_side
-from .rigs import resolve_rig
+from .request_cost import WorkLimit, check_eval_work, check_solve_work, flush_if_large, light_faces, map_texels
+from .rigs import RigError, SolutionError, resolve_rig
 from .scenes import SceneEntry
 from .solve import maps_from_solution, solve
 
@@ -17,6 +18,24 @@ def compare(entry: SceneEntry, rig: dict, methods: list[str], screen=None, repor
     if screen:  # predicted and measured error in the same pixels
         rig = {**rig, "camera": {**rig["camera"], "resolution": tuple(screen)}}
     resolved = resolve_rig(rig, entry.loaded)
+    try:  # the API's CompareRequest checks this too (before the scene is loaded)
+        check_solve_work(rig, solves=len(methods) + 1, kinds=[l.kind for l in resolved.lights], prefix="")
+    except WorkLimit as e:
+        raise RigError(e.field, e.message, code="too_costly") from None
+    w, h = resolved.camera.resolution
+    screen_field = "screen" if screen else "rig.camera.resolution"
+    try:  # one ground truth per method, of the first light's maps
+        texels = map_texels(rig.get("shadow") or {}) * light_faces(None, resolved.lights[0].kind)
+        work = check_eval_work([(w * h, texels)] * len(methods), screen_field, f"compare of {len(methods)} methods")
+    except WorkLimit as e:
+        raise SolutionError(e.field, e.message, code="too_costly") from None
+    try:
+        return _compare(entry, rig, resolved, methods, report_dir, grid_every, solve_options)
+    finally:
+        flush_if_large(work)
+
+
+def _compare(entry, rig, resolved, methods, report_dir, grid_every, solve_options) -> dict:
     out, images = {}, []
     solve(entry, rig, method=methods[0], **(solve_options or {}))  # warm-up: kernels compile once, not in a method's time
     for name in methods:

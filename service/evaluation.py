@@ -4,7 +4,8 @@ from __future__ import annotations
 import time
 
 from ..renderers.ground_truth import evaluate as evaluate_maps
-from .rigs import resolve_rig
+from .request_cost import WorkLimit, check_eval_work, flush_if_large
+from .rigs import SolutionError, resolve_rig
 from .scenes import SceneEntry
 from .solution_check import validate_solution
 from .solve import maps_from_solution
@@ -18,6 +19,20 @@ def evaluate_solution(entry: SceneEntry, rig: dict, solution: dict, screen=None,
     solution = validate_solution(solution, "solution", light_kinds=[l.kind for l in resolved.lights],
                                  scene_hash=entry.loaded.scene_hash)
     per_light_maps = maps_from_solution(solution)
+    w, h = screen or resolved.camera.resolution
+    screen_field = "screen" if screen else "rig.camera.resolution"
+    try:  # one ground truth per light: its screen pixels and the texels of its maps
+        work = check_eval_work([(int(w) * int(h), sum(m.resolution[0] * m.resolution[1] for m in maps))
+                                for maps in per_light_maps[:len(resolved.lights)]], screen_field, "evaluate")
+    except WorkLimit as e:
+        raise SolutionError(e.field, e.message, code="too_costly") from None
+    try:
+        return _evaluate(entry, resolved, solution, per_light_maps, screen, heatmap_path, grid_every, t0)
+    finally:
+        flush_if_large(work)
+
+
+def _evaluate(entry, resolved, solution, per_light_maps, screen, heatmap_path, grid_every, t0) -> dict:
     results = []
     for k, (light, maps) in enumerate(zip(resolved.lights, per_light_maps)):
         path = heatmap_path

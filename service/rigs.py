@@ -9,6 +9,7 @@ from ..renderers.scene_data import LoadedScene
 from ..solvers.cameras import Camera
 from ..solvers.frames import transform_directions, transform_points
 from ..solvers.lights import DirectionalLight, Light, PointLight, SpotLight
+from .request_cost import WorkLimit, check_solve_work
 
 DEFAULT_FOV_Y_DEG = 60.0
 DEFAULT_NEAR = 0.1
@@ -119,5 +120,9 @@ def resolve_rig(rig: dict, scene: LoadedScene) -> ResolvedRig:
     to_world = scene.stage_to_world if rig.get("frame") == "stage" else None
     camera = resolve_camera(rig["camera"], scene, to_world)
     lights = [resolve_light(k, l, scene, to_world) for k, l in enumerate(rig["lights"])]
+    try:  # the work bound (the Rig model checks it too; here with the lights' real types, for every rig dict)
+        check_solve_work(rig, kinds=[l.kind for l in lights], prefix="")
+    except WorkLimit as e:
+        raise RigError(e.field, e.message, code="too_costly") from None
     return ResolvedRig(camera, lights, dict(rig.get("shadow") or {}), dict(rig.get("output") or {}),
                        int(rig.get("coarse_long_side") or 180))

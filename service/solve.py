@@ -21,6 +21,7 @@ from ..solvers.optimize import optimized_maps
 from ..solvers.samples import Samples, select_samples
 from ..solvers.shadow_map import ShadowMap
 from .pipeline import coarse_pass
+from .request_cost import flush_if_large, solve_work
 from .rigs import ResolvedRig
 from .scenes import SceneEntry
 from .solution_check import SCHEMA_VERSION, validate_solution
@@ -178,13 +179,34 @@ def light_json(light, maps: list[ShadowMap], total: dict, per_map: list[dict], o
 def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | None = None,
           time_budget_ms: float | None = None, previous: dict | None = None, hysteresis: float = 0.8,
           **options) -> dict:
-    """The solution for `method` (a baseline name or "optimized") on a scene entry and validated rig dict."""
+    """The solution for `method` (a baseline name or "optimized") on a scene entry and validated rig dict.
+
+    `time_budget_ms` bounds the optimizer's search (method optimized) over the whole solve: it is counted from
+    the start of the solve (the coarse pass included) and shared by all lights and cascades, each search
+    getting what is left (at least 1 ms); when it runs out, each remaining light's search returns its start
+    maps. The coarse pass, the baselines' fits and the error statistics are not interruptible; their cost is
+    bounded by the rig's work limit (service.request_cost). After a large request, Dr.Jit's cached
+    allocations are returned to the system."""
+    try:
+        return _solve(entry, rig, method, solver, time_budget_ms, previous, hysteresis, **options)
+    finally:
+        flush_if_large(solve_work(rig))
+
+
+def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_budget_ms: float | None,
+           previous: dict | None, hysteresis: float, **options) -> dict:
     if method not in METHODS:
         raise ValueError(f"method: unknown method {method!r} (known: {', '.join(METHODS)})")
     if previous is not None:  # only its solver's x is read; a malformed field is a SolutionError naming it
         previous = validate_solution(previous, "previous", n_lights=len(rig["lights"]), maps=False,
                                      code="invalid_previous")
     t0 = time.perf_counter()
+
+    def budget_left():  # the search time left of the whole solve's budget
+        if time_budget_ms is None:
+            return None
+        return max(1.0, float(time_budget_ms) - (time.perf_counter() - t0) * 1e3)
+
     resolved, buffers = coarse_pass(entry, rig)
     t1 = time.perf_counter()
     shadow = resolved.shadow
@@ -204,7 +226,7 @@ def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | N
             if method == "optimized":
                 return optimized_maps(resolved.camera, prob.light, prob.samples, prob.receivers, (lo, hi),
                                       allow_log=allow_log, solver=solver or DEFAULT_SOLVER,
-                                      time_budget_ms=time_budget_ms, previous_x=_previous_x(previous, li),
+                                      time_budget_ms=budget_left(), previous_x=_previous_x(previous, li),
                                       hysteresis=hysteresis, sample_rows=prob.sample_rows, **opts)
             if opts["splits"] == "optimized":  # a baseline method with optimized splits: the search's splits
                 opts["splits"] = "practical"
