@@ -915,7 +915,7 @@ async def scene_entry_for(svc: Service, ticket, scene_id: str):
     request's admission in a scene-load slot, never a solver slot. Only the leader of a load holds a load
     slot: while another request loads the same scene (single flight) this one waits on the event loop,
     holding no slot and no thread, then takes the entry from the cache."""
-    tenant = ticket.tenant
+    tenant, since = ticket.tenant, time.monotonic()
 
     def lookup():
         path = svc.store.scene_path(tenant, scene_id)
@@ -925,7 +925,7 @@ async def scene_entry_for(svc: Service, ticket, scene_id: str):
     if path is None:
         raise scene_not_found(scene_id)
     opts = scene_options(svc, tenant, sandboxed)
-    key, followed, since = (os.fspath(path), tenant, sandboxed), None, time.monotonic()
+    key, followed = (os.fspath(path), tenant, sandboxed), None
     while True:
         entry = cached_entry(path, opts)
         if entry is not None:

@@ -274,7 +274,10 @@ def test_requests_that_waited_for_a_failed_reload_get_its_answer_without_loading
     first = box_scene(server, "carol", "    # damaged later\n")
     fillers = [box_scene(server, "carol", f"    # evicts {k}\n") for k in range(3)]  # her share: 2 entries
     [stored] = [p for p in server.data_dir.rglob("box.usda") if first in str(p)]
-    stored.write_text('#usda 1.0\ndef Xform "World" {\n    def Mesh "M" { int[] faceVertexCounts = [3\n')
+    # damaged at its end: the reload parses 200,000 points (a while) before it fails, so all six ask during it
+    points = ", ".join(f"({k % 97}, 0, {k // 97})" for k in range(200_000))
+    stored.write_text(f'#usda 1.0\ndef Xform "World" {{\n    def Mesh "M" {{\n        point3f[] points = [{points}]\n'
+                      '        int[] faceVertexCounts = [3\n')
     loads = gauge(server.base, "shadowopt_scene_cache_loads_total")
     body = {"scene_id": first, "rig": BOX_RIG, "method": "focused"}
     with ThreadPoolExecutor(6) as pool:
