@@ -585,3 +585,127 @@ def test_no_message_or_warning_names_a_server_path(data):
     for name in ("missing.usda", "empty.usda", "notusd.usda", "broken.usda", "nope.usda", "gone.usda", "notes.usda",
                  "chain.usdz[l33.usda]", "look.mtlx"):
         assert name in joined, name
+
+
+# ------------------------------------------------------------------ prim budgets (the load-slot attack)
+XFORMS_HDR = '#usda 1.0\n(\n upAxis="Y"\n metersPerUnit=1\n)\n'
+TRI = ('def Mesh "M" {\n int[] faceVertexCounts=[3]\n int[] faceVertexIndices=[0,1,2]\n'
+       ' point3f[] points=[(0,0,0),(1,0,0),(0,1,0)]\n}\n')
+ASSETS = Path(__file__).resolve().parents[2] / "shared" / "usd-assets"
+
+
+def _xforms(n: int) -> str:
+    return XFORMS_HDR + "".join(f'def Xform "X{i}" {{}}\n' for i in range(n)) + TRI
+
+
+@pytest.fixture
+def no_stage_open(monkeypatch):
+    """Usd.Stage.Open replaced by a recorder that refuses: composition never starts."""
+    from pxr import Usd
+
+    calls = []
+    real = Usd.Stage.Open
+
+    def recording(*a, **k):
+        calls.append(a)
+        return real(*a, **k)
+    monkeypatch.setattr(Usd.Stage, "Open", staticmethod(recording))
+    return calls
+
+
+def test_three_hundred_thousand_empty_xforms_are_refused_before_composing_in_seconds(tmp_path, no_stage_open):
+    """The attack that held the load slot 33-46 s: 6.8 MB of `def Xform "Xi" {}` (answered 201)."""
+    import time
+
+    p = tmp_path / "slow.usda"
+    p.write_text(_xforms(300_000))
+    t = time.perf_counter()
+    with pytest.raises(SceneError) as e:
+        load_scene(p, sandbox=True, max_triangles=5_000_000)
+    dt = time.perf_counter() - t
+    assert e.value.code == "too_many_prims"
+    assert f"prim spec limit {usd_loader.SANDBOX_MAX_PRIM_SPECS}" in e.value.message and "slow.usda" in e.value.message
+    assert no_stage_open == []  # refused before Usd.Stage.Open
+    assert dt < 10, dt  # 0.6 s measured (it was 20-24 s to a 201)
+
+
+def test_a_binary_layer_with_too_many_specs_is_refused_before_it_is_read(tmp_path, no_stage_open, monkeypatch):
+    from pxr import Sdf
+
+    src = tmp_path / "x.usda"
+    src.write_text(_xforms(3000))
+    crate = tmp_path / "x.usdc"
+    Sdf.Layer.FindOrOpen(str(src)).Export(str(crate))
+    assert usd_loader._crate_spec_count(crate.read_bytes()) == 3000 + 5  # pseudo-root, mesh + its 3 properties
+    opened = []
+    real = usd_loader._open_fresh
+    monkeypatch.setattr(usd_loader, "_open_fresh", lambda i: opened.append(i) or real(i))
+    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_CRATE_SPECS", 2000)
+    with pytest.raises(SceneError) as e:
+        load_scene(crate, sandbox=True)
+    assert e.value.code == "too_many_prims" and "spec limit 2000" in e.value.message and "3005 specs" in e.value.message
+    assert opened == [] and no_stage_open == []
+    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_CRATE_SPECS", 10_000)  # under it: the parsed count decides
+    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_PRIM_SPECS", 2000)
+    with pytest.raises(SceneError) as e:
+        load_scene(crate, sandbox=True)
+    assert e.value.code == "too_many_prims" and "prim spec limit 2000" in e.value.message
+    assert no_stage_open == []
+    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_PRIM_SPECS", 4000)
+    assert len(load_scene(crate, sandbox=True).geometry.prim_paths) == 1
+    assert len(no_stage_open) == 1  # the recorder does see a composition
+
+
+def test_the_keyword_bound_counts_no_less_than_the_prim_specs(tmp_path, monkeypatch):
+    """Prims in variants, `over`s and `class`es: the bound is an upper bound and the
+    parsed count replaces it (a layer just under the limit loads)."""
+    body = ('def Xform "A" (\n variants={string v="a"}\n prepend variantSets="v"\n) {\n variantSet "v" = {\n'
+            '  "a" {\n def Xform "In" {}\n over "O" {}\n }\n }\n}\nclass "C" {}\ndef Xform "B" {}\nover "D" {}\n')
+    p = tmp_path / "k.usda"
+    p.write_text(XFORMS_HDR + body + TRI)
+    from pxr import Sdf
+
+    exact = usd_loader._scan_layer(Sdf.Layer.FindOrOpen(str(p)))[1]
+    assert exact == 7  # A, In, O, C, B, D, M
+    assert usd_loader._spec_bound(str(p), lambda pkg: {}) >= exact
+    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_PRIM_SPECS", 7)
+    load_scene(p, sandbox=True)
+    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_PRIM_SPECS", 6)
+    with pytest.raises(SceneError) as e:
+        load_scene(p, sandbox=True)
+    assert e.value.code == "too_many_prims"
+
+
+def test_composed_prims_are_counted_during_the_traversal(tmp_path):
+    """Few specs, many composed prims: 300 internal references to a 200-prim prototype compose 60,300+
+    prims from ~500 specs; the traversal stops at the limit (restricted default, or max_prims)."""
+    proto = 'class "Proto" {\n' + "".join(f' def Xform "P{i}" {{}}\n' for i in range(200)) + '}\n'
+    refs = "".join(f'def Xform "R{i}" (\n prepend references = </Proto>\n) {{}}\n' for i in range(300))
+    p = tmp_path / "amp.usda"
+    p.write_text(XFORMS_HDR + proto + refs + TRI)
+    with pytest.raises(SceneError) as e:
+        load_scene(p, sandbox=True)
+    assert e.value.code == "too_many_prims"
+    assert f"more than {usd_loader.SANDBOX_MAX_PRIMS} prims" in e.value.message and "/R" in e.value.message
+    with pytest.raises(SceneError) as e:
+        load_scene(p, max_prims=1000)  # unrestricted mode, limit given
+    assert e.value.code == "too_many_prims" and "more than 1000 prims" in e.value.message
+    assert len(load_scene(p).geometry.prim_paths) == 1  # unrestricted, no limit: loads
+    with pytest.raises(SceneError) as e:
+        load_scene(p, max_prims=-1)
+    assert e.value.code == "bad_option"
+
+
+@pytest.mark.parametrize("rel", ["full_assets/OpenChessSet/chess_set.usda", "intent-vfx/scenes/teapotScene.usd",
+                                 "full_assets/McUsd/McUsd.usda"])
+def test_real_assets_pass_the_prim_budgets_with_margin(rel, monkeypatch):
+    """The largest real scenes compose 87 (chess set), 7,370 (teapot scene) and 174 (McUsd) prims:
+    they load under a fifth of the defaults."""
+    path = ASSETS / rel
+    if not path.exists():
+        pytest.skip(f"{rel} not present in ../shared/usd-assets")
+    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_PRIM_SPECS", usd_loader.SANDBOX_MAX_PRIM_SPECS // 5)
+    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_CRATE_SPECS", usd_loader.SANDBOX_MAX_CRATE_SPECS // 5)
+    scene = load_scene(path, asset_root=str(path.parent.parent if "intent" in rel else path.parent),
+                       max_prims=usd_loader.SANDBOX_MAX_PRIMS // 5)
+    assert len(scene.geometry.faces) > 0
