@@ -14,6 +14,10 @@ given and resolved (symlinks), with an optional `file://` in front. A path ends 
 brackets, `,;:` (so `x.usda:3:26` keeps its line numbers and `a.usdz[inner/b.usda]` its entry).
 Prim paths as USD writes them in messages (`</World/Mesh>`) are left alone, and so are paths without a known
 file extension outside the folders (`/World/Mesh.points` is a property, not a file).
+Anonymous layer identifiers (`anon:0x55a6175187e0:root.usda.checked.usda`: a heap address and the loader's
+internal copy name) become the layer's readable name (`root.usda`; the loader's CHECKED_SUFFIX dropped; no
+tag: `an anonymous layer`), and bare heap addresses USD prints (`<0x55a6175187e0>`, `0x55a6175187e0` of 9+
+hex digits) become `<address>`: no process pointer reaches a client.
 Redacting twice gives the same text as redacting once.
 """
 from __future__ import annotations
@@ -29,6 +33,9 @@ FILE_EXTENSIONS = (r"usd|usda|usdc|usdz|mtlx|abc|obj|vdb|so|dylib|dll|py|pyc|cpp
 _STOP = r"\s@'\"<>\[\](){},;:"  # characters that end a path in a message
 _BEFORE = r"(?<![\w.<>/~-])"  # a path starts here (not inside a word, a prim path or another path)
 _ABS_FILE = re.compile(_BEFORE + r"(?:file://)?(?:/[^" + _STOP + r"/]+)+\.(?:" + FILE_EXTENSIONS + r")\b")
+CHECKED_SUFFIX = ".checked.usda"  # the loader's anonymous copies of checked layers are tagged <name> + this
+_ANON = re.compile(r"anon:0x[0-9a-fA-F]+:([^\s@'\"<>\[\](){},;]*)")
+_ADDRESS = re.compile(r"<0x[0-9a-fA-F]+>|(?<![\w])0x[0-9a-fA-F]{9,16}(?![\w])")
 _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -92,6 +99,9 @@ class PathRedactor:
         return os.path.basename(rest) if rest else (os.path.basename(folder) or "file")
 
     def text(self, s: str) -> str:
+        if s and "0x" in s:
+            s = _ANON.sub(_anon_name, s)
+            s = _ADDRESS.sub("<address>", s)
         if not s or "/" not in s:
             return s
         pattern = self._pattern
@@ -100,3 +110,10 @@ class PathRedactor:
         return _ABS_FILE.sub(lambda m: os.path.basename(m.group(0)), s)
 
     __call__ = text
+
+
+def _anon_name(m) -> str:
+    tag = m.group(1)
+    while tag.endswith(CHECKED_SUFFIX):
+        tag = tag[: -len(CHECKED_SUFFIX)]
+    return tag or "an anonymous layer"

@@ -92,3 +92,20 @@ def test_add_registers_a_folder_later(tmp_path):
     assert r.text(f"{tmp_path}/store/abc") == "abc"
     r.add(tmp_path / "store", relative=True)
     assert r.text(f"{tmp_path}/store/abc") == "abc" and r.text(f"{tmp_path}/store/d/e") == "d/e"
+
+
+def test_anonymous_layer_identifiers_and_heap_addresses_never_reach_a_message():
+    """The leak an attacker found: "Duplicate item 'anon:0x55a6175187e0:root.usda.checked.usda' not
+    allowed for field 'subLayers'" (a process pointer and the loader's internal layer name)."""
+    r = PathRedactor(hidden=[])
+    msg = "Duplicate item 'anon:0x55a6175187e0:root.usda.checked.usda' not allowed for field 'subLayers' on </>"
+    out = r.text(msg)
+    assert out == "Duplicate item 'root.usda' not allowed for field 'subLayers' on </>"
+    assert r.text("@anon:0x7f00aa:sub/b.usda@ and anon:0xdeadbeef00: and anon:0x1:") == \
+        "@sub/b.usda@ and an anonymous layer and an anonymous layer"
+    assert r.text("stage @x.usda@ <0x55a6175187e0> at 0x55a6175187e0 failed") == \
+        "stage @x.usda@ <address> at <address> failed"
+    # short hex values are data, not pointers; a prim path with 0x in a name is left alone
+    assert r.text("flags 0xff, id 0x1234abcd, </World/box0x55a6175187e0>") == \
+        "flags 0xff, id 0x1234abcd, </World/box0x55a6175187e0>"
+    assert r.text(out) == out and r.text(r.text(msg)) == out
