@@ -35,7 +35,8 @@ rig at its 1280x720 camera with the four default methods (4.2 M) fits; ~12 s at 
 TEXELS_PER_PIXEL = 32
 LARGE_REQUEST_WORK = 200_000
 """Above this solve work (or eval work), a request's Dr.Jit allocations are returned to the system when it
-ends (drjit.flush_malloc_cache) instead of staying cached in the process."""
+ends (drjit.flush_malloc_cache, then glibc's malloc_trim) instead of staying cached in the process. Measured
+in-process after a 1280x720 evaluate of the demo rig: 0.364 GB -> 0.315 GB (flush) -> 0.254 GB (trim)."""
 
 CUBE_FACES = 6
 DEFAULT_RESOLUTION = (1280, 720)
@@ -166,4 +167,17 @@ def flush_if_large(work: int) -> bool:
         return False
     dr.sync_thread()
     dr.flush_malloc_cache()
+    _malloc_trim()  # NumPy's big temporaries live on the C heap: hand its free pages back too
     return True
+
+
+def _malloc_trim() -> None:
+    import ctypes
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc (musl has no malloc_trim)
+        pass
