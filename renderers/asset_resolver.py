@@ -67,6 +67,8 @@ def check_asset_path(asset_path: str, anchor: str, mode: str, asset_root: str | 
         return False, f"{asset_path!r} is a variable expression, which cannot be checked before USD evaluates it"
     if "\x00" in asset_path:
         return False, f"{asset_path!r} contains a NUL character"
+    if asset_path.startswith("anon:"):
+        return False, f"{asset_path!r} names an anonymous (in-memory) layer, which an uploaded scene may not reach"
     if _URL.match(asset_path) and not os.path.isabs(asset_path):
         return False, f"{asset_path!r} is a URL"
     if mode == "local":

@@ -288,9 +288,12 @@ class _LayerWalk:
                                          + ".checked.usda")
         copy.TransferContent(layer)
         self.memo[identifier] = copy.identifier  # before the dependencies: a cycle comes back to the copy
+        if anchor != identifier and anchor not in self.memo:
+            self.memo[anchor] = copy.identifier  # a whole .usdz is its first entry: naming it is naming this layer
         self.copies[copy.identifier] = copy
         self.origin[copy.identifier] = identifier
         new_paths: dict[str, str] = {}
+        sublayers = [d for d in layer.subLayerPaths]
         for dep in deps:
             target, reason = resolve_asset_path(dep, anchor, self.mode, self.asset_root, self.archive,
                                                 self.entries(self.archive) if self.archive else None)
@@ -300,6 +303,8 @@ class _LayerWalk:
                 continue
             sub = self.visit(target, depth + 1)
             new_paths[dep] = sub or ""
+        if sublayers:
+            copy.subLayerPaths[:] = self.checked_sublayers(identifier, sublayers, new_paths, copy.identifier)
         changed = [dep for dep in deps if new_paths[dep] != dep]
         for _ in range(8):  # one call may rewrite only the sublayers (usd-core 26.11): repeat until done
             for dep in changed:
@@ -311,6 +316,26 @@ class _LayerWalk:
         for prim_path in clip_prims:
             self.rewrite_clips(copy, prim_path, anchor, identifier, depth)
         return copy.identifier
+
+    def checked_sublayers(self, identifier: str, sublayers: list[str], new_paths: dict[str, str],
+                          own: str) -> list[str]:
+        """The copy's sublayer list: each sublayer as the layer it was checked as; refused ones, the
+        layer itself (`l0.usda sublayers itself`) and repeats of a sublayer already listed are left out
+        with a warning (USD refuses a list naming one layer twice, and a layer cannot contain itself)."""
+        out: list[str] = []
+        shown = self.name(identifier)
+        for dep in sublayers:
+            target = new_paths.get(dep, "")
+            if not target:
+                continue  # refused or unreadable: already warned about
+            if target == own:
+                self.warnings.append(f"{shown} sublayers itself (@{dep}@); that sublayer was ignored")
+                continue
+            if target in out:
+                self.warnings.append(f"{shown} lists the same sublayer twice (@{dep}@); the repeat was ignored")
+                continue
+            out.append(target)
+        return out
 
     def clip_target(self, asset: str, anchor: str, identifier: str, what: str, depth: int) -> str | None:
         """The identifier a value clip's asset path is rewritten to: the clip layer walked like any

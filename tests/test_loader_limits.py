@@ -313,7 +313,9 @@ def test_references_payloads_and_clips_inside_variants_are_checked(data, watch, 
     refused = " | ".join(x for x in sc.warnings if x.startswith("refused asset"))
     assert "value clip" in refused and "look.mtlx" in refused and "not a USD layer" in refused
     assert "SDF_FORMAT_ARGS" in refused and "parse error" not in " ".join(sc.warnings)
-    assert "@anon:0x7f0000001000:secret.usda@" in refused  # another load's in-memory layer: not by name either
+    # another load's in-memory layer: not by name either; named without its address
+    assert "@secret.usda@" in refused and "names an anonymous (in-memory) layer" in refused
+    assert "0x7f0000001000" not in refused and "anon:" not in refused
 
 
 def test_internal_references_are_legal_and_not_warned_about(tmp_path):
@@ -709,3 +711,56 @@ def test_real_assets_pass_the_prim_budgets_with_margin(rel, monkeypatch):
     scene = load_scene(path, asset_root=str(path.parent.parent if "intent" in rel else path.parent),
                        max_prims=usd_loader.SANDBOX_MAX_PRIMS // 5)
     assert len(scene.geometry.faces) > 0
+
+
+# ------------------------------------------------------------------ layers that sublayer themselves
+def _hdr(sublayers: str) -> str:
+    return f'#usda 1.0\n(\n upAxis="Y"\n metersPerUnit=1\n subLayers=[{sublayers}]\n)\n'
+
+
+def _no_internals(texts) -> None:
+    for t in texts:
+        assert "anon:" not in t and "0x" not in t and ".checked" not in t, t
+
+
+def test_a_usdz_whose_root_sublayers_itself_loads_with_a_clear_warning(tmp_path):
+    """The attack: root.usda sublayers itself three times answered 422 corrupt "Duplicate item
+    'anon:0x55a6175187e0:root.usda.checked.usda' not allowed for field 'subLayers'"."""
+    p = tmp_path / "selfref.usdz"
+    with zipfile.ZipFile(p, "w", zipfile.ZIP_STORED) as z:
+        z.writestr("root.usda", _hdr("@./root.usda@, @root.usda@, @./x/../root.usda@") + TRI)
+    scene = load_scene(p, sandbox=True)
+    assert scene.geometry.prim_paths == ["/M"]
+    assert any(w.startswith("selfref.usdz sublayers itself (@./root.usda@)") for w in scene.warnings), scene.warnings
+    _no_internals(scene.warnings)
+
+
+def test_a_layer_that_sublayers_itself_or_one_layer_twice_is_composed_once(tmp_path):
+    (tmp_path / "l0.usda").write_text(_hdr("@./l0.usda@") + TRI)
+    (tmp_path / "s.usda").write_text(_hdr("") + TRI.replace('"M"', '"S"'))
+    (tmp_path / "l1.usda").write_text(_hdr("@./s.usda@, @s.usda@, @./sub/../s.usda@") + TRI)
+    scene = load_scene(tmp_path / "l0.usda", asset_root=str(tmp_path))
+    assert scene.geometry.prim_paths == ["/M"]
+    assert "l0.usda sublayers itself (@./l0.usda@); that sublayer was ignored" in scene.warnings
+    scene = load_scene(tmp_path / "l1.usda", asset_root=str(tmp_path))
+    assert sorted(scene.geometry.prim_paths) == ["/M", "/S"] and len(scene.geometry.faces) == 2
+    assert "l1.usda lists the same sublayer twice (@s.usda@); the repeat was ignored" in scene.warnings
+    assert "l1.usda lists the same sublayer twice (@./sub/../s.usda@); the repeat was ignored" in scene.warnings
+    _no_internals(scene.warnings)
+
+
+def test_usd_errors_about_anonymous_layers_reach_messages_without_addresses(tmp_path, monkeypatch):
+    """Whatever USD says about the loader's anonymous copies comes out by the layer's name."""
+    from pxr import Tf
+
+    (tmp_path / "s.usda").write_text(_hdr("") + TRI.replace('"M"', '"S"'))
+    (tmp_path / "r.usda").write_text(_hdr("@./s.usda@") + TRI)
+
+    def boom(self, stage):
+        ident = next(iter(self.copies))
+        raise Tf.ErrorException(f"Duplicate item '{ident}' not allowed for field 'subLayers' on </>")
+    monkeypatch.setattr(usd_loader._LayerWalk, "verify_stage", boom)
+    with pytest.raises(SceneError) as e:
+        load_scene(tmp_path / "r.usda", asset_root=str(tmp_path))
+    assert "Duplicate item 'r.usda' not allowed" in e.value.message, e.value.message
+    _no_internals([e.value.message])
