@@ -71,12 +71,15 @@ class FairPool:
 
     def release(self, tenant: str) -> None:
         """`tenant` frees a slot: it goes to the first waiter of the waiting tenant holding the fewest slots,
-        the first in turn among equals (who then goes to the back of the line)."""
+        the first in turn among equals (who then goes to the back of the line); `tenant` itself is last among
+        equals, so a tenant whose requests run back to back cannot keep a one-slot pool to itself."""
         left = self.held.get(tenant, 1) - 1
         if left > 0:
             self.held[tenant] = left
         else:
             self.held.pop(tenant, None)
+        if tenant in self._waiting:  # the tenant just served goes behind the others among equals
+            self._waiting.move_to_end(tenant)
         while self._waiting:
             nxt = min(self._waiting, key=lambda t: self.held.get(t, 0))  # min keeps the first of equals
             q = self._waiting.pop(nxt)
