@@ -678,17 +678,25 @@ def test_the_keyword_bound_counts_no_less_than_the_prim_specs(tmp_path, monkeypa
     assert e.value.code == "too_many_prims"
 
 
-def test_composed_prims_are_counted_during_the_traversal(tmp_path):
+def test_composed_prims_are_counted_before_composing_and_during_the_traversal(tmp_path, no_stage_open,
+                                                                             monkeypatch):
     """Few specs, many composed prims: 300 internal references to a 200-prim prototype compose 60,300+
-    prims from ~500 specs; the traversal stops at the limit (restricted default, or max_prims)."""
+    prims from ~500 specs; restricted, Pcp counts them before Usd.Stage.Open; the traversal counts again
+    (max_prims, or the restricted default when the first count is gone)."""
     proto = 'class "Proto" {\n' + "".join(f' def Xform "P{i}" {{}}\n' for i in range(200)) + '}\n'
     refs = "".join(f'def Xform "R{i}" (\n prepend references = </Proto>\n) {{}}\n' for i in range(300))
     p = tmp_path / "amp.usda"
     p.write_text(XFORMS_HDR + proto + refs + TRI)
     with pytest.raises(SceneError) as e:
         load_scene(p, sandbox=True)
-    assert e.value.code == "too_many_prims"
-    assert f"more than {usd_loader.SANDBOX_MAX_PRIMS} prims" in e.value.message and "/R" in e.value.message
+    assert e.value.code == "too_many_prims" and no_stage_open == []
+    assert f"composes more than {usd_loader.SANDBOX_MAX_PRIMS} prims" in e.value.message and "/R" in e.value.message
+    monkeypatch.setattr(usd_loader, "_count_composed_prims", lambda layer, limit: 0)
+    with pytest.raises(SceneError) as e:
+        load_scene(p, sandbox=True)
+    assert e.value.code == "too_many_prims" and len(no_stage_open) == 1
+    assert f"has more than {usd_loader.SANDBOX_MAX_PRIMS} prims" in e.value.message
+    monkeypatch.undo()
     with pytest.raises(SceneError) as e:
         load_scene(p, max_prims=1000)  # unrestricted mode, limit given
     assert e.value.code == "too_many_prims" and "more than 1000 prims" in e.value.message
@@ -696,6 +704,23 @@ def test_composed_prims_are_counted_during_the_traversal(tmp_path):
     with pytest.raises(SceneError) as e:
         load_scene(p, max_prims=-1)
     assert e.value.code == "bad_option"
+
+
+def test_the_count_before_composing_includes_payloads_and_is_exact(tmp_path):
+    (tmp_path / "big.usda").write_text(XFORMS_HDR + 'def Xform "B" {\n' + "".join(
+        f' def Xform "C{i}" {{}}\n' for i in range(120)) + '}\n')
+    (tmp_path / "root.usda").write_text(XFORMS_HDR + "".join(
+        f'def Xform "P{k}" (\n prepend payload = @./big.usda@</B>\n) {{}}\n' for k in range(3)) + TRI)
+    from pxr import Sdf, Usd
+
+    stage = Usd.Stage.Open(str(tmp_path / "root.usda"))
+    truth = sum(1 for _ in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimAllPrimsPredicate)))
+    assert truth == 3 * 121 + 1
+    assert usd_loader._count_composed_prims(Sdf.Layer.FindOrOpen(str(tmp_path / "root.usda")), 10**6) == truth
+    load_scene(tmp_path / "root.usda", asset_root=str(tmp_path), max_prims=truth)
+    with pytest.raises(SceneError) as e:
+        load_scene(tmp_path / "root.usda", asset_root=str(tmp_path), max_prims=truth - 1)
+    assert e.value.code == "too_many_prims" and "before composing" in e.value.message
 
 
 @pytest.mark.parametrize("rel", ["full_assets/OpenChessSet/chess_set.usda", "intent-vfx/scenes/teapotScene.usd",
