@@ -788,7 +788,7 @@ async def read_upload(request: Request, limit: int, name: str | None) -> tuple[b
 
 # over a resource limit: too large (too_large_for_cache: one scene's estimated bytes over the tenant's share of
 # the scene cache, scene_cache_bytes * tenant_cache_share)
-SCENE_413 = ("too_many_triangles", "memory_limit", "load_timeout", "too_large_for_cache")
+SCENE_413 = ("too_many_triangles", "too_many_prims", "memory_limit", "load_timeout", "too_large_for_cache")
 
 
 def scene_error(e, field: str) -> ApiError:

@@ -41,7 +41,7 @@ class Settings:
     # so an upload never holds a solver slot
     load_memory_bytes: int = 3 * 1024 ** 3  # address-space limit of the process loading an uploaded scene (the
     # floor is service.isolation.MEMORY_FLOOR_BYTES, checked by LoadLimits)
-    load_timeout_s: float = 60.0  # wall-clock limit of one uploaded scene's load (finite, > 0)
+    load_timeout_s: float = 20.0  # wall-clock limit of one uploaded scene's load (finite, > 0)
     scene_cache_entries: int = 8  # loaded scenes kept in memory
     scene_cache_bytes: int = 2 * 1024 ** 3  # bytes of loaded scenes kept in memory
     tenant_cache_share: float = 0.5  # fraction of the scene cache (entries and bytes) one tenant's scenes may hold
