@@ -7,6 +7,7 @@ enough to pass an upload size limit while asking the loader for far more than it
 - `star_polygon`: one concave face with `n_vertices` corners (quadratic work for a naive ear clipper);
 - `layer_chain_usdz` / `layer_chain_files`: a chain of sublayers, l0 -> l1 -> ... -> l{n-1} -> `target`,
   which a depth-limited walk stops following before it reaches `target`;
+- `empty_xforms`: hundreds of thousands of empty prims (composition and traversal cost, no triangles);
 - `tiny_scene`: distinct valid tiny scenes (a flood of uploads that would evict everyone's cache);
 - `mutations`: seeded truncations and byte flips of a real file (fuzzing);
 - `poisoned_scene`: a valid scene whose camera path shows up in the scene info when it was opened.
@@ -83,6 +84,12 @@ def layer_chain_files(folder: str | Path, n_layers: int, target: str) -> Path:
     for name, text in _chain_layers(n_layers, target).items():
         (folder / name).write_text(text)
     return folder / "l0.usda"
+
+
+def empty_xforms(n: int = 300000) -> str:
+    """`n` empty Xform prims under the root (no geometry at all: work for composition and traversal alone)."""
+    body = "".join(f'    def Xform "X{k}" {{\n    }}\n' for k in range(n))
+    return HEADER + 'def Xform "World" {\n' + GROUND + body + '}\n'
 
 
 def tiny_scene(i: int) -> str:

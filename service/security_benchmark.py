@@ -89,7 +89,8 @@ class PeakMemory:
 
 def hostile_uploads(http: httpx.Client, pid: int, bob_path: str | None, outside: str) -> list[dict]:
     cases = [("20,000 instanced spheres", "spheres.usda", H.instanced_spheres(20000).encode()),
-             ("30,000-vertex star polygon", "star.usda", H.star_polygon(30000).encode())]
+             ("30,000-vertex star polygon", "star.usda", H.star_polygon(30000).encode()),
+             ("300,000 empty Xform prims", "xforms.usda", H.empty_xforms(300000).encode())]
     for n in (70, 1000):
         if bob_path:
             cases.append((f"{n}-layer chain to another tenant's scene", "chain.usdz", H.layer_chain_usdz(n, bob_path)))
