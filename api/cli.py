@@ -143,7 +143,7 @@ def cmd_bench(args) -> int:
         parts = ("single", "cascades") if args.part == "all" else (args.part,)
         if args.corpus:
             result = benchmarks.bench_quality_corpus(validate_rig, lights=args.lights, scenes=args.scenes, parts=parts,
-                                                     write=not args.no_write, reuse=args.reuse,
+                                                     write=not args.no_write, reuse=args.reuse or False,
                                                      log=lambda m: print(m, file=sys.stderr))
         else:
             result = benchmarks.bench_quality(validate_rig, lights=args.lights, write=not args.no_write, parts=parts)
@@ -409,8 +409,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--scenes", default=None, help="comma-separated scene names from configs/benchmarks.json "
                     "(quality --corpus: from configs/corpus.json)")
     sp.add_argument("--corpus", action="store_true", help="quality: every scene of configs/corpus.json")
-    sp.add_argument("--reuse", action="store_true", help="quality --corpus: take a scene's stored result "
-                    "(out/bench/quality-corpus/) when scene, rig, settings and code are unchanged")
+    sp.add_argument("--reuse", nargs="?", const="same", choices=["same", "any"], default=None,
+                    help="quality --corpus: take a scene's stored result (out/bench/quality-corpus/) when scene, rig, "
+                    "settings and code are unchanged; `any`: whatever code measured it (named in the section)")
     sp.add_argument("--no-write", action="store_true", help="do not update BENCHMARKS.md")
     sp.add_argument("--json", action="store_true", help="print the results as one JSON object")
     sp.set_defaults(func=cmd_bench)

@@ -458,14 +458,15 @@ def code_state() -> str:
 
 
 def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | None = None, write: bool = True,
-                         parts=("single", "cascades"), screen=None, log=None, reuse: bool = False) -> dict:
+                         parts=("single", "cascades"), screen=None, log=None, reuse: bool | str = False) -> dict:
     """Chong & Gortler's protocol on every corpus scene (configs/corpus.json) with the same
     configurations as `bench_quality` (one map per method, 4 cascades), the same seeded suns on every
     scene (4 cascades: the first `cascade_lights`); per scene and rig: totals, ratios, losses, worst
     suns, outside pixels, setup time, the pooled Spearman, and a verdict per target of issue 10
     (configs/benchmarks.json `quality_corpus`). Each scene's measurements are stored in
     out/bench/quality-corpus/; `reuse` takes them instead of measuring again when the scene, rig,
-    settings and code are unchanged (a long run split over processes, or resumed)."""
+    settings and code are unchanged (a long run split over processes, or resumed); `reuse="any"` takes
+    them whatever code measured them, and the section names those measured with other code."""
     from ..service.scenes import SceneCache
 
     qspec, spec = definitions()["quality"], definitions()["quality_corpus"]
@@ -478,7 +479,7 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
     part_dirs = {p: v for p, v in {"single": dirs, "cascades": dirs[:n_cascades]}.items() if p in configs}
     found, skipped = corpus_scenes(scenes.split(",") if scenes else None)
     spec = {**spec, "cascades_note": qspec["cascades"]["note"]}
-    stats, raw, timing, load_s, reused = {}, {}, {}, {}, []
+    stats, raw, timing, load_s, reused, other_code = {}, {}, {}, {}, [], {}
     store = ROOT / "out" / "bench" / "quality-corpus"
     store.mkdir(parents=True, exist_ok=True)
     total_rigs = sum(len(s["rigs"]) for _, s in found.values())
@@ -490,10 +491,12 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
             fp = _corpus_fingerprint(Path(path), rig["camera"], screen, configs, part_dirs)
             file = store / f"{key.replace('/', '--')}.json"
             old = json.loads(file.read_text()) if reuse and file.exists() else None
-            if old is not None and old.get("fingerprint") == fp:
+            if old is not None and (old.get("fingerprint") == fp or reuse == "any"):
                 rec, timing[key], triangles = old["rec"], old["wall_s"], old["triangles"]
                 load_s.setdefault(name, old.get("load_s"))
                 reused.append(key)
+                if old.get("fingerprint") != fp:
+                    other_code[key] = f"{old.get('measured', '?')}, {old.get('code', 'code not recorded')}"
             else:
                 if entry is None:
                     t0 = time.perf_counter()
@@ -504,7 +507,7 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
                 rec = quality_scene(validate_rig, entry, rig["camera"], screen, part_dirs, configs, bar)
                 timing[key] = round(time.perf_counter() - t1, 1)
                 triangles = entry.loaded.geometry.triangle_count
-                file.write_text(json.dumps({"fingerprint": fp, "scene": name, "rig": rig_name, "rec": rec,
+                file.write_text(json.dumps({"fingerprint": fp, "code": code_state(), "scene": name, "rig": rig_name, "rec": rec,
                                             "wall_s": timing[key], "load_s": load_s[name], "triangles": triangles,
                                             "measured": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}, default=float))
             raw[key] = rec
@@ -532,14 +535,18 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
     if reused:
         head += (f" Taken from this code's stored runs (`--reuse`, out/bench/quality-corpus/): {', '.join(reused)}; "
                  "wall seconds per scene rig: " + ", ".join(f"{k} {v:.0f}" for k, v in timing.items()) + ".")
+    if other_code:
+        head += (" Measured with code other than the current (`--reuse any`; their fingerprint of scene, rig, settings "
+                 "and solving/evaluating code differs): " + "; ".join(f"{k} ({v})" for k, v in other_code.items()) + ".")
     table = head + "\n\n" + _tables_corpus(stats, skipped, spec, corpus_ratio, corpus_ok)
     out = {"benchmark": "quality-corpus", "machine": machine(), "lights": n, "screen": screen, "map": qspec["map"],
            "cascade_lights": n_cascades, "scenes": stats, "skipped": skipped, "raw": raw,
            "corpus_optimized_over_best_baseline": corpus_ratio, "wall_s": timing, "load_s": load_s, "reused": reused,
+           "other_code": other_code,
            "table": table}
     if write:
         cmd = ("shadowopt bench quality --corpus" + (f" --scenes {scenes}" if scenes else "")
-               + (f" --lights {n}" if lights else ""))
+               + (f" --lights {n}" if lights else "") + (" --reuse any" if reuse == "any" else " --reuse" if reuse else ""))
         write_section("quality-corpus", table, cmd)
         _dump_corpus(out, "quality-corpus.json")
     return out
