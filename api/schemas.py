@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = tuple[Finite, Finite, Finite]
@@ -240,21 +240,21 @@ class CompareRequest(_SceneRequest):
     methods: list[Method] = Field(["uniform", "focused", "lispsm", "logpsm"], min_length=1, max_length=5)
     screen: Resolution | None = None
 
-    @model_validator(mode="after")
-    def _work(self):
-        """A compare runs one solve per method plus a warm-up solve: their work together is bounded (the
-        ground truth's work is checked by service.compare, after the server's pixel and texel limits)."""
+    @field_validator("methods")
+    @classmethod
+    def _work(cls, methods, info):
+        """A compare runs one solve per method plus a warm-up solve: their work together is bounded (field
+        `methods`; service.compare checks it again with the screen's aspect and the lights' real types, and the
+        ground truth's work after the server's pixel and texel limits)."""
         from ..service.request_cost import WorkLimit, check_solve_work
 
-        if self.screen is None:
-            rig = self.rig
-        else:  # the coarse buffers take the screen's aspect
-            rig = self.rig.model_copy(update={"camera": self.rig.camera.model_copy(update={"resolution": self.screen})})
-        try:
-            check_solve_work(rig, solves=len(set(self.methods)) + 1)
-        except WorkLimit as e:
-            raise ValueError(f"{e.message} (methods: {len(set(self.methods))})") from None
-        return self
+        rig = info.data.get("rig")
+        if rig is not None:
+            try:
+                check_solve_work(rig, solves=len(set(methods)) + 1)
+            except WorkLimit as e:
+                raise ValueError(f"{len(set(methods))} methods: {e.message}") from None
+        return methods
 
 
 class Comparison(_Open):

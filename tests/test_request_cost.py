@@ -72,7 +72,8 @@ def test_batch_configurations_and_compare_are_bounded_by_the_same_check():
     OptimizeRequest.model_validate({"scene_id": "s", "rig": rig})  # accepted for one solve ...
     with pytest.raises(ValidationError) as e:  # ... not for 3 methods + a warm-up
         CompareRequest.model_validate({"scene_id": "s", "rig": rig, "methods": ["uniform", "focused", "lispsm"]})
-    assert "x 4 solves" in str(e.value) and "methods: 3" in str(e.value)
+    assert "x 4 solves" in str(e.value) and "3 methods" in str(e.value)
+    assert [err["loc"] for err in e.value.errors()] == [("methods",)]
 
 
 def test_every_shipped_rig_is_within_the_limits():
@@ -203,6 +204,9 @@ def test_server_refuses_the_attackers_rig_on_optimize_compare_evaluate_and_batch
 
 def test_server_compare_over_the_eval_limit_is_too_costly_and_small_requests_still_run(server, scene_id):
     h = auth("alice")
+    three = {"scene_id": scene_id, "rig": largest_rig(), "methods": ["uniform", "focused", "lispsm"]}
+    err = _error(httpx.post(server.base + "/v1/compare", json=three, headers=h, timeout=60))
+    assert err["field"] == "methods" and "x 4 solves" in err["message"], err  # optimize accepts this rig
     body = {"scene_id": scene_id, "rig": TINY_RIG, "methods": ["uniform", "focused", "lispsm"], "screen": [1920, 1080]}
     err = _error(httpx.post(server.base + "/v1/compare", json=body, headers=h, timeout=60))
     assert err["code"] == "too_costly" and err["field"] == "screen", err
