@@ -458,7 +458,8 @@ def code_state() -> str:
 
 
 def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | None = None, write: bool = True,
-                         parts=("single", "cascades"), screen=None, log=None, reuse: bool | str = False) -> dict:
+                         parts=("single", "cascades"), screen=None, log=None, reuse: bool | str = False,
+                         store: Path | None = None) -> dict:
     """Chong & Gortler's protocol on every corpus scene (configs/corpus.json) with the same
     configurations as `bench_quality` (one map per method, 4 cascades), the same seeded suns on every
     scene (4 cascades: the first `cascade_lights`); per scene and rig: totals, ratios, losses, worst
@@ -480,7 +481,7 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
     found, skipped = corpus_scenes(scenes.split(",") if scenes else None)
     spec = {**spec, "cascades_note": qspec["cascades"]["note"]}
     stats, raw, timing, load_s, reused, other_code = {}, {}, {}, {}, [], {}
-    store = ROOT / "out" / "bench" / "quality-corpus"
+    store = Path(store) if store is not None else ROOT / "out" / "bench" / "quality-corpus"
     store.mkdir(parents=True, exist_ok=True)
     total_rigs = sum(len(s["rigs"]) for _, s in found.values())
     bar = _progress(total_rigs * sum(len(part_dirs[p]) * len(c) for p, c in configs.items()), "quality corpus")

@@ -101,3 +101,21 @@ def test_benchmark_scene_list_skips_absent_shared_assets(monkeypatch):
 def test_corpus_config_is_valid_json_with_notes():
     d = json.loads((ROOT / "configs" / "corpus.json").read_text())
     assert all(s.get("what") for s in d["scenes"].values())
+
+
+def test_bench_quality_corpus_small_run_and_reuse(tmp_path):
+    """The corpus benchmark end to end on one scene, one sun, a tiny screen: every number the tables
+    print is there, and a second run with reuse takes the stored result instead of measuring."""
+    from shadowopt.service.benchmarks import bench_quality_corpus
+
+    kw = dict(lights=1, scenes="closeup", write=False, screen=[48, 48], store=tmp_path)
+    first = bench_quality_corpus(_validate, **kw)
+    s = first["scenes"]["closeup"]
+    assert set(s["single"]["totals"]) == {"uniform", "focused", "lispsm", "logpsm", "optimized"}
+    assert len(s["cascades"]["totals"]) == 3 and s["single"]["suns"] == s["cascades"]["suns"] == 1
+    assert set(s["verdicts"]) >= {"outside_0", "one_map_vs_best", "per_sun_bound", "cascades", "spearman"}
+    assert "Verdicts per target" in first["table"] and first["reused"] == []
+    second = bench_quality_corpus(_validate, reuse=True, **kw)
+    assert second["reused"] == ["closeup"]
+    assert second["raw"]["closeup"]["misclassified"] == first["raw"]["closeup"]["misclassified"]
+    assert second["scenes"]["closeup"]["single"]["totals"] == s["single"]["totals"]
