@@ -11,8 +11,9 @@ Everything here runs on the event loop and never blocks a thread:
   `load_threads`) as an asyncio future. A freed slot goes to the waiting tenant that holds the fewest slots
   of the pool, ties taken in turn (round robin over the tenants with waiting requests, FIFO within a
   tenant): one tenant's 40 waiting requests do not all go before another tenant's one, and a tenant that
-  arrives while another holds every slot gets the next one. Only a request holding a slot takes a worker
-  thread;
+  arrives while another holds every slot gets the next one; while another tenant is active, no tenant holds
+  every slot of a pool of two or more (one is kept for the others). Only a request holding a slot takes a
+  worker thread;
 - a ticket that `watch`es its request's ASGI `receive` notices the client going away (http.disconnect):
   a wait for a slot (`Ticket.slot`, `Ticket.wait`) then ends at once with `ClientGone`, the ticket is
   released by the route leaving, and a request whose client left before it got its slot never runs.
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import time
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
@@ -38,23 +40,45 @@ class ClientGone(Exception):
 
 
 class FairPool:
-    """`size` slots handed out on the event loop, shared fairly between tenants."""
+    """`size` slots handed out on the event loop, shared fairly between tenants.
 
-    def __init__(self, name: str, size: int):
-        self.name, self.size = name, size
+    A freed slot goes to the waiting tenant holding the fewest slots (the tenant just served last among
+    equals). While another tenant is active (holds a slot, waits, or asked within `recent_s` seconds), no
+    tenant may hold more than `size - 1` slots of a pool of two or more: one slot stays for the others, so a
+    tenant sending requests one after another never waits behind a flood of another tenant's running work.
+    """
+
+    def __init__(self, name: str, size: int, recent_s: float = 5.0):
+        self.name, self.size, self.recent_s = name, size, recent_s
         self.busy = 0
         self.held: dict[str, int] = {}  # tenant -> slots it holds
         self.waiting = 0  # requests waiting for a slot (kept as a count: /metrics reads it from another thread)
         self._waiting: OrderedDict[str, deque[asyncio.Future]] = OrderedDict()  # tenant -> its waiters, in turn
+        self._seen: dict[str, float] = {}  # tenant -> when it last asked for a slot (time.monotonic)
+        self._timer: asyncio.TimerHandle | None = None
+
+    def _others_active(self, tenant: str, now: float) -> bool:
+        return any(t != tenant and (self.held.get(t) or t in self._waiting or now - seen < self.recent_s)
+                   for t, seen in self._seen.items())
+
+    def _may_take(self, tenant: str, now: float) -> bool:
+        cap = self.size - 1 if self.size > 1 and self._others_active(tenant, now) else self.size
+        return self.held.get(tenant, 0) < cap
+
+    def _grant(self, tenant: str) -> None:
+        self.busy += 1
+        self.held[tenant] = self.held.get(tenant, 0) + 1
 
     async def acquire(self, tenant: str) -> None:
-        if self.busy < self.size and not self._waiting:
-            self.busy += 1
-            self.held[tenant] = self.held.get(tenant, 0) + 1
+        now = time.monotonic()
+        self._seen[tenant] = now
+        if self.busy < self.size and not self._waiting and self._may_take(tenant, now):
+            self._grant(tenant)
             return
         fut = asyncio.get_running_loop().create_future()
         self._waiting.setdefault(tenant, deque()).append(fut)
         self.waiting += 1
+        self._dispatch()
         try:
             await fut
         except asyncio.CancelledError:
@@ -67,31 +91,53 @@ class FairPool:
                     self.waiting -= 1
                     if not q:
                         del self._waiting[tenant]
+                self._dispatch()
             raise
 
     def release(self, tenant: str) -> None:
-        """`tenant` frees a slot: it goes to the first waiter of the waiting tenant holding the fewest slots,
-        the first in turn among equals (who then goes to the back of the line); `tenant` itself is last among
-        equals, so a tenant whose requests run back to back cannot keep a one-slot pool to itself."""
+        """`tenant` frees a slot; it goes on to the next waiter that may take it (see the class)."""
         left = self.held.get(tenant, 1) - 1
         if left > 0:
             self.held[tenant] = left
         else:
             self.held.pop(tenant, None)
+        self.busy -= 1
         if tenant in self._waiting:  # the tenant just served goes behind the others among equals
             self._waiting.move_to_end(tenant)
-        while self._waiting:
-            nxt = min(self._waiting, key=lambda t: self.held.get(t, 0))  # min keeps the first of equals
+        self._dispatch()
+
+    def _dispatch(self) -> None:
+        """Hand free slots to waiters: fewest slots held first, first in turn among equals (who then goes to
+        the back of the line). A slot kept for other tenants is handed out once they have been idle for
+        `recent_s` (a timer looks again then)."""
+        now = time.monotonic()
+        while self.busy < self.size and self._waiting:
+            eligible = [t for t in self._waiting if self._may_take(t, now)]
+            if not eligible:
+                if self._timer is None:
+                    self._timer = asyncio.get_running_loop().call_later(self.recent_s, self._wake)
+                return
+            nxt = min(eligible, key=lambda t: self.held.get(t, 0))  # min keeps the first of equals
             q = self._waiting.pop(nxt)
             fut = q.popleft()
             self.waiting -= 1
             if q:
                 self._waiting[nxt] = q  # to the back of the line
             if not fut.done():
-                fut.set_result(None)  # the slot passes on: `busy` is unchanged
-                self.held[nxt] = self.held.get(nxt, 0) + 1
-                return
-        self.busy -= 1
+                fut.set_result(None)
+                self._grant(nxt)
+        self._forget(now)
+
+    def _wake(self) -> None:
+        self._timer = None
+        self._dispatch()
+
+    def _forget(self, now: float) -> None:
+        """Drop tenants that hold nothing, wait for nothing and were last seen long ago (bounded memory)."""
+        if len(self._seen) > 64:
+            for t in [t for t, seen in self._seen.items() if now - seen > self.recent_s
+                      and not self.held.get(t) and t not in self._waiting]:
+                del self._seen[t]
 
     @contextlib.asynccontextmanager
     async def slot(self, tenant: str):

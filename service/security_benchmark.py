@@ -153,7 +153,8 @@ def health_under_queue(base: str, tokens: dict, scene_ids: dict) -> dict:
     counts: dict[str, int] = {}
     for s in statuses:
         counts[str(s)] = counts.get(str(s), 0) + 1
-    return {"healthz_p50_ms": percentile(health, 50), "healthz_p99_ms": percentile(health, 99),
+    return {"healthz_p50_ms": percentile(health, 50), "healthz_p95_ms": percentile(health, 95),
+            "healthz_p99_ms": percentile(health, 99), "metrics_p95_ms": percentile(metrics, 95),
             "healthz_max_ms": round(health[-1], 1), "metrics_p99_ms": percentile(metrics, 99),
             "compare_statuses": counts, "drain_s": round(time.perf_counter() - t0, 1)}
 
@@ -280,11 +281,11 @@ def security_table(out: dict) -> str:
                      f"{r['peak_mb']:,} | {r['server_before_mb']:,} → {r['server_after_mb']:,} | "
                      f"{'LEAKED' if r['leaked'] else 'no'} |")
     q, f = out["queue"], out["flood"]
-    lines += ["", f"| while {QUEUED} /v1/compare requests are queued or running | p50 ms | p99 ms | max ms |",
-              "|---|---:|---:|---:|",
-              f"| GET /healthz (40 probes, 50 ms apart) | {q['healthz_p50_ms']} | {q['healthz_p99_ms']} | "
-              f"{q['healthz_max_ms']} |",
-              f"| GET /metrics (20 probes) | - | {q['metrics_p99_ms']} | - |",
+    lines += ["", f"| while {QUEUED} /v1/compare requests are queued or running | p50 ms | p95 ms | p99 ms | max ms |",
+              "|---|---:|---:|---:|---:|",
+              f"| GET /healthz (40 probes, 50 ms apart) | {q['healthz_p50_ms']} | {q['healthz_p95_ms']} | "
+              f"{q['healthz_p99_ms']} | {q['healthz_max_ms']} |",
+              f"| GET /metrics (20 probes) | - | {q['metrics_p95_ms']} | {q['metrics_p99_ms']} | - |",
               "", f"The {QUEUED} compare requests answered {q['compare_statuses']} (HTTP status: count) and took "
               f"{q['drain_s']} s to drain after the probes.",
               "", "| another tenant's /v1/optimize (demo rig, 30 requests) | p50 ms | p95 ms |", "|---|---:|---:|",

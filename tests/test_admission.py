@@ -67,6 +67,44 @@ def test_a_tenant_holding_every_slot_gives_the_next_one_to_a_newcomer():
     assert pool.busy == 0 and pool.held == {}
 
 
+def test_a_tenant_active_a_moment_ago_finds_a_slot_kept_for_it_while_another_floods():
+    """Pool of 2: while b is active (asked within recent_s), a may hold only one slot, so b's next request
+    starts at once instead of waiting for a's running work; once b has been idle for recent_s, a gets both."""
+    async def hold(pool, tenant, started, done):
+        async with pool.slot(tenant):
+            started.set()
+            await done.wait()
+
+    async def main():
+        pool = FairPool("solve", 2, recent_s=0.3)
+        ev = {k: (asyncio.Event(), asyncio.Event()) for k in ("b0", "a0", "a1", "b1")}
+        b0 = asyncio.create_task(hold(pool, "b", *ev["b0"]))
+        await ev["b0"][0].wait()
+        ev["b0"][1].set()
+        await b0  # b was served a moment ago and holds nothing now
+        a0 = asyncio.create_task(hold(pool, "a", *ev["a0"]))
+        a1 = asyncio.create_task(hold(pool, "a", *ev["a1"]))
+        await asyncio.sleep(0.05)
+        a1_kept_waiting = ev["a0"][0].is_set() and not ev["a1"][0].is_set() and pool.busy == 1
+        b1 = asyncio.create_task(hold(pool, "b", *ev["b1"]))
+        await asyncio.sleep(0.05)
+        b1_at_once = ev["b1"][0].is_set() and not ev["a1"][0].is_set()  # a0 and a1 are still waiting to end
+        ev["b1"][1].set()
+        await b1
+        await asyncio.wait_for(ev["a1"][0].wait(), 2.0)  # b idle for recent_s: a may take the second slot
+        both_for_a = pool.held.get("a") == 2
+        for k in ("a0", "a1"):
+            ev[k][1].set()
+        await asyncio.gather(a0, a1)
+        return a1_kept_waiting, b1_at_once, both_for_a, pool
+
+    a1_kept_waiting, b1_at_once, both_for_a, pool = asyncio.run(main())
+    assert a1_kept_waiting, "a took both slots although b had asked a moment ago"
+    assert b1_at_once, "b's request waited behind a's running work"
+    assert both_for_a, "the kept slot was not handed out after b went idle"
+    assert pool.busy == 0 and pool.waiting == 0 and pool.held == {}
+
+
 def test_admission_refuses_at_once_naming_the_limit_and_two_tenants_cannot_lock_a_third_out():
     """review of issue 9: with tenant_max_inflight = max_inflight / 2, two tenants at their quota refused
     everyone else 503 busy. A tenant with nothing in flight is always admitted (headroom); busy refuses only
@@ -407,6 +445,8 @@ def test_an_upload_is_admitted_before_its_body_is_read(small):
     so one token could hold rate_limit_burst of them. Now an upload is admitted first: three uploads whose
     bodies are still arriving count as carol's three heavy requests in flight, and her fourth is refused at
     once (429 naming tenant_max_inflight) without the server waiting for its body."""
+    wait_until(lambda: gauge(small.base, "shadowopt_inflight_requests") == 0,
+               "earlier tests' requests still in flight", timeout=120)  # the count below is carol's alone
     slow = [raw_upload_start(small.base, "carol", 50_000, b"#usda 1.0\n") for _ in range(3)]
     try:
         wait_until(lambda: gauge(small.base, "shadowopt_inflight_requests") == 3,
