@@ -114,8 +114,10 @@ class FairPool:
         while self.busy < self.size and self._waiting:
             eligible = [t for t in self._waiting if self._may_take(t, now)]
             if not eligible:
-                if self._timer is None:
-                    self._timer = asyncio.get_running_loop().call_later(self.recent_s, self._wake)
+                if self._timer is None:  # look again when the most recent other tenant's activity ages out
+                    ages_out = [seen + self.recent_s - now for seen in self._seen.values() if now - seen < self.recent_s]
+                    delay = max(0.01, min(ages_out, default=self.recent_s))
+                    self._timer = asyncio.get_running_loop().call_later(delay, self._wake)
                 return
             nxt = min(eligible, key=lambda t: self.held.get(t, 0))  # min keeps the first of equals
             q = self._waiting.pop(nxt)
