@@ -28,6 +28,8 @@ import random
 import sys
 from pathlib import Path
 
+from .demo_scene import define_camera
+
 CORPUS_VERSION = 1  # bump when a builder changes on purpose (it is written into every file's doc)
 
 
@@ -306,8 +308,6 @@ def closeup(stage) -> None:
 
 def harbour(stage) -> None:
     """A quay with container stacks and two cranes; the USD camera's clippingRange is (0.1 m, 100 km)."""
-    from pxr import Gf, UsdGeom
-
     rng = random.Random(37)
     _ground(stage, -300.0, 300.0, -300.0, 300.0, y=-2.0, path="/World/Water")
     quay, boxes = MeshAccumulator(), MeshAccumulator()
@@ -326,15 +326,9 @@ def harbour(stage) -> None:
         boxes.box_between((cx - 9.0, 40.0, -45.0), (cx + 9.0, 43.0, 20.0))
     quay.define(stage, "/World/Quay")
     boxes.define(stage, "/World/Containers")
-    cam = UsdGeom.Camera.Define(stage, "/World/Camera")
-    cam.CreateFocalLengthAttr(20.0)
-    cam.CreateHorizontalApertureAttr(24.0)
-    cam.CreateVerticalApertureAttr(24.0)
-    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 100000.0))
-    xf = UsdGeom.XformCommonAPI(cam)
-    xf.SetTranslate(Gf.Vec3d(-100.0, 1.7, -10.0))
     # looks along local -Z: yaw so that it faces the stacks (towards +X, +Z), 4 deg down
-    xf.SetRotate(Gf.Vec3f(-4.0, 180.0 + 50.0, 0.0), UsdGeom.XformCommonAPI.RotationOrderYXZ)
+    define_camera(stage, "/World/Camera", focal_mm=20.0, aperture_mm=(24.0, 24.0), clipping=(0.1, 100000.0),
+                  position=(-100.0, 1.7, -10.0), rotate_deg=(-4.0, 180.0 + 50.0, 0.0))
 
 
 def _wide_height(x: float, z: float) -> float:

@@ -25,6 +25,21 @@ CASTERS = [
 ]
 
 
+def define_camera(stage, path: str, *, focal_mm: float, aperture_mm: tuple[float, float],
+                  clipping: tuple[float, float], position, rotate_deg) -> None:
+    """A UsdGeom.Camera at `position` turned by `rotate_deg` (XformCommonAPI, rotation order YXZ)."""
+    from pxr import Gf, UsdGeom
+
+    cam = UsdGeom.Camera.Define(stage, path)
+    cam.CreateFocalLengthAttr(focal_mm)
+    cam.CreateHorizontalApertureAttr(aperture_mm[0])
+    cam.CreateVerticalApertureAttr(aperture_mm[1])
+    cam.CreateClippingRangeAttr(Gf.Vec2f(*clipping))
+    xf = UsdGeom.XformCommonAPI(cam)
+    xf.SetTranslate(Gf.Vec3d(*position))
+    xf.SetRotate(Gf.Vec3f(*rotate_deg), UsdGeom.XformCommonAPI.RotationOrderYXZ)
+
+
 def write_demo_scene(path: str) -> None:
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
@@ -57,16 +72,10 @@ def write_demo_scene(path: str) -> None:
         if "scale" in p:
             xf.SetScale(Gf.Vec3f(*p["scale"]))
 
-    cam = UsdGeom.Camera.Define(stage, "/World/Camera")
-    cam.CreateFocalLengthAttr(18.0)
-    cam.CreateHorizontalApertureAttr(36.0)
-    cam.CreateVerticalApertureAttr(20.25)
-    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 300.0))
     # Eye height 1.7 m, looking down +Z (a USD camera looks along its local -Z: turn it 180 deg about Y),
     # tilted 8 degrees down.
-    cxf = UsdGeom.XformCommonAPI(cam)
-    cxf.SetTranslate(Gf.Vec3d(0.0, 1.7, 0.0))
-    cxf.SetRotate(Gf.Vec3f(8.0, 180.0, 0.0), UsdGeom.XformCommonAPI.RotationOrderYXZ)
+    define_camera(stage, "/World/Camera", focal_mm=18.0, aperture_mm=(36.0, 20.25), clipping=(0.1, 300.0),
+                  position=(0.0, 1.7, 0.0), rotate_deg=(8.0, 180.0, 0.0))
 
     sun = UsdLux.DistantLight.Define(stage, "/World/Sun")
     sun.CreateIntensityAttr(3.0)
