@@ -570,7 +570,8 @@ def bench_solvers(validate_rig, lights: int = 5, write: bool = True) -> dict:
     from ..service.pipeline import coarse_pass
     from ..service.scenes import SceneCache
     from ..service.solve import light_problems
-    from ..solvers.optimize import DEFAULT_METHOD, METHODS, minimize, optimized_maps
+    from ..solvers.optimize import DEFAULT_METHOD, METHODS, minimize
+    from ..solvers.optimized_maps import optimized_maps
 
     spec = definitions()["coarse"]["scenes"]
     results, lines = {}, []

@@ -17,7 +17,7 @@ from ..solvers.baselines import baseline
 from ..solvers.conventions import export_matrices
 from ..solvers.metric import error_stats, per_sample_maps
 from ..solvers.optimize import DEFAULT_METHOD as DEFAULT_SOLVER
-from ..solvers.optimize import optimized_maps
+from ..solvers.optimized_maps import optimized_maps
 from ..solvers.samples import Samples, select_samples
 from ..solvers.shadow_map import ShadowMap
 from .pipeline import coarse_pass

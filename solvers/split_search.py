@@ -7,7 +7,7 @@ one fit and one metric pass per cascade. The objective is piecewise (a sample ju
 split crosses it), so the search is derivative-free: NLopt's BOBYQA from the best of the uniform,
 logarithmic and practical (λ = 0.5) splits, over s_i in [0, 1] with z_i = z_n (z_f / z_n)^(s_i)
 (Lloyd et al. 2007 eq. 80's log spacing is s_i = i / k). The optimizer of each cascade's light
-matrix then runs at the chosen splits (solvers.optimize.optimized_maps).
+matrix then runs at the chosen splits (solvers.optimized_maps.optimized_maps).
 """
 from __future__ import annotations
 

@@ -351,7 +351,7 @@ def test_every_candidate_map_kept_carries_its_depth_bias(demo_problem):
     bias of the baselines' rule, and a kept baseline map the same bias as baseline() gives it."""
     from shadowopt.solvers.baselines import METHODS as BASELINES
     from shadowopt.solvers.baselines import fit_baseline
-    from shadowopt.solvers.optimize import optimized_maps
+    from shadowopt.solvers.optimized_maps import optimized_maps
 
     cam, p, bounds = demo_problem
     opts = dict(resolution=(512, 512), cascades=3, receiver_slack=p.receiver_slack)
@@ -414,12 +414,12 @@ def test_a_point_is_evaluated_once(ground):
 def test_search_on_the_baselines_hull_gives_the_same_maps(demo_problem, monkeypatch):
     """optimized_maps with sample_rows (solve's samples are receivers: the search reuses the baselines'
     hull per cascade) returns exactly the maps it returns without."""
-    from shadowopt.solvers import optimize
-    from shadowopt.solvers.optimize import optimized_maps
+    from shadowopt.solvers import optimized_maps as optimized_maps_mod
+    from shadowopt.solvers.optimized_maps import optimized_maps
 
     shared = []
-    real = optimize._shared_hull
-    monkeypatch.setattr(optimize, "_shared_hull", lambda *a: shared.append(real(*a)) or shared[-1])
+    real = optimized_maps_mod._shared_hull
+    monkeypatch.setattr(optimized_maps_mod, "_shared_hull", lambda *a: shared.append(real(*a)) or shared[-1])
     cam, p, bounds = demo_problem
     assert p.sample_rows is not None and np.array_equal(p.receivers[p.sample_rows], p.samples.position)
     for k in (1, 3):

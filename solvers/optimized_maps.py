@@ -1,0 +1,167 @@
+"""`method: optimized` for one light: per cascade, the optimized map or the best baseline, whichever the
+metric scores lower (solvers.optimize.minimize searches one map's projective parameters; this module
+runs the baselines, the split search, the starts and the choice per cascade, and biases what it keeps).
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .baselines import _with_bias, fit_baseline
+from .cameras import Camera
+from .lights import DirectionalLight
+from .metric import serial_kernels
+from .optimize import DEFAULT_METHOD, METHODS, Problem, minimize, optimizable, single_map_spot
+from .samples import Samples
+
+
+def _shared_hull(fitted, k: int, part: np.ndarray, sub: Samples, receivers: np.ndarray, sample_rows, sel_s, sel_r):
+    """The baselines' light-plane hull of cascade k, for the search too, when it is what Problem would
+    compute: the same receivers, and every sample one of them at the same position (Qhull gives the
+    same vertices in the same order when duplicates of the points are appended after them). Else None."""
+    hull = fitted.fit_points[k]
+    if hull is None or sample_rows is None or not len(hull[1]):
+        return None
+    if fitted.parts[k].shape != part.shape or not np.array_equal(fitted.parts[k], part):
+        return None
+    rows = np.asarray(sample_rows)[sel_s]
+    if len(rows) and not (sel_r[rows].all() and np.array_equal(receivers[rows], sub.position)):
+        return None
+    return hull
+
+
+@serial_kernels()
+def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarray, casters_bounds,
+                   resolution=(2048, 2048), cascades: int = 1, splits: str = "practical", split_lambda: float = 0.5,
+                   texel_budget: int | None = None, allow_log: bool = False, solver: str = DEFAULT_METHOD,
+                   time_budget_ms: float | None = None, receiver_slack=None, x0=None, previous_x=None,
+                   hysteresis: float = 0.8, sample_rows: np.ndarray | None = None):
+    """`method: optimized`: per cascade, the optimized map or the best baseline, whichever the metric
+    scores lower on that cascade's samples (so never worse than the best baseline). Returns
+    (maps, solver_json).
+
+    Temporal stability (Chong & Gortler 2007 §3): with `previous_x` (the previous solution's x per
+    cascade), the previous projective parameters are refit to the current receivers and kept unless
+    the new map's median h is below `hysteresis` x the refit one's.
+
+    `sample_rows`: per sample, the index of the receiver at the same position, when the samples are
+    receivers (service.solve's are): the search then reuses the baselines' hull of each cascade."""
+    from .baselines import METHODS as BASELINES
+    from .metric import per_sample_maps, predicted_error, predicted_objective
+
+    if solver not in METHODS:
+        raise ValueError(f"solver: unknown solver {solver!r} (known: {', '.join(METHODS)})")
+    t0 = time.perf_counter()
+    split_info = None
+    split_at = None
+    if splits == "optimized":
+        splits = "practical"
+        if isinstance(light, DirectionalLight) and int(cascades) > 1:
+            from .split_search import optimize_splits
+
+            sr = optimize_splits(camera, light, samples, receivers, casters_bounds, resolution, int(cascades),
+                                 texel_budget=texel_budget, receiver_slack=receiver_slack)
+            split_at, split_info = sr.split_at, sr.to_json()
+    common = dict(resolution=resolution, cascades=cascades, splits=splits, split_lambda=split_lambda,
+                  texel_budget=texel_budget, receiver_slack=receiver_slack, split_at=split_at)
+    hulls: dict = {}  # the receivers' light-plane hull per cascade, shared by the four methods
+    fitted = {m: fit_baseline(m, camera, light, receivers, casters_bounds, allow_log=allow_log and m == "logpsm",
+                              hull_cache=hulls, **common) for m in BASELINES}
+    per_method = {m: f.maps for m, f in fitted.items()}
+    bias_points = {m: list(f.parts) for m, f in fitted.items()}  # per map, what its bias is measured on if kept
+    ref = per_method["focused"]
+    proxy = single_map_spot(light, receivers)
+    if proxy is not None and ref and ref[0].face is not None:
+        # A point light whose visible receivers lie in one cone: one perspective map with an optimized
+        # axis instead of six cube faces, kept when the metric scores it no worse than the cube.
+        maps, sj = optimized_maps(camera, proxy, samples, receivers, casters_bounds, resolution, 1, solver=solver,
+                                  time_budget_ms=time_budget_ms, receiver_slack=receiver_slack)
+        cube = float(predicted_error(ref, samples, camera.position)["objective"])
+        if sj["fun"] <= cube:
+            sj["point_light"] = {"single_map_cone_deg": proxy.cone_deg, "cube_objective": cube}
+            return maps, sj
+    if ref and ref[0].face is not None:  # a cube map (point light, wide spot): fixed 90° faces, nothing to search
+        ref = fitted["focused"].biased(light)
+        return ref, {"name": solver, "time_ms": round((time.perf_counter() - t0) * 1e3, 3), "nit": 0, "nfev": 0,
+                     "fun": float(predicted_error(ref, samples, camera.position)["objective"]), "success": True,
+                     "converged": True, "message": "cube map: six fixed 90-degree faces, no projective parameters",
+                     "x": [None] * len(ref), "cascades": []}
+    depth = (receivers - camera.position) @ camera.forward if len(receivers) else np.zeros(0)
+    slack = np.zeros(len(receivers)) if receiver_slack is None else np.asarray(receiver_slack, float)
+    out_maps, info = [], []
+    for k, rmap in enumerate(ref):
+        lo, hi = rmap.split
+        sel_s = (samples.view_depth >= lo) & (samples.view_depth <= hi)
+        sub = samples if sel_s.all() else samples.subset(sel_s)
+        sel_r = np.ones(len(receivers), bool)
+        if isinstance(light, DirectionalLight) and len(receivers) > 0:
+            sel_r = (depth + slack >= (lo if k else -np.inf)) & (depth - slack <= (hi if k < len(ref) - 1 else np.inf))
+        part_r = receivers[sel_r]
+        hull_r = _shared_hull(fitted["focused"], k, part_r, sub, receivers, sample_rows, sel_s, sel_r)
+        for m, maps in per_method.items():  # one allocation (focused's) for every candidate: the budget holds
+            if tuple(maps[k].resolution) != tuple(rmap.resolution) and maps[k].face is None:
+                maps[k].resolution = rmap.resolution
+                bias_points[m][k] = part_r if sel_r.any() else receivers
+        scores = {m: predicted_objective([maps[k]], sub, camera.position) for m, maps in per_method.items()}
+        best_name = min(scores, key=scores.get)
+        best_map, best_f = per_method[best_name][k], scores[best_name]
+        entry = {"cascade": k, "baselines": {m: float(v) for m, v in scores.items()}}
+        if optimizable(light) and len(sub) > 0 and len(receivers) > 0:
+            left = None if time_budget_ms is None else max(1.0, time_budget_ms - (time.perf_counter() - t0) * 1e3)
+            starts = {m: per_method[m][k] for m in ("focused", "lispsm", "logpsm")}
+            res = minimize(camera, light, sub, part_r, casters_bounds, rmap.resolution, solver,
+                           x0=x0[k] if x0 is not None and k < len(x0) else None, time_budget_ms=left,
+                           start_maps_given=starts, bias=False, fit_points=hull_r)
+            entry["result"] = res.to_json()
+            if allow_log and isinstance(light, DirectionalLight):  # LogPSM's family too; the lower objective wins
+                left = None if time_budget_ms is None else max(1.0, time_budget_ms - (time.perf_counter() - t0) * 1e3)
+                res_log = minimize(camera, light, sub, part_r, casters_bounds, rmap.resolution, solver,
+                                   time_budget_ms=left, log=True, start_maps_given=starts, bias=False,
+                                   fit_points=hull_r)
+                entry["result_log"] = res_log.to_json()
+                if res_log.map is not None and res_log.fun < res.fun:
+                    res = res_log
+                    entry["result"], entry["result_log"] = res_log.to_json(), entry["result"]
+                    entry["result"]["warp"] = "log"
+            # strictly lower beyond roundoff: a baseline map the search returned as it is (res.fun is the
+            # Dr.Jit sum, best_f the NumPy one) keeps its baseline name
+            if res.map is not None and res.fun < best_f * (1.0 - 1e-12):
+                best_map, best_f, best_name = res.map, res.fun, "optimized"
+                best_map.eta = None
+        prev = previous_x[k] if previous_x is not None and k < len(previous_x) else None
+        if prev is not None and isinstance(light, DirectionalLight) and len(sub) > 0 and len(receivers) > 0:
+            refit = Problem(camera, light, sub, part_r, casters_bounds, rmap.resolution, fit_points=hull_r).map_for(
+                np.asarray(prev, dtype=np.float64))
+            h_new, _, _ = per_sample_maps([best_map], sub, camera.position)
+            h_old, _, _ = per_sample_maps([refit], sub, camera.position)
+            med_new, med_old = float(np.median(h_new)), float(np.median(h_old))
+            keep = not (med_new < hysteresis * med_old)
+            entry["temporal"] = {"previous_x": [float(v) for v in prev], "median_h_new": med_new,
+                                 "median_h_previous_refit": med_old, "hysteresis": hysteresis, "kept_previous": keep}
+            if keep:
+                best_map, best_name = refit, "optimized"
+                best_f = float(predicted_error([refit], sub, camera.position)["objective"])
+                if "result" in entry:
+                    entry["result"]["x"] = [float(v) for v in prev]
+        best_map.split = rmap.split
+        if best_name == "optimized":
+            best_map.resolution = rmap.resolution
+            _with_bias(best_map, part_r, light)
+        else:
+            _with_bias(best_map, bias_points[best_name][k], light)
+        entry["chosen"] = best_name
+        entry["objective"] = float(best_f)
+        out_maps.append(best_map)
+        info.append(entry)
+    results = [e.get("result", {}) for e in info]
+    solver_json = {"name": solver, "time_ms": round((time.perf_counter() - t0) * 1e3, 3),
+                   "nit": int(sum(r.get("nit", 0) for r in results)), "nfev": int(sum(r.get("nfev", 0) for r in results)),
+                   "fun": float(sum(e["objective"] for e in info)),
+                   "success": all(r.get("success", True) for r in results),
+                   "converged": all(r.get("success", True) for r in results),
+                   "message": "; ".join(sorted({r.get("message", "") for r in results if r})) or "best baseline (no optimizable projective parameters)",
+                   "x": [r.get("x") for r in results], "cascades": info}
+    if split_info is not None:
+        solver_json["splits"] = split_info
+    return out_maps, solver_json
