@@ -213,14 +213,30 @@ def cmd_evaluate(args) -> int:
     solution = _read_json(args.solution, "--solution")
     entry = scene_entry(args.scene, **_scene_options(args))
     res = evaluate_solution(entry, rig, solution, screen=args.screen, heatmap_path=args.heatmap,
-                            grid_every=args.grid)
+                            grid_every=args.grid, heatmap_mode=args.heatmap_mode)
     if args.json:
         print(json.dumps(res, indent=2))
     else:
-        print(f"misclassified {res.get('misclassified_pixels')} of {res.get('receiver_pixels')} receiver pixels "
-              f"({100 * (res.get('misclassified_fraction') or 0):.3f}%), outside {res.get('outside_pixels')}, "
-              f"measured p95 m {res.get('measured_error', {}).get('p95_m', float('nan')):.3g}")
+        for k, r in enumerate(res["lights"] if "lights" in res else [res]):
+            print(_evaluation_summary(r, f"light {k}: " if "lights" in res else ""))
+        if args.heatmap:
+            print(f"{args.heatmap_mode} heatmap with its legend: {args.heatmap}"
+                  + (" (one file per light)" if "lights" in res else ""))
     return 0
+
+
+def _evaluation_summary(r: dict, prefix: str = "") -> str:
+    """One line per evaluation; counts and measured m name the screen they were measured at."""
+    w, h = r.get("screen") or ("?", "?")
+    rw, rh = r.get("rig_resolution") or (w, h)
+    p95 = r.get("measured_error", {}).get("p95_m", float("nan"))
+    line = (f"{prefix}at the {w}x{h} screen: misclassified {r.get('misclassified_pixels')} of "
+            f"{r.get('receiver_pixels')} receiver pixels ({100 * (r.get('misclassified_fraction') or 0):.3f}%; "
+            f"wrongly shadowed {r.get('wrongly_shadowed_pixels')}, wrongly lit {r.get('wrongly_lit_pixels')}), "
+            f"outside {r.get('outside_pixels')}, measured p95 m {p95:.3g} in {w}x{h} pixels")
+    if "measured_error_rig_pixels" in r:
+        line += f", {r['measured_error_rig_pixels'].get('p95_m', float('nan')):.3g} in the rig's {rw}x{rh} pixels"
+    return line
 
 
 def cmd_analyze(args) -> int:
@@ -259,7 +275,8 @@ def cmd_compare(args) -> int:
     else:
         print(markdown_table(res), end="")
         if args.report:
-            print(f"report: {res['report']['heatmaps']}, {res['report']['table']}")
+            print(f"report: {res['report']['heatmaps']} (m), {res['report']['errors']} (misclassified pixels), "
+                  f"{res['report']['table']}")
     return 0
 
 
@@ -374,8 +391,12 @@ def build_parser() -> argparse.ArgumentParser:
     scene_args(sp)
     rig_args(sp)
     sp.add_argument("--solution", required=True, help="a solution JSON written by `optimize`")
-    sp.add_argument("--screen", type=_parse_wxh, default=None, metavar="WxH", help="screen resolution (default: the rig's)")
-    sp.add_argument("--heatmap", default=None, metavar="FILE.png", help="write the per-pixel m heatmap")
+    sp.add_argument("--screen", type=_parse_wxh, default=None, metavar="WxH", help="measure at this screen "
+                    "resolution (default: the rig's; predicted error stays in the rig's pixels)")
+    sp.add_argument("--heatmap", default=None, metavar="FILE.png", help="write a heatmap with its legend")
+    sp.add_argument("--heatmap-mode", choices=["m", "errors"], default="m", help="m: the per-pixel m in Lloyd's "
+                    "colour key; errors: wrongly shadowed and wrongly lit pixels in two colours over the exact "
+                    "shading (default m)")
     sp.add_argument("--grid", type=int, default=None, metavar="N", help="overlay the texel grid every N texels")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_evaluate)
@@ -384,8 +405,10 @@ def build_parser() -> argparse.ArgumentParser:
     scene_args(sp)
     rig_args(sp)
     sp.add_argument("--methods", default="uniform,focused,lispsm,logpsm", help="comma-separated methods")
-    sp.add_argument("--screen", type=_parse_wxh, default=None, metavar="WxH", help="screen resolution (default: the rig's)")
-    sp.add_argument("--report", default=None, metavar="DIR", help="write heatmaps side by side (PNG) and the table (Markdown)")
+    sp.add_argument("--screen", type=_parse_wxh, default=None, metavar="WxH", help="measure at this screen "
+                    "resolution (default: the rig's); every method is still solved at the rig's resolution")
+    sp.add_argument("--report", default=None, metavar="DIR", help="write the m heatmaps and the misclassified "
+                    "pixels per method side by side (PNG) and the table (Markdown)")
     sp.add_argument("--grid", type=int, default=None, metavar="N", help="overlay the texel grid every N texels")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_compare)
