@@ -8,6 +8,17 @@ Receivers where m cannot be measured (no neighbour on the same surface): mid gre
 Receivers outside every map that serves them: magenta (a lost receiver, whatever its aliasing).
 Optional texel-grid overlay every N texels: a pixel is on a grid line when floor(u / N) or
 floor(v / N) of the serving map changes between it and its right or lower neighbour.
+
+The errors mode (`errors_image`) shows what went wrong instead of m: over the ground truth's shading
+(receivers the exact shadow ray finds lit in light grey, exactly shadowed receivers in mid grey, surfaces
+facing away from the light darker, no hit darkest; every one of these a pure grey, r = g = b), the
+receivers the maps shadow although the light reaches them (WRONGLY_SHADOWED, vermillion) and the ones the
+maps leave lit although they are in shadow (WRONGLY_LIT, blue; receivers outside their map are lit,
+so an exactly shadowed one is wrongly lit). Colours from Okabe & Ito's colour-blind-safe palette (2008).
+Exactly the misclassified pixels are coloured, no others.
+
+Every heatmap written to a file carries its legend (`heatmap_with_legend`): the picture is the top-left
+screen-sized region, the legend is the strip below it.
 """
 from __future__ import annotations
 
@@ -22,6 +33,14 @@ UNMEASURED = (128, 128, 128)
 OUTSIDE = (200, 0, 200)
 GRID = (255, 255, 255)
 GRID_ALPHA = 0.6
+HEATMAP_MODES = ("m", "errors")
+# Errors mode.
+WRONGLY_SHADOWED = (213, 94, 0)  # the maps shadow it, the light reaches it
+WRONGLY_LIT = (0, 114, 178)  # the maps leave it lit, it is in shadow
+LIT_GREY = (215, 215, 215)  # exactly lit receiver
+SHADOWED_GREY = (120, 120, 120)  # exactly shadowed receiver
+FACING_AWAY_GREY = (72, 72, 72)  # a hit that is no receiver (faces away from the light, outside a cone)
+NO_HIT_GREY = (32, 32, 32)
 
 
 def colour_key(m: np.ndarray) -> np.ndarray:
@@ -77,6 +96,101 @@ def ground_truth_heatmap(gt, grid_every: int | None = None) -> Image.Image:
     return heatmap_image(gt.m, gt.receivers, gt.texel_uv, grid_every, gt.outside, gt.map_index)
 
 
+def misclassified_split(gt) -> dict:
+    """Misclassified receivers of a GroundTruth split by how: the maps shadow a lit receiver
+    (`wrongly_shadowed_pixels`) or leave a shadowed one lit (`wrongly_lit_pixels`); they sum to
+    `misclassified_pixels`."""
+    wrong = gt.misclassified & gt.receivers
+    return {"wrongly_shadowed_pixels": int(np.sum(wrong & gt.map_shadowed)),
+            "wrongly_lit_pixels": int(np.sum(wrong & ~gt.map_shadowed))}
+
+
+def errors_image(gt, grid_every: int | None = None) -> Image.Image:
+    """An RGB image of the screen's size: the misclassified receivers of a GroundTruth in two colours
+    over its shading in greys (module doc). A grid overlay, if asked for, is drawn on the greys only."""
+    sb = gt.screen
+    h, w = gt.receivers.shape
+    img = np.empty((h, w, 3), dtype=np.uint8)
+    img[:] = NO_HIT_GREY
+    img[sb.hit] = FACING_AWAY_GREY
+    img[gt.receivers & ~gt.exact_shadowed] = LIT_GREY
+    img[gt.receivers & gt.exact_shadowed] = SHADOWED_GREY
+    wrong = gt.misclassified & gt.receivers
+    if grid_every and gt.texel_uv is not None:
+        line = grid_lines(gt.texel_uv, int(grid_every), gt.map_index) & gt.receivers & ~wrong
+        blend = (1 - GRID_ALPHA) * img[line] + GRID_ALPHA * np.array(GRID, dtype=np.float64)
+        img[line] = np.round(blend).astype(np.uint8)
+    img[wrong & gt.map_shadowed] = WRONGLY_SHADOWED
+    img[wrong & ~gt.map_shadowed] = WRONGLY_LIT
+    return Image.fromarray(img, "RGB")
+
+
+def _swatch_rows(entries: list[tuple[tuple[int, int, int], str]], width: int, columns: int = 1) -> Image.Image:
+    """Colour swatches with labels, `columns` per row."""
+    font = ImageFont.load_default()
+    row_h, sw, pad = 14, 10, 6
+    rows = (len(entries) + columns - 1) // columns
+    img = Image.new("RGB", (width, rows * row_h + 4), (255, 255, 255))
+    d = ImageDraw.Draw(img)
+    col_w = (width - pad) // columns
+    for k, (colour, label) in enumerate(entries):
+        x, y = pad + (k % columns) * col_w, 2 + (k // columns) * row_h
+        d.rectangle([x, y + 1, x + sw, y + 1 + sw], fill=tuple(colour), outline=(0, 0, 0))
+        d.text((x + sw + 4, y), label, fill=(0, 0, 0), font=font)
+    return img
+
+
+def _stack(parts: list[Image.Image], width: int) -> Image.Image:
+    img = Image.new("RGB", (width, sum(p.height for p in parts)), (255, 255, 255))
+    y = 0
+    for p in parts:
+        img.paste(p, (0, y))
+        y += p.height
+    return img
+
+
+def m_legend(width: int = 360) -> Image.Image:
+    """The m heatmap's legend: the colour bar (`legend_image`) and the other colours it uses."""
+    width = max(int(width), 200)
+    rows = _swatch_rows([(OUTSIDE, "outside its map"), (UNMEASURED, "m not measurable"),
+                         (NON_RECEIVER, "not a receiver")], width, columns=2 if width < 330 else 3)
+    return _stack([legend_image(width), rows], width)
+
+
+def errors_legend(width: int = 360, counts: dict | None = None) -> Image.Image:
+    """The errors image's legend: the two colours (with the pixel counts of `misclassified_split`
+    when given) and the greys of the shading."""
+    width = max(int(width), 200)
+
+    def n(key):
+        return f": {counts[key]} px" if counts is not None and key in counts else ""
+
+    top = _swatch_rows([(WRONGLY_SHADOWED, "wrongly shadowed (maps: shadow, exact: lit)" + n("wrongly_shadowed_pixels")),
+                        (WRONGLY_LIT, "wrongly lit (maps: lit, exact: shadow)" + n("wrongly_lit_pixels"))], width)
+    greys = _swatch_rows([(LIT_GREY, "lit receiver"), (SHADOWED_GREY, "shadowed receiver"),
+                          (FACING_AWAY_GREY, "faces away"), (NO_HIT_GREY, "no hit")], width, columns=2)
+    return _stack([top, greys], width)
+
+
+def with_legend(image: Image.Image, legend: Image.Image, gap: int = 4) -> Image.Image:
+    """`image` at the top left, `legend` below it, on white."""
+    width = max(image.width, legend.width)
+    canvas = Image.new("RGB", (width, image.height + gap + legend.height), (255, 255, 255))
+    canvas.paste(image.convert("RGB"), (0, 0))
+    canvas.paste(legend, (0, image.height + gap))
+    return canvas
+
+
+def heatmap_with_legend(gt, mode: str = "m", grid_every: int | None = None) -> Image.Image:
+    """What `evaluate --heatmap` writes: the m heatmap or the errors image of a GroundTruth with its legend."""
+    if mode == "m":
+        return with_legend(ground_truth_heatmap(gt, grid_every), m_legend(max(gt.receivers.shape[1], 240)))
+    if mode == "errors":
+        return with_legend(errors_image(gt, grid_every),
+                           errors_legend(max(gt.receivers.shape[1], 300), misclassified_split(gt)))
+    raise ValueError(f"heatmap mode must be one of {', '.join(HEATMAP_MODES)}, got {mode!r}")
+
+
 def legend_image(width: int = 360, height: int = 46) -> Image.Image:
     """The colour key as a bar from m = 1 to m = 10 (log scale) with tick labels."""
     img = Image.new("RGB", (width, height), (255, 255, 255))
@@ -97,15 +211,17 @@ def legend_image(width: int = 360, height: int = 46) -> Image.Image:
 
 
 def side_by_side(images: list[Image.Image], titles: list[str], path: str | None = None,
-                 gap: int = 8) -> Image.Image:
-    """Heatmaps next to each other with a title above each and one colour legend below."""
+                 gap: int = 8, legend: Image.Image | None = None) -> Image.Image:
+    """Heatmaps next to each other with a title above each and one legend below (default: the m legend;
+    pass `errors_legend()` for errors images)."""
     if len(images) != len(titles):
         raise ValueError("one title per image")
     font = ImageFont.load_default()
     title_h = 18
     width = sum(im.width for im in images) + gap * (len(images) + 1)
     tallest = max((im.height for im in images), default=0)
-    legend = legend_image(min(360, max(120, width - 2 * gap)))
+    if legend is None:
+        legend = m_legend(min(360, max(200, width - 2 * gap)))
     height = title_h + tallest + 2 * gap + legend.height + gap
     canvas = Image.new("RGB", (max(width, legend.width + 2 * gap), height), (255, 255, 255))
     d = ImageDraw.Draw(canvas)

@@ -1,11 +1,16 @@
-"""Compare methods on one scene and rig: predicted error, measured error and time, side by side."""
+"""Compare methods on one scene and rig: predicted error, measured error and time, side by side.
+
+Every method is solved at the rig's own resolution (its `predicted_error` is the one `optimize` gives for
+the same rig, in the rig's full-resolution pixels); `screen` only sets where the ground truth is measured,
+and each evaluation names its screen and the rig's resolution (service.evaluation.pixel_units)."""
 from __future__ import annotations
 
 import time
 from pathlib import Path
 
-from ..renderers.ground_truth import evaluate_buffers
-from ..renderers.heatmap import ground_truth_heatmap, side_by_side
+from ..renderers.ground_truth import evaluate_buffers, screen_camera
+from ..renderers.heatmap import errors_image, errors_legend, ground_truth_heatmap, side_by_side
+from .evaluation import pixel_units
 from .request_cost import WorkLimit, check_eval_work, check_solve_work, flush_if_large, light_faces, map_texels
 from .rigs import RigError, SolutionError, resolve_rig
 from .scenes import SceneEntry
@@ -14,15 +19,14 @@ from .solve import maps_from_solution, solve
 
 def compare(entry: SceneEntry, rig: dict, methods: list[str], screen=None, report_dir=None, grid_every=None,
             solve_options: dict | None = None) -> dict:
-    """{"methods": {NAME: {"solution", "predicted_error", "evaluation", "setup_ms"}}} (first light)."""
-    if screen:  # predicted and measured error in the same pixels
-        rig = {**rig, "camera": {**rig["camera"], "resolution": tuple(screen)}}
+    """{"methods": {NAME: {"solution", "predicted_error", "evaluation", "setup_ms"}}, "screen", "rig_resolution"}
+    (first light). `report_dir`: heatmaps.png (m), errors.png (what went wrong) and compare.md."""
     resolved = resolve_rig(rig, entry.loaded)
     try:  # the API's CompareRequest checks this too (before the scene is loaded)
         check_solve_work(rig, solves=len(methods) + 1, kinds=[l.kind for l in resolved.lights], prefix="")
     except WorkLimit as e:
         raise RigError(e.field, e.message, code="too_costly") from None
-    w, h = resolved.camera.resolution
+    w, h = screen_camera(resolved.camera, screen).resolution  # the ground truth's pixels
     screen_field = "screen" if screen else "rig.camera.resolution"
     try:  # one ground truth per method, of the first light's maps
         texels = map_texels(rig.get("shadow") or {}) * light_faces(None, resolved.lights[0].kind)
@@ -30,40 +34,59 @@ def compare(entry: SceneEntry, rig: dict, methods: list[str], screen=None, repor
     except WorkLimit as e:
         raise SolutionError(e.field, e.message, code="too_costly") from None
     try:
-        return _compare(entry, rig, resolved, methods, report_dir, grid_every, solve_options)
+        return _compare(entry, rig, resolved, methods, screen, report_dir, grid_every, solve_options)
     finally:
         flush_if_large(work)
 
 
-def _compare(entry, rig, resolved, methods, report_dir, grid_every, solve_options) -> dict:
-    out, images = {}, []
+def _compare(entry, rig, resolved, methods, screen, report_dir, grid_every, solve_options) -> dict:
+    out, images, errors, titles = {}, [], [], []
     solve(entry, rig, method=methods[0], **(solve_options or {}))  # warm-up: kernels compile once, not in a method's time
     for name in methods:
         t0 = time.perf_counter()
-        sol = solve(entry, rig, method=name, **(solve_options or {}))
+        sol = solve(entry, rig, method=name, **(solve_options or {}))  # the rig's resolution, as optimize
         setup_ms = (time.perf_counter() - t0) * 1e3
         maps = maps_from_solution(sol)[0]
-        gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps)
+        gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps, screen=screen)
+        evaluation = {**gt.result, **pixel_units(gt, resolved.camera.resolution)}
         out[name] = {"solution": sol, "predicted_error": sol["lights"][0]["predicted_error"],
-                     "evaluation": gt.result, "setup_ms": round(setup_ms, 3)}
+                     "evaluation": evaluation, "setup_ms": round(setup_ms, 3)}
         if report_dir:
             images.append(ground_truth_heatmap(gt, grid_every))
-    result = {"methods": out}
+            errors.append(errors_image(gt, grid_every))
+            titles.append(f"{name}: {evaluation['misclassified_pixels']} misclassified "
+                          f"({evaluation['wrongly_shadowed_pixels']} sh., {evaluation['wrongly_lit_pixels']} lit)")
+    sw, sh = gt.result["screen"]
+    result = {"methods": out, "screen": [sw, sh], "rig_resolution": [int(v) for v in resolved.camera.resolution]}
     if report_dir:
         d = Path(report_dir)
         d.mkdir(parents=True, exist_ok=True)
         side_by_side(images, list(methods), str(d / "heatmaps.png"))
-        (d / "compare.md").write_text(markdown_table(result))
-        result["report"] = {"heatmaps": str(d / "heatmaps.png"), "table": str(d / "compare.md")}
+        side_by_side(errors, titles, str(d / "errors.png"), legend=errors_legend(360))
+        (d / "compare.md").write_text(markdown_table(result) + "\n![measured m per method](heatmaps.png)\n\n"
+                                      "![misclassified pixels per method](errors.png)\n")
+        result["report"] = {"heatmaps": str(d / "heatmaps.png"), "errors": str(d / "errors.png"),
+                            "table": str(d / "compare.md")}
     return result
 
 
 def markdown_table(result: dict) -> str:
-    lines = ["| method | setup (ms) | predicted objective | predicted p95 m | measured p95 m | misclassified | "
-             "outside | receivers |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    """The comparison table; measured columns name the screen they were measured at, predicted ones the rig's
+    resolution (the same pixels when no --screen was given)."""
+    sw, sh = result.get("screen") or ["?", "?"]
+    rw, rh = result.get("rig_resolution") or ["?", "?"]
+    at, rig = f"{sw}x{sh}", f"{rw}x{rh}"
+    lines = [f"Predicted error in the rig's {rig} pixels; measured at a {at} screen (pixel counts and measured m "
+             f"in its pixels{'' if at == rig else ', measured m also converted to the rig's pixels'}).", "",
+             f"| method | setup (ms) | predicted objective ({rig}) | predicted p95 m ({rig}) | "
+             f"measured p95 m ({at}) |" + ("" if at == rig else f" measured p95 m ({rig}) |")
+             + f" misclassified ({at}) | wrongly shadowed | wrongly lit | outside | receivers |",
+             "|---|---:|---:|---:|---:|" + ("" if at == rig else "---:|") + "---:|---:|---:|---:|---:|"]
     for name, r in result["methods"].items():
         p, e = r["predicted_error"], r["evaluation"]
+        conv = "" if at == rig else f" {e.get('measured_error_rig_pixels', {}).get('p95_m', float('nan')):.3g} |"
         lines.append(f"| {name} | {r['setup_ms']:.1f} | {p['objective']:.4g} | {p['p95_m']:.3g} | "
-                     f"{e['measured_error'].get('p95_m', float('nan')):.3g} | {e['misclassified_pixels']} | "
+                     f"{e['measured_error'].get('p95_m', float('nan')):.3g} |{conv} {e['misclassified_pixels']} | "
+                     f"{e.get('wrongly_shadowed_pixels', '')} | {e.get('wrongly_lit_pixels', '')} | "
                      f"{e['outside_pixels']} | {e['receiver_pixels']} |")
     return "\n".join(lines) + "\n"

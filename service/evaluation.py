@@ -1,9 +1,20 @@
-"""Ground-truth evaluation of a solution JSON against exact ray-traced shadows."""
+"""Ground-truth evaluation of a solution JSON against exact ray-traced shadows.
+
+Pixels: a solution's `predicted_error` is always in the rig's own full-resolution pixels (the solve
+never sees the evaluation's screen). The ground truth is measured at `screen` (default: the rig's
+resolution), so its pixel counts and its `measured_error` are in that screen's pixels; each evaluation
+says so (`screen`, `rig_resolution`) and, when the two differ, adds `measured_error_rig_pixels`: the
+same measurement with every footprint converted to the rig's pixels (m times s, h times s²,
+s = sqrt(W H / (w h)), the rig's pixels per screen pixel along a side; screens keep the camera's aspect).
+"""
 from __future__ import annotations
 
+import math
 import time
 
-from ..renderers.ground_truth import evaluate as evaluate_maps
+from ..renderers.ground_truth import evaluate_buffers
+from ..renderers.heatmap import HEATMAP_MODES, heatmap_with_legend, misclassified_split
+from ..solvers.metric import error_stats
 from .request_cost import WorkLimit, check_eval_work, flush_if_large
 from .rigs import SolutionError, resolve_rig
 from .scenes import SceneEntry
@@ -11,9 +22,36 @@ from .solution_check import validate_solution
 from .solve import maps_from_solution
 
 
+def pixel_units(gt, rig_resolution) -> dict:
+    """Fields every evaluation carries besides `gt.result`: the misclassified split, the screen and the
+    rig's resolution, and (screen != rig) the measured error in the rig's pixels (module doc)."""
+    out = dict(misclassified_split(gt))
+    w, h = gt.result["screen"]
+    W, H = (int(v) for v in rig_resolution)
+    out["rig_resolution"] = [W, H]
+    out["pixels"] = (f"pixel counts and measured_error in the {w}x{h} screen's pixels; predicted_error in the "
+                     f"rig's {W}x{H} pixels")
+    if (w, h) != (W, H):
+        s = math.sqrt(W * H / (w * h))
+        mask = gt.sample_mask
+        stats = error_stats(gt.h[mask] * s * s, gt.m[mask] * s)
+        stats["sample_kind"] = gt.sample_kind
+        out["measured_error_rig_pixels"] = stats
+        out["pixels"] += f"; measured_error_rig_pixels: the same measurement in the rig's pixels (m x {s:.4g})"
+    return out
+
+
+def check_heatmap_mode(mode) -> str:
+    if mode not in HEATMAP_MODES:
+        raise SolutionError("heatmap_mode", f"must be one of {', '.join(HEATMAP_MODES)}, got {mode!r}",
+                            code="invalid_input")
+    return mode
+
+
 def evaluate_solution(entry: SceneEntry, rig: dict, solution: dict, screen=None, heatmap_path=None,
-                      grid_every=None) -> dict:
+                      grid_every=None, heatmap_mode: str = "m") -> dict:
     t0 = time.perf_counter()
+    check_heatmap_mode(heatmap_mode)
     resolved = resolve_rig(rig, entry.loaded)
     # Every field read below is checked first: a malformed one is a SolutionError naming it (422, exit 2).
     solution = validate_solution(solution, "solution", light_kinds=[l.kind for l in resolved.lights],
@@ -27,20 +65,29 @@ def evaluate_solution(entry: SceneEntry, rig: dict, solution: dict, screen=None,
     except WorkLimit as e:
         raise SolutionError(e.field, e.message, code="too_costly") from None
     try:
-        return _evaluate(entry, resolved, solution, per_light_maps, screen, heatmap_path, grid_every, t0)
+        return _evaluate(entry, resolved, solution, per_light_maps, screen, heatmap_path, grid_every,
+                         heatmap_mode, t0)
     finally:
         flush_if_large(work)
 
 
-def _evaluate(entry, resolved, solution, per_light_maps, screen, heatmap_path, grid_every, t0) -> dict:
+def _evaluate(entry, resolved, solution, per_light_maps, screen, heatmap_path, grid_every, heatmap_mode, t0) -> dict:
     results = []
     for k, (light, maps) in enumerate(zip(resolved.lights, per_light_maps)):
         path = heatmap_path
         if heatmap_path and len(resolved.lights) > 1:
             stem, dot, ext = heatmap_path.rpartition(".")
             path = f"{stem}.light{k}.{ext}" if dot else f"{heatmap_path}.light{k}"
-        results.append(evaluate_maps(entry.rays, resolved.camera, light, maps, screen=screen,
-                                     heatmap_path=path, grid_every=grid_every))
+        gt = evaluate_buffers(entry.rays, resolved.camera, light, maps, screen=screen)
+        res = gt.result
+        res.update(pixel_units(gt, resolved.camera.resolution))
+        if path is not None:
+            t1 = time.perf_counter()
+            heatmap_with_legend(gt, heatmap_mode, grid_every).save(path)
+            res["heatmap_mode"] = heatmap_mode
+            res["timings_ms"]["heatmap"] = (time.perf_counter() - t1) * 1e3
+            res["timings_ms"]["total"] += res["timings_ms"]["heatmap"]
+        results.append(res)
     out = dict(results[0]) if len(results) == 1 else {"lights": results}
     out["method"] = solution.get("method")
     out.setdefault("timings_ms", {})["total"] = round((time.perf_counter() - t0) * 1e3, 3)
