@@ -8,8 +8,9 @@ import time
 
 import numpy as np
 
-from .baselines import _with_bias, fit_baseline
+from .baselines import _with_bias, fit_baseline, texel_extents
 from .cameras import Camera
+from .cascades import pixel_world_size
 from .lights import DirectionalLight
 from .metric import serial_kernels
 from .optimize import DEFAULT_METHOD, METHODS, Problem, minimize, optimizable, single_map_spot
@@ -29,6 +30,26 @@ def _shared_hull(fitted, k: int, part: np.ndarray, sub: Samples, receivers: np.n
     if len(rows) and not (sel_r[rows].all() and np.array_equal(receivers[rows], sub.position)):
         return None
     return hull
+
+
+RECEIVER_SCORE_POINTS = 2000  # receivers kept to score a cascade that has no sample
+
+
+def receiver_h(smap, pts: np.ndarray, camera: Camera, light) -> float:
+    """Mean over receivers of Chong & Gortler's h = ||F||_F^2 (eq. 9) with each receiver treated as
+    facing the camera and the light (the cosine factors dropped, as solvers.cascades.critical_factors
+    does): ((metres per texel along s)^2 + (along t)^2) / (world size of a full-resolution pixel)^2.
+    Scores a cascade the samples do not reach (no shadow boundary in its depth range): there the
+    metric has no sample, so every candidate would score 0. inf when a receiver is outside the map."""
+    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+    if not len(pts):
+        return 0.0
+    if len(pts) > RECEIVER_SCORE_POINTS:
+        pts = pts[np.random.default_rng(0).choice(len(pts), RECEIVER_SCORE_POINTS, replace=False)]
+    per_s, per_t = texel_extents(smap, pts, light)
+    pix = pixel_world_size(camera, pts)
+    h = ((per_s / smap.resolution[0]) ** 2 + (per_t / smap.resolution[1]) ** 2) / pix ** 2
+    return float(np.mean(h)) if np.isfinite(h).all() else float("inf")
 
 
 @serial_kernels()
@@ -103,10 +124,17 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
             if tuple(maps[k].resolution) != tuple(rmap.resolution) and maps[k].face is None:
                 maps[k].resolution = rmap.resolution
                 bias_points[m][k] = part_r if sel_r.any() else receivers
-        scores = {m: predicted_objective([maps[k]], sub, camera.position) for m, maps in per_method.items()}
+        if len(sub) > 0:
+            scores = {m: predicted_objective([maps[k]], sub, camera.position) for m, maps in per_method.items()}
+        else:  # no sample in this cascade: every map scores 0 on the samples; score on its receivers
+            pts = part_r if len(part_r) else receivers
+            scores = {m: receiver_h(maps[k], pts, camera, light) for m, maps in per_method.items()}
         best_name = min(scores, key=scores.get)
         best_map, best_f = per_method[best_name][k], scores[best_name]
-        entry = {"cascade": k, "baselines": {m: float(v) for m, v in scores.items()}}
+        entry = {"cascade": k, "baselines": {m: float(v) for m, v in scores.items()},
+                 "scored_on": "samples" if len(sub) > 0 else "receivers"}
+        if len(sub) == 0:
+            best_f = 0.0  # the solution's objective: the mean h over its samples (none here)
         if optimizable(light) and len(sub) > 0 and len(receivers) > 0:
             left = None if time_budget_ms is None else max(1.0, time_budget_ms - (time.perf_counter() - t0) * 1e3)
             starts = {m: per_method[m][k] for m in ("focused", "lispsm", "logpsm")}
