@@ -384,7 +384,8 @@ class Client(_Base):
 
     def evaluate(self, scene_id: str, rig: dict | Rig, solution: dict, **options) -> dict:
         """`POST /v1/evaluate`: a solution against exact ray-traced shadows (misclassified pixels,
-        measured error); options such as `screen` or `heatmap` go into the body."""
+        measured error; counts and measured error at `screen`, predicted error in the rig's pixels); options
+        such as `screen`, `heatmap` or `heatmap_mode` ("m" or "errors") go into the body."""
         return self._call(_Calls.evaluate(scene_id, rig, solution, options))
 
     def compare(self, scene_id: str, rig: dict | Rig, methods: list[str] | None = None, **options) -> dict:

@@ -226,11 +226,19 @@ class EvaluateRequest(_SceneRequest):
 
     solution: dict = Field(description="a solution returned by /v1/optimize for this scene and rig")
     screen: Resolution | None = Field(None, description="screen resolution (default: the rig camera's)")
-    heatmap: bool = Field(False, description="also return the per-pixel m heatmap as PNG (base64)")
+    heatmap: bool = Field(False, description="also return a heatmap with its legend as PNG (base64)")
+    heatmap_mode: Literal["m", "errors"] = Field(
+        "m", description="m: the per-pixel m in Lloyd's colour key; errors: wrongly shadowed and wrongly lit "
+        "pixels in two colours over the exact shading, with their counts in the legend. The screen-sized "
+        "picture is the PNG's top-left region, the legend the strip below it")
     grid_every: Annotated[int, Field(ge=1, le=4096)] | None = Field(None, description="texel grid overlay, texels")
 
 
 class Evaluation(_Open):
+    """Misclassified, boundary and outside pixels and `measured_error` in the pixels of `screen` (the
+    evaluation's screen); `rig_resolution` is the rig camera's, the pixels of every `predicted_error`;
+    `measured_error_rig_pixels` (when they differ) is the same measurement in the rig's pixels."""
+
     method: str | None = None
     timings_ms: dict
     heatmap_png_base64: list[str] | None = Field(None, description="one PNG per light, base64")
@@ -238,7 +246,8 @@ class Evaluation(_Open):
 
 class CompareRequest(_SceneRequest):
     methods: list[Method] = Field(["uniform", "focused", "lispsm", "logpsm"], min_length=1, max_length=5)
-    screen: Resolution | None = None
+    screen: Resolution | None = Field(None, description="where the ground truth is measured (default: the rig "
+                                      "camera's resolution); every method is solved at the rig's resolution")
 
     @field_validator("methods")
     @classmethod
@@ -258,6 +267,9 @@ class CompareRequest(_SceneRequest):
 
 
 class Comparison(_Open):
+    """Per method: solution, predicted_error (the rig's pixels), evaluation (the screen's pixels, see
+    Evaluation), setup_ms; `screen` and `rig_resolution` name the two."""
+
     methods: dict
 
 

@@ -1044,7 +1044,7 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
             with tempfile.TemporaryDirectory(prefix="shadowopt-heatmap-") as tmp:
                 path = str(Path(tmp) / "heatmap.png") if req.heatmap else None
                 res = evaluate_solution(entry, rig, req.solution, screen=req.screen, heatmap_path=path,
-                                        grid_every=req.grid_every)
+                                        grid_every=req.grid_every, heatmap_mode=req.heatmap_mode)
                 if path:
                     res["heatmap_png_base64"] = [base64.b64encode(p.read_bytes()).decode()
                                                  for p in sorted(Path(tmp).glob("heatmap*.png"))]

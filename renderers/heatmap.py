@@ -149,12 +149,18 @@ def _stack(parts: list[Image.Image], width: int) -> Image.Image:
     return img
 
 
-def m_legend(width: int = 360) -> Image.Image:
-    """The m heatmap's legend: the colour bar (`legend_image`) and the other colours it uses."""
+def _caption(text: str, width: int) -> Image.Image:
+    img = Image.new("RGB", (width, 14), (255, 255, 255))
+    ImageDraw.Draw(img).text((6, 1), text, fill=(0, 0, 0), font=ImageFont.load_default())
+    return img
+
+
+def m_legend(width: int = 360, caption: str | None = None) -> Image.Image:
+    """The m heatmap's legend: an optional caption, the colour bar (`legend_image`) and the other colours."""
     width = max(int(width), 200)
     rows = _swatch_rows([(OUTSIDE, "outside its map"), (UNMEASURED, "m not measurable"),
                          (NON_RECEIVER, "not a receiver")], width, columns=2 if width < 330 else 3)
-    return _stack([legend_image(width), rows], width)
+    return _stack(([_caption(caption, width)] if caption else []) + [legend_image(width), rows], width)
 
 
 def errors_legend(width: int = 360, counts: dict | None = None) -> Image.Image:
@@ -183,11 +189,13 @@ def with_legend(image: Image.Image, legend: Image.Image, gap: int = 4) -> Image.
 
 def heatmap_with_legend(gt, mode: str = "m", grid_every: int | None = None) -> Image.Image:
     """What `evaluate --heatmap` writes: the m heatmap or the errors image of a GroundTruth with its legend."""
+    h, w = gt.receivers.shape
     if mode == "m":
-        return with_legend(ground_truth_heatmap(gt, grid_every), m_legend(max(gt.receivers.shape[1], 240)))
+        return with_legend(ground_truth_heatmap(gt, grid_every),
+                           m_legend(max(w, 240), f"m: a texel's footprint in pixels of this {w}x{h} screen"))
     if mode == "errors":
         return with_legend(errors_image(gt, grid_every),
-                           errors_legend(max(gt.receivers.shape[1], 300), misclassified_split(gt)))
+                           errors_legend(max(w, 300), misclassified_split(gt)))
     raise ValueError(f"heatmap mode must be one of {', '.join(HEATMAP_MODES)}, got {mode!r}")
 
 
@@ -210,6 +218,19 @@ def legend_image(width: int = 360, height: int = 46) -> Image.Image:
     return img
 
 
+def _wrap(d: ImageDraw.ImageDraw, text: str, width: int, font) -> list[str]:
+    """`text` broken at spaces into lines no wider than `width` (a single long word stays whole)."""
+    lines, cur = [], ""
+    for word in text.split(" "):
+        trial = f"{cur} {word}" if cur else word
+        if cur and d.textlength(trial, font=font) > width:
+            lines.append(cur)
+            cur = word
+        else:
+            cur = trial
+    return lines + [cur]
+
+
 def side_by_side(images: list[Image.Image], titles: list[str], path: str | None = None,
                  gap: int = 8, legend: Image.Image | None = None) -> Image.Image:
     """Heatmaps next to each other with a title above each and one legend below (default: the m legend;
@@ -217,7 +238,9 @@ def side_by_side(images: list[Image.Image], titles: list[str], path: str | None 
     if len(images) != len(titles):
         raise ValueError("one title per image")
     font = ImageFont.load_default()
-    title_h = 18
+    probe = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    wrapped = [_wrap(probe, str(t), max(im.width, 60), font) for im, t in zip(images, titles)]
+    title_h = 4 + 12 * max((len(w) for w in wrapped), default=1)
     width = sum(im.width for im in images) + gap * (len(images) + 1)
     tallest = max((im.height for im in images), default=0)
     if legend is None:
@@ -226,8 +249,9 @@ def side_by_side(images: list[Image.Image], titles: list[str], path: str | None 
     canvas = Image.new("RGB", (max(width, legend.width + 2 * gap), height), (255, 255, 255))
     d = ImageDraw.Draw(canvas)
     x = gap
-    for im, title in zip(images, titles):
-        d.text((x, 3), str(title), fill=(0, 0, 0), font=font)
+    for im, lines in zip(images, wrapped):
+        for k, line in enumerate(lines):
+            d.text((x, 3 + 12 * k), line, fill=(0, 0, 0), font=font)
         canvas.paste(im.convert("RGB"), (x, title_h))
         x += im.width + gap
     canvas.paste(legend, (gap, title_h + tallest + gap))

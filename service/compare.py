@@ -54,8 +54,9 @@ def _compare(entry, rig, resolved, methods, screen, report_dir, grid_every, solv
         if report_dir:
             images.append(ground_truth_heatmap(gt, grid_every))
             errors.append(errors_image(gt, grid_every))
-            titles.append(f"{name}: {evaluation['misclassified_pixels']} misclassified "
-                          f"({evaluation['wrongly_shadowed_pixels']} sh., {evaluation['wrongly_lit_pixels']} lit)")
+            titles.append(f"{name}: {evaluation['misclassified_pixels']} misclassified = "
+                          f"{evaluation['wrongly_shadowed_pixels']} wrongly shadowed + "
+                          f"{evaluation['wrongly_lit_pixels']} wrongly lit")
     sw, sh = gt.result["screen"]
     result = {"methods": out, "screen": [sw, sh], "rig_resolution": [int(v) for v in resolved.camera.resolution]}
     if report_dir:
@@ -76,8 +77,9 @@ def markdown_table(result: dict) -> str:
     sw, sh = result.get("screen") or ["?", "?"]
     rw, rh = result.get("rig_resolution") or ["?", "?"]
     at, rig = f"{sw}x{sh}", f"{rw}x{rh}"
+    converted = "" if at == rig else ", measured m also converted to the rig's pixels"
     lines = [f"Predicted error in the rig's {rig} pixels; measured at a {at} screen (pixel counts and measured m "
-             f"in its pixels{'' if at == rig else ', measured m also converted to the rig's pixels'}).", "",
+             f"in its pixels{converted}).", "",
              f"| method | setup (ms) | predicted objective ({rig}) | predicted p95 m ({rig}) | "
              f"measured p95 m ({at}) |" + ("" if at == rig else f" measured p95 m ({rig}) |")
              + f" misclassified ({at}) | wrongly shadowed | wrongly lit | outside | receivers |",
