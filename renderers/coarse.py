@@ -20,6 +20,7 @@ from .ray_scene import RayScene
 DEFAULT_LONG_SIDE = 180
 DEFAULT_BOUNDARY_RADIUS = 1  # coarse pixels the shadow-boundary mask is dilated by
 DEPTH_CONTINUITY = 0.05  # neighbours whose view depths differ by more than this fraction are on different surfaces
+FINE_MAX = 8  # at most this many fine rays per coarse pixel side in the edge pass (fine_points)
 SHADOW_RAY_EPSILON = 2e-5  # shadow-ray origin offset along the normal, times (1 + max |p|), in scene units
 
 
@@ -38,6 +39,20 @@ class LightBuffers:
 
 
 @dataclass
+class FinePoints:
+    """The edge pass (fine_points): hits of rays through the corners of a finer grid (`factor` per
+    coarse pixel side) over the coarse pixels next to a geometric edge (hit/miss, a view-depth
+    discontinuity) and along the screen's border. (M,) arrays over the hits only."""
+
+    factor: int
+    position: np.ndarray  # (M, 3) float64 world
+    normal: np.ndarray  # (M, 3) float32, towards the camera
+    depth: np.ndarray  # (M,) float64 view depth
+    receiver: list[np.ndarray] = field(default_factory=list)  # per light: (M,) facing & in_light
+    rays: int = 0  # rays traced (hits or not)
+
+
+@dataclass
 class CoarseBuffers:
     camera: Camera
     width: int
@@ -49,6 +64,7 @@ class CoarseBuffers:
     prim_id: np.ndarray  # (h, w) int32 index into SceneGeometry.prim_paths; -1 where no hit
     lights: list[LightBuffers] = field(default_factory=list)
     timings_ms: dict = field(default_factory=dict)
+    fine: FinePoints | None = None
 
     def save(self, out_dir) -> list[str]:
         """Write every buffer as .npy and PNG previews into out_dir. Returns the written file names."""
@@ -118,8 +134,9 @@ def _geometric_normal(mi, dr, rs: RayScene, prim, active):
     return dr.normalize(dr.cross(p[1] - p[0], p[2] - p[0]))
 
 
-def _light_test(mi, dr, rs: RayScene, light: Light, p, n, active):
-    """Returns (visible, facing, in_light) Dr.Jit masks for one light."""
+def _light_test(mi, dr, rs: RayScene, light: Light, p, n, active, shadow_rays: bool = True):
+    """Returns (visible, facing, in_light) Dr.Jit masks for one light. shadow_rays=False casts no
+    shadow ray: `visible` is then `facing` (the receivers alone, renderers.coverage)."""
     if isinstance(light, DirectionalLight):
         to_light = _opaque3(mi, dr, mi.Vector3f, (-light.direction))
         dist = mi.Float(dr.inf)
@@ -143,7 +160,7 @@ def _light_test(mi, dr, rs: RayScene, light: Light, p, n, active):
     ray = mi.Ray3f(o, to_light, dist * (1.0 - 1e-5))
     # Only surfaces facing the light cast a shadow ray: one facing away is in its own shadow (its
     # shadow ray would cross its own surface), which saves about half the rays of a typical view.
-    occluded = rs.scene.ray_test(ray, active & facing)
+    occluded = rs.scene.ray_test(ray, active & facing) if shadow_rays else mi.Bool(False)
     return active & facing & ~occluded, active & facing, active & in_light
 
 
@@ -184,8 +201,9 @@ def boundary_mask(lit: np.ndarray, hit: np.ndarray, depth: np.ndarray, radius: i
 
 
 def render_coarse(rs: RayScene, camera: Camera, lights: list[Light], long_side: int = DEFAULT_LONG_SIDE,
-                  boundary_radius: int = DEFAULT_BOUNDARY_RADIUS) -> CoarseBuffers:
-    """Cast one camera ray per coarse pixel and one shadow ray per hit and light."""
+                  boundary_radius: int = DEFAULT_BOUNDARY_RADIUS, fine_pass: bool = True) -> CoarseBuffers:
+    """Cast one camera ray per coarse pixel and one shadow ray per hit and light, then the edge pass
+    (fine_points: finer camera rays where the coarse pass saw geometric edges and along the border)."""
     mi = mitsuba()
     import drjit as dr
 
@@ -222,5 +240,84 @@ def render_coarse(rs: RayScene, camera: Camera, lights: list[Light], long_side: 
         light_bufs.append(LightBuffers(vis_np, fac_np, inl_np,
                                        boundary_mask(lit, hit_np, depth_np, boundary_radius)))
     t2 = time.perf_counter()
+    fine = fine_points(rs, camera, lights, hit_np, depth_np) if fine_pass else None
+    t3 = time.perf_counter()
     return CoarseBuffers(camera, width, height, hit_np, pos, nrm, depth_np, prim_np, light_bufs,
-                         {"trace": (t1 - t0) * 1e3, "convert": (t2 - t1) * 1e3, "total": (t2 - t0) * 1e3})
+                         {"trace": (t1 - t0) * 1e3, "convert": (t2 - t1) * 1e3, "fine": (t3 - t2) * 1e3,
+                          "total": (t3 - t0) * 1e3}, fine)
+
+
+def edge_cells(hit: np.ndarray, depth: np.ndarray, continuity: float = DEPTH_CONTINUITY) -> np.ndarray:
+    """(h, w) bool: coarse pixels whose 8-neighbourhood holds a geometric edge (one is a hit and the
+    other not, or their view depths differ by more than `continuity` of the nearer), both pixels of
+    each such pair, and every pixel on the screen's border (full-resolution pixels there lie up to
+    half a coarse pixel beyond the outermost coarse ray)."""
+    h, w = hit.shape
+    d = np.where(hit, depth, np.float32(3e38)).astype(np.float64)
+    out = np.zeros((h, w), dtype=bool)
+    # neighbour pairs (a, b): right, down, down-right, down-left
+    pairs = (((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+             ((slice(None, -1), slice(None)), (slice(1, None), slice(None))),
+             ((slice(None, -1), slice(None, -1)), (slice(1, None), slice(1, None))),
+             ((slice(None, -1), slice(1, None)), (slice(1, None), slice(None, -1))))
+    for a, b in pairs:
+        jump = (hit[a] != hit[b]) | (hit[a] & hit[b] & (np.abs(d[a] - d[b]) > continuity * np.minimum(d[a], d[b])))
+        out[a] |= jump
+        out[b] |= jump
+    out[0, :] = out[-1, :] = True
+    out[:, 0] = out[:, -1] = True
+    return out
+
+
+def fine_factor(camera: Camera, width: int) -> int:
+    """Fine rays per coarse pixel side: the full resolution's pixels per coarse pixel, 2..FINE_MAX."""
+    return int(min(FINE_MAX, max(2, np.ceil(max(camera.resolution) / max(width, 1)))))
+
+
+def fine_points(rs: RayScene, camera: Camera, lights: list[Light], hit: np.ndarray, depth: np.ndarray,
+                factor: int | None = None) -> FinePoints:
+    """The edge pass: one ray through every corner of a `factor`-times finer grid over the coarse
+    pixels of `edge_cells` (corners shared by neighbouring cells traced once; the screen's border is
+    a corner line, so the outermost full-resolution pixels are bracketed), hit point, geometric normal
+    and, per light, the receiver test (facing and in the cone: coarse._light_test without shadow rays).
+    Vectorized: one Dr.Jit launch, the ray count padded to a power of two (few kernel sizes)."""
+    mi = mitsuba()
+    import drjit as dr
+
+    h, w = hit.shape
+    f = fine_factor(camera, w) if factor is None else int(factor)
+    rows, cols = np.nonzero(edge_cells(hit, depth))
+    grid = np.zeros((f * h + 1, f * w + 1), dtype=bool)
+    a = np.arange(f + 1)
+    grid[(f * rows[:, None, None] + a[None, :, None]), (f * cols[:, None, None] + a[None, None, :])] = True
+    vj, vi = np.nonzero(grid)
+    n = len(vj)
+    if n == 0:
+        return FinePoints(f, np.zeros((0, 3)), np.zeros((0, 3), np.float32), np.zeros(0), [np.zeros(0, bool)] * len(lights))
+    size = 1 << int(np.ceil(np.log2(max(n, 1024))))
+    u = np.resize(vi / f, size)  # coarse-pixel units, 0 .. w (the grid's corners)
+    v = np.resize(vj / f, size)
+    th = camera.tan_half_fov_y
+    tw = th * camera.aspect
+    x = (u * (2.0 / w) - 1.0) * tw  # the convention of Camera.ray_directions at pixel corners
+    y = (1.0 - v * (2.0 / h)) * th
+    dirs = camera.forward + x[:, None] * camera.right + y[:, None] * camera.up
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    o = _opaque3(mi, dr, mi.Point3f, camera.position - rs.origin)
+    fwd = _opaque3(mi, dr, mi.Vector3f, camera.forward)
+    d = mi.Vector3f(*(mi.Float(np.ascontiguousarray(dirs[:, k], dtype=np.float32)) for k in range(3)))
+    ray = mi.Ray3f(o, d)
+    pi = rs.scene.ray_intersect_preliminary(ray, coherent=False)
+    ok = _clipped_hits(mi, dr, pi, ray, fwd, camera)
+    t = dr.select(ok, pi.t, 0.0)
+    p = ray.o + t * ray.d
+    nrm = _geometric_normal(mi, dr, rs, pi.prim_index, ok)
+    nrm = dr.select(dr.dot(nrm, ray.d) > 0, -nrm, nrm)
+    tests = [_light_test(mi, dr, rs, light, p, nrm, ok, shadow_rays=False) for light in lights]
+    dr.eval(ok, p, nrm, *[m for ms in tests for m in ms[1:]])
+    keep = np.array(ok, dtype=bool)[:n]
+    pos = _vec_to_numpy(p, np.float64)[:n][keep] + rs.origin
+    nn = _vec_to_numpy(nrm, np.float32)[:n][keep]
+    dep = (pos - camera.position) @ camera.forward
+    rec = [(np.array(fac, dtype=bool)[:n] & np.array(inl, dtype=bool)[:n])[keep] for _, fac, inl in tests]
+    return FinePoints(f, pos, nn, dep, rec, n)
