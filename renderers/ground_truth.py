@@ -147,8 +147,9 @@ def _host_geometry(rs: RayScene):
     return cached
 
 
-def render_screen(rs: RayScene, camera: Camera, light: Light) -> ScreenBuffers:
-    """Full-resolution camera pass at camera.resolution (the coarse pass's helpers at full size)."""
+def render_screen(rs: RayScene, camera: Camera, light: Light, shadow_rays: bool = True) -> ScreenBuffers:
+    """Full-resolution camera pass at camera.resolution (the coarse pass's helpers at full size).
+    shadow_rays=False: primary rays only, `visible` is not traced (renderers.coverage)."""
     mi = mitsuba()
     import drjit as dr
 
@@ -160,7 +161,7 @@ def render_screen(rs: RayScene, camera: Camera, light: Light) -> ScreenBuffers:
     p = ray.o + t * ray.d
     n = _geometric_normal(mi, dr, rs, pi.prim_index, hit)
     n = dr.select(dr.dot(n, ray.d) > 0, -n, n)
-    vis, fac, inl = _light_test(mi, dr, rs, light, p, n, hit)
+    vis, fac, inl = _light_test(mi, dr, rs, light, p, n, hit, shadow_rays)
     tri = pi.prim_index
     dr.eval(hit, tri, vis, fac, inl)
     shape = (height, width)
