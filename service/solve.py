@@ -41,50 +41,60 @@ class LightProblem:
     sample_rows: np.ndarray | None = None  # per sample, the index of the receiver at its pixel
 
 
-EDGE_REACH = 1.5  # coarse pixels: a full-resolution hit next to coarse misses can be up to ~1.4 coarse pixels (diagonally) from the nearest coarse hit
+EDGE_REACH = 1.5  # coarse pixels: a full-resolution receiver next to a coarse non-receiver can be up to ~1.4 coarse pixels (diagonally) from the nearest coarse receiver
+REACH_DEPTH_FACTOR = 2.0  # an extrapolated receiver stays within this factor of its coarse hit's distance
 
 
-def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds) -> np.ndarray:
-    """Visible receivers, plus, for those on the mask's edge, where the rays through points
-    EDGE_REACH coarse pixels away meet their surface plane (exact for planes; a ray past the horizon
-    stops at the camera's far plane or where it leaves the scene's bounds). Maps fit to these points also
-    cover the full-resolution pixels between and around the coarse samples."""
+def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds=None,
+                    fine_receivers: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The receivers the camera sees, (points, view-depth slack): the coarse hits in `mask` (first, in
+    row-major order: sample_rows), the edge pass's hits that are receivers (`buffers.fine`,
+    renderers.coarse.fine_points, where `fine_receivers` is True: rays through a finer grid over the
+    coarse pixels next to a geometric edge and along the screen's border, so slivers and silhouettes a
+    coarse ray missed are real hit points), and, for the mask's edge pixels the edge pass did not
+    refine (the receiver region ends on a continuous surface: facing or cone changes), where the rays
+    EDGE_REACH coarse pixels away meet the pixel's tangent plane, kept within REACH_DEPTH_FACTOR of the
+    hit's distance (the pixel's footprint at its own depth where the plane is grazing or behind).
+    Never the far plane or the scene's bounds (`bounds` is unused, kept for callers). Without an edge
+    pass (buffers.fine None) every mask edge pixel is extrapolated."""
     pts = buffers.position[mask]
     slack = depth_slack(buffers.depth, mask)[mask]
     if not mask.any():
         return pts, slack
     padded = np.pad(mask, 1)
     interior = padded[:-2, 1:-1] & padded[2:, 1:-1] & padded[1:-1, :-2] & padded[1:-1, 2:]
-    rows, cols = np.nonzero(mask & ~interior)
-    p = buffers.position[rows, cols]
-    n = buffers.normal[rows, cols].astype(np.float64)
-    th = camera.tan_half_fov_y
-    tw = th * camera.aspect
-    extra = []
-    for a in (-EDGE_REACH, EDGE_REACH):
-        for b in (-EDGE_REACH, EDGE_REACH):
-            x = ((cols + 0.5 + a) * (2.0 / buffers.width) - 1.0) * tw
-            y = (1.0 - (rows + 0.5 + b) * (2.0 / buffers.height)) * th
-            d = camera.forward + x[:, None] * camera.right + y[:, None] * camera.up
-            d /= np.linalg.norm(d, axis=1, keepdims=True)
-            nd = np.sum(n * d, axis=1)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                s = np.sum(n * (p - camera.position), axis=1) / nd
-            s_far = camera.far / np.maximum(d @ camera.forward, 1e-6)  # where the ray meets the far plane
-            s = np.where(np.isfinite(s) & (s > 0), np.minimum(s, s_far), s_far)
-            s = np.minimum(s, _box_exit(camera.position, d, bounds))
-            extra.append(camera.position + s[:, None] * d)
-    return np.vstack([pts] + extra), np.concatenate([slack] + [np.zeros(len(p))] * len(extra))
+    edge = mask & ~interior
+    parts, slacks = [pts], [slack]
+    fine = getattr(buffers, "fine", None)
+    if fine is not None:
+        from ..renderers.coarse import edge_cells
 
-
-def _box_exit(origin: np.ndarray, d: np.ndarray, bounds) -> np.ndarray:
-    """Distance along each ray (origin + s d) to where it leaves the box (inf if the origin is outside)."""
-    lo, hi = np.asarray(bounds[0], float), np.asarray(bounds[1], float)
-    if np.any(origin < lo) or np.any(origin > hi):
-        return np.full(len(d), np.inf)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(d > 0, (hi - origin) / d, np.where(d < 0, (lo - origin) / d, np.inf))
-    return np.min(t, axis=1)
+        edge &= ~edge_cells(buffers.hit, buffers.depth)
+        if fine_receivers is not None and fine_receivers.any():
+            parts.append(fine.position[fine_receivers])
+            slacks.append(np.zeros(int(fine_receivers.sum())))
+    rows, cols = np.nonzero(edge)
+    if len(rows):
+        p = buffers.position[rows, cols]
+        n = buffers.normal[rows, cols].astype(np.float64)
+        dist = np.linalg.norm(p - camera.position, axis=1)
+        th = camera.tan_half_fov_y
+        tw = th * camera.aspect
+        a = np.array([-EDGE_REACH, -EDGE_REACH, EDGE_REACH, EDGE_REACH])
+        b = np.array([-EDGE_REACH, EDGE_REACH, -EDGE_REACH, EDGE_REACH])
+        x = ((cols[:, None] + 0.5 + a) * (2.0 / buffers.width) - 1.0) * tw  # (E, 4)
+        y = (1.0 - (rows[:, None] + 0.5 + b) * (2.0 / buffers.height)) * th
+        d = camera.forward + x[..., None] * camera.right + y[..., None] * camera.up
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        nd = np.sum(n[:, None] * d, axis=-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = np.sum(n * (p - camera.position), axis=1)[:, None] / nd  # ray-plane distance
+        ok = np.isfinite(s) & (s > 0)
+        s = np.where(ok, np.clip(s, dist[:, None] / REACH_DEPTH_FACTOR, dist[:, None] * REACH_DEPTH_FACTOR),
+                     dist[:, None])
+        parts.append((camera.position + s[..., None] * d).reshape(-1, 3))
+        slacks.append(np.zeros(4 * len(rows)))
+    return np.vstack(parts), np.concatenate(slacks)
 
 
 def depth_slack(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -101,11 +111,13 @@ def depth_slack(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 def light_problems(resolved: ResolvedRig, buffers: CoarseBuffers, bounds) -> list[LightProblem]:
     out = []
-    for light, lb in zip(resolved.lights, buffers.lights):
+    fine = getattr(buffers, "fine", None)
+    for li, (light, lb) in enumerate(zip(resolved.lights, buffers.lights)):
         samples = select_samples(resolved.camera, light, buffers.position, buffers.normal, buffers.hit,
                                  lb.facing, lb.boundary, lb.in_light)
         mask = buffers.hit & lb.facing & lb.in_light
-        recv, slack = receiver_points(resolved.camera, buffers, mask, bounds)
+        recv, slack = receiver_points(resolved.camera, buffers, mask, bounds,
+                                      fine.receiver[li] if fine is not None else None)
         out.append(LightProblem(light, samples, recv, slack, sample_rows(samples, mask)))
     return out
 
