@@ -1,4 +1,4 @@
-"""Cascade (z-partition) splits and resolution allocation."""
+"""Cascade (z-partition) splits and resolution allocation (worst case: Lloyd et al. 2007 eq. 83; mean h: allocate_mean)."""
 from __future__ import annotations
 
 import math
@@ -73,8 +73,16 @@ def allocate(R_s: np.ndarray, R_t: np.ndarray, budget: int) -> list[tuple[int, i
     R_t = np.maximum(np.nan_to_num(np.asarray(R_t, dtype=np.float64), nan=1.0, posinf=1e12), 1e-12)
     budget = max(int(budget), MIN_RES * MIN_RES * len(R_s))
     S = R_s * R_t
-    area = S / S.sum() * budget
-    aspect = R_s / R_t
+    return _sides(S / S.sum() * budget, R_s / R_t, budget)
+
+
+def _sides(area: np.ndarray, aspect: np.ndarray, budget: int) -> list[tuple[int, int]]:
+    """(width, height) per map with width / height = aspect and width * height = area, each side kept
+    in [MIN_RES, MAX_RES] (the other side then takes the map's area); when the MIN_RES floor makes the
+    maps exceed `budget`, the areas of the unfloored maps shrink until the total is within it. Sides
+    are rounded down."""
+    area = np.asarray(area, dtype=np.float64).copy()
+    aspect = np.asarray(aspect, dtype=np.float64)
 
     def dims(a):
         w = np.clip(np.sqrt(aspect * a), MIN_RES, MAX_RES)
@@ -95,3 +103,77 @@ def allocate(R_s: np.ndarray, R_t: np.ndarray, budget: int) -> list[tuple[int, i
         area[free] *= max(1.0 - excess / float(np.sum(area[free])), 0.0) * (1 - 1e-6)
         area = np.maximum(area, MIN_RES * MIN_RES)
     return [(int(a), int(b)) for a, b in zip(w, h)]
+
+
+def allocate_mean(P, Q, budget: int, unsampled=None) -> list[tuple[int, int]]:
+    """Resolutions (w_k, h_k) minimising the mean-h objective sum_k (P_k / w_k^2 + Q_k / h_k^2) under
+    sum_k w_k h_k <= T: the L1 counterpart of Lloyd et al. 2007 eq. 83 (which bounds the worst case).
+
+    Why this form: with J = diag(w, h) G (texels per pixel, G the map's matrix at resolution 1),
+    h_i = ||J_i^-1||_F^2 = p_i / w^2 + q_i / h^2 (p_i, q_i the squared lengths of the footprint's
+    columns at resolution 1; Chong & Gortler 2007 eqs. 6, 9), so a cascade's share of the weighted
+    mean is P_k / w^2 + Q_k / h^2 with P_k = sum_i w_i p_i / sum_all w (its samples). For a map of
+    area A, minimising over w/h (Lagrange on w h = A) gives w/h = sqrt(P/Q) and the value C_k / A,
+    C_k = 2 sqrt(P_k Q_k). Minimising sum_k C_k / A_k under sum_k A_k = T' (Lagrange: C_k / A_k^2
+    equal) gives A_k = T' sqrt(C_k) / S, S = sum_j sqrt(C_j), and the value S^2 / T'.
+
+    unsampled: per map, True for a cascade no sample reaches (the objective says nothing about it);
+    its P, Q are then the mean over its receivers (mean h = c_f / A, c_f = 2 sqrt(P Q)) and it gets
+    the area at which that mean equals the objective of the others: c_f / A_f = S^2 / T', so
+    T' = T S^2 / (S^2 + sum_f c_f) and A_f = c_f T / (S^2 + sum_f c_f) (no sampled map: A_f ∝ c_f).
+    The value of the whole (objective_mean) is then (S^2 + sum_f c_f) / T."""
+    return _sides(*_mean_areas(P, Q, budget, unsampled), max(int(budget), MIN_RES * MIN_RES * len(P)))
+
+
+def _mean_areas(P, Q, budget, unsampled=None):
+    P = np.maximum(np.nan_to_num(np.asarray(P, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
+    Q = np.maximum(np.nan_to_num(np.asarray(Q, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
+    n = len(P)
+    budget = max(int(budget), MIN_RES * MIN_RES * n)
+    free = np.zeros(n, bool) if unsampled is None else np.asarray(unsampled, bool)
+    C = 2.0 * np.sqrt(P * Q)
+    S = float(np.sum(np.sqrt(C[~free])))
+    den = S * S + float(np.sum(C[free]))
+    if den > 0:
+        area = np.where(free, C * budget / den, np.sqrt(C) * S * budget / den)
+    else:
+        area = np.full(n, budget / n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        aspect = np.where((P > 0) & (Q > 0), np.sqrt(P / Q), 1.0)
+    return area, aspect
+
+
+def objective_mean(P, Q, budget: int, unsampled=None) -> float:
+    """The value allocate_mean's areas reach before rounding: (S^2 + sum_f c_f) / T (see there)."""
+    P = np.maximum(np.nan_to_num(np.asarray(P, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
+    Q = np.maximum(np.nan_to_num(np.asarray(Q, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
+    free = np.zeros(len(P), bool) if unsampled is None else np.asarray(unsampled, bool)
+    C = 2.0 * np.sqrt(P * Q)
+    S = float(np.sum(np.sqrt(C[~free])))
+    return (S * S + float(np.sum(C[free]))) / float(budget)
+
+
+def mean_terms(smap, samples, origin=None) -> tuple[float, float]:
+    """(P, Q) of allocate_mean for one map over its samples: sum_i w_i p_i and sum_i w_i q_i, where
+    h_i = p_i / width^2 + q_i / height^2 (from the metric at two resolutions: h(1, 1) = p + q,
+    h(2, 1) = p / 4 + q). Weights as the samples carry them (divide by the light's total weight
+    for the objective's share)."""
+    import copy
+
+    from .metric import device_samples, per_sample
+
+    if len(samples) == 0:
+        return 0.0, 0.0
+    ds = device_samples(samples, origin)
+    one = copy.copy(smap)
+    one.resolution = (1, 1)
+    h11, _, ok1 = per_sample(one, ds)
+    one.resolution = (2, 1)
+    h21, _, ok2 = per_sample(one, ds)
+    ok = ok1 & ok2 & np.isfinite(h11) & np.isfinite(h21)
+    if not ok.all():
+        return math.inf, math.inf
+    p = np.maximum(4.0 / 3.0 * (h11 - h21), 0.0)
+    q = np.maximum(h11 - p, 0.0)
+    w = np.asarray(samples.weight, dtype=np.float64)
+    return float(np.sum(w * p)), float(np.sum(w * q))

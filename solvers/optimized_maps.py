@@ -4,13 +4,14 @@ runs the baselines, the split search, the starts and the choice per cascade, and
 """
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
 
 from .baselines import _with_bias, fit_baseline, texel_extents
 from .cameras import Camera
-from .cascades import pixel_world_size
+from .cascades import allocate_mean, mean_terms, pixel_world_size
 from .lights import DirectionalLight
 from .metric import serial_kernels
 from .optimize import DEFAULT_METHOD, METHODS, Problem, minimize, optimizable, single_map_spot
@@ -50,6 +51,47 @@ def receiver_h(smap, pts: np.ndarray, camera: Camera, light) -> float:
     pix = pixel_world_size(camera, pts)
     h = ((per_s / smap.resolution[0]) ** 2 + (per_t / smap.resolution[1]) ** 2) / pix ** 2
     return float(np.mean(h)) if np.isfinite(h).all() else float("inf")
+
+
+def receiver_terms(smap, pts: np.ndarray, camera: Camera, light) -> tuple[float, float]:
+    """(P, Q) of receiver_h: its mean h is P / width^2 + Q / height^2 (means over the receivers of
+    (metres per unit s / pixel size)^2 and likewise t)."""
+    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+    if not len(pts):
+        return 0.0, 0.0
+    if len(pts) > RECEIVER_SCORE_POINTS:
+        pts = pts[np.random.default_rng(0).choice(len(pts), RECEIVER_SCORE_POINTS, replace=False)]
+    per_s, per_t = texel_extents(smap, pts, light)
+    pix = pixel_world_size(camera, pts)
+    p, q = (per_s / pix) ** 2, (per_t / pix) ** 2
+    if not (np.isfinite(p).all() and np.isfinite(q).all()):
+        return math.inf, math.inf
+    return float(np.mean(p)), float(np.mean(q))
+
+
+def cascade_terms(maps, subs, parts, camera, light, total_weight: float):
+    """Per cascade, (P, Q, unsampled) for solvers.cascades.allocate_mean: from its samples (weights
+    over the light's total) or, for a cascade no sample reaches, from its receivers."""
+    P, Q, free = [], [], []
+    for smap, sub, pts in zip(maps, subs, parts):
+        if len(sub):
+            p, q = mean_terms(smap, sub, camera.position)
+            p, q = p / total_weight, q / total_weight
+        else:
+            p, q = receiver_terms(smap, pts, camera, light)
+        P.append(p), Q.append(q), free.append(not len(sub))
+    return P, Q, free
+
+
+def _reallocate(maps, subs, parts, camera, light, budget, total_weight, also=None) -> None:
+    """Set each cascade's resolution to allocate_mean's for `maps`, and the same on the maps in also[k]."""
+    P, Q, free = cascade_terms(maps, subs, parts, camera, light, total_weight)
+    if not all(math.isfinite(v) for v in P + Q):
+        return  # a sample or receiver outside a map: keep the allocation it was scored at
+    for k, r in enumerate(allocate_mean(P, Q, budget, free)):
+        for m in [maps[k]] + (also[k] if also else []):
+            if m.face is None:
+                m.resolution = r
 
 
 @serial_kernels()
@@ -110,11 +152,28 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
                      "x": [None] * len(ref), "cascades": []}
     depth = (receivers - camera.position) @ camera.forward if len(receivers) else np.zeros(0)
     slack = np.zeros(len(receivers)) if receiver_slack is None else np.asarray(receiver_slack, float)
-    out_maps, info = [], []
+    out_maps, info, kept = [], [], []
+    by_mean = bool(texel_budget) and isinstance(light, DirectionalLight) and len(ref) > 1
+    subs = []
+    total_w = max(float(np.sum(samples.weight)), 1e-300)
+    for rmap in ref:
+        sel_s = (samples.view_depth >= rmap.split[0]) & (samples.view_depth <= rmap.split[1])
+        subs.append((sel_s, samples if sel_s.all() else samples.subset(sel_s)))
+    if by_mean:
+        # The budget shared for the mean h the service minimises (cascades.allocate_mean), from each
+        # cascade's best baseline at focused's eq. 83 allocation, before the search: the optimizer
+        # then searches at the resolution the cascade will have. Cascades no sample reaches keep eq. 83's area.
+        firsts = []
+        for k, (sel_s, sub) in enumerate(subs):
+            pts = bias_points["focused"][k]
+            sc = ({m: predicted_objective([maps[k]], sub, camera.position) for m, maps in per_method.items()} if len(sub)
+                  else {m: receiver_h(maps[k], pts, camera, light) for m, maps in per_method.items()})
+            firsts.append(per_method[min(sc, key=sc.get)][k])
+        _reallocate(firsts, [sub for _, sub in subs], bias_points["focused"], camera, light, texel_budget, total_w,
+                    [[maps[k] for maps in per_method.values()] + [ref[k]] for k in range(len(ref))])
     for k, rmap in enumerate(ref):
         lo, hi = rmap.split
-        sel_s = (samples.view_depth >= lo) & (samples.view_depth <= hi)
-        sub = samples if sel_s.all() else samples.subset(sel_s)
+        sel_s, sub = subs[k]
         sel_r = np.ones(len(receivers), bool)
         if isinstance(light, DirectionalLight) and len(receivers) > 0:
             sel_r = (depth + slack >= (lo if k else -np.inf)) & (depth - slack <= (hi if k < len(ref) - 1 else np.inf))
@@ -175,13 +234,19 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
         best_map.split = rmap.split
         if best_name == "optimized":
             best_map.resolution = rmap.resolution
-            _with_bias(best_map, part_r, light)
-        else:
-            _with_bias(best_map, bias_points[best_name][k], light)
+        kept.append(part_r if best_name == "optimized" else bias_points[best_name][k])
         entry["chosen"] = best_name
         entry["objective"] = float(best_f)
         out_maps.append(best_map)
         info.append(entry)
+    if by_mean:  # the final maps' own allocation (exact for their matrices: h = p / w^2 + q / h^2)
+        _reallocate(out_maps, [sub for _, sub in subs], kept, camera, light, texel_budget, total_w)
+        for m, e, (_, sub) in zip(out_maps, info, subs):
+            e["resolution"] = list(m.resolution)
+            if len(sub):
+                e["objective"] = float(predicted_objective([m], sub, camera.position))
+    for m, pts in zip(out_maps, kept):
+        _with_bias(m, pts, light)
     results = [e.get("result", {}) for e in info]
     solver_json = {"name": solver, "time_ms": round((time.perf_counter() - t0) * 1e3, 3),
                    "nit": int(sum(r.get("nit", 0) for r in results)), "nfev": int(sum(r.get("nfev", 0) for r in results)),

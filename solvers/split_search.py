@@ -3,7 +3,10 @@
 The objective is the one the solution predicts (solvers.metric: the weighted mean of Chong &
 Gortler's h over the light's samples, each sample scored on the cascade serving its view depth),
 evaluated on a cheap per-cascade map (LiSPSM, or the method given) so that a split candidate costs
-one fit and one metric pass per cascade. The objective is piecewise (a sample jumps cascade when a
+one fit and one metric pass per cascade. With a texel budget the candidate is scored at the
+allocation the returned maps get (solvers.cascades.allocate_mean, the closed-form optimum
+(S^2 + sum_f c_f) / T of objective_mean, which also charges cascades no sample reaches the texels
+they are given), not at LiSPSM's own eq. 83 allocation. The objective is piecewise (a sample jumps cascade when a
 split crosses it), so the search is derivative-free: NLopt's BOBYQA from the best of the uniform,
 logarithmic and practical (λ = 0.5) splits, over s_i in [0, 1] with z_i = z_n (z_f / z_n)^(s_i)
 (Lloyd et al. 2007 eq. 80's log spacing is s_i = i / k). The optimizer of each cascade's light
@@ -18,8 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .baselines import fit_baseline
-from .cascades import receiver_depth_range, split_depths
+from .cascades import objective_mean, receiver_depth_range, split_depths
 from .metric import predicted_error
+from .optimized_maps import cascade_terms
 from .samples import Samples
 
 SEARCH_RECEIVERS = 1500  # receivers kept for the search's map fits (the final maps fit all of them)
@@ -64,12 +68,23 @@ def optimize_splits(camera, light, samples: Samples, receivers: np.ndarray, cast
     def split_at(s) -> np.ndarray:
         return z_lo * (z_hi / z_lo) ** np.sort(np.clip(np.asarray(s, float), 0.0, 1.0))
 
+    total_w = max(float(np.sum(samples.weight)), 1e-300)
+
     def f(s) -> float:
         nonlocal nfev
         nfev += 1
-        maps = fit_baseline(method, camera, light, rec, casters_bounds, resolution, cascades=k, texel_budget=texel_budget,
-                            allow_log=False, receiver_slack=slack, split_at=split_at(s)).maps  # no bias: not scored
-        v = predicted_error(maps, samples, camera.position)["objective"]
+        fitted = fit_baseline(method, camera, light, rec, casters_bounds, resolution, cascades=k,
+                              allow_log=False, receiver_slack=slack, split_at=split_at(s))  # no bias: not scored
+        if not texel_budget:
+            v = predicted_error(fitted.maps, samples, camera.position)["objective"]
+            return v if math.isfinite(v) else 1e300
+        # the allocation the returned maps get (solvers.optimized_maps: allocate_mean), in closed form
+        subs = []
+        for m in fitted.maps:
+            sel = (samples.view_depth >= m.split[0]) & (samples.view_depth <= m.split[1])
+            subs.append(samples.subset(sel))
+        P, Q, free = cascade_terms(fitted.maps, subs, fitted.parts, camera, light, total_w)
+        v = objective_mean(P, Q, texel_budget, free)
         return v if math.isfinite(v) else 1e300
 
     if k < 2 or len(samples) == 0 or z_hi <= z_lo * (1 + 1e-9):
