@@ -12,6 +12,9 @@ import sys
 import time
 from pathlib import Path
 
+from . import quality_report
+from .quality_report import spearman  # noqa: F401  (bench_trust and the corpus tables use it)
+
 ROOT = Path(__file__).resolve().parents[1]
 BENCH_FILE = ROOT / "BENCHMARKS.md"
 
@@ -169,29 +172,47 @@ def quality_configs(spec: dict, parts=("single", "cascades")) -> dict:
     return configs
 
 
-def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict, bar=None) -> dict:
+def _coverage():
+    """renderers.coverage.outside_pixels (the full-resolution outside-pixel count without shadow
+    rays), or None where that module is absent."""
+    try:
+        from ..renderers.coverage import outside_pixels
+    except ImportError:
+        return None
+    return outside_pixels
+
+
+def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict, bar=None, hd: dict | None = None) -> dict:
     """One scene and camera under Chong & Gortler 2007 §3's protocol: for every light direction and
     every configuration, the solution (`solve`) scored against exact ray-traced visibility
     (`evaluate_buffers` at the rig's resolution `screen`). Per part and configuration, one entry per
     direction: misclassified, outside and boundary pixels, setup time (ms, coarse pass excluded),
-    the predicted objective, and the wall time of the run (solve and evaluation, s). `dirs`: one array for every part, or {part: array}."""
+    the predicted objective with its texel limit and ratio to it (None where the solution has none),
+    and the wall time of the run (solve and evaluation, s). `dirs`: one array for every part, or {part: array}.
+
+    `hd` = {"screen": [W, H], "lights": k}: for the first k directions, the same configuration solved
+    again for a rig of that resolution and its receivers left outside every map counted at full
+    resolution by renderers.coverage.outside_pixels (no shadow rays): `outside_hd`, `receivers_hd`,
+    `setup_ms_hd`. Skipped when renderers.coverage is absent."""
     from ..renderers.ground_truth import evaluate_buffers
     from ..service.rigs import resolve_rig
     from ..service.solve import maps_from_solution, solve
 
-    keys = ("misclassified", "outside", "boundary", "receivers", "setup_ms", "objective", "run_s")
+    keys = ("misclassified", "outside", "boundary", "receivers", "setup_ms", "objective", "limit", "ratio_to_limit", "run_s")
+    outside_pixels = _coverage() if hd and hd.get("lights") else None
+    if outside_pixels is not None:
+        keys += ("outside_hd", "receivers_hd", "setup_ms_hd")
     rec = {k: {part: {name: [] for name in c} for part, c in configs.items()} for k in keys}
     per_part = dirs if isinstance(dirs, dict) else {part: dirs for part in configs}
     for i in range(max(len(v) for v in per_part.values())):
-        resolved = {}  # camera and light do not depend on the shadow settings: resolved once per direction
+        resolved, resolved_hd = {}, {}  # camera and light do not depend on the shadow settings: resolved once per direction
         for part, cfgs in configs.items():
             if i >= len(per_part[part]):
                 continue
             d = per_part[part][i]
             for name, c in cfgs.items():
-                rig = validate_rig({"camera": {**camera, "resolution": list(screen)},
-                                    "lights": [{"type": "directional", "direction": [float(v) for v in d]}],
-                                    "shadow": c["shadow"]})
+                light = [{"type": "directional", "direction": [float(v) for v in d]}]
+                rig = validate_rig({"camera": {**camera, "resolution": list(screen)}, "lights": light, "shadow": c["shadow"]})
                 key = tuple(rig["lights"][0]["direction"])
                 if key not in resolved:
                     resolved[key] = resolve_rig(rig, entry.loaded)
@@ -200,11 +221,23 @@ def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict
                 sol = solve(entry, rig, method=c["method"])
                 gt = evaluate_buffers(entry.rays, r.camera, r.lights[0], maps_from_solution(sol)[0]).result
                 rec["run_s"][part][name].append(time.perf_counter() - t0)
+                pe = sol["lights"][0]["predicted_error"]
                 for k, v in (("misclassified", gt["misclassified_pixels"]), ("outside", gt["outside_pixels"]),
                              ("boundary", gt["boundary_pixels"]), ("receivers", gt["receiver_pixels"]),
-                             ("setup_ms", sol["timings_ms"]["optimize"]),
-                             ("objective", sol["lights"][0]["predicted_error"]["objective"])):
+                             ("setup_ms", sol["timings_ms"]["optimize"]), ("objective", pe["objective"]),
+                             ("limit", pe.get("limit")), ("ratio_to_limit", pe.get("ratio_to_limit"))):
                     rec[k][part][name].append(v)
+                if outside_pixels is not None and i < hd["lights"]:
+                    rig_hd = validate_rig({"camera": {**camera, "resolution": list(hd["screen"])}, "lights": light,
+                                           "shadow": c["shadow"]})
+                    if key not in resolved_hd:
+                        resolved_hd[key] = resolve_rig(rig_hd, entry.loaded)
+                    rh = resolved_hd[key]
+                    sol_hd = solve(entry, rig_hd, method=c["method"])
+                    cov = outside_pixels(entry.rays, rh.camera, rh.lights[0], maps_from_solution(sol_hd)[0])
+                    rec["outside_hd"][part][name].append(int(cov["outside_pixels"]))
+                    rec["receivers_hd"][part][name].append(int(cov["receiver_pixels"]))
+                    rec["setup_ms_hd"][part][name].append(sol_hd["timings_ms"]["optimize"])
                 if bar is not None:
                     bar.update(1)
     return rec
@@ -296,9 +329,20 @@ def _scene_stats(rec: dict, dirs, spec: dict) -> dict:
              "outside_max": {m: int(np.max(v)) for m, v in rec["outside"][part].items()},
              "setup_ms_p50": {m: float(statistics.median(v)) for m, v in rec["setup_ms"][part].items()},
              "run_s_p50": {m: float(statistics.median(v)) for m, v in rec["run_s"][part].items()}}
-        pred = np.concatenate([rec["objective"][part][m] for m in mis])
+        pred = np.concatenate([np.asarray(rec["objective"][part][m], float) for m in mis])
         meas = np.concatenate([mis[m] for m in mis])
         p["spearman_pooled"] = spearman(pred, meas) if len(pred) > 2 else float("nan")
+        p["calibration"] = quality_report.calibration(pred, meas)
+        p["ratio_to_limit"] = quality_report.ratio_to_limit(rec, part)
+        hd = rec.get("outside_hd", {}).get(part)
+        if hd and all(len(v) for v in hd.values()):
+            p["outside_hd"] = {m: int(np.sum(v)) for m, v in hd.items()}
+            p["outside_hd_max"] = {m: int(np.max(v)) for m, v in hd.items()}
+            p["hd_suns"] = len(next(iter(hd.values())))
+            p["setup_ms_hd_p50"] = {m: float(statistics.median(v)) for m, v in rec["setup_ms_hd"][part].items()}
+        else:
+            p["outside_hd"] = p["outside_hd_max"] = p["setup_ms_hd_p50"] = None
+            p["hd_suns"] = 0
         per_sun = [spearman([rec["objective"][part][m][i] for m in mis], [mis[m][i] for m in mis]) for i in range(p["suns"])]
         p["spearman_within_sun_mean"] = float(np.nanmean(per_sun)) if np.isfinite(per_sun).any() else float("nan")
         out[part] = p
@@ -333,6 +377,8 @@ def _verdicts(s: dict, t: dict) -> dict:
     """True/False per target of issue 10 (None when the part was not run)."""
     v = {}
     v["outside_0"] = all(n == 0 for p in ("single", "cascades") if p in s for n in s[p]["outside"].values())
+    hd = [s[p]["outside_hd"] for p in ("single", "cascades") if p in s and s[p].get("outside_hd") is not None]
+    v["outside_0_hd"] = all(n == 0 for h in hd for n in h.values()) if hd else None
     one, cas = s.get("single"), s.get("cascades")
     v["one_map_vs_best"] = None if one is None else one["ratios"]["optimized/best_baseline"] <= t["one_map_vs_best_baseline"]
     v["per_sun_bound"] = None if one is None else one["suns_over_per_sun_bound"] == 0
@@ -351,8 +397,11 @@ def _mark(ok) -> str:
     return "n/a" if ok is None else ("yes" if ok else "**no**")
 
 
-def _tables_corpus(stats: dict, skipped: dict, spec: dict, corpus_ratio, corpus_ok) -> str:
+def _tables_corpus(stats: dict, skipped: dict, spec: dict, corpus_ratio, corpus_ok, calib: dict | None = None,
+                   plot_link: str | None = None, hd_screen=None) -> str:
     t = spec["targets"]
+    calib = calib or {}
+    hd_name = f"{hd_screen[0]}x{hd_screen[1]}" if hd_screen else "1920x1080"
     rows_single = [(k, s["single"]) for k, s in stats.items() if "single" in s]
     rows_cas = [(k, s["cascades"]) for k, s in stats.items() if "cascades" in s]
     lines = []
@@ -380,6 +429,11 @@ def _tables_corpus(stats: dict, skipped: dict, spec: dict, corpus_ratio, corpus_
             lines.append(f"| {k} | {stats[k]['triangles']:,} | " + " | ".join(f"{p['outside'][m]} ({p['outside_max'][m]})" for m in methods)
                          + " | " + " | ".join(f"{p['setup_ms_p50'][m]:.1f}" for m in methods)
                          + f" | {statistics.median(p['run_s_p50'].values()):.2f} |")
+        lines += ["", *_table_outside_hd(stats, "single", f"One map at {hd_name}", hd_name)]
+        lines += ["", *quality_report.table_ratio_to_limit(stats, "single", "One map")]
+        if calib.get("single"):
+            lines += ["", *quality_report.table_calibration(stats, calib["single"], "single", "One map")]
+        lines += ["", *quality_report.table_speed_error(quality_report.speed_error(stats, "single"), "One map", plot_link)]
         lines += ["", f"**One map: the worst suns** (largest excess of optimized over the best of "
                   f"{', '.join(t['baselines'])} on that sun; elevation and azimuth of the light's travel direction).", "",
                   "| scene | sun | elevation | azimuth | optimized | best baseline | boundary pixels |", "|---|---:|---:|---:|---:|---|---:|"]
@@ -400,7 +454,11 @@ def _tables_corpus(stats: dict, skipped: dict, spec: dict, corpus_ratio, corpus_
                          + " | ".join(f"{c['ratios'][f'{m}/{ref}']:.3f}" for m in names if m != ref) + " | "
                          + " | ".join(f"{c['outside'][m]}" for m in names) + " | "
                          + " | ".join(f"{c['setup_ms_p50'][m]:.1f}" for m in names) + f" | {c['spearman_pooled']:.2f} |")
-    cols = [("outside_0", "outside pixels 0"),
+        lines += ["", *_table_outside_hd(stats, "cascades", f"Four cascades at {hd_name}", hd_name)]
+        lines += ["", *quality_report.table_ratio_to_limit(stats, "cascades", "Four cascades")]
+        if calib.get("cascades"):
+            lines += ["", *quality_report.table_calibration(stats, calib["cascades"], "cascades", "Four cascades")]
+    cols = [("outside_0", "outside pixels 0"), ("outside_0_hd", f"outside 0 at {hd_name}"),
             ("one_map_vs_best", f"1 map: opt <= {t['one_map_vs_best_baseline']}x best baseline"),
             ("per_sun_bound", f"1 map: no sun > {t['per_sun_factor']}x best + {t['per_sun_pixels']}"),
             ("cascades", f"4 cascades: opt <= {t['cascades_vs_reference']}x {t['cascades_reference']}"),
@@ -414,13 +472,51 @@ def _tables_corpus(stats: dict, skipped: dict, spec: dict, corpus_ratio, corpus_
         lines.append(f"| {k} | " + " | ".join(_mark(s["verdicts"][key]) for key, _ in cols) + " |")
     if corpus_ratio is not None:
         lines.append(f"| **whole corpus** | {_mark(all(s['verdicts']['outside_0'] for s in stats.values()))} | "
+                     f"{_mark(all(s['verdicts']['outside_0_hd'] is not False for s in stats.values()))} | "
                      f"opt / best baseline pooled {corpus_ratio:.3f}: {_mark(corpus_ok)} (target <= {t['corpus_vs_best_baseline']}) | | | | | | |")
     for name, why in skipped.items():
         lines.append(f"| {name} | skipped: {why} |")
     return "\n".join(lines)
 
 
-def _corpus_fingerprint(path: Path, camera: dict, screen, configs: dict, part_dirs: dict) -> str:
+def _table_outside_hd(stats: dict, part: str, label: str, hd_name: str) -> list[str]:
+    """Outside pixels with the rig at hd_name (solved again at that resolution; renderers.coverage)."""
+    rows = [(k, s[part]) for k, s in stats.items() if part in s]
+    if not rows:
+        return []
+    methods = list(rows[0][1]["totals"])
+    lines = [f"**{label}: outside pixels** (the same configurations solved for a {hd_name} rig, receivers outside every "
+             "map counted at full resolution by renderers.coverage.outside_pixels; summed over the suns checked, the worst "
+             "sun in brackets; setup ms median at that resolution; `-`: not measured).", "",
+             "| scene | suns | " + " | ".join(f"outside {m}" for m in methods) + " | " + " | ".join(f"ms {m}" for m in methods) + " |",
+             "|---|" + "---:|" * (2 * len(methods) + 1)]
+    for k, p in rows:
+        if p.get("outside_hd") is None:
+            lines.append(f"| {k} | 0 | " + " | ".join("-" for _ in methods) + " | " + " | ".join("-" for _ in methods) + " |")
+            continue
+        lines.append(f"| {k} | {p['hd_suns']} | " + " | ".join(f"{p['outside_hd'][m]} ({p['outside_hd_max'][m]})" for m in methods)
+                     + " | " + " | ".join(f"{p['setup_ms_hd_p50'][m]:.1f}" for m in methods) + " |")
+    return lines
+
+
+def _read_json(file: Path):
+    """A stored scene result, or None when absent or unreadable (another process writing it)."""
+    try:
+        return json.loads(file.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _write_atomic(file: Path, text: str) -> None:
+    """Write via a temporary file and rename, so a parallel merge run never reads half a file."""
+    import os
+
+    tmp = file.with_suffix(f".tmp{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, file)
+
+
+def _corpus_fingerprint(path: Path, camera: dict, screen, configs: dict, part_dirs: dict, hd: dict | None = None) -> str:
     """What a scene's corpus result depends on: the scene file, the rig, the protocol's settings and
     the code that solves and evaluates (solvers/, the renderers' ray casting and ground truth, the
     solve step). `--reuse` takes a stored result only when this matches."""
@@ -431,10 +527,12 @@ def _corpus_fingerprint(path: Path, camera: dict, screen, configs: dict, part_di
     h = hashlib.sha256()
     st = path.stat()
     h.update(json.dumps([str(path), st.st_size, st.st_mtime_ns, camera, list(screen), configs,
-                         {p: np.asarray(v).round(12).tolist() for p, v in part_dirs.items()}],
+                         {p: np.asarray(v).round(12).tolist() for p, v in part_dirs.items()}]
+                        + ([hd] if hd and hd.get("lights") else []),
                         sort_keys=True, default=str).encode())
     code = sorted((ROOT / "solvers").glob("*.py")) + [
-        ROOT / "renderers" / f for f in ("ground_truth.py", "coarse.py", "ray_scene.py", "mitsuba_setup.py")] + [
+        ROOT / "renderers" / f for f in ("ground_truth.py", "coarse.py", "ray_scene.py", "mitsuba_setup.py", "coverage.py",
+                                         "scene_data.py")] + [
         ROOT / "service" / f for f in ("solve.py", "rigs.py", "pipeline.py")]
     for f in code:
         if f.exists():
@@ -459,7 +557,8 @@ def code_state() -> str:
 
 def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | None = None, write: bool = True,
                          parts=("single", "cascades"), screen=None, log=None, reuse: bool | str = False,
-                         store: Path | None = None) -> dict:
+                         store: Path | None = None, cascade_lights: int | None = None, hd_lights: int | None = None,
+                         hd_screen=None, plot: Path | None = None) -> dict:
     """Chong & Gortler's protocol on every corpus scene (configs/corpus.json) with the same
     configurations as `bench_quality` (one map per method, 4 cascades), the same seeded suns on every
     scene (4 cascades: the first `cascade_lights`); per scene and rig: totals, ratios, losses, worst
@@ -467,7 +566,17 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
     (configs/benchmarks.json `quality_corpus`). Each scene's measurements are stored in
     out/bench/quality-corpus/; `reuse` takes them instead of measuring again when the scene, rig,
     settings and code are unchanged (a long run split over processes, or resumed); `reuse="any"` takes
-    them whatever code measured them, and the section names those measured with other code."""
+    them whatever code measured them, and the section names those measured with other code.
+
+    Beside the verdicts: every method's objective as a ratio to the texel limit, the calibration of
+    the prediction per scene and on the whole corpus (service.quality_report), outside pixels for a
+    rig at `hd_screen` (default 1920x1080) on the first `hd_lights` suns (renderers.coverage; 0 turns
+    it off), and speed against error per scene with a plot (`plot`; default docs/bench/ when writing,
+    the store folder otherwise).
+
+    Parallel runs: processes with disjoint `scenes` (and write=False) each store their scenes' files
+    (written atomically); a last run over all scenes with reuse=True measures nothing that is stored
+    and writes the merged section."""
     from ..service.scenes import SceneCache
 
     qspec, spec = definitions()["quality"], definitions()["quality_corpus"]
@@ -475,7 +584,12 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
     screen = list(screen or spec["screen"])
     qspec = {**qspec, "map": spec.get("map", qspec["map"]), "methods": spec.get("methods", qspec["methods"])}
     configs = quality_configs(qspec, parts)
-    n_cascades = min(n, spec["cascade_lights"])
+    n_cascades = min(n, spec["cascade_lights"] if cascade_lights is None else cascade_lights)
+    hd_spec = spec.get("outside_check", {})
+    hd = {"screen": list(hd_screen or hd_spec.get("screen", [1920, 1080])),
+          "lights": min(n, hd_spec.get("lights", 10) if hd_lights is None else hd_lights)}
+    if _coverage() is None:
+        hd["lights"] = 0  # renderers.coverage absent: not measured, the tables say "-"
     dirs = hemisphere_directions(n, spec["min_elevation_deg"], spec["seed"])
     part_dirs = {p: v for p, v in {"single": dirs, "cascades": dirs[:n_cascades]}.items() if p in configs}
     found, skipped = corpus_scenes(scenes.split(",") if scenes else None)
@@ -489,9 +603,9 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
         cache = entry = None
         for rig_name, rig in sspec["rigs"].items():
             key = name if len(sspec["rigs"]) == 1 else f"{name}/{rig_name}"
-            fp = _corpus_fingerprint(Path(path), rig["camera"], screen, configs, part_dirs)
+            fp = _corpus_fingerprint(Path(path), rig["camera"], screen, configs, part_dirs, hd)
             file = store / f"{key.replace('/', '--')}.json"
-            old = json.loads(file.read_text()) if reuse and file.exists() else None
+            old = _read_json(file) if reuse else None
             if old is not None and (old.get("fingerprint") == fp or reuse == "any"):
                 rec, timing[key], triangles = old["rec"], old["wall_s"], old["triangles"]
                 load_s.setdefault(name, old.get("load_s"))
@@ -505,10 +619,10 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
                     entry = cache.get(path)
                     load_s[name] = round(time.perf_counter() - t0, 2)
                 t1 = time.perf_counter()
-                rec = quality_scene(validate_rig, entry, rig["camera"], screen, part_dirs, configs, bar)
+                rec = quality_scene(validate_rig, entry, rig["camera"], screen, part_dirs, configs, bar, hd=hd)
                 timing[key] = round(time.perf_counter() - t1, 1)
                 triangles = entry.loaded.geometry.triangle_count
-                file.write_text(json.dumps({"fingerprint": fp, "code": code_state(), "scene": name, "rig": rig_name, "rec": rec,
+                _write_atomic(file, json.dumps({"fingerprint": fp, "code": code_state(), "scene": name, "rig": rig_name, "rec": rec,
                                             "wall_s": timing[key], "load_s": load_s[name], "triangles": triangles,
                                             "measured": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}, default=float))
             raw[key] = rec
@@ -539,15 +653,33 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
     if other_code:
         head += (" Measured with code other than the current (`--reuse any`; their fingerprint of scene, rig, settings "
                  "and solving/evaluating code differs): " + "; ".join(f"{k} ({v})" for k, v in other_code.items()) + ".")
-    table = head + "\n\n" + _tables_corpus(stats, skipped, spec, corpus_ratio, corpus_ok)
+    if hd["lights"]:
+        head += (f" Outside pixels at {hd['screen'][0]}x{hd['screen'][1]}: the first {hd['lights']} suns, every "
+                 "configuration solved again for a rig of that resolution.")
+    else:
+        head += " Outside pixels at 1920x1080: not measured (renderers.coverage absent or turned off)."
+    calib = {p: quality_report.corpus_calibration(raw, p) for p in configs}
+    se = quality_report.speed_error(stats, "single")
+    plot_link = None
+    if se:
+        plot = Path(plot) if plot is not None else (ROOT / "docs" / "bench" / "quality_corpus_speed_error.png" if write
+                                                     else store / "speed_error.png")
+        quality_report.speed_error_plot(se, plot, "one map: setup ms (log) vs total misclassified / the scene's best (log)")
+        try:
+            plot_link = str(plot.resolve().relative_to(ROOT))
+        except ValueError:
+            plot_link = plot.name
+    table = head + "\n\n" + _tables_corpus(stats, skipped, spec, corpus_ratio, corpus_ok, calib, plot_link, hd["screen"])
     out = {"benchmark": "quality-corpus", "machine": machine(), "lights": n, "screen": screen, "map": qspec["map"],
            "cascade_lights": n_cascades, "scenes": stats, "skipped": skipped, "raw": raw,
            "corpus_optimized_over_best_baseline": corpus_ratio, "wall_s": timing, "load_s": load_s, "reused": reused,
-           "other_code": other_code,
+           "other_code": other_code, "calibration": calib, "speed_error": se, "outside_check": hd, "plot": plot_link,
            "table": table}
     if write:
         cmd = ("shadowopt bench quality --corpus" + (f" --scenes {scenes}" if scenes else "")
-               + (f" --lights {n}" if lights else "") + (" --reuse any" if reuse == "any" else " --reuse" if reuse else ""))
+               + (f" --lights {n}" if lights else "") + (f" --screen {screen[0]}x{screen[1]}" if list(screen) != list(spec["screen"]) else "")
+               + (f" --cascade-lights {cascade_lights}" if cascade_lights is not None else "")
+               + (f" --hd-lights {hd_lights}" if hd_lights is not None else "") + (" --reuse any" if reuse == "any" else " --reuse" if reuse else ""))
         write_section("quality-corpus", table, cmd)
         _dump_corpus(out, "quality-corpus.json")
     return out
@@ -632,6 +764,85 @@ def bench_solvers(validate_rig, lights: int = 5, write: bool = True) -> dict:
     return out
 
 
+def bench_solvers_corpus(validate_rig, lights: int = 3, scenes: str | None = None, write: bool = True,
+                         log=None, tolerance: float = 0.005) -> dict:
+    """Convergence on the corpus (issue 10: within 0.5% of the best objective any solver finds): per
+    scene (its first rig at the corpus screen, one map of the corpus's size) and sun, every solver of
+    solvers.optimize.METHODS minimizes the same problem; each solver's objective over the lowest any
+    of them reached on that sun, worst over the suns, and its median time."""
+    import numpy as np
+
+    from ..service.pipeline import coarse_pass
+    from ..service.scenes import SceneCache
+    from ..service.solve import light_problems
+    from ..solvers.optimize import DEFAULT_METHOD, METHODS, minimize
+
+    spec = definitions()["quality_corpus"]
+    res_map = tuple(spec["map"])
+    found, skipped = corpus_scenes(scenes.split(",") if scenes else None)
+    dirs = hemisphere_directions(lights, spec["min_elevation_deg"], spec["seed"])
+    results = {}
+    bar = _progress(len(found) * lights * len(METHODS), "solvers corpus")
+    for name, (path, sspec) in found.items():
+        cache = SceneCache()
+        entry = cache.get(path)
+        bounds = entry.loaded.geometry.bounds()
+        cam_spec = next(iter(sspec["rigs"].values()))["camera"]
+        rel = {m: [] for m in METHODS}
+        ms = {m: [] for m in METHODS}
+        for d in dirs:
+            rig = validate_rig({"camera": {**cam_spec, "resolution": list(spec["screen"])},
+                                "lights": [{"type": "directional", "direction": [float(v) for v in d]}],
+                                "shadow": {"resolution": list(res_map), "cascades": 1}})
+            resolved, buffers = coarse_pass(entry, rig)
+            prob = light_problems(resolved, buffers, bounds)[0]
+            if not len(prob.samples):
+                continue
+            funs = {}
+            for m in METHODS:
+                r = minimize(resolved.camera, prob.light, prob.samples, prob.receivers, bounds, res_map, m)
+                funs[m] = float(r.fun) if r.fun is not None else float("inf")
+                ms[m].append(r.time_ms)
+                bar.update(1)
+            best = min(funs.values())
+            for m in METHODS:
+                rel[m].append(funs[m] / best if best > 0 and np.isfinite(best) else float("nan"))
+        cache.clear()
+        results[name] = {m: {"worst_over_best": float(np.nanmax(rel[m])) if rel[m] else float("nan"),
+                             "median_over_best": float(np.nanmedian(rel[m])) if rel[m] else float("nan"),
+                             "within": int(np.sum(np.asarray(rel[m]) <= 1 + tolerance)), "suns": len(rel[m]),
+                             "time_ms_p50": float(np.median(ms[m])) if ms[m] else float("nan")} for m in METHODS}
+        if log:
+            log(f"{name}: {len(dirs)} suns x {len(METHODS)} solvers")
+    bar.close()
+    lines = [f"Corpus configs/corpus.json, screen {spec['screen'][0]}x{spec['screen'][1]}, one {res_map[0]}x{res_map[1]} map, "
+             f"{lights} suns per scene (seed {spec['seed']}, above {spec['min_elevation_deg']} deg): each solver's objective "
+             f"over the lowest any solver reached on the same sun, **worst over the suns** (median in brackets); "
+             f"`n/N`: suns within {100 * tolerance:g}% of the best (issue 10's convergence target). Solvers: "
+             "solvers.optimize.METHODS, the same starts; the default is in bold.", "",
+             "| scene | " + " | ".join(f"**{m}**" if m == DEFAULT_METHOD else m for m in METHODS) + " |",
+             "|---|" + "---:|" * len(METHODS)]
+    for name, r in results.items():
+        lines.append(f"| {name} | " + " | ".join(
+            f"{r[m]['worst_over_best']:.4f} ({r[m]['median_over_best']:.4f}) {r[m]['within']}/{r[m]['suns']}" for m in METHODS) + " |")
+    lines += ["", "Median time per solve (ms, the search alone; samples and receivers excluded):", "",
+              "| scene | " + " | ".join(METHODS) + " |", "|---|" + "---:|" * len(METHODS)]
+    for name, r in results.items():
+        lines.append(f"| {name} | " + " | ".join(f"{r[m]['time_ms_p50']:.1f}" for m in METHODS) + " |")
+    ok = [n for n, r in results.items() if r[DEFAULT_METHOD]["within"] == r[DEFAULT_METHOD]["suns"]]
+    lines += ["", f"Default solver {DEFAULT_METHOD} within {100 * tolerance:g}% of the best on every sun: "
+              f"{len(ok)} of {len(results)} scenes" + (f" (not: {', '.join(n for n in results if n not in ok)})" if len(ok) < len(results) else "") + "."]
+    for name, why in skipped.items():
+        lines.append(f"Skipped {name}: {why}.")
+    table = "\n".join(lines)
+    out = {"benchmark": "solvers-corpus", "machine": machine(), "lights": lights, "scenes": results, "skipped": skipped,
+           "default": DEFAULT_METHOD, "table": table}
+    if write:
+        write_section("solvers-corpus", table, f"shadowopt bench solvers --corpus --lights {lights}"
+                      + (f" --scenes {scenes}" if scenes else ""))
+    return out
+
+
 def pareto_plot(results: dict, path: Path) -> None:
     """Time to solution (log x) against objective / best (y) per solver, one panel per scene, with the
     Pareto front joined (PIL only: no plotting dependency)."""
@@ -687,16 +898,6 @@ def pareto_plot(results: dict, path: Path) -> None:
     img.save(path)
 
 
-def spearman(a, b) -> float:
-    """Spearman's rank correlation (scipy.stats.spearmanr), NaN when a side is constant."""
-    from scipy.stats import spearmanr
-
-    import warnings
-
-    with warnings.catch_warnings():  # a constant side is NaN, reported as such
-        warnings.simplefilter("ignore")
-        r = spearmanr(a, b).statistic
-    return float(r)
 
 
 def bench_trust(validate_rig, rigs: int | None = None, write: bool = True) -> dict:
