@@ -136,7 +136,11 @@ def cmd_bench(args) -> int:
     if args.bench == "coarse":
         result = benchmarks.bench_coarse(validate_rig, runs=args.runs, scenes=args.scenes, write=not args.no_write)
     elif args.bench == "solvers":
-        result = benchmarks.bench_solvers(validate_rig, lights=args.lights or 5, write=not args.no_write)
+        if args.corpus:
+            result = benchmarks.bench_solvers_corpus(validate_rig, lights=args.lights or 3, scenes=args.scenes,
+                                                     write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
+        else:
+            result = benchmarks.bench_solvers(validate_rig, lights=args.lights or 5, write=not args.no_write)
     elif args.bench == "trust":
         result = benchmarks.bench_trust(validate_rig, rigs=args.lights, write=not args.no_write)
     elif args.bench == "quality":
@@ -144,7 +148,8 @@ def cmd_bench(args) -> int:
         if args.corpus:
             result = benchmarks.bench_quality_corpus(validate_rig, lights=args.lights, scenes=args.scenes, parts=parts,
                                                      write=not args.no_write, reuse=args.reuse or False,
-                                                     log=lambda m: print(m, file=sys.stderr))
+                                                     screen=args.screen, cascade_lights=args.cascade_lights,
+                                                     hd_lights=args.hd_lights, log=lambda m: print(m, file=sys.stderr))
         else:
             result = benchmarks.bench_quality(validate_rig, lights=args.lights, write=not args.no_write, parts=parts)
     elif args.bench == "batch":
@@ -431,7 +436,14 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--runs", type=int, default=20, help="warm runs per scene (median reported)")
     sp.add_argument("--scenes", default=None, help="comma-separated scene names from configs/benchmarks.json "
                     "(quality --corpus: from configs/corpus.json)")
-    sp.add_argument("--corpus", action="store_true", help="quality: every scene of configs/corpus.json")
+    sp.add_argument("--corpus", action="store_true", help="quality, solvers: every scene of configs/corpus.json")
+    sp.add_argument("--screen", type=_parse_wxh, default=None, metavar="WxH",
+                    help="quality --corpus: the rig's resolution (default: configs/benchmarks.json quality_corpus.screen)")
+    sp.add_argument("--cascade-lights", type=int, default=None, metavar="N",
+                    help="quality --corpus: 4 cascades on the first N suns (default: quality_corpus.cascade_lights)")
+    sp.add_argument("--hd-lights", type=int, default=None, metavar="N",
+                    help="quality --corpus: outside pixels at 1920x1080 on the first N suns (0: off; default: "
+                    "quality_corpus.outside_check.lights)")
     sp.add_argument("--reuse", nargs="?", const="same", choices=["same", "any"], default=None,
                     help="quality --corpus: take a scene's stored result (out/bench/quality-corpus/) when scene, rig, "
                     "settings and code are unchanged; `any`: whatever code measured it (named in the section)")
