@@ -108,9 +108,15 @@ def test_bench_quality_corpus_small_run_and_reuse(tmp_path):
     print is there, and a second run with reuse takes the stored result instead of measuring."""
     from shadowopt.service.benchmarks import bench_quality_corpus
 
-    kw = dict(lights=1, scenes="closeup", write=False, screen=[48, 48], store=tmp_path)
+    kw = dict(lights=1, scenes="closeup", write=False, screen=[48, 48], store=tmp_path, hd_lights=1, hd_screen=[64, 36])
     first = bench_quality_corpus(_validate, **kw)
     s = first["scenes"]["closeup"]
+    for part in ("single", "cascades"):  # the report's columns: ratio to the limit, calibration, the wider rig
+        assert all(r is not None and r["median"] >= 1.0 - 1e-9 for r in s[part]["ratio_to_limit"].values()), s[part]["ratio_to_limit"]
+        assert s[part]["calibration"]["n"] == len(s[part]["totals"])
+        if first["outside_check"]["lights"]:  # renderers.coverage present
+            assert s[part]["hd_suns"] == 1 and set(s[part]["outside_hd"]) == set(s[part]["totals"])
+    assert (tmp_path / "speed_error.png").stat().st_size > 0 and "speed against error" in first["table"]
     assert set(s["single"]["totals"]) == {"uniform", "focused", "lispsm", "logpsm", "optimized"}
     assert len(s["cascades"]["totals"]) == 3 and s["single"]["suns"] == s["cascades"]["suns"] == 1
     assert set(s["verdicts"]) >= {"outside_0", "one_map_vs_best", "per_sun_bound", "cascades", "spearman"}
