@@ -12,6 +12,7 @@ gradients with respect to P; a NumPy entry point wraps it for prediction and pic
 """
 from __future__ import annotations
 
+import math
 import threading
 from contextlib import contextmanager
 from functools import lru_cache
@@ -26,7 +27,8 @@ from .shadow_map import ShadowMap, map_for_depth
 
 DET_FLOOR = 1e-18  # |det J| below this counts as degenerate (the sample sees no texel change)
 W_FLOOR = 1e-12  # clip w below this: the point is behind a perspective light's centre of projection
-ERROR_FIELDS = ("objective", "mean_m", "median_m", "p95_m", "max_m", "frac_m_gt_1", "samples")
+ERROR_FIELDS = ("objective", "mean_m", "median_m", "p95_m", "max_m", "frac_m_gt_1", "samples", "limit",
+                "ratio_to_limit")
 
 
 _ad_module = []
@@ -228,6 +230,47 @@ def objective_of(h: np.ndarray, m: np.ndarray, weight: np.ndarray | None = None)
     return float(np.sum(w * h) / np.sum(w))
 
 
+def texel_limit(samples: Samples, texels: int) -> float:
+    """The least weighted mean h any map of `texels` texels (any warp, projective or not) can reach on
+    these samples: 2 (Σ a_i √w_i)² / (T Σ a_i w_i), a_i = samples.pixels (full-resolution pixels each
+    sample stands for), w_i = samples.weight, T = texels.
+
+    Derivation, checked against the metric above (Chong & Gortler 2007 eqs. 6 and 9): J = du/dx is in
+    texels per full-resolution pixel, so det J is the texel area one pixel covers, and
+    h = ||J^-1||_F^2 = ||J||_F^2 / det(J)^2 >= 2 |det J| / det(J)^2 = 2 / |det J|
+    (||J||_F^2 = σ1² + σ2² >= 2 σ1 σ2 = 2 |det J|, equal for a conformal J). The pixels a sample stands
+    for cover about a_i |det J_i| texels, and pixels seeing distinct light-space points use distinct
+    texels, so Σ a_i |det J_i| <= T. Minimising Σ a_i w_i 2/d_i under Σ a_i d_i = T (Lagrange:
+    w_i / d_i² equal) gives d_i = T √w_i / Σ a_j √w_j and Σ a_i w_i h_i >= 2 (Σ a_i √w_i)² / T; the
+    objective is the mean weighted by w_i, so with a_i equal for all samples (one coarse pixel each,
+    the service's case) this bounds it. Uniform weights over N pixels: 2N/T, which the
+    constant-footprint map reaches on a plane (Chong 2003 Theorem 1). It stays a lower bound when the
+    map also covers receivers that are not samples. It assumes the samples' pixels do not share
+    texels: visible receivers behind one another along the light (a shadowed floor under its caster)
+    may share them, and there a map could beat it by at most the depth complexity."""
+    n = len(samples)
+    if n == 0 or texels <= 0:
+        return 0.0
+    w = np.asarray(samples.weight, dtype=np.float64)
+    a = np.ones(n) if samples.pixels is None else np.asarray(samples.pixels, dtype=np.float64)
+    den = float(np.sum(a * w))
+    return 2.0 * float(np.sum(a * np.sqrt(w))) ** 2 / (float(texels) * den) if den > 0 else 0.0
+
+
+def with_limit(stats: dict, samples: Samples, texels: int) -> dict:
+    """stats (error_stats' dict) with `limit` (texel_limit) and `ratio_to_limit` (objective / limit)."""
+    lim = texel_limit(samples, texels)
+    stats["limit"] = lim
+    obj = stats.get("objective", 0.0)
+    stats["ratio_to_limit"] = float(obj / lim) if lim > 0 and math.isfinite(obj) else (
+        None if lim <= 0 else float("inf"))
+    return stats
+
+
+def map_texels(maps: list[ShadowMap]) -> int:
+    return int(sum(int(m.resolution[0]) * int(m.resolution[1]) for m in maps))
+
+
 def predicted_objective(maps: list[ShadowMap], samples: Samples, origin: np.ndarray | None = None) -> float:
     """predicted_error(...)["objective"] alone (no percentiles): to score candidate maps."""
     h, m, _ = per_sample_maps(maps, samples, origin)
@@ -239,7 +282,7 @@ def predicted_error(maps: list[ShadowMap], samples: Samples, origin: np.ndarray 
     h, m, idx = per_sample_maps(maps, samples, origin)
     stats = error_stats(h, m, samples.weight)
     stats["unserved_samples"] = int(np.sum(idx < 0))
-    return stats
+    return with_limit(stats, samples, map_texels(maps))
 
 
 def objective(P, resolution, log_warp, ds: DeviceSamples):

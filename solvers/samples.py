@@ -38,6 +38,9 @@ class Samples:
     weight: np.ndarray  # (N,)
     pixel: np.ndarray  # (N, 2) coarse-buffer (row, col) each sample came from
     kind: str  # "boundary" or "all_facing" or "none"
+    # (N,) full-resolution pixels each sample stands for (a_i of solvers.metric.texel_limit): a coarse
+    # sample stands for (W H)/(w h) full-resolution pixels; None: one each (samples taken per pixel).
+    pixels: np.ndarray | None = None
     # Dr.Jit copies by origin (solvers.metric.device_samples) and recent subsets by mask, so that a
     # subset taken again (a cascade's samples, scored then predicted) is uploaded once: the arrays
     # above are never modified.
@@ -56,7 +59,8 @@ class Samples:
         sub = self._subsets.get(key)
         if sub is None:
             sub = Samples(self.position[mask], self.normal[mask], self.dx[mask], self.dy[mask],
-                          self.view_depth[mask], self.weight[mask], self.pixel[mask], self.kind)
+                          self.view_depth[mask], self.weight[mask], self.pixel[mask], self.kind,
+                          None if self.pixels is None else self.pixels[mask])
             if len(self._subsets) >= SUBSETS_KEPT:
                 self._subsets.pop(next(iter(self._subsets)))
             self._subsets[key] = sub
@@ -137,4 +141,6 @@ def select_samples(camera: Camera, light: Light, position: np.ndarray, normal: n
     else:
         dx = dy = np.zeros((0, 3))
         depth = np.zeros(0)
-    return Samples(p, n, dx, dy, depth, np.ones(len(p)), np.stack([rows, cols], -1), kind)
+    per_pixel = camera.resolution[0] * camera.resolution[1] / float(hit.shape[0] * hit.shape[1])
+    return Samples(p, n, dx, dy, depth, np.ones(len(p)), np.stack([rows, cols], -1), kind,
+                   np.full(len(p), per_pixel))
