@@ -15,7 +15,7 @@ import numpy as np
 from ..renderers.coarse import CoarseBuffers
 from ..solvers.baselines import baseline
 from ..solvers.conventions import export_matrices
-from ..solvers.metric import error_stats, per_sample_maps
+from ..solvers.metric import error_stats, map_texels, per_sample_maps, with_limit
 from ..solvers.optimize import DEFAULT_METHOD as DEFAULT_SOLVER
 from ..solvers.optimized_maps import optimized_maps
 from ..solvers.samples import Samples, select_samples
@@ -134,7 +134,9 @@ def maps_error(maps: list[ShadowMap], samples: Samples, origin) -> tuple[dict, l
     h, m, idx = per_sample_maps(maps, samples, origin)
     total = error_stats(h, m, samples.weight)
     total["unserved_samples"] = int(np.sum(idx < 0))
-    per_map = [error_stats(h[idx == k], m[idx == k], samples.weight[idx == k]) for k in range(len(maps))]
+    with_limit(total, samples, map_texels(maps))  # limit, ratio_to_limit: solvers.metric.texel_limit
+    per_map = [with_limit(error_stats(h[idx == k], m[idx == k], samples.weight[idx == k]), samples.subset(idx == k),
+                          map_texels([smap])) for k, smap in enumerate(maps)]
     return total, per_map
 
 
