@@ -147,3 +147,71 @@ def test_bench_trust_ranks_configurations_as_measured():
     assert len(res["rigs"]) == 2 and len(res["configurations"]) == 15
     # predicted objective and measured misclassified pixels rank the 15 configurations alike
     assert res["mean_within_rig_spearman"] >= 0.8, [r["spearman"] for r in res["rigs"]]
+
+
+def _coloured(png: Path, w: int, h: int) -> tuple[int, int]:
+    from PIL import Image
+
+    from shadowopt.renderers.heatmap import WRONGLY_LIT, WRONGLY_SHADOWED
+
+    img = np.asarray(Image.open(png).convert("RGB")).astype(int)[:h, :w]  # the picture; the legend is below
+    return tuple(int(np.all(img == np.array(c), axis=-1).sum()) for c in (WRONGLY_SHADOWED, WRONGLY_LIT))
+
+
+def test_evaluate_errors_heatmap_and_a_bad_mode(tmp_path):
+    sol_path, heat = tmp_path / "sol.json", tmp_path / "errors.png"
+    run("optimize", DEMO, "--rig", DEMO_RIG, "--method", "lispsm", "--shadow-resolution", "128x128", "--out", sol_path,
+        check=0)
+    ev = json.loads(run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, "--screen", "320x180",
+                        "--heatmap", heat, "--heatmap-mode", "errors", "--json", check=0).stdout)
+    shadowed, lit = _coloured(heat, 320, 180)
+    assert shadowed > 0 and lit > 0 and shadowed + lit == ev["misclassified_pixels"]
+    assert (shadowed, lit) == (ev["wrongly_shadowed_pixels"], ev["wrongly_lit_pixels"])
+    assert ev["screen"] == [320, 180] and ev["rig_resolution"] == [1280, 720]
+    text = run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, "--screen", "320x180", check=0).stdout
+    assert f"wrongly shadowed {shadowed}, wrongly lit {lit}" in text and "at the 320x180 screen" in text
+    assert "in 320x180 pixels" in text and "in the rig's 1280x720 pixels" in text
+    p = run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, "--heatmap", heat, "--heatmap-mode", "aliasing",
+            check=2)
+    assert "--heatmap-mode" in p.stderr and "errors" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_compare_with_a_screen_predicts_exactly_what_optimize_predicts(tmp_path):
+    """The predicted error is in the rig's own pixels whatever --screen the evaluation uses (issue 10, item 6)."""
+    res = json.loads(run("compare", DEMO, "--rig", DEMO_RIG, "--methods", "lispsm,optimized", "--screen", "320x180",
+                         "--json", check=0).stdout)
+    assert res["screen"] == [320, 180] and res["rig_resolution"] == [1280, 720]
+    for name, r in res["methods"].items():
+        sol = json.loads(run("optimize", DEMO, "--rig", DEMO_RIG, "--method", name, "--json", check=0).stdout)
+        assert r["predicted_error"] == sol["lights"][0]["predicted_error"], name
+        assert r["evaluation"]["screen"] == [320, 180] and "320x180 screen's pixels" in r["evaluation"]["pixels"]
+    table = run("compare", DEMO, "--rig", DEMO_RIG, "--methods", "lispsm", "--screen", "320x180", check=0).stdout
+    assert "predicted p95 m (1280x720)" in table and "measured p95 m (320x180)" in table
+    assert "misclassified (320x180)" in table
+
+
+def _readme_block(heading: str) -> list[str]:
+    text = (REPO / "README.md").read_text()
+    section = text[text.index(heading):]
+    block = section[section.index("```sh\n") + 6:]
+    return [line for line in block[:block.index("```")].splitlines() if line.strip()]
+
+
+@pytest.mark.slow
+def test_the_readme_heatmap_example_runs_verbatim(tmp_path):
+    """The README's heatmap example, line by line, in a scratch folder (configs/ linked in, so its outputs
+    land in the scratch out/), with .venv/bin/shadowopt being this environment's script."""
+    import shlex
+
+    lines = _readme_block("### Heatmaps: what went wrong")
+    assert len(lines) == 3 and all(line.startswith(".venv/bin/shadowopt ") for line in lines)
+    (tmp_path / "configs").symlink_to(REPO / "configs")
+    exe = Path(sys.executable).with_name("shadowopt")
+    outs = []
+    for line in lines:
+        p = subprocess.run([str(exe), *shlex.split(line)[1:]], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+        assert p.returncode == 0, (line, p.stdout, p.stderr)
+        outs.append(p.stdout)
+    assert "wrongly shadowed" in outs[1] and "in the rig's 1280x720 pixels" in outs[1]
+    assert (tmp_path / "out" / "lispsm256_errors.png").stat().st_size > 1000
+    assert {"heatmaps.png", "errors.png", "compare.md"} <= {f.name for f in (tmp_path / "out" / "compare256").iterdir()}
