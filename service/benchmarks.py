@@ -781,7 +781,7 @@ def bench_solvers_corpus(validate_rig, lights: int = 3, scenes: str | None = Non
     res_map = tuple(spec["map"])
     found, skipped = corpus_scenes(scenes.split(",") if scenes else None)
     dirs = hemisphere_directions(lights, spec["min_elevation_deg"], spec["seed"])
-    results = {}
+    results, warm = {}, set()
     bar = _progress(len(found) * lights * len(METHODS), "solvers corpus")
     for name, (path, sspec) in found.items():
         cache = SceneCache()
@@ -800,6 +800,9 @@ def bench_solvers_corpus(validate_rig, lights: int = 3, scenes: str | None = Non
                 continue
             funs = {}
             for m in METHODS:
+                if m not in warm:  # the first call of a solver compiles its Dr.Jit kernels: not timed
+                    minimize(resolved.camera, prob.light, prob.samples, prob.receivers, bounds, res_map, m)
+                    warm.add(m)
                 r = minimize(resolved.camera, prob.light, prob.samples, prob.receivers, bounds, res_map, m)
                 funs[m] = float(r.fun) if r.fun is not None else float("inf")
                 ms[m].append(r.time_ms)
@@ -819,7 +822,8 @@ def bench_solvers_corpus(validate_rig, lights: int = 3, scenes: str | None = Non
              f"{lights} suns per scene (seed {spec['seed']}, above {spec['min_elevation_deg']} deg): each solver's objective "
              f"over the lowest any solver reached on the same sun, **worst over the suns** (median in brackets); "
              f"`n/N`: suns within {100 * tolerance:g}% of the best (issue 10's convergence target). Solvers: "
-             "solvers.optimize.METHODS, the same starts; the default is in bold.", "",
+             "solvers.optimize.METHODS, the same starts (each solver's first call, which compiles its kernels, "
+             "is not timed); the default is in bold.", "",
              "| scene | " + " | ".join(f"**{m}**" if m == DEFAULT_METHOD else m for m in METHODS) + " |",
              "|---|" + "---:|" * len(METHODS)]
     for name, r in results.items():
