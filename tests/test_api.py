@@ -159,7 +159,8 @@ def test_evaluate_with_heatmap(api, scene):
     assert ev["method"] == "lispsm" and ev["receiver_pixels"] > 0
     assert 0 <= ev["misclassified_pixels"] <= ev["receiver_pixels"]
     (png,) = ev["heatmap_png_base64"]
-    assert Image.open(io.BytesIO(base64.b64decode(png))).size == (160, 90)
+    w, h = Image.open(io.BytesIO(base64.b64decode(png))).size  # the 160x90 picture, its legend below
+    assert w >= 160 and h > 90 + 40 and ev["heatmap_mode"] == "m"
     no_map = api.post("/v1/evaluate", json={"scene_id": sid, "rig": TINY_RIG, "solution": sol}).json()
     assert no_map.get("heatmap_png_base64") is None and no_map["misclassified_pixels"] == ev["misclassified_pixels"]
     err = error_of(api.post("/v1/evaluate", json={"scene_id": sid, "rig": TINY_RIG, "solution": {"x": 1}}), 422)
@@ -167,6 +168,47 @@ def test_evaluate_with_heatmap(api, scene):
     big = {**TINY_RIG, "camera": {**TINY_RIG["camera"], "resolution": [16000, 16000]}}
     err = error_of(api.post("/v1/evaluate", json={"scene_id": sid, "rig": big, "solution": sol}), 413)
     assert err["code"] == "too_many_pixels" and err["field"] == "rig.camera.resolution"
+
+
+def test_evaluate_errors_heatmap_marks_exactly_the_misclassified_pixels(api, scene):
+    import numpy as np
+
+    from shadowopt.renderers.heatmap import WRONGLY_LIT, WRONGLY_SHADOWED
+
+    sid = scene["scene_id"]
+    rig = {**TINY_RIG, "shadow": {"resolution": [64, 64]}}  # a coarse map: both kinds of error occur
+    sol = api.post("/v1/optimize", json={"scene_id": sid, "rig": rig, "method": "lispsm"}).json()
+    r = api.post("/v1/evaluate", json={"scene_id": sid, "rig": rig, "solution": sol, "heatmap": True,
+                                       "heatmap_mode": "errors"})
+    assert r.status_code == 200, r.text
+    ev = r.json()
+    (png,) = ev["heatmap_png_base64"]
+    img = np.asarray(Image.open(io.BytesIO(base64.b64decode(png))).convert("RGB")).astype(int)
+    top = img[:90, :160]
+    shadowed, lit = (int(np.all(top == np.array(c), axis=-1).sum()) for c in (WRONGLY_SHADOWED, WRONGLY_LIT))
+    assert shadowed > 0 and lit > 0 and ev["heatmap_mode"] == "errors"
+    assert (shadowed, lit) == (ev["wrongly_shadowed_pixels"], ev["wrongly_lit_pixels"])
+    assert shadowed + lit == ev["misclassified_pixels"]
+    plain = api.post("/v1/evaluate", json={"scene_id": sid, "rig": rig, "solution": sol}).json()
+    assert plain["misclassified_pixels"] == ev["misclassified_pixels"]  # the picture does not change the measurement
+    assert plain["screen"] == plain["rig_resolution"] == [160, 90] and "measured_error_rig_pixels" not in plain
+    small = api.post("/v1/evaluate", json={"scene_id": sid, "rig": rig, "solution": sol, "screen": [80, 45]}).json()
+    assert small["screen"] == [80, 45] and small["rig_resolution"] == [160, 90]
+    assert small["measured_error_rig_pixels"]["p95_m"] == pytest.approx(2 * small["measured_error"]["p95_m"])
+    err = error_of(api.post("/v1/evaluate", json={"scene_id": sid, "rig": rig, "solution": sol, "heatmap": True,
+                                                  "heatmap_mode": "aliasing"}), 422)
+    assert err["field"] == "heatmap_mode"
+
+
+def test_compare_with_a_screen_predicts_what_optimize_predicts(api, scene):
+    sid = scene["scene_id"]
+    r = api.post("/v1/compare", json={"scene_id": sid, "rig": TINY_RIG, "methods": ["focused"], "screen": [80, 45]})
+    assert r.status_code == 200, r.text
+    res = r.json()
+    assert res["screen"] == [80, 45] and res["rig_resolution"] == [160, 90]
+    sol = api.post("/v1/optimize", json={"scene_id": sid, "rig": TINY_RIG, "method": "focused"}).json()
+    assert res["methods"]["focused"]["predicted_error"] == sol["lights"][0]["predicted_error"]
+    assert res["methods"]["focused"]["evaluation"]["screen"] == [80, 45]
 
 
 def test_compare_and_analyze(api, scene):
