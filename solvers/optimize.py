@@ -48,7 +48,14 @@ from .shadow_map import ShadowMap
 from .warp import log_warp
 
 PHI_MAX = math.pi / 2
-U_MIN, U_MAX = math.log(0.5), math.log1p(1e3)  # n' from -2D (centre beyond the far end) to D/1000
+# n' from D/1e4 before the receivers' near end (u = U_MAX) through no warp (u = 0) to D/1e4 beyond their
+# far end (u = U_MIN: n' = -D (1 + 1e-4)): the warp centre may lie next to either end of the receivers
+# (a camera just above a plane needs it at the near end; a light behind a camera looking down, whose
+# warp axis points from the far receivers to the near ones, needs it beyond the far end).
+U_MAX = math.log1p(1e4)
+U_MIN = -U_MAX
+PAD_TEXELS = 1.0  # map-space padding: texels kept free on each side of the fitted box, after the warp (the
+# baselines' rule, fitting.texel_margin, in Python floats for the inner loop)
 U_LOG_MIN = math.log1p(1e-3)  # the log warp needs a finite n' before the receivers (n' <= 1000 D)
 METHODS = ("gradient:lbfgs", "gradient:adam", "gradient:linesearch", "nlopt:LN_BOBYQA", "nlopt:LN_COBYLA",
            "nlopt:LN_SBPLX", "nlopt:GN_DIRECT_L", "nlopt:LD_MMA", "nlopt:LD_LBFGS", "nlopt:LD_SLSQP")
@@ -101,10 +108,20 @@ def _robust_difference(fm, f0, fp, h):
 AFFINE_FITS = ("axis", "rectangle", "parallelogram")
 
 
-def _padded_box(lo: list, hi: list) -> tuple[tuple[float, float], tuple[float, float]]:
-    """padded(lo, hi, PAD, extent floor of the box) for a 2D box, per dimension in Python floats."""
+def _padded_box(lo: list, hi: list, resolution) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The fitted 2D box (warped, after the affine part) grown so that PAD_TEXELS texels of the map
+    lie outside it on each side (padding in map space, after the warp: a world-space pad before the
+    warp would be magnified at the dense end and would keep the warp centre away from the receivers),
+    each side at least the extent floor."""
     floor = extent_floor(max(abs(v) for v in lo + hi))
-    return padded_range(lo[0], hi[0], PAD, floor), padded_range(lo[1], hi[1], PAD, floor)
+    out = []
+    for k in (0, 1):
+        a, b = lo[k], hi[k]
+        size = max(b - a, floor)
+        n = float(resolution[k])
+        pad = size * PAD_TEXELS / max(n - 2.0 * PAD_TEXELS, 1.0) + max(floor - (b - a), 0.0) / 2 + 1e-12 * size
+        out.append((a - pad, b + pad))
+    return out[0], out[1]
 
 
 def _finite_rows(p: np.ndarray) -> np.ndarray:
@@ -188,6 +205,7 @@ class Problem:
         self.fit_pts = np.vstack([hull, extremes])
         self.corners = box_corners(np.asarray(casters_bounds[0], float), np.asarray(casters_bounds[1], float))
         self.ds = device_samples(samples, camera.position)
+        self.sample_pos, self.sample_w = samples.position, samples.weight
         self.view0 = directional_view(light, camera)
         self.deadline = deadline
         self.gradient_mode = gradient
@@ -209,6 +227,39 @@ class Problem:
         if len(fit) == 0:
             raise ValueError("no receivers and no samples to fit the map to")
         return light_plane_hull(light.direction, fit)
+
+    def plane_x(self) -> np.ndarray | None:
+        """The start for the receivers' best plane: the family member whose projective divisor w' is
+        the camera's view depth as fitted over the samples, view depth ≈ a x + b y + c in light-view
+        coordinates (weighted least squares). On a planar receiver that is the map whose texel
+        coordinates are an affine image of the screen's, the constant footprint of Chong 2003
+        Theorem 1 (its vanishing line is where the plane meets the camera's view-depth-0 plane); w'
+        must annihilate the light direction, and an affine function of (x, y) does. The warp axis is
+        the fitted depth gradient (φ = atan2(-a, b) for view = rotation_z(φ) @ view0, folded into
+        [-π/2, π/2] by reversing the axis, which turns u into -u), and e^u is the ratio of the fitted
+        depths at the fit points' far and near ends along it. None without three samples."""
+        pts = self.sample_pos
+        if len(pts) < 3:
+            return None
+        v = to_view(self.view0, pts)
+        depth = (pts - self.camera.position) @ self.camera.forward
+        sw = np.sqrt(np.asarray(self.sample_w, float))
+        A = np.column_stack([v[:, 0], v[:, 1], np.ones(len(v))]) * sw[:, None]
+        (a, b, c), *_ = np.linalg.lstsq(A, depth * sw, rcond=None)
+        g = math.hypot(a, b)
+        scale = max(float(np.abs(depth).max()), 1e-300)
+        if not math.isfinite(g) or g * max(float(np.ptp(v[:, 0])), float(np.ptp(v[:, 1]))) < 1e-6 * scale:
+            return None  # depth does not vary across the light's image plane: no warp (focused)
+        phi = math.atan2(-a, b)
+        y0, y1 = self._warp_range(to_view(rotation_z(phi) @ self.view0, self.fit_pts))
+        d0, d1 = g * y0 + c, g * y1 + c  # rotation_z(φ) has y' = (a x + b y) / g, depth = g y' + c
+        u = math.log(d1 / d0) if d0 > 0 else self.upper[1]
+        sign = 1.0
+        if phi > PHI_MAX:
+            phi, sign = phi - math.pi, -1.0
+        elif phi < -PHI_MAX:
+            phi, sign = phi + math.pi, -1.0
+        return self.clip([phi, sign * u])
 
     # -------------------------------------------------------------- the family
     def fit(self, x):
@@ -234,16 +285,17 @@ class Problem:
         h = self.n_hull or len(v)
         q = np.column_stack([v[:h, 0] / wv[:h], (v[:h, 1] - y0) / wv[:h]])
         C, lo, hi = _affine_fit(q, self.affine, self.resolution, self.n_hull > 0)
-        (s0, s1), (t0, t1) = _padded_box(lo.tolist(), hi.tolist())
+        (s0, s1), (t0, t1) = _padded_box(lo.tolist(), hi.tolist(), self.resolution)
         span = max(far - near, 1e-9 * max(abs(near), abs(far), 1.0))
         proj = ortho(s0, s1, t0, t1, near - 0.01 * span, far + 0.01 * span) @ C @ W
         return view, proj, v, dv
 
     @staticmethod
     def _warp_range(v: np.ndarray) -> tuple[float, float]:
-        """[y0, y1]: the fit points' padded extent along the warp axis (light-view +Y)."""
+        """[y0, y1]: the fit points' extent along the warp axis (light-view +Y), not padded (the map is
+        padded after the warp, _padded_box), at least the extent floor."""
         lo, hi = float(v[:, 1].min()), float(v[:, 1].max())
-        return padded_range(lo, hi, PAD, extent_floor(float(np.abs(v[:, 1]).max())))
+        return padded_range(lo, hi, 0.0, extent_floor(float(np.abs(v[:, 1]).max())))
 
     @staticmethod
     def _depth_range(v, dv, wv, k: float, y0: float, y1: float) -> tuple[float, float]:
@@ -278,8 +330,8 @@ class Problem:
     def log_warp_for(self, x):
         """LogPSM's log step for the perspective part with parameters x (Lloyd et al. 2007 eq. 78,
         solvers.warp.log_warp): a = n', W = D, the receivers' depth along the warp axis. The map's t
-        box is padded slightly beyond [y0, y1] (PAD), so t_p = 0 is a hair before y0: the warp is
-        Lloyd's up to that padding, and every receiver stays inside (c1 t + c2 > 0 on the box)."""
+        box is padded slightly beyond [y0, y1] (PAD_TEXELS, in map space), so t_p = 0 is a hair before
+        y0: the warp is Lloyd's up to that padding, and every receiver stays inside (c1 t + c2 > 0 on the box)."""
         u = float(self.clip(x)[1])
         n_prime = self.fit(x)[3]
         return log_warp(n_prime * math.expm1(u), n_prime)
@@ -502,6 +554,9 @@ def minimize(camera: Camera, light: DirectionalLight | SpotLight, samples: Sampl
         bases = start_maps(camera, light, prob.fit_pts, casters_bounds, prob.resolution, starts)
     base_vals = {name: prob.eval_map(m) for name, m in bases.items()}
     xs = {name: _start_x(prob, m) for name, m in bases.items()}
+    xp = prob.plane_x()
+    if xp is not None:
+        xs["plane"] = xp
     if x0 is not None:
         xs = {"warm": prob.clip(np.asarray(x0, float)), **xs}
     fam_vals = {name: prob.value(x) for name, x in xs.items()}

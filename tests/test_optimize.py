@@ -118,7 +118,9 @@ def test_ad_gradient_agrees_with_finite_differences(ground):
 
 def test_family_contains_the_baselines(ground):
     """The starting points reproduce the baseline maps' objectives inside the (φ, u) family (with the
-    baselines' own affine fits: rectangle for focused, axis-aligned box for the warped ones)."""
+    baselines' own affine fits: rectangle for focused, axis-aligned box for the warped ones), or do
+    better by at most what the baselines' world-space padding before their warp costs them (the family
+    pads in map space after the warp: up to ~15% of LogPSM's perspective rows, issue 10)."""
     cam, pts, s = ground
     for light in LIGHTS:
         L = DirectionalLight.make(LIGHTS[light])
@@ -126,7 +128,8 @@ def test_family_contains_the_baselines(ground):
         for name, affine in (("focused", "rectangle"), ("lispsm", "axis"), ("logpsm-perspective", "axis")):
             prob = Problem(cam, L, s, pts, BOUNDS, RES, affine=affine)
             want = predicted_error([maps[name]], s)["objective"]
-            assert prob.value(_start_x(prob, maps[name])) == pytest.approx(want, rel=0.05), (light, name)
+            got = prob.value(_start_x(prob, maps[name]))
+            assert 0.85 * want <= got <= 1.02 * want, (light, name, got, want)
 
 
 def test_warm_start_and_method_none(ground):
@@ -160,7 +163,9 @@ def test_every_solver_gets_near_the_global_minimum(ground, method):
     r = solved(ground, "45deg", method)
     assert r.success, r.message
     assert r.fun <= 1.35 * _CACHE["best"], (method, r.fun, _CACHE["best"])
-    assert r.fun < min(v for k, v in r.starts.items()), (method, r.fun, r.starts)
+    # better than every baseline start (the plane start is the ground's own optimum: nothing to gain there)
+    assert r.fun < min(v for k, v in r.starts.items() if not k.startswith("plane")), (method, r.fun, r.starts)
+    assert r.fun <= min(r.starts.values()), (method, r.fun, r.starts)
 
 
 def test_oblique_light_on_a_short_plane():
