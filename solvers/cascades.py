@@ -32,10 +32,12 @@ def split_depths(z_near: float, z_far: float, k: int, kind: str = "practical", l
 
 def receiver_depth_range(camera, depth: np.ndarray) -> tuple[float, float]:
     """The receivers' tight view-depth range that splits divide (SDSM): [min, max] of their view
-    depths, kept beyond the near plane; the camera's near..far when there is no receiver."""
+    depths, kept within the near and far planes (receivers with a margin may reach beyond them); the
+    camera's near..far when there is no receiver."""
     if not len(depth):
         return camera.near, camera.far
-    return max(float(np.min(depth)), camera.near), max(float(np.max(depth)), camera.near * 1.001)
+    lo = min(max(float(np.min(depth)), camera.near), camera.far)
+    return lo, max(min(float(np.max(depth)), camera.far), lo * 1.001)  # nothing beyond the far plane is seen
 
 
 def pixel_world_size(camera, pts: np.ndarray) -> np.ndarray:
@@ -105,7 +107,7 @@ def _sides(area: np.ndarray, aspect: np.ndarray, budget: int) -> list[tuple[int,
     return [(int(a), int(b)) for a, b in zip(w, h)]
 
 
-def allocate_mean(P, Q, budget: int, unsampled=None) -> list[tuple[int, int]]:
+def allocate_mean(P, Q, budget: int) -> list[tuple[int, int]]:
     """Resolutions (w_k, h_k) minimising the mean-h objective sum_k (P_k / w_k^2 + Q_k / h_k^2) under
     sum_k w_k h_k <= T: the L1 counterpart of Lloyd et al. 2007 eq. 83 (which bounds the worst case).
 
@@ -114,43 +116,52 @@ def allocate_mean(P, Q, budget: int, unsampled=None) -> list[tuple[int, int]]:
     columns at resolution 1; Chong & Gortler 2007 eqs. 6, 9), so a cascade's share of the weighted
     mean is P_k / w^2 + Q_k / h^2 with P_k = sum_i w_i p_i / sum_all w (its samples). For a map of
     area A, minimising over w/h (Lagrange on w h = A) gives w/h = sqrt(P/Q) and the value C_k / A,
-    C_k = 2 sqrt(P_k Q_k). Minimising sum_k C_k / A_k under sum_k A_k = T' (Lagrange: C_k / A_k^2
-    equal) gives A_k = T' sqrt(C_k) / S, S = sum_j sqrt(C_j), and the value S^2 / T'.
-
-    unsampled: per map, True for a cascade no sample reaches (the objective says nothing about it);
-    its P, Q are then the mean over its receivers (mean h = c_f / A, c_f = 2 sqrt(P Q)) and it gets
-    the area at which that mean equals the objective of the others: c_f / A_f = S^2 / T', so
-    T' = T S^2 / (S^2 + sum_f c_f) and A_f = c_f T / (S^2 + sum_f c_f) (no sampled map: A_f ∝ c_f).
-    The value of the whole (objective_mean) is then (S^2 + sum_f c_f) / T."""
-    return _sides(*_mean_areas(P, Q, budget, unsampled), max(int(budget), MIN_RES * MIN_RES * len(P)))
+    C_k = 2 sqrt(P_k Q_k). Minimising sum_k C_k / A_k under sum_k A_k = T (Lagrange: C_k / A_k^2
+    equal) gives A_k = T sqrt(C_k) / S, S = sum_j sqrt(C_j), and the value S^2 / T (objective_mean).
+    Maps with C_k = 0 share the budget equally when every map has C_k = 0; else they get MIN_RES."""
+    area, aspect = _mean_areas(P, Q, budget)
+    return _sides(area, aspect, max(int(budget), MIN_RES * MIN_RES * len(area)))
 
 
-def _mean_areas(P, Q, budget, unsampled=None):
+def objective_mean(P, Q, budget: int) -> float:
+    """The value allocate_mean's areas reach before rounding: (sum_k sqrt(2 sqrt(P_k Q_k)))^2 / T."""
+    C = _terms(P, Q)[0]
+    return float(np.sum(np.sqrt(C))) ** 2 / float(budget)
+
+
+def with_receivers(P, Q, W, Pr, Qr, N):
+    """The terms of allocate_mean for the samples' mean h plus the receivers' mean h (each cascade's
+    receivers treated as facing the camera and the light: Pr, Qr their means, N_k the cascade's share
+    of the receivers), so that the texels follow all receivers beside the boundary samples (issue 10
+    item 4): the samples are the shadow boundaries the coarse pass saw, and a cascade they miss or
+    under-represent would get next to no texels, whose size and depth bias then lose shadows.
+    The receivers' term is put on the samples' scale by kappa = sum_k C_k / sum_k W_k c_k over the
+    sampled cascades (the pooled ratio of the samples' mean h to the receivers' in the same cascades,
+    W_k the cascade's share of the sample weight, c_k = 2 sqrt(Pr_k Qr_k); 1 without samples): where
+    the samples are the receivers (a view with no boundary) both terms agree and the allocation is
+    that of the samples alone. Returns (P', Q') = (P + kappa N Pr, Q + kappa N Qr)."""
+    P, Q, W, Pr, Qr, N = (np.nan_to_num(np.asarray(v, dtype=np.float64), nan=0.0) for v in (P, Q, W, Pr, Qr, N))
+    C, c = _terms(P, Q)[0], _terms(Pr, Qr)[0]
+    den = float(np.sum((W * c)[C > 0]))
+    kappa = float(np.sum(C)) / den if den > 0 and np.sum(C) > 0 else 1.0
+    return P + kappa * N * Pr, Q + kappa * N * Qr
+
+
+def _terms(P, Q):
     P = np.maximum(np.nan_to_num(np.asarray(P, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
     Q = np.maximum(np.nan_to_num(np.asarray(Q, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
-    n = len(P)
-    budget = max(int(budget), MIN_RES * MIN_RES * n)
-    free = np.zeros(n, bool) if unsampled is None else np.asarray(unsampled, bool)
-    C = 2.0 * np.sqrt(P * Q)
-    S = float(np.sum(np.sqrt(C[~free])))
-    den = S * S + float(np.sum(C[free]))
-    if den > 0:
-        area = np.where(free, C * budget / den, np.sqrt(C) * S * budget / den)
-    else:
-        area = np.full(n, budget / n)
     with np.errstate(divide="ignore", invalid="ignore"):
         aspect = np.where((P > 0) & (Q > 0), np.sqrt(P / Q), 1.0)
-    return area, aspect
+    return 2.0 * np.sqrt(P * Q), aspect
 
 
-def objective_mean(P, Q, budget: int, unsampled=None) -> float:
-    """The value allocate_mean's areas reach before rounding: (S^2 + sum_f c_f) / T (see there)."""
-    P = np.maximum(np.nan_to_num(np.asarray(P, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
-    Q = np.maximum(np.nan_to_num(np.asarray(Q, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
-    free = np.zeros(len(P), bool) if unsampled is None else np.asarray(unsampled, bool)
-    C = 2.0 * np.sqrt(P * Q)
-    S = float(np.sum(np.sqrt(C[~free])))
-    return (S * S + float(np.sum(C[free]))) / float(budget)
+def _mean_areas(P, Q, budget):
+    C, aspect = _terms(P, Q)
+    n = len(C)
+    T = float(max(int(budget), MIN_RES * MIN_RES * n))
+    S = float(np.sum(np.sqrt(C)))
+    area = T * np.sqrt(C) / S if S > 0 else np.full(n, T / n)
+    return np.maximum(area, MIN_RES * MIN_RES), aspect
 
 
 def mean_terms(smap, samples, origin=None) -> tuple[float, float]:

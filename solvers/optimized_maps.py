@@ -11,7 +11,7 @@ import numpy as np
 
 from .baselines import _with_bias, fit_baseline, texel_extents
 from .cameras import Camera
-from .cascades import allocate_mean, mean_terms, pixel_world_size
+from .cascades import allocate_mean, mean_terms, pixel_world_size, with_receivers
 from .lights import DirectionalLight
 from .metric import serial_kernels
 from .optimize import DEFAULT_METHOD, METHODS, Problem, minimize, optimizable, single_map_spot
@@ -69,26 +69,41 @@ def receiver_terms(smap, pts: np.ndarray, camera: Camera, light) -> tuple[float,
     return float(np.mean(p)), float(np.mean(q))
 
 
-def cascade_terms(maps, subs, parts, camera, light, total_weight: float):
-    """Per cascade, (P, Q, unsampled) for solvers.cascades.allocate_mean: from its samples (weights
-    over the light's total) or, for a cascade no sample reaches, from its receivers."""
-    P, Q, free = [], [], []
+def cascade_terms(maps, subs, parts, camera, light, total_weight: float, shares=None):
+    """Per cascade, (P, Q) for solvers.cascades.allocate_mean: the samples' terms (weights over the
+    light's total) plus the receivers' (cascades.with_receivers; `shares`: each cascade's share of
+    the receivers, default from len(parts))."""
+    P, Q, W, Pr, Qr = [], [], [], [], []
     for smap, sub, pts in zip(maps, subs, parts):
-        if len(sub):
-            p, q = mean_terms(smap, sub, camera.position)
-            p, q = p / total_weight, q / total_weight
-        else:
-            p, q = receiver_terms(smap, pts, camera, light)
-        P.append(p), Q.append(q), free.append(not len(sub))
-    return P, Q, free
+        p, q = mean_terms(smap, sub, camera.position) if len(sub) else (0.0, 0.0)
+        P.append(p / total_weight), Q.append(q / total_weight)
+        W.append(float(np.sum(sub.weight)) / total_weight if len(sub) else 0.0)
+        pr, qr = receiver_terms(smap, pts, camera, light)
+        Pr.append(pr), Qr.append(qr)
+    if shares is None:
+        n = np.array([len(p) for p in parts], float)
+        shares = n / max(n.sum(), 1.0)
+    if not all(math.isfinite(v) for v in P + Q + Pr + Qr):
+        return None  # a sample or receiver outside a map
+    return with_receivers(P, Q, W, Pr, Qr, shares)
 
 
-def _reallocate(maps, subs, parts, camera, light, budget, total_weight, also=None) -> None:
+def _depth_shares(maps, depth: np.ndarray) -> np.ndarray:
+    """Each cascade's share of the receivers by view depth (the cascade that serves them)."""
+    from .shadow_map import map_for_depth
+
+    if not len(depth):
+        return np.full(len(maps), 1.0 / max(len(maps), 1))
+    idx = map_for_depth(maps, depth)
+    return np.bincount(idx[idx >= 0], minlength=len(maps))[:len(maps)] / float(len(depth))
+
+
+def _reallocate(maps, subs, parts, camera, light, budget, total_weight, shares, also=None) -> None:
     """Set each cascade's resolution to allocate_mean's for `maps`, and the same on the maps in also[k]."""
-    P, Q, free = cascade_terms(maps, subs, parts, camera, light, total_weight)
-    if not all(math.isfinite(v) for v in P + Q):
+    terms = cascade_terms(maps, subs, parts, camera, light, total_weight, shares)
+    if terms is None:
         return  # a sample or receiver outside a map: keep the allocation it was scored at
-    for k, r in enumerate(allocate_mean(P, Q, budget, free)):
+    for k, r in enumerate(allocate_mean(*terms, budget)):
         for m in [maps[k]] + (also[k] if also else []):
             if m.face is None:
                 m.resolution = r
@@ -156,6 +171,7 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
     by_mean = bool(texel_budget) and isinstance(light, DirectionalLight) and len(ref) > 1
     subs = []
     total_w = max(float(np.sum(samples.weight)), 1e-300)
+    shares = _depth_shares(ref, depth)
     for rmap in ref:
         sel_s = (samples.view_depth >= rmap.split[0]) & (samples.view_depth <= rmap.split[1])
         subs.append((sel_s, samples if sel_s.all() else samples.subset(sel_s)))
@@ -170,7 +186,7 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
                   else {m: receiver_h(maps[k], pts, camera, light) for m, maps in per_method.items()})
             firsts.append(per_method[min(sc, key=sc.get)][k])
         _reallocate(firsts, [sub for _, sub in subs], bias_points["focused"], camera, light, texel_budget, total_w,
-                    [[maps[k] for maps in per_method.values()] + [ref[k]] for k in range(len(ref))])
+                    shares, [[maps[k] for maps in per_method.values()] + [ref[k]] for k in range(len(ref))])
     for k, rmap in enumerate(ref):
         lo, hi = rmap.split
         sel_s, sub = subs[k]
@@ -240,7 +256,7 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
         out_maps.append(best_map)
         info.append(entry)
     if by_mean:  # the final maps' own allocation (exact for their matrices: h = p / w^2 + q / h^2)
-        _reallocate(out_maps, [sub for _, sub in subs], kept, camera, light, texel_budget, total_w)
+        _reallocate(out_maps, [sub for _, sub in subs], kept, camera, light, texel_budget, total_w, shares)
         for m, e, (_, sub) in zip(out_maps, info, subs):
             e["resolution"] = list(m.resolution)
             if len(sub):

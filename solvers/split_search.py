@@ -4,9 +4,9 @@ The objective is the one the solution predicts (solvers.metric: the weighted mea
 Gortler's h over the light's samples, each sample scored on the cascade serving its view depth),
 evaluated on a cheap per-cascade map (LiSPSM, or the method given) so that a split candidate costs
 one fit and one metric pass per cascade. With a texel budget the candidate is scored at the
-allocation the returned maps get (solvers.cascades.allocate_mean, the closed-form optimum
-(S^2 + sum_f c_f) / T of objective_mean, which also charges cascades no sample reaches the texels
-they are given), not at LiSPSM's own eq. 83 allocation. The objective is piecewise (a sample jumps cascade when a
+allocation the returned maps get (solvers.cascades.allocate_mean of the samples' and the
+receivers' terms, cascades.with_receivers; objective_mean is its value in closed form), not at
+LiSPSM's own eq. 83 allocation. The objective is piecewise (a sample jumps cascade when a
 split crosses it), so the search is derivative-free: NLopt's BOBYQA from the best of the uniform,
 logarithmic and practical (λ = 0.5) splits, over s_i in [0, 1] with z_i = z_n (z_f / z_n)^(s_i)
 (Lloyd et al. 2007 eq. 80's log spacing is s_i = i / k). The optimizer of each cascade's light
@@ -23,7 +23,7 @@ import numpy as np
 from .baselines import fit_baseline
 from .cascades import objective_mean, receiver_depth_range, split_depths
 from .metric import predicted_error
-from .optimized_maps import cascade_terms
+from .optimized_maps import _depth_shares, cascade_terms
 from .samples import Samples
 
 SEARCH_RECEIVERS = 1500  # receivers kept for the search's map fits (the final maps fit all of them)
@@ -69,6 +69,7 @@ def optimize_splits(camera, light, samples: Samples, receivers: np.ndarray, cast
         return z_lo * (z_hi / z_lo) ** np.sort(np.clip(np.asarray(s, float), 0.0, 1.0))
 
     total_w = max(float(np.sum(samples.weight)), 1e-300)
+    depth = (receivers - camera.position) @ camera.forward
 
     def f(s) -> float:
         nonlocal nfev
@@ -83,8 +84,8 @@ def optimize_splits(camera, light, samples: Samples, receivers: np.ndarray, cast
         for m in fitted.maps:
             sel = (samples.view_depth >= m.split[0]) & (samples.view_depth <= m.split[1])
             subs.append(samples.subset(sel))
-        P, Q, free = cascade_terms(fitted.maps, subs, fitted.parts, camera, light, total_w)
-        v = objective_mean(P, Q, texel_budget, free)
+        terms = cascade_terms(fitted.maps, subs, fitted.parts, camera, light, total_w, _depth_shares(fitted.maps, depth))
+        v = objective_mean(*terms, texel_budget) if terms is not None else math.inf
         return v if math.isfinite(v) else 1e300
 
     if k < 2 or len(samples) == 0 or z_hi <= z_lo * (1 + 1e-9):
