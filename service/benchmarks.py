@@ -194,7 +194,7 @@ def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict
     again for a rig of that resolution and its receivers left outside every map counted at full
     resolution by renderers.coverage.outside_pixels (no shadow rays): `outside_hd`, `receivers_hd`,
     `setup_ms_hd`. Skipped when renderers.coverage is absent."""
-    from ..renderers.ground_truth import evaluate_buffers
+    from ..renderers.ground_truth import evaluate_buffers, render_screen
     from ..service.rigs import resolve_rig
     from ..service.solve import maps_from_solution, solve
 
@@ -230,11 +230,12 @@ def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict
                 if outside_pixels is not None and i < hd["lights"]:
                     rig_hd = validate_rig({"camera": {**camera, "resolution": list(hd["screen"])}, "lights": light,
                                            "shadow": c["shadow"]})
-                    if key not in resolved_hd:
-                        resolved_hd[key] = resolve_rig(rig_hd, entry.loaded)
-                    rh = resolved_hd[key]
+                    if key not in resolved_hd:  # the full-resolution primary rays: traced once per sun, every configuration checked on them
+                        rh = resolve_rig(rig_hd, entry.loaded)
+                        resolved_hd[key] = (rh, render_screen(entry.rays, rh.camera, rh.lights[0], shadow_rays=False))
+                    rh, screen_hd = resolved_hd[key]
                     sol_hd = solve(entry, rig_hd, method=c["method"])
-                    cov = outside_pixels(entry.rays, rh.camera, rh.lights[0], maps_from_solution(sol_hd)[0])
+                    cov = outside_pixels(entry.rays, rh.camera, rh.lights[0], maps_from_solution(sol_hd)[0], screen=screen_hd)
                     rec["outside_hd"][part][name].append(int(cov["outside_pixels"]))
                     rec["receivers_hd"][part][name].append(int(cov["receiver_pixels"]))
                     rec["setup_ms_hd"][part][name].append(sol_hd["timings_ms"]["optimize"])
