@@ -65,6 +65,10 @@ def test_errors_image_colours_exactly_the_misclassified_pixels(tmp_path, case):
     # The legend below the picture shows both colours.
     legend = full[H:]
     assert legend.shape[0] > 40 and _is(legend, WRONGLY_SHADOWED).sum() > 50 and _is(legend, WRONGLY_LIT).sum() > 50
+    counted = np.asarray(errors_legend(W, {"wrongly_shadowed_pixels": 1, "wrongly_lit_pixels": 2})).astype(int)
+    drawn = np.asarray(errors_legend(W, ev)).astype(int)  # what evaluate wrote below the picture (4 px gap)
+    assert np.array_equal(legend[4:4 + drawn.shape[0], :W], drawn)
+    assert not np.array_equal(counted, drawn)  # the counts are written in it
     # A texel grid is drawn on the greys only: the coloured pixels stay exactly the misclassified ones.
     gridded = np.asarray(errors_image(gt, grid_every=4)).astype(int)
     assert np.array_equal(_is(gridded, WRONGLY_SHADOWED), wrongly_shadowed)
