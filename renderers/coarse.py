@@ -50,6 +50,37 @@ class FinePoints:
     depth: np.ndarray  # (M,) float64 view depth
     receiver: list[np.ndarray] = field(default_factory=list)  # per light: (M,) facing & in_light
     rays: int = 0  # rays traced (hits or not)
+    grid_shape: tuple = (0, 0)  # the fine corner grid, (factor h + 1, factor w + 1)
+    flat: np.ndarray | None = None  # (M,) each hit's flat index in that grid (row-major)
+    traced: np.ndarray | None = None  # (rays,) flat indices of every traced corner
+
+    def uv(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each hit's screen position in coarse-pixel units (u right, v down; pixel centres at i + 0.5)."""
+        vj, vi = np.divmod(self.flat, self.grid_shape[1])
+        return vi / self.factor, vj / self.factor
+
+    def edges(self, receiver: np.ndarray, continuity: float = DEPTH_CONTINUITY) -> np.ndarray:
+        """(M,) bool: receivers with a 4-neighbour in the fine grid that was traced and is not a
+        receiver, or is one at a view depth more than `continuity` away (corners not traced lie inside
+        coarse pixels without a geometric edge: not an edge)."""
+        H, W = self.grid_shape
+        state = np.ones(H * W, dtype=np.int8)  # 1: not traced
+        state[self.traced] = 0
+        state[self.flat[receiver]] = 2
+        dgrid = np.zeros(H * W, dtype=np.float64)
+        dgrid[self.flat[receiver]] = self.depth[receiver]
+        f = self.flat[receiver]
+        d = self.depth[receiver]
+        col = f % W
+        out = np.zeros(len(f), dtype=bool)
+        for step, ok in ((1, col < W - 1), (-1, col > 0), (W, f + W < H * W), (-W, f - W >= 0)):
+            g = np.where(ok, f + step, f)
+            st = state[g]
+            jump = (st == 2) & (np.abs(dgrid[g] - d) > continuity * np.minimum(dgrid[g], d))
+            out |= ok & ((st == 0) | jump)
+        full = np.zeros(len(receiver), dtype=bool)
+        full[receiver] = out
+        return full
 
 
 @dataclass
@@ -293,7 +324,8 @@ def fine_points(rs: RayScene, camera: Camera, lights: list[Light], hit: np.ndarr
     vj, vi = np.nonzero(grid)
     n = len(vj)
     if n == 0:
-        return FinePoints(f, np.zeros((0, 3)), np.zeros((0, 3), np.float32), np.zeros(0), [np.zeros(0, bool)] * len(lights))
+        return FinePoints(f, np.zeros((0, 3)), np.zeros((0, 3), np.float32), np.zeros(0), [np.zeros(0, bool)] * len(lights),
+                          0, grid.shape, np.zeros(0, np.int64), np.zeros(0, np.int64))
     size = 1 << int(np.ceil(np.log2(max(n, 1024))))
     u = np.resize(vi / f, size)  # coarse-pixel units, 0 .. w (the grid's corners)
     v = np.resize(vj / f, size)
@@ -320,4 +352,5 @@ def fine_points(rs: RayScene, camera: Camera, lights: list[Light], hit: np.ndarr
     nn = _vec_to_numpy(nrm, np.float32)[:n][keep]
     dep = (pos - camera.position) @ camera.forward
     rec = [(np.array(fac, dtype=bool)[:n] & np.array(inl, dtype=bool)[:n])[keep] for _, fac, inl in tests]
-    return FinePoints(f, pos, nn, dep, rec, n)
+    traced = vj.astype(np.int64) * grid.shape[1] + vi
+    return FinePoints(f, pos, nn, dep, rec, n, grid.shape, traced[keep], traced)

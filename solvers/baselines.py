@@ -72,14 +72,15 @@ import numpy as np
 from .cameras import Camera
 from .cascades import allocate, critical_factors, pixel_world_size, receiver_depth_range, split_depths
 from .fitting import (box_corners, depth_range, extent_floor, frustum, light_plane_hull, min_area_rectangle, ortho, padded,
-                      rotation_z, to_view)
+                      rotation_z, texel_margin, to_view)
 from .light_frames import CUBE_FACES, cube_face_views, directional_view, look_matrix, perpendicular_up, spot_view
 from .lights import DirectionalLight, PointLight, SpotLight
-from .shadow_map import ShadowMap
+from .shadow_map import LogWarp, ShadowMap
 from .warp import MAX_N_OVER_DEPTH, NO_WARP_SIN, eta_from_n_prime, eta_shaping, gamma_deg, lispsm_n, log_warp, n_prime_from_eta, warp_matrix
 
 METHODS = ("uniform", "focused", "lispsm", "logpsm")
-PAD = 0.005  # fraction of the fitted extent added on each side (sub-sampled receivers)
+PAD_TEXELS = 1.0  # map-space margin: texels kept outside the fitted receivers on each side, after the warp (fitting.texel_margin)
+PAD = 0.005  # the former world-space fraction, kept for importers (solvers.optimize's spot fit); the baselines pad in texels
 BIAS_CONSTANT_TEXELS = 1.5
 BIAS_SLOPE_TEXELS = 1.0
 SPOT_AS_CUBE_DEG = 80.0
@@ -187,17 +188,21 @@ def _fit_ortho(view: np.ndarray, fit_pts: np.ndarray, depth_pts: np.ndarray, res
             angle += math.pi / 2  # the longer side to the larger map dimension
     view = rotation_z(angle) @ view
     v = to_view(view, fit_pts)
-    lo, hi = padded(v[:, :2].min(0), v[:, :2].max(0), PAD, _min_extent(v[:, :2]))
+    lo, hi = texel_margin(v[:, :2].min(0), v[:, :2].max(0), resolution, PAD_TEXELS, _min_extent(v[:, :2]))
     d = -to_view(view, depth_pts)[:, 2]
     near, far = depth_range(d, 0.01, _min_extent(d))
     return view, ortho(lo[0], hi[0], lo[1], hi[1], near, far), (near, far)
 
 
-def _fit_warped(view: np.ndarray, receivers: np.ndarray, depth_pts: np.ndarray, n_prime: float):
+def _fit_warped(view: np.ndarray, receivers: np.ndarray, depth_pts: np.ndarray, n_prime: float, resolution,
+                pad_t: bool = True):
     """Perspective warp along light-view +Y (LiSPSM frame) with its centre n' before the receivers,
-    then an orthographic fit in warped space. Returns (projection, (y0, y1), light_depth)."""
+    then an orthographic fit in warped space, padded there by PAD_TEXELS texels (fitting.texel_margin:
+    after the warp, so the margin is a margin of texels at the dense end too; pad_t=False leaves t
+    unpadded, for a log warp that pads after itself). [y0, y1] is the receivers' own extent along the
+    warp axis (at least the extent floor). Returns (projection, (y0, y1), light_depth)."""
     v = to_view(view, receivers)
-    y0, y1 = padded(v[:, 1].min(keepdims=True), v[:, 1].max(keepdims=True), PAD, _min_extent(v[:, 1:2]))
+    y0, y1 = padded(v[:, 1].min(keepdims=True), v[:, 1].max(keepdims=True), 0.0, _min_extent(v[:, 1:2]))
     y0, y1 = float(y0[0]), float(y1[0])
     yc = y0 - n_prime
     W = warp_matrix(yc)
@@ -210,8 +215,10 @@ def _fit_warped(view: np.ndarray, receivers: np.ndarray, depth_pts: np.ndarray, 
     X, Z = wp[:, 0] / wp[:, 3], wp[:, 2] / wp[:, 3]
     rx = v[:, 0] - 0.0
     Xr = rx / (v[:, 1] - yc)
-    xlo, xhi = padded(Xr.min(keepdims=True), Xr.max(keepdims=True), PAD, _min_extent(Xr[:, None]))
+    xlo, xhi = texel_margin(Xr.min(keepdims=True), Xr.max(keepdims=True), resolution[0], PAD_TEXELS, _min_extent(Xr[:, None]))
     Ylo, Yhi = -1.0 / (y0 - yc), -1.0 / (y1 - yc)
+    if pad_t:
+        (Ylo,), (Yhi,) = texel_margin(np.array([Ylo]), np.array([Yhi]), resolution[1], PAD_TEXELS, 0.0)
     near, far = float((-Z).min()), float((-Z).max())
     span = max(far - near, 1e-9 * max(abs(near), abs(far), 1.0))
     proj = ortho(float(xlo[0]), float(xhi[0]), Ylo, Yhi, near - 0.01 * span, far + 0.01 * span) @ W
@@ -253,13 +260,23 @@ def _directional_map(method: str, camera: Camera, light: DirectionalLight, recei
         smap = ShadowMap(v, proj, tuple(resolution), light_depth=ld, warp_kind="none",
                          eta=-1.0 if method in ("lispsm", "logpsm") else None)
     else:
-        proj, (y0, y1), ld = _fit_warped(view, receivers, depth_pts, warp_n)
+        use_log = method == "logpsm" and allow_log
+        proj, (y0, y1), ld = _fit_warped(view, receivers, depth_pts, warp_n, resolution, pad_t=not use_log)
         smap = ShadowMap(view, proj, tuple(resolution), light_depth=ld, warp_kind="perspective",
                          eta=eta if eta is not None else 0.0, n_prime=float(warp_n))
-        if method == "logpsm" and allow_log:
-            smap.log_warp = log_warp(y1 - y0, warp_n)
+        if use_log:
+            smap.log_warp = _padded_log(log_warp(y1 - y0, warp_n), resolution[1])
             smap.warp_kind = "log"
     return smap
+
+
+def _padded_log(lw: LogWarp, texels: int) -> LogWarp:
+    """The log warp's t' padded after itself by PAD_TEXELS texels: t'' = (t' + p) / (1 + 2p),
+    p = margin / (n - 2 margin), which is again c0'' log(c1'' t + c2''), c0'' = c0 / (1 + 2p) and
+    c1'', c2'' = e^(p / c0) (c1, c2)."""
+    p = PAD_TEXELS / max(texels - 2.0 * PAD_TEXELS, 1.0)
+    k = math.exp(p / lw.c0)
+    return LogWarp(lw.c0 / (1.0 + 2.0 * p), lw.c1 * k, lw.c2 * k)
 
 
 # ------------------------------------------------------------------ spot and point lights
@@ -293,7 +310,7 @@ def _spot_map(method: str, light: SpotLight, camera: Camera, receivers: np.ndarr
         view = rotation_z(angle) @ view
         v = to_view(view, receivers)
         proj2 = np.clip(v[:, :2] / np.maximum(-v[:, 2], near)[:, None], -tan_c * 1.5, tan_c * 1.5)
-        lo, hi = padded(proj2.min(0), proj2.max(0), PAD, 1e-4)
+        lo, hi = texel_margin(proj2.min(0), proj2.max(0), resolution, PAD_TEXELS, 1e-4)
     return ShadowMap(view, frustum(lo[0] * near, hi[0] * near, lo[1] * near, hi[1] * near, near, far),
                      tuple(resolution), light_depth=(near, far))
 

@@ -95,6 +95,18 @@ def padded(lo: np.ndarray, hi: np.ndarray, frac: float, floor: float) -> tuple[n
     return lo - pad, hi + pad
 
 
+def texel_margin(lo: np.ndarray, hi: np.ndarray, texels, margin: float, floor: float) -> tuple[np.ndarray, np.ndarray]:
+    """Grow a box in map space (after the warp: s, t are affine in its coordinates) so that `margin`
+    texels of an axis of `texels` texels lie outside it on each side: the box takes n - 2 margin texels,
+    pad = size margin / (n - 2 margin); each dimension at least `floor`. Padding here, not in world space
+    before a warp, keeps the margin a margin of texels at both ends of a warped map."""
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    n = np.broadcast_to(np.asarray(texels, dtype=np.float64), lo.shape)
+    size = np.maximum(hi - lo, floor)
+    pad = size * margin / np.maximum(n - 2.0 * margin, 1.0) + (floor - (hi - lo)).clip(min=0) / 2 + 1e-12 * size
+    return lo - pad, hi + pad
+
+
 def padded_range(lo: float, hi: float, frac: float, floor: float) -> tuple[float, float]:
     """padded() for one dimension in Python floats (the same operations; the optimizer's inner loop)."""
     size = hi - lo

@@ -14,7 +14,7 @@ from shadowopt.renderers.scene_data import LoadedScene, SceneGeometry
 from shadowopt.service.evaluation import evaluate_solution
 from shadowopt.service.scenes import SceneEntry
 from shadowopt.service.solve import maps_from_solution, solve
-from shadowopt.solvers.baselines import baseline
+from shadowopt.solvers.baselines import PAD_TEXELS, baseline
 from shadowopt.solvers.cameras import Camera
 from shadowopt.solvers.fitting import box_corners, min_area_rectangle
 from shadowopt.solvers.frames import stage_to_world
@@ -519,25 +519,35 @@ def test_logpsm_log_warp_matches_eq_78():
     m = baseline("logpsm", cam, DirectionalLight.make([0, -1, 0]), pts, BOUNDS)[0]
     assert m.warp_kind == "log" and m.eta == 1.0 and m.log_warp is not None and m.n_prime > 0
     lw, a = m.log_warp, m.n_prime
-    assert lw.c2 == 1.0
+    # padded after the log warp by PAD_TEXELS texels: t'' = (t' + q) / (1 + 2q), q = margin / (n - 2 margin),
+    # t' = eq. 78's c0 log(c1 t_p + c2) with c2 = 1; folded, c2'' = e^(q / c0) and c0'' = c0 / (1 + 2q)
+    q = PAD_TEXELS / (m.resolution[1] - 2 * PAD_TEXELS)
+    c0 = lw.c0 * (1 + 2 * q)
+    assert lw.c2 == pytest.approx(math.exp(q / c0), rel=1e-12)
     p = dataclasses.replace(m, log_warp=None, warp_kind="perspective")
     _, tp, _, _ = p.map_coords(pts)
     y = (pts @ m.view[:3, :3].T + m.view[:3, 3])[:, 1]  # light-view coordinate along the warp axis
     # eq. 78's note: c1 t_p + c2 = (y0 + a)/(y + a), i.e. its reciprocal is linear in y with slope
     # 1/(y0 + a), a = n' measured from the map's near end y0 (where t_p = 0 and the reciprocal is 1)
-    r = 1.0 / (lw.c1 * tp + lw.c2)
+    r = lw.c2 / (lw.c1 * tp + lw.c2)
     slope, icpt = np.polyfit(y, r, 1)
     assert np.abs(r - (slope * y + icpt)).max() <= 1e-9 * np.abs(r).max()
     y0 = (1.0 - icpt) / slope
     assert 1.0 / slope == pytest.approx(a, rel=1e-9)
-    assert y0 <= y.min() and y.min() - y0 < 0.01 * np.ptp(y)  # the map starts at the receivers (padding only)
+    assert y0 == pytest.approx(y.min(), abs=1e-9 * np.ptp(y))  # the perspective part starts at the receivers: no world-space pad
     _, t, _, _ = m.map_coords(pts)
     order = np.argsort(y)
     assert np.all(np.diff(t[order]) >= -1e-12) and t.min() >= 0 and t.max() <= 1  # monotone over the receivers
-    assert t == pytest.approx(np.log((y - y0 + a) / a) * -lw.c0, abs=1e-9)  # t = log((y+a)/(y0+a)) / log((y1+a)/(y0+a))
-    # allow_log=False: the same perspective part, no log
-    q = baseline("logpsm", cam, DirectionalLight.make([0, -1, 0]), pts, BOUNDS, allow_log=False)[0]
-    assert q.warp_kind == "perspective" and q.log_warp is None and np.allclose(q.projection, m.projection)
+    t_log = np.log((y - y0 + a) / a) * -c0  # t' = log((y+a)/(y0+a)) / log((y1+a)/(y0+a))
+    assert t == pytest.approx((t_log + q) / (1 + 2 * q), abs=1e-9)
+    assert t.min() * m.resolution[1] == pytest.approx(PAD_TEXELS, abs=1e-6)  # one texel free at each end
+    assert (1 - t.max()) * m.resolution[1] == pytest.approx(PAD_TEXELS, abs=1e-6)
+    # allow_log=False: the same warp, its perspective t padded by the same margin in map space
+    qm = baseline("logpsm", cam, DirectionalLight.make([0, -1, 0]), pts, BOUNDS, allow_log=False)[0]
+    assert qm.warp_kind == "perspective" and qm.log_warp is None and qm.n_prime == pytest.approx(a)
+    _, tq, _, _ = qm.map_coords(pts)
+    assert tq.min() * qm.resolution[1] == pytest.approx(PAD_TEXELS, abs=1e-6)
+    assert (1 - tq.max()) * qm.resolution[1] == pytest.approx(PAD_TEXELS, abs=1e-6)
 
 
 def test_logp_params_endpoints():
@@ -568,3 +578,31 @@ def test_cube_faces_cover_every_direction_and_light_frames_are_orthonormal():
     assert v[:3, :3] @ o + v[:3, 3] == pytest.approx(np.zeros(3), abs=1e-9)
     s = spot_view(SpotLight.make([0, 5, 0], [0, -1, 0], 30), _cam())
     assert s @ np.array([0, 0, 0, 1.0]) == pytest.approx([0, 0, -5, 1])
+
+
+def _plane_points(cam: Camera, grid) -> np.ndarray:
+    """Where the rays through a grid of the camera's pixels meet the plane y = 0 (within the far plane)."""
+    d = cam.ray_directions(*grid).reshape(-1, 3)
+    with np.errstate(divide="ignore"):
+        t = -cam.position[1] / d[:, 1]
+    pts = cam.position + t[(t > 0) & np.isfinite(t), None] * d[(t > 0) & np.isfinite(t)]
+    return pts[(pts - cam.position) @ cam.forward < cam.far]
+
+
+@pytest.mark.parametrize("height, pitch_deg", [(2.0, 44.0), (0.05, 30.0), (1.7, 1.4)])
+@pytest.mark.parametrize("sun", [(0.0, -1.0, 0.0), (0.866, -0.5, 0.0), (0.3, -0.5, 0.8)])
+def test_warped_baselines_pad_in_map_space(height, pitch_deg, sun):
+    """Issue 10, fair baselines: the map's rows and columns outside the receivers' extent are the
+    PAD_TEXELS margin and nothing more (world-space padding before the warp left up to 15% of a
+    LiSPSM map's rows and 83% of LogPSM's perspective part unused with the camera 5 cm above the plane)."""
+    cam = Camera.look_at([0, height, 0], [0, height - math.tan(math.radians(pitch_deg)), 1], near=0.01, far=1000,
+                         resolution=(512, 512))
+    pts = _plane_points(cam, (512, 512))
+    light = DirectionalLight.make(sun)
+    for method, allow_log in (("focused", True), ("lispsm", True), ("logpsm", True), ("logpsm", False)):
+        m = baseline(method, cam, light, pts, None, (400, 400), allow_log=allow_log)[0]
+        s, t, _, _ = m.map_coords(pts)
+        i, j = np.floor(s * 400).astype(int), np.floor(t * 400).astype(int)
+        assert i.min() >= 0 and j.min() >= 0 and i.max() < 400 and j.max() < 400
+        unused_cols, unused_rows = 1 - (np.ptp(i) + 1) / 400, 1 - (np.ptp(j) + 1) / 400
+        assert max(unused_cols, unused_rows) <= 0.01, (method, m.warp_kind, unused_cols, unused_rows)
