@@ -75,26 +75,43 @@ def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds=Non
             slacks.append(np.zeros(int(fine_receivers.sum())))
     rows, cols = np.nonzero(edge)
     if len(rows):
-        p = buffers.position[rows, cols]
-        n = buffers.normal[rows, cols].astype(np.float64)
-        dist = np.linalg.norm(p - camera.position, axis=1)
-        th = camera.tan_half_fov_y
-        tw = th * camera.aspect
-        a = np.array([-EDGE_REACH, -EDGE_REACH, EDGE_REACH, EDGE_REACH])
-        b = np.array([-EDGE_REACH, EDGE_REACH, -EDGE_REACH, EDGE_REACH])
-        x = ((cols[:, None] + 0.5 + a) * (2.0 / buffers.width) - 1.0) * tw  # (E, 4)
-        y = (1.0 - (rows[:, None] + 0.5 + b) * (2.0 / buffers.height)) * th
-        d = camera.forward + x[..., None] * camera.right + y[..., None] * camera.up
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        nd = np.sum(n[:, None] * d, axis=-1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = np.sum(n * (p - camera.position), axis=1)[:, None] / nd  # ray-plane distance
-        ok = np.isfinite(s) & (s > 0)
-        s = np.where(ok, np.clip(s, dist[:, None] / REACH_DEPTH_FACTOR, dist[:, None] * REACH_DEPTH_FACTOR),
-                     dist[:, None])
-        parts.append((camera.position + s[..., None] * d).reshape(-1, 3))
-        slacks.append(np.zeros(4 * len(rows)))
+        parts.append(tangent_reach(camera, buffers, cols + 0.5, rows + 0.5, buffers.position[rows, cols],
+                                   buffers.normal[rows, cols], EDGE_REACH))
+        slacks.append(np.zeros(len(parts[-1])))
+    if fine is not None and fine_receivers is not None and fine_receivers.any():
+        # the edge pass's own edges: its receivers next to a non-receiver or a depth jump, reached one
+        # fine step (the full-resolution pixels between two fine rays) along their planes
+        e = fine.edges(fine_receivers)
+        if e.any():
+            u, v = fine.uv()
+            parts.append(tangent_reach(camera, buffers, u[e], v[e], fine.position[e], fine.normal[e], 1.0 / fine.factor))
+            slacks.append(np.zeros(len(parts[-1])))
     return np.vstack(parts), np.concatenate(slacks)
+
+
+def tangent_reach(camera, buffers: CoarseBuffers, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np.ndarray,
+                  reach: float) -> np.ndarray:
+    """(4 E, 3): where the rays through the screen points (u +- reach, v +- reach) (coarse-pixel units,
+    u right, v down) meet the tangent planes of the hits p (normals n), the distance along each ray kept
+    within REACH_DEPTH_FACTOR of the hit's distance (the hit's distance itself where the plane is
+    parallel or behind: the footprint at that depth). On a plane the full-resolution receivers within
+    `reach` of the screen point lie in the hull of these four points."""
+    n = np.asarray(n, dtype=np.float64)
+    dist = np.linalg.norm(p - camera.position, axis=1)
+    th = camera.tan_half_fov_y
+    tw = th * camera.aspect
+    a = np.array([-reach, -reach, reach, reach])
+    b = np.array([-reach, reach, -reach, reach])
+    x = ((u[:, None] + a) * (2.0 / buffers.width) - 1.0) * tw  # (E, 4): Camera.ray_directions' convention
+    y = (1.0 - (v[:, None] + b) * (2.0 / buffers.height)) * th
+    d = camera.forward + x[..., None] * camera.right + y[..., None] * camera.up
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    nd = np.sum(n[:, None] * d, axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.sum(n * (p - camera.position), axis=1)[:, None] / nd  # ray-plane distance
+    ok = np.isfinite(s) & (s > 0)
+    s = np.where(ok, np.clip(s, dist[:, None] / REACH_DEPTH_FACTOR, dist[:, None] * REACH_DEPTH_FACTOR), dist[:, None])
+    return (camera.position + s[..., None] * d).reshape(-1, 3)
 
 
 def depth_slack(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
