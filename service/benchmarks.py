@@ -6,6 +6,7 @@ to the repository root. Timings are medians of warm runs; the first (compiling) 
 from __future__ import annotations
 
 import json
+import os
 import platform
 import statistics
 import sys
@@ -500,6 +501,15 @@ def _table_outside_hd(stats: dict, part: str, label: str, hd_name: str) -> list[
     return lines
 
 
+def _loadavg() -> float | None:
+    import os
+
+    try:
+        return round(os.getloadavg()[0], 2)
+    except OSError:
+        return None
+
+
 def _read_json(file: Path):
     """A stored scene result, or None when absent or unreadable (another process writing it)."""
     try:
@@ -595,7 +605,7 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
     part_dirs = {p: v for p, v in {"single": dirs, "cascades": dirs[:n_cascades]}.items() if p in configs}
     found, skipped = corpus_scenes(scenes.split(",") if scenes else None)
     spec = {**spec, "cascades_note": qspec["cascades"]["note"]}
-    stats, raw, timing, load_s, reused, other_code = {}, {}, {}, {}, [], {}
+    stats, raw, timing, load_s, reused, other_code, loads = {}, {}, {}, {}, [], {}, {}
     store = Path(store) if store is not None else ROOT / "out" / "bench" / "quality-corpus"
     store.mkdir(parents=True, exist_ok=True)
     total_rigs = sum(len(s["rigs"]) for _, s in found.values())
@@ -609,6 +619,8 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
             old = _read_json(file) if reuse else None
             if old is not None and (old.get("fingerprint") == fp or reuse == "any"):
                 rec, timing[key], triangles = old["rec"], old["wall_s"], old["triangles"]
+                if old.get("loadavg"):
+                    loads[key] = old["loadavg"]
                 load_s.setdefault(name, old.get("load_s"))
                 reused.append(key)
                 if old.get("fingerprint") != fp:
@@ -619,12 +631,13 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
                     cache = SceneCache()
                     entry = cache.get(path)
                     load_s[name] = round(time.perf_counter() - t0, 2)
-                t1 = time.perf_counter()
+                t1, load0 = time.perf_counter(), _loadavg()
                 rec = quality_scene(validate_rig, entry, rig["camera"], screen, part_dirs, configs, bar, hd=hd)
                 timing[key] = round(time.perf_counter() - t1, 1)
+                loads[key] = [load0, _loadavg()]
                 triangles = entry.loaded.geometry.triangle_count
                 _write_atomic(file, json.dumps({"fingerprint": fp, "code": code_state(), "scene": name, "rig": rig_name, "rec": rec,
-                                            "wall_s": timing[key], "load_s": load_s[name], "triangles": triangles,
+                                            "wall_s": timing[key], "load_s": load_s[name], "triangles": triangles, "loadavg": loads[key],
                                             "measured": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}, default=float))
             raw[key] = rec
             stats[key] = {**_scene_stats(rec, dirs, spec), "dirs": dirs.tolist(), "triangles": triangles}
@@ -654,6 +667,11 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
     if other_code:
         head += (" Measured with code other than the current (`--reuse any`; their fingerprint of scene, rig, settings "
                  "and solving/evaluating code differs): " + "; ".join(f"{k} ({v})" for k, v in other_code.items()) + ".")
+    if loads:
+        vals = [x for v in loads.values() for x in v if x is not None]
+        lo_l, hi_l = (min(vals), max(vals)) if vals else (float("nan"), float("nan"))
+        head += (f" Machine load (1-min load average at the start and end of each scene, {os.cpu_count()} cores): "
+                 f"{lo_l:.1f}-{hi_l:.1f}: setup times are wall-clock medians under that load.")
     if hd["lights"]:
         head += (f" Outside pixels at {hd['screen'][0]}x{hd['screen'][1]}: the first {hd['lights']} suns, every "
                  "configuration solved again for a rig of that resolution.")
@@ -674,7 +692,7 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
     out = {"benchmark": "quality-corpus", "machine": machine(), "lights": n, "screen": screen, "map": qspec["map"],
            "cascade_lights": n_cascades, "scenes": stats, "skipped": skipped, "raw": raw,
            "corpus_optimized_over_best_baseline": corpus_ratio, "wall_s": timing, "load_s": load_s, "reused": reused,
-           "other_code": other_code, "calibration": calib, "speed_error": se, "outside_check": hd, "plot": plot_link,
+           "other_code": other_code, "loadavg": loads, "calibration": calib, "speed_error": se, "outside_check": hd, "plot": plot_link,
            "table": table}
     if write:
         cmd = ("shadowopt bench quality --corpus" + (f" --scenes {scenes}" if scenes else "")
