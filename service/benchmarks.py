@@ -330,6 +330,7 @@ def _scene_stats(rec: dict, dirs, spec: dict) -> dict:
              "outside": {m: int(np.sum(v)) for m, v in rec["outside"][part].items()},
              "outside_max": {m: int(np.max(v)) for m, v in rec["outside"][part].items()},
              "setup_ms_p50": {m: float(statistics.median(v)) for m, v in rec["setup_ms"][part].items()},
+             "setup_ms_min": {m: float(np.min(v)) for m, v in rec["setup_ms"][part].items()},
              "run_s_p50": {m: float(statistics.median(v)) for m, v in rec["run_s"][part].items()}}
         pred = np.concatenate([np.asarray(rec["objective"][part][m], float) for m in mis])
         meas = np.concatenate([mis[m] for m in mis])
@@ -784,7 +785,7 @@ def bench_solvers(validate_rig, lights: int = 5, write: bool = True) -> dict:
 
 
 def bench_solvers_corpus(validate_rig, lights: int = 3, scenes: str | None = None, write: bool = True,
-                         log=None, tolerance: float = 0.005) -> dict:
+                         log=None, tolerance: float = 0.005, screen=None) -> dict:
     """Convergence on the corpus (issue 10: within 0.5% of the best objective any solver finds): per
     scene (its first rig at the corpus screen, one map of the corpus's size) and sun, every solver of
     solvers.optimize.METHODS minimizes the same problem; each solver's objective over the lowest any
@@ -798,6 +799,7 @@ def bench_solvers_corpus(validate_rig, lights: int = 3, scenes: str | None = Non
 
     spec = definitions()["quality_corpus"]
     res_map = tuple(spec["map"])
+    screen = list(screen or spec["screen"])
     found, skipped = corpus_scenes(scenes.split(",") if scenes else None)
     dirs = hemisphere_directions(lights, spec["min_elevation_deg"], spec["seed"])
     results, warm = {}, set()
@@ -810,7 +812,7 @@ def bench_solvers_corpus(validate_rig, lights: int = 3, scenes: str | None = Non
         rel = {m: [] for m in METHODS}
         ms = {m: [] for m in METHODS}
         for d in dirs:
-            rig = validate_rig({"camera": {**cam_spec, "resolution": list(spec["screen"])},
+            rig = validate_rig({"camera": {**cam_spec, "resolution": screen},
                                 "lights": [{"type": "directional", "direction": [float(v) for v in d]}],
                                 "shadow": {"resolution": list(res_map), "cascades": 1}})
             resolved, buffers = coarse_pass(entry, rig)
@@ -837,7 +839,7 @@ def bench_solvers_corpus(validate_rig, lights: int = 3, scenes: str | None = Non
         if log:
             log(f"{name}: {len(dirs)} suns x {len(METHODS)} solvers")
     bar.close()
-    lines = [f"Corpus configs/corpus.json, screen {spec['screen'][0]}x{spec['screen'][1]}, one {res_map[0]}x{res_map[1]} map, "
+    lines = [f"Corpus configs/corpus.json, screen {screen[0]}x{screen[1]}, one {res_map[0]}x{res_map[1]} map, "
              f"{lights} suns per scene (seed {spec['seed']}, above {spec['min_elevation_deg']} deg): each solver's objective "
              f"over the lowest any solver reached on the same sun, **worst over the suns** (median in brackets); "
              f"`n/N`: suns within {100 * tolerance:g}% of the best (issue 10's convergence target). Solvers: "

@@ -96,7 +96,8 @@ def speed_error(stats: dict, part: str = "single") -> dict:
         if not p:
             continue
         best = max(min(p["totals"].values()), 1)
-        out[key] = {m: {"setup_ms": p["setup_ms_p50"][m], "misclassified": p["totals"][m],
+        out[key] = {m: {"setup_ms": p["setup_ms_p50"][m], "setup_ms_min": p.get("setup_ms_min", {}).get(m),
+                        "misclassified": p["totals"][m],
                         "vs_best": p["totals"][m] / best} for m in p["totals"]}
     return out
 
@@ -144,12 +145,14 @@ def table_speed_error(se: dict, label: str, plot_link: str | None) -> list[str]:
     if not se:
         return []
     methods = list(next(iter(se.values())))
-    lines = [f"**{label}: speed against error per scene** (median setup ms per light, `timings_ms.optimize`; total "
-             "misclassified over the suns relative to the lowest total of any method on the scene)"
+    lines = [f"**{label}: speed against error per scene** (median setup ms per light, `timings_ms.optimize`, the fastest "
+             "sun in brackets: less sensitive to the machine's load; total misclassified over the suns relative to the "
+             "lowest total of any method on the scene)"
              + (f"; plot: [{plot_link}]({plot_link})" if plot_link else "") + ".", "",
              "| scene | " + " | ".join(f"{m} ms / err" for m in methods) + " |", "|---|" + "---:|" * len(methods)]
     for k, r in se.items():
-        lines.append(f"| {k} | " + " | ".join(f"{r[m]['setup_ms']:.1f} / {r[m]['vs_best']:.2f}" for m in methods) + " |")
+        lines.append(f"| {k} | " + " | ".join(f"{r[m]['setup_ms']:.1f} ({_fmt(r[m].get('setup_ms_min'), '.1f')}) / "
+                                                f"{r[m]['vs_best']:.2f}" for m in methods) + " |")
     return lines
 
 

@@ -125,3 +125,19 @@ def test_bench_quality_corpus_small_run_and_reuse(tmp_path):
     assert second["reused"] == ["closeup"]
     assert second["raw"]["closeup"]["misclassified"] == first["raw"]["closeup"]["misclassified"]
     assert second["scenes"]["closeup"]["single"]["totals"] == s["single"]["totals"]
+
+
+def test_bench_solvers_corpus_scores_against_the_best_solver(monkeypatch):
+    """Each solver's objective over the lowest any solver reached on the same sun: the best solver of
+    every sun scores exactly 1, nobody scores below 1, and `within` counts the suns inside 0.5%."""
+    import shadowopt.solvers.optimize as opt
+    from shadowopt.service.benchmarks import bench_solvers_corpus
+
+    monkeypatch.setattr(opt, "METHODS", ("nlopt:LN_BOBYQA", "nlopt:LN_COBYLA"))
+    out = bench_solvers_corpus(_validate, lights=2, scenes="closeup", write=False, screen=[64, 64])
+    r = out["scenes"]["closeup"]
+    assert set(r) == {"nlopt:LN_BOBYQA", "nlopt:LN_COBYLA"}
+    assert min(v["median_over_best"] for v in r.values()) >= 1.0 - 1e-12
+    assert all(v["worst_over_best"] >= 1.0 - 1e-12 and v["suns"] == 2 for v in r.values())
+    assert all((v["within"] == 2) == (v["worst_over_best"] <= 1.005) for v in r.values())
+    assert "closeup" in out["table"] and "0.5%" in out["table"]
