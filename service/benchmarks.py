@@ -401,9 +401,9 @@ def _mark(ok) -> str:
 
 
 def _tables_corpus(stats: dict, skipped: dict, spec: dict, corpus_ratio, corpus_ok, calib: dict | None = None,
-                   plot_link: str | None = None, hd_screen=None) -> str:
+                   plot_link: dict | None = None, hd_screen=None) -> str:
     t = spec["targets"]
-    calib = calib or {}
+    calib, plot_link = calib or {}, plot_link or {}
     hd_name = f"{hd_screen[0]}x{hd_screen[1]}" if hd_screen else "1920x1080"
     rows_single = [(k, s["single"]) for k, s in stats.items() if "single" in s]
     rows_cas = [(k, s["cascades"]) for k, s in stats.items() if "cascades" in s]
@@ -436,7 +436,8 @@ def _tables_corpus(stats: dict, skipped: dict, spec: dict, corpus_ratio, corpus_
         lines += ["", *quality_report.table_ratio_to_limit(stats, "single", "One map")]
         if calib.get("single"):
             lines += ["", *quality_report.table_calibration(stats, calib["single"], "single", "One map")]
-        lines += ["", *quality_report.table_speed_error(quality_report.speed_error(stats, "single"), "One map", plot_link)]
+        lines += ["", *quality_report.table_speed_error(quality_report.speed_error(stats, "single"), "One map",
+                                                        plot_link.get("single"))]
         lines += ["", f"**One map: the worst suns** (largest excess of optimized over the best of "
                   f"{', '.join(t['baselines'])} on that sun; elevation and azimuth of the light's travel direction).", "",
                   "| scene | sun | elevation | azimuth | optimized | best baseline | boundary pixels |", "|---|---:|---:|---:|---:|---|---:|"]
@@ -461,6 +462,8 @@ def _tables_corpus(stats: dict, skipped: dict, spec: dict, corpus_ratio, corpus_
         lines += ["", *quality_report.table_ratio_to_limit(stats, "cascades", "Four cascades")]
         if calib.get("cascades"):
             lines += ["", *quality_report.table_calibration(stats, calib["cascades"], "cascades", "Four cascades")]
+        lines += ["", *quality_report.table_speed_error(quality_report.speed_error(stats, "cascades"), "Four cascades",
+                                                        plot_link.get("cascades"))]
     cols = [("outside_0", "outside pixels 0"), ("outside_0_hd", f"outside 0 at {hd_name}"),
             ("one_map_vs_best", f"1 map: opt <= {t['one_map_vs_best_baseline']}x best baseline"),
             ("per_sun_bound", f"1 map: no sun > {t['per_sun_factor']}x best + {t['per_sun_pixels']}"),
@@ -679,16 +682,19 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
     else:
         head += " Outside pixels at 1920x1080: not measured (renderers.coverage absent or turned off)."
     calib = {p: quality_report.corpus_calibration(raw, p) for p in configs}
-    se = quality_report.speed_error(stats, "single")
-    plot_link = None
-    if se:
-        plot = Path(plot) if plot is not None else (ROOT / "docs" / "bench" / "quality_corpus_speed_error.png" if write
-                                                     else store / "speed_error.png")
-        quality_report.speed_error_plot(se, plot, "one map: setup ms (log) vs total misclassified / the scene's best (log)")
+    se = {p: quality_report.speed_error(stats, p) for p in configs}
+    plot_link = {}
+    base_plot = Path(plot) if plot is not None else (ROOT / "docs" / "bench" / "quality_corpus_speed_error.png" if write
+                                                      else store / "speed_error.png")
+    for p, what in (("single", "one map"), ("cascades", "4 cascades")):
+        if not se.get(p):
+            continue
+        path_p = base_plot if p == "single" else base_plot.with_name(base_plot.stem + "_cascades" + base_plot.suffix)
+        quality_report.speed_error_plot(se[p], path_p, f"{what}: setup ms (log) vs total misclassified / the scene's best (log)")
         try:
-            plot_link = str(plot.resolve().relative_to(ROOT))
+            plot_link[p] = str(path_p.resolve().relative_to(ROOT))
         except ValueError:
-            plot_link = plot.name
+            plot_link[p] = path_p.name
     table = head + "\n\n" + _tables_corpus(stats, skipped, spec, corpus_ratio, corpus_ok, calib, plot_link, hd["screen"])
     out = {"benchmark": "quality-corpus", "machine": machine(), "lights": n, "screen": screen, "map": qspec["map"],
            "cascade_lights": n_cascades, "scenes": stats, "skipped": skipped, "raw": raw,

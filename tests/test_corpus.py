@@ -116,7 +116,8 @@ def test_bench_quality_corpus_small_run_and_reuse(tmp_path):
         assert s[part]["calibration"]["n"] == len(s[part]["totals"])
         if first["outside_check"]["lights"]:  # renderers.coverage present
             assert s[part]["hd_suns"] == 1 and set(s[part]["outside_hd"]) == set(s[part]["totals"])
-    assert (tmp_path / "speed_error.png").stat().st_size > 0 and "speed against error" in first["table"]
+    assert (tmp_path / "speed_error.png").stat().st_size > 0 and (tmp_path / "speed_error_cascades.png").stat().st_size > 0
+    assert first["table"].count("speed against error") == 2
     assert set(s["single"]["totals"]) == {"uniform", "focused", "lispsm", "logpsm", "optimized"}
     assert len(s["cascades"]["totals"]) == 3 and s["single"]["suns"] == s["cascades"]["suns"] == 1
     assert set(s["verdicts"]) >= {"outside_0", "one_map_vs_best", "per_sun_bound", "cascades", "spearman"}

@@ -101,7 +101,7 @@ def test_old_record_without_limit_prints_dashes_and_hd_counts_when_measured():
     assert new["verdicts"]["outside_0_hd"] is False and old["verdicts"]["outside_0_hd"] is None
     stats = {"old": {**old, "triangles": 1}, "new": {**new, "triangles": 1}}
     raws = {"old": _record(with_limit=False), "new": _record(seed=2, with_hd=True)}
-    text = _tables_corpus(stats, {}, spec, None, None, {"single": qr.corpus_calibration(raws, "single")}, "x.png")
+    text = _tables_corpus(stats, {}, spec, None, None, {"single": qr.corpus_calibration(raws, "single")}, {"single": "x.png"})
     row = next(ln for ln in text.splitlines() if ln.startswith("| old | -"))
     assert row.count("| -") == len(METHODS)  # ratio-to-limit row of the old record
     assert "3 (3)" in next(ln for ln in text.splitlines() if ln.startswith("| new | 2 |"))  # the 1920x1080 row
