@@ -208,7 +208,11 @@ def speed_error_plot(se: dict, path: Path, title: str = "setup ms (log) vs miscl
         for m, r in res.items():
             X, Y = xy(r["setup_ms"], r["vs_best"])
             dr.ellipse([X - 4, Y - 4, X + 4, Y + 4], fill=colour[m], outline="black")
+    import os
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    img.save(path)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}{path.suffix}")  # parallel runs: never a half-written file
+    img.save(tmp)
+    os.replace(tmp, path)
     return path
