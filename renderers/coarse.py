@@ -59,10 +59,12 @@ class FinePoints:
         vj, vi = np.divmod(self.flat, self.grid_shape[1])
         return vi / self.factor, vj / self.factor
 
-    def edges(self, receiver: np.ndarray, continuity: float = DEPTH_CONTINUITY) -> np.ndarray:
-        """(M,) bool: receivers with a 4-neighbour in the fine grid that was traced and is not a
-        receiver, or is one at a view depth more than `continuity` away (corners not traced lie inside
-        coarse pixels without a geometric edge: not an edge)."""
+    def edges(self, receiver: np.ndarray, continuity: float = DEPTH_CONTINUITY) -> tuple[np.ndarray, np.ndarray]:
+        """Per hit, (edge, slack): edge = a receiver with a 4-neighbour in the fine grid that was traced
+        and is not a receiver, or is one at a view depth more than `continuity` away (corners not
+        traced lie inside coarse pixels without a geometric edge: not an edge); slack = the largest
+        view-depth change to a receiver 4-neighbour (full-resolution pixels between fine rays have depths
+        within it: cascade overlap, as service.solve.depth_slack for the coarse pixels). 0 for non-receivers."""
         H, W = self.grid_shape
         state = np.ones(H * W, dtype=np.int8)  # 1: not traced
         state[self.traced] = 0
@@ -73,14 +75,17 @@ class FinePoints:
         d = self.depth[receiver]
         col = f % W
         out = np.zeros(len(f), dtype=bool)
+        slack = np.zeros(len(f))
         for step, ok in ((1, col < W - 1), (-1, col > 0), (W, f + W < H * W), (-W, f - W >= 0)):
             g = np.where(ok, f + step, f)
             st = state[g]
-            jump = (st == 2) & (np.abs(dgrid[g] - d) > continuity * np.minimum(dgrid[g], d))
-            out |= ok & ((st == 0) | jump)
-        full = np.zeros(len(receiver), dtype=bool)
-        full[receiver] = out
-        return full
+            dd = np.abs(dgrid[g] - d)
+            rec = ok & (st == 2)
+            out |= ok & ((st == 0) | (rec & (dd > continuity * np.minimum(dgrid[g], d))))
+            slack = np.where(rec, np.maximum(slack, dd), slack)
+        edge, full_slack = np.zeros(len(receiver), dtype=bool), np.zeros(len(receiver))
+        edge[receiver], full_slack[receiver] = out, slack
+        return edge, full_slack
 
 
 @dataclass

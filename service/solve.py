@@ -66,26 +66,27 @@ def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds=Non
     edge = mask & ~interior
     parts, slacks = [pts], [slack]
     fine = getattr(buffers, "fine", None)
+    use_fine = fine is not None and fine_receivers is not None and bool(fine_receivers.any())
     if fine is not None:
         from ..renderers.coarse import edge_cells
 
         edge &= ~edge_cells(buffers.hit, buffers.depth)
-        if fine_receivers is not None and fine_receivers.any():
-            parts.append(fine.position[fine_receivers])
-            slacks.append(np.zeros(int(fine_receivers.sum())))
+    if use_fine:
+        fine_edge, fine_slack = fine.edges(fine_receivers)
+        parts.append(fine.position[fine_receivers])
+        slacks.append(fine_slack[fine_receivers])
     rows, cols = np.nonzero(edge)
     if len(rows):
         parts.append(tangent_reach(camera, buffers, cols + 0.5, rows + 0.5, buffers.position[rows, cols],
                                    buffers.normal[rows, cols], EDGE_REACH))
-        slacks.append(np.zeros(len(parts[-1])))
-    if fine is not None and fine_receivers is not None and fine_receivers.any():
+        slacks.append(_reach_slack(camera, parts[-1], buffers.depth[rows, cols]))
+    if use_fine and fine_edge.any():
         # the edge pass's own edges: its receivers next to a non-receiver or a depth jump, reached one
         # fine step (the full-resolution pixels between two fine rays) along their planes
-        e = fine.edges(fine_receivers)
-        if e.any():
-            u, v = fine.uv()
-            parts.append(tangent_reach(camera, buffers, u[e], v[e], fine.position[e], fine.normal[e], 1.0 / fine.factor))
-            slacks.append(np.zeros(len(parts[-1])))
+        u, v = fine.uv()
+        parts.append(tangent_reach(camera, buffers, u[fine_edge], v[fine_edge], fine.position[fine_edge],
+                                   fine.normal[fine_edge], 1.0 / fine.factor))
+        slacks.append(_reach_slack(camera, parts[-1], fine.depth[fine_edge]))
     return np.vstack(parts), np.concatenate(slacks)
 
 
@@ -112,6 +113,13 @@ def tangent_reach(camera, buffers: CoarseBuffers, u: np.ndarray, v: np.ndarray, 
     ok = np.isfinite(s) & (s > 0)
     s = np.where(ok, np.clip(s, dist[:, None] / REACH_DEPTH_FACTOR, dist[:, None] * REACH_DEPTH_FACTOR), dist[:, None])
     return (camera.position + s[..., None] * d).reshape(-1, 3)
+
+
+def _reach_slack(camera, reached: np.ndarray, source_depth: np.ndarray) -> np.ndarray:
+    """Slack of tangent_reach's points: the view-depth change from their hit (the pixels between lie
+    within it, so every cascade whose split meets that range fits the point)."""
+    d = (reached - camera.position) @ camera.forward
+    return np.abs(d - np.repeat(np.asarray(source_depth, dtype=np.float64), 4))
 
 
 def depth_slack(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
