@@ -140,6 +140,49 @@ def footprint(P, resolution, log_warp, ds: DeviceSamples):
     return h, dr.maximum(a, b), valid
 
 
+def warped_moments_kernel(P, ds: DeviceSamples):
+    """(Σ w G00, Σ w G01, Σ w G11, Σ w, lost weight) for the 2D map q = (c0/cw, c1/cw) of P (acting on
+    re-centred points): G = (J_q J_q^T)^-1, J_q = dq/dx per full-resolution pixel. For any affine map
+    u = A q + b of those coordinates, J = A J_q and h = ||J^-1||_F^2 = tr(G (A^T A)^-1), so the weighted
+    mean h of every affine part follows from these three sums (solvers.optimize's "objective" fit)."""
+    import drjit as dr
+
+    ad = llvm_ad()
+    X = ds.X
+    rows = [ad.Array3f64(P[4 * i], P[4 * i + 1], P[4 * i + 2]) for i in range(4)]
+    c = [dr.dot(rows[i], X) + P[4 * i + 3] for i in range(4)]
+    cw = c[3]
+    valid = cw > W_FLOOR
+    cw = dr.select(valid, cw, W_FLOOR)
+    inv_w2 = 1.0 / (cw * cw)
+    gs = (rows[0] * cw - c[0] * rows[3]) * inv_w2
+    gt = (rows[1] * cw - c[1] * rows[3]) * inv_w2
+    a, b = dr.dot(gs, ds.dx), dr.dot(gs, ds.dy)
+    cc, d = dr.dot(gt, ds.dx), dr.dot(gt, ds.dy)
+    det = a * d - b * cc
+    ok = valid & (dr.abs(det) > 0.0) & dr.isfinite(det)
+    inv2 = dr.select(ok, 1.0 / dr.select(ok, det * det, 1.0), 0.0)
+    w = dr.select(ok, ds.w, 0.0)
+    return (dr.sum(w * (cc * cc + d * d) * inv2), dr.sum(-w * (a * cc + b * d) * inv2),
+            dr.sum(w * (a * a + b * b) * inv2), dr.sum(w), dr.sum(dr.select(ok, 0.0, ds.w)))
+
+
+def warped_moments(matrix: np.ndarray, ds: DeviceSamples) -> np.ndarray:
+    """warped_moments_kernel of a recentred NumPy matrix as five floats (frozen kernels, replayed)."""
+    import drjit as dr
+
+    if ds.count < 2:
+        out = warped_moments_kernel(matrix_to_device(matrix), ds)
+    else:
+        out = _replay("moments", _moments_of_arrays, matrix, (2.0, 2.0), ds)
+    dr.eval(*out)
+    return np.array([float(v[0]) for v in out])
+
+
+def _moments_of_arrays(P16, res2, X, dx, dy, w):
+    return warped_moments_kernel(_gathered(P16, res2)[0], SimpleNamespace(X=X, dx=dx, dy=dy, w=w))
+
+
 def matrix_to_device(matrix: np.ndarray):
     ad = llvm_ad()
     import drjit as dr

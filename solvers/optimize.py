@@ -42,7 +42,7 @@ from .fitting import (box_corners, convex_hull_2d, extent_floor, light_plane_hul
                       padded, padded_range, rotation_z, to_view)
 from .lights import DirectionalLight, SpotLight
 from .metric import (device_samples, log_to_device, matrix_to_device, objective, objective_value, recentre,
-                     serial_kernels)
+                     serial_kernels, warped_moments)
 from .samples import Samples
 from .shadow_map import ShadowMap
 from .warp import log_warp
@@ -105,7 +105,65 @@ def _robust_difference(fm, f0, fp, h):
     return dp if float(np.sum(dp * dp)) < float(np.sum(dm * dm)) else dm
 
 
-AFFINE_FITS = ("axis", "rectangle", "parallelogram")
+AFFINE_FITS = ("axis", "rectangle", "parallelogram", "objective")
+
+
+def _hull_normals(q: np.ndarray, is_hull: bool):
+    """(hull, unit normals): each hull edge's normal and its perpendicular (2k normals)."""
+    hull = _ccw(q) if is_hull else convex_hull_2d(q)
+    e = _next(hull) - hull
+    length = np.sqrt(e[:, 0] * e[:, 0] + e[:, 1] * e[:, 1])
+    e, length = e[length > 0], length[length > 0]
+    n = np.column_stack([-e[:, 1], e[:, 0]]) / length[:, None]
+    return hull, np.vstack([n, np.column_stack([-n[:, 1], n[:, 0]])])
+
+
+def _objective_affine(q: np.ndarray, G: np.ndarray, resolution, is_hull: bool):
+    """The affine part that minimises the weighted mean h among the parallelograms around q with
+    sides along two of the hull's edge normals or their perpendiculars (the minimum-area
+    parallelogram and every flush rectangle included), both assignments of the two to s and t: with
+    u = A q + b and A = diag(α, β) N (N the two unit normals, α, β texels per unit across the hull's
+    widths), h = tr(Ḡ A^-1 A^-T) = c0ᵀḠc0/α² + c1ᵀḠc1/β², c0, c1 the columns of N^-1, Ḡ the samples'
+    mean (J_q J_q^T)^-1 (solvers.metric.warped_moments). Returns ((i, j) or None, value)."""
+    g00, g01, g11, wsum, lost = (float(v) for v in G)
+    if len(q) < 3 or lost > 0 or not wsum > 0:
+        return None, math.inf
+    hull, n = _hull_normals(q, is_hull)
+    if len(hull) < 3 or len(n) < 2:
+        return None, math.inf
+    g00, g01, g11 = g00 / wsum, g01 / wsum, g11 / wsum
+    proj = hull @ n.T
+    width = proj.max(0) - proj.min(0)
+    W, H = float(resolution[0]), float(resolution[1])
+    a = (W - 2 * PAD_TEXELS) / np.maximum(width, 1e-300)  # texels per unit across each width, along s
+    b = (H - 2 * PAD_TEXELS) / np.maximum(width, 1e-300)  # ... along t
+    ni, nj = n[:, None, :], n[None, :, :]
+    det = ni[..., 0] * nj[..., 1] - ni[..., 1] * nj[..., 0]
+    ok = np.abs(det) > 1e-9
+    det = np.where(ok, det, 1.0)
+    c0x, c0y = nj[..., 1] / det, -nj[..., 0] / det  # N^-1 = [[nj1, -ni1], [-nj0, ni0]] / det
+    c1x, c1y = -ni[..., 1] / det, ni[..., 0] / det
+    q0 = g00 * c0x * c0x + 2 * g01 * c0x * c0y + g11 * c0y * c0y
+    q1 = g00 * c1x * c1x + 2 * g01 * c1x * c1y + g11 * c1y * c1y
+    val = np.where(ok, q0 / (a[:, None] ** 2) + q1 / (b[None, :] ** 2), np.inf)
+    i, j = np.unravel_index(int(np.argmin(val)), val.shape)
+    v = float(val[i, j])
+    return ((int(i), int(j)), v) if math.isfinite(v) else (None, math.inf)
+
+
+def _affine_from_choice(q: np.ndarray, choice, is_hull: bool):
+    """_affine_fit's (C, lo, hi) for the normals `choice` = (i, j) of _hull_normals (the minimum-area
+    parallelogram when choice is None)."""
+    if choice is None:
+        return _affine_fit(q, "parallelogram", (1, 1), is_hull)
+    _, n = _hull_normals(q, is_hull)
+    if max(choice) >= len(n):
+        return _affine_fit(q, "parallelogram", (1, 1), is_hull)
+    a, b = n[choice[0]], n[choice[1]]
+    C = np.eye(4)
+    C[:2, :2] = [a if a[0] >= 0 else -a, b if b[1] >= 0 else -b]  # signs do not change h
+    r = q @ C[:2, :2].T
+    return C, r.min(0), r.max(0)
 
 
 def _padded_box(lo: list, hi: list, resolution) -> tuple[tuple[float, float], tuple[float, float]]:
@@ -194,7 +252,7 @@ class Problem:
 
     def __init__(self, camera: Camera, light: DirectionalLight, samples: Samples, receivers: np.ndarray,
                  casters_bounds, resolution, deadline: float | None = None, gradient: str = "ad",
-                 affine: str = "parallelogram", log: bool = False, fit_points: tuple | None = None):
+                 affine: str = "objective", log: bool = False, fit_points: tuple | None = None):
         if log:  # LogPSM's family: t along the warp axis, the log warp on it, finite differences
             affine, gradient = "axis", "fd"
         if gradient not in ("ad", "fd"):
@@ -212,6 +270,7 @@ class Problem:
         if affine not in AFFINE_FITS:
             raise ValueError(f"affine must be one of {', '.join(AFFINE_FITS)}, got {affine!r}")
         self.affine = affine
+        self.last_choice, self.last_value = None, math.inf
         self.nfev = 0
         self.njev = 0
         self.seen: dict = {}  # f at each point evaluated
@@ -271,8 +330,10 @@ class Problem:
         n_prime = math.inf if abs(u) < 1e-12 else (y1 - y0) / math.expm1(u)
         return view, proj, (float(d.min()), float(-v[:, 2].max())), n_prime
 
-    def _fit(self, x):
-        """(view, projection, fit points and corners in the view) for x = (φ, u)."""
+    def _fit(self, x, choice=None):
+        """(view, projection, fit points and corners in the view) for x = (φ, u). affine="objective":
+        `choice` (the two hull normals of the affine part) as chosen at x, or None to choose it (one
+        metric pass: solvers.metric.warped_moments); the chosen value is left in last_value."""
         phi, u = float(x[0]), float(x[1])
         view = rotation_z(phi) @ self.view0  # warp axis: +Y of the rotated frame
         v = to_view(view, self.fit_pts)
@@ -284,7 +345,15 @@ class Problem:
         near, far = self._depth_range(v, dv, wv, k, y0, y1)
         h = self.n_hull or len(v)
         q = np.column_stack([v[:h, 0] / wv[:h], (v[:h, 1] - y0) / wv[:h]])
-        C, lo, hi = _affine_fit(q, self.affine, self.resolution, self.n_hull > 0)
+        if self.affine == "objective":
+            if choice is None:
+                G = warped_moments(recentre(W @ view, self.ds.origin), self.ds)
+                self.nfev += 1
+                choice, self.last_value = _objective_affine(q, G, self.resolution, self.n_hull > 0)
+            C, lo, hi = _affine_from_choice(q, choice, self.n_hull > 0)
+            self.last_choice = choice
+        else:
+            C, lo, hi = _affine_fit(q, self.affine, self.resolution, self.n_hull > 0)
         (s0, s1), (t0, t1) = _padded_box(lo.tolist(), hi.tolist(), self.resolution)
         span = max(far - near, 1e-9 * max(abs(near), abs(far), 1.0))
         proj = ortho(s0, s1, t0, t1, near - 0.01 * span, far + 0.01 * span) @ C @ W
@@ -314,8 +383,8 @@ class Problem:
                 lo.append(float((dv[:, 2] / w).min()))
         return -max(hi), -min(lo)
 
-    def matrix(self, x) -> np.ndarray:
-        view, proj, _, _ = self._fit(x)
+    def matrix(self, x, choice=None) -> np.ndarray:
+        view, proj, _, _ = self._fit(x, choice)
         return recentre(proj @ view, self.ds.origin)
 
     def map_for(self, x) -> ShadowMap:
@@ -374,6 +443,10 @@ class Problem:
         return self._record(x, self.seen[key])
 
     def _evaluate(self, x) -> float:
+        if self.affine == "objective" and not self.log:
+            self.last_value = math.inf
+            self._fit(x)  # the moments pass gives the objective of the best affine part
+            return self.last_value
         if self.log:
             self.nfev += 1
             return float(objective(matrix_to_device(self.matrix(x)), self.resolution,
@@ -395,6 +468,7 @@ class Problem:
         import drjit as dr
 
         M = self.matrix(x)
+        choice = self.last_choice if self.affine == "objective" else None  # the fit's choice held for dP/dx
         P = matrix_to_device(M)
         for p in P:
             dr.enable_grad(p)
@@ -407,7 +481,8 @@ class Problem:
         for i in range(2):
             e = np.zeros(2)
             e[i] = FIT_STEP
-            g[i] = float(np.sum(dfdM * _robust_difference(self.matrix(x - e), M, self.matrix(x + e), FIT_STEP)))
+            g[i] = float(np.sum(dfdM * _robust_difference(self.matrix(x - e, choice), M, self.matrix(x + e, choice),
+                                                          FIT_STEP)))
         if not np.all(np.isfinite(g)):
             g = np.zeros(2)
         return f, g
@@ -442,7 +517,8 @@ class SpotProblem(Problem):
         self.corners = box_corners(np.asarray(casters_bounds[0], float), np.asarray(casters_bounds[1], float))
         self.ds = device_samples(samples, camera.position)
         self.view0 = spot_view(light, camera)
-        self.deadline, self.gradient_mode, self.affine = deadline, "fd", affine
+        self.deadline, self.gradient_mode = deadline, "fd"
+        self.affine = "parallelogram" if affine == "objective" else affine  # the projected fit: min area
         self.nfev = self.njev = 0
         self.seen: dict = {}
         self.best = (math.inf, None, None)
@@ -522,7 +598,7 @@ def _start_x(prob: Problem, smap: ShadowMap) -> np.ndarray:
 @serial_kernels()
 def minimize(camera: Camera, light: DirectionalLight | SpotLight, samples: Samples, receivers: np.ndarray, casters_bounds,
              resolution=(2048, 2048), method: str = DEFAULT_METHOD, x0=None, time_budget_ms: float | None = None,
-             starts=START_NAMES, maxiter: int = 30, gradient: str = "ad", affine: str = "parallelogram",
+             starts=START_NAMES, maxiter: int = 30, gradient: str = "ad", affine: str = "objective",
              start_maps_given: dict | None = None, log: bool = False, bias: bool = True,
              fit_points: tuple | None = None) -> OptimizeResult:
     """Minimise the metric's objective over the light's projective parameters x = (φ, u).
