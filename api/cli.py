@@ -7,6 +7,8 @@ import os
 import sys
 from pathlib import Path
 
+from .schemas import validate_rig  # the rig validation (api.schemas); kept importable from here
+
 EXIT_USAGE = 2
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda"
 DEMO_RIG = Path(__file__).resolve().parents[1] / "configs" / "demo_rig.json"
@@ -32,7 +34,7 @@ def load_rig(path: str | None, args=None) -> dict:
     """Read a rig JSON file, apply CLI overrides to rig.shadow, validate, return the validated dict."""
     from pydantic import ValidationError
 
-    from .schemas import Rig, format_validation_error
+    from .schemas import format_validation_error
 
     if path is None:
         raise CliError("--rig: a rig JSON file is required (see configs/demo_rig.json)")
@@ -59,7 +61,7 @@ def load_rig(path: str | None, args=None) -> dict:
         if getattr(args, "split_lambda", None) is not None:
             shadow["lambda"] = args.split_lambda
     try:
-        return Rig.model_validate(raw).model_dump(by_alias=True)
+        return validate_rig(raw)
     except ValidationError as e:
         raise CliError(f"rig {path}: {format_validation_error(e)}") from e
 
@@ -122,12 +124,6 @@ def cmd_coarse(args) -> int:
         print(f"wrote {len(files)} files to {args.out} ({buffers.width}x{buffers.height}, "
               f"{summary['hit_pixels']} hit pixels, {buffers.timings_ms['total']:.1f} ms)")
     return 0
-
-
-def validate_rig(raw: dict) -> dict:
-    from .schemas import Rig
-
-    return Rig.model_validate(raw).model_dump(by_alias=True)
 
 
 def cmd_bench(args) -> int:

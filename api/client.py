@@ -1,17 +1,20 @@
 """Python client for the shadowopt REST API: `Client` (sync) and `AsyncClient` (async), both on httpx.
 
-Needs only httpx and pydantic (tqdm, when installed, draws the progress bar of `wait`), so
-`pip install shadowopt` without the `server` extra is enough:
+Needs only httpx and pydantic (tqdm, when installed, draws the progress bar of `wait` on a terminal; in
+a log file `wait` writes a line every few seconds instead), so `pip install shadowopt` without the
+`server` extra is enough:
 
     from shadowopt.api.client import Client
     with Client("http://127.0.0.1:8000", token="s3cret") as c:
         scene = c.upload_scene("configs/demo_scene.usda")
         rig = {"camera": {"usd_path": "/World/Camera"}, "lights": [{"usd_path": "/World/Sun"}]}
-        print(c.optimize(scene.scene_id, rig)["lights"][0]["predicted_error"])
+        solution = c.optimize(scene.scene_id, rig)  # a shadowopt.api.schemas.Solution
+        print(solution.lights[0].predicted_error)
 
 Connection errors, 503 (honouring Retry-After) and 429 are retried with exponential backoff;
 any other error answer raises `ShadowoptError` (or a subclass) carrying the server's `code`,
-`message` and `field`. Rigs are dicts or `shadowopt.api.schemas.Rig` models.
+`message` and `field`. Rigs are dicts or `shadowopt.api.schemas.Rig` models. Answers are typed models
+(`SceneInfo`, `Solution`, `BatchResultLine`, ...); `solution["lights"]` reads them as the JSON too.
 """
 from __future__ import annotations
 
@@ -30,14 +33,17 @@ from typing import Any
 import httpx
 from pydantic import BaseModel
 
-from .schemas import BatchCreated, BatchStatus, Health, Rig, SceneInfo
+from .progress import progress_bar
+from .schemas import BatchCreated, BatchResultLine, BatchStatus, Health, Rig, SceneInfo, Solution
 
-__all__ = ["Client", "AsyncClient", "SceneInfo", "BatchCreated", "BatchStatus", "Health", "ShadowoptError", "ClientError", "AuthError",
+__all__ = ["Client", "AsyncClient", "SceneInfo", "Solution", "BatchResultLine", "BatchCreated", "BatchStatus", "Health",
+           "ShadowoptError", "ClientError", "AuthError",
            "NotFoundError", "ServerError", "ConnectionFailed", "TERMINAL_STATES"]
 
 TERMINAL_STATES = ("done", "failed", "cancelled")
 RETRY_STATUSES = (429, 503)
 MAX_RETRY_AFTER_S = 60.0
+DEFAULT_URL = "http://127.0.0.1:8000"  # `shadowopt serve`'s default; SHADOWOPT_URL overrides it
 
 
 # ---------------------------------------------------------------- errors
@@ -180,7 +186,7 @@ class _Calls:
     def optimize(scene_id, rig, method, solver, time_budget_ms, previous, options):
         body = _drop_none({"scene_id": scene_id, "rig": rig_json(rig), "method": method, "solver": solver,
                            "time_budget_ms": time_budget_ms, "previous": plain(previous), **options})
-        return _Call("POST", "/v1/optimize", json=body)
+        return _Call("POST", "/v1/optimize", json=body, parse=lambda r: Solution.model_validate(r.json()))
 
     @staticmethod
     def evaluate(scene_id, rig, solution, options):
@@ -225,8 +231,9 @@ _DROPPED = (httpx.RemoteProtocolError, httpx.ReadError, httpx.WriteError)  # the
 
 
 class _Base:
-    def __init__(self, base_url: str, token: str | None = None, timeout: float = 120.0, retries: int = 3,
-                 backoff_s: float = 0.25):
+    def __init__(self, base_url: str | None = None, token: str | None = None, timeout: float = 120.0,
+                 retries: int = 3, backoff_s: float = 0.25):
+        base_url = base_url or os.environ.get("SHADOWOPT_URL") or DEFAULT_URL
         self.base_url = base_url.rstrip("/")
         self.token = token if token is not None else os.environ.get("SHADOWOPT_TOKEN")
         self.timeout = httpx.Timeout(timeout, connect=min(10.0, timeout))
@@ -271,14 +278,9 @@ class _Base:
         return ConnectionFailed(None, "connection_error", f"{call.method} {call.path}: {type(e).__name__}: {e}")
 
 
-def _progress_bar(total: int, desc: str, enabled: bool):
-    if not enabled:
-        return None
-    try:
-        from tqdm import tqdm
-    except ImportError:
-        return None
-    return tqdm(total=total, desc=desc, unit="conf", file=sys.stderr)
+def _progress_bar(total: int, desc: str, enabled: bool | str):
+    """api.progress.progress_bar: a tqdm bar on a terminal, a line every few seconds in a log file."""
+    return progress_bar(total, desc, unit="conf", enabled=enabled, stream=sys.stderr)
 
 
 def _finished(bar, st, deadline: float | None, timeout: float | None) -> bool:
@@ -296,17 +298,18 @@ def _update_bar(bar, st: BatchStatus) -> None:
     if bar is not None:
         if st.total and bar.total != st.total:
             bar.total = st.total
-        bar.n = st.done
-        bar.set_postfix_str(st.state, refresh=True)
+        bar.set_postfix_str(st.state, refresh=False)
+        bar.update(st.done - bar.n)  # redraws at most as often as the bar's interval allows
 
 
 # ---------------------------------------------------------------- sync
 
 class Client(_Base):
-    """Synchronous client. `Client(base_url, token=None, timeout=120, retries=3)`; the token defaults
-    to the environment variable SHADOWOPT_TOKEN. Use as a context manager or call `close()`."""
+    """Synchronous client. `Client(base_url=None, token=None, timeout=120, retries=3)`; the URL defaults to
+    the environment variable SHADOWOPT_URL (else http://127.0.0.1:8000), the token to SHADOWOPT_TOKEN. Use
+    as a context manager or call `close()`."""
 
-    def __init__(self, base_url: str, token: str | None = None, timeout: float = 120.0, retries: int = 3,
+    def __init__(self, base_url: str | None = None, token: str | None = None, timeout: float = 120.0, retries: int = 3,
                  backoff_s: float = 0.25, transport: httpx.BaseTransport | None = None):
         super().__init__(base_url, token, timeout, retries, backoff_s)
         self._http = httpx.Client(base_url=self.base_url, headers=self._headers(), timeout=self.timeout,
@@ -377,12 +380,13 @@ class Client(_Base):
         return self._call(_Calls.delete_scene(scene_id))
 
     def optimize(self, scene_id: str, rig: dict | Rig, method: str = "optimized", solver: str | None = None,
-                 time_budget_ms: float | None = None, previous: dict | None = None, **options) -> dict:
-        """`POST /v1/optimize`: the solution JSON (per light and cascade: matrices, resolution, warp,
-        split, predicted error; timings and solver diagnostics). Extra keyword arguments go into the body."""
+                 time_budget_ms: float | None = None, previous: dict | Solution | None = None,
+                 **options) -> Solution:
+        """`POST /v1/optimize`: the `Solution` (per light and cascade: matrices, resolution, warp, split,
+        predicted error; timings and solver diagnostics). Extra keyword arguments go into the body."""
         return self._call(_Calls.optimize(scene_id, rig, method, solver, time_budget_ms, previous, options))
 
-    def evaluate(self, scene_id: str, rig: dict | Rig, solution: dict, **options) -> dict:
+    def evaluate(self, scene_id: str, rig: dict | Rig, solution: dict | Solution, **options) -> dict:
         """`POST /v1/evaluate`: a solution against exact ray-traced shadows (misclassified pixels,
         measured error; counts and measured error at `screen`, predicted error in the rig's pixels); options
         such as `screen`, `heatmap` or `heatmap_mode` ("m" or "errors") go into the body."""
@@ -412,9 +416,12 @@ class Client(_Base):
         """`DELETE /v1/batches/{id}`."""
         return self._call(_Calls.cancel_batch(batch))
 
-    def wait(self, batch, progress: bool = True, poll_s: float = 0.5, timeout: float | None = None) -> BatchStatus:
-        """Poll the batch until done, failed or cancelled (a tqdm bar on stderr when `progress` and tqdm
-        is installed); returns the final status. TimeoutError after `timeout` seconds."""
+    def wait(self, batch, progress: bool | str = True, poll_s: float = 0.5,
+             timeout: float | None = None) -> BatchStatus:
+        """Poll the batch until done, failed or cancelled; returns the final status. TimeoutError after
+        `timeout` seconds. `progress`: True draws a tqdm bar on stderr when it is a terminal (and tqdm is
+        installed) and otherwise writes one line every few seconds (a log file stays readable); False: nothing.
+        The environment variable SHADOWOPT_PROGRESS=off|log|bar overrides True."""
         deadline = None if timeout is None else time.monotonic() + timeout
         st = self.batch(batch)
         bar = _progress_bar(st.total, f"batch {st.batch_id}", progress)
@@ -427,8 +434,10 @@ class Client(_Base):
             if bar is not None:
                 bar.close()
 
-    def iter_results(self, batch, offset: int = 0, follow: bool = False, poll_s: float = 0.5) -> Iterator[dict]:
-        """Result lines (`{"index", ...}`, in configuration order) from `offset` on. A connection that
+    def iter_results(self, batch, offset: int = 0, follow: bool = False,
+                     poll_s: float = 0.5) -> Iterator[BatchResultLine]:
+        """Result lines (`BatchResultLine`: `index` and the solution's fields, or `error`; in configuration
+        order) from `offset` on; `line.solution()` gives a line as a `Solution`. A connection that
         breaks mid-stream is resumed after the last line received. With `follow`, keeps going until
         the batch has finished and every result has been read."""
         call_at = lambda off: _Calls.results(batch, off)  # noqa: E731
@@ -440,8 +449,8 @@ class Client(_Base):
                 try:
                     for line in resp.iter_lines():
                         if line.strip():
-                            item = json.loads(line)
-                            nxt = int(item.get("index", nxt)) + 1
+                            item = BatchResultLine.model_validate(json.loads(line))
+                            nxt = item.index + 1
                             failures = 0
                             yield item
                 finally:
@@ -462,7 +471,7 @@ class Client(_Base):
 class AsyncClient(_Base):
     """The same methods as `Client`, as coroutines (`iter_results` is an async iterator)."""
 
-    def __init__(self, base_url: str, token: str | None = None, timeout: float = 120.0, retries: int = 3,
+    def __init__(self, base_url: str | None = None, token: str | None = None, timeout: float = 120.0, retries: int = 3,
                  backoff_s: float = 0.25, transport: httpx.AsyncBaseTransport | None = None):
         super().__init__(base_url, token, timeout, retries, backoff_s)
         self._http = httpx.AsyncClient(base_url=self.base_url, headers=self._headers(), timeout=self.timeout,
@@ -531,10 +540,11 @@ class AsyncClient(_Base):
         return await self._call(_Calls.delete_scene(scene_id))
 
     async def optimize(self, scene_id: str, rig: dict | Rig, method: str = "optimized", solver: str | None = None,
-                       time_budget_ms: float | None = None, previous: dict | None = None, **options) -> dict:
+                       time_budget_ms: float | None = None, previous: dict | Solution | None = None,
+                       **options) -> Solution:
         return await self._call(_Calls.optimize(scene_id, rig, method, solver, time_budget_ms, previous, options))
 
-    async def evaluate(self, scene_id: str, rig: dict | Rig, solution: dict, **options) -> dict:
+    async def evaluate(self, scene_id: str, rig: dict | Rig, solution: dict | Solution, **options) -> dict:
         return await self._call(_Calls.evaluate(scene_id, rig, solution, options))
 
     async def compare(self, scene_id: str, rig: dict | Rig, methods: list[str] | None = None, **options) -> dict:
@@ -553,7 +563,7 @@ class AsyncClient(_Base):
     async def cancel_batch(self, batch) -> BatchStatus:
         return await self._call(_Calls.cancel_batch(batch))
 
-    async def wait(self, batch, progress: bool = True, poll_s: float = 0.5,
+    async def wait(self, batch, progress: bool | str = True, poll_s: float = 0.5,
                    timeout: float | None = None) -> BatchStatus:
         deadline = None if timeout is None else time.monotonic() + timeout
         st = await self.batch(batch)
@@ -568,7 +578,7 @@ class AsyncClient(_Base):
                 bar.close()
 
     async def iter_results(self, batch, offset: int = 0, follow: bool = False,
-                           poll_s: float = 0.5) -> AsyncIterator[dict]:
+                           poll_s: float = 0.5) -> AsyncIterator[BatchResultLine]:
         call_at = lambda off: _Calls.results(batch, off)  # noqa: E731
         nxt, failures = offset, 0
         while True:
@@ -578,8 +588,8 @@ class AsyncClient(_Base):
                 try:
                     async for line in resp.aiter_lines():
                         if line.strip():
-                            item = json.loads(line)
-                            nxt = int(item.get("index", nxt)) + 1
+                            item = BatchResultLine.model_validate(json.loads(line))
+                            nxt = item.index + 1
                             failures = 0
                             yield item
                 finally:

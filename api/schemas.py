@@ -1,7 +1,7 @@
 """Request and response schemas shared by the CLI, the REST API and the Python client.
 
 Only pydantic here: the client installs without the rendering stack. The rig's field names are
-fixed by the product (issue 2); unknown fields are refused so a typo names itself.
+fixed by the product; unknown fields are refused so a typo names itself.
 """
 from __future__ import annotations
 
@@ -19,13 +19,15 @@ class _Strict(BaseModel):
 
 
 class CameraSpec(_Strict):
-    """A camera given explicitly (position + target or forward) or by its USD path in the scene."""
+    """A camera given explicitly (position + target or forward) or by its USD path in the scene. With both a
+    usd_path and a position (e.g. each pose of a camera path over a USD camera), the pose is the one given and
+    the intrinsics (field of view, near, far, up) are the USD camera's unless given too."""
 
     usd_path: str | None = Field(None, description="a UsdGeom.Camera in the scene, e.g. /World/Camera")
     position: Vec3 | None = None
     target: Vec3 | None = Field(None, description="a point the camera looks at")
     forward: Vec3 | None = Field(None, description="the view direction (instead of target)")
-    up: Vec3 = (0.0, 1.0, 0.0)
+    up: Vec3 | None = Field(None, description="default +Y (a USD camera: its own up)")
     fov_y_deg: Annotated[float, Field(gt=0, lt=180)] | None = Field(None, description="vertical field of view; default 60")
     near: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
     far: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
@@ -33,11 +35,12 @@ class CameraSpec(_Strict):
 
     @model_validator(mode="after")
     def _one_pose(self):
-        if self.usd_path is None:
-            if self.position is None:
-                raise ValueError("give either usd_path or position with target or forward")
-            if (self.target is None) == (self.forward is None):
-                raise ValueError("give exactly one of target and forward")
+        if self.usd_path is None and self.position is None:
+            raise ValueError("give either usd_path or position with target or forward")
+        if self.position is not None and (self.target is None) == (self.forward is None):
+            raise ValueError("give exactly one of target and forward")
+        if self.position is None and (self.target is not None or self.forward is not None):
+            raise ValueError("target and forward need a position (a usd_path camera's own pose is used whole)")
         if self.near is not None and self.far is not None and not self.near < self.far:
             raise ValueError(f"near ({self.near}) must be less than far ({self.far})")
         return self
@@ -120,6 +123,13 @@ class Rig(_Strict):
         return self
 
 
+def validate_rig(raw: dict) -> dict:
+    """A rig as the solver takes it: validated by `Rig` (defaults filled, aliases used); pydantic's
+    ValidationError when it is not a valid rig (`format_validation_error` makes it one line). The CLI, the
+    server's warm-up and the benchmarks validate rigs here."""
+    return Rig.model_validate(raw).model_dump(by_alias=True)
+
+
 def format_validation_error(err) -> str:
     """One line per problem: `field.path: reason` (pydantic ValidationError -> text)."""
     lines = []
@@ -132,7 +142,7 @@ def format_validation_error(err) -> str:
 
 
 
-# --- REST API (issue 5): requests and responses. Field names the clients rely on are fixed by the issue. ---
+# --- REST API: requests and responses. Field names the clients rely on are fixed (additions only). ---
 
 Method = Literal["uniform", "focused", "lispsm", "logpsm", "optimized"]
 BatchState = Literal["queued", "running", "done", "failed", "cancelled"]
@@ -209,16 +219,102 @@ class OptimizeRequest(_SceneRequest):
     hysteresis: Annotated[float, Field(gt=0, le=1)] = 0.8
 
 
-class Solution(_Open):
-    """Light matrices, warp, cascades and predicted error per light (see docs/engine-integration.md)."""
+class Warp(_Open):
+    """The map's perspective warp: `kind` (none, lispsm, optimized, log...), its strength `eta` and the
+    warp frustum's near distance `n` (light-view units; may be negative: the warp centre lies behind the
+    receivers' near end), and LogPSM's `log` coefficients when a logarithmic warp is used."""
+
+    kind: str = "none"
+    eta: float | None = None
+    n: float | None = None
+    log: dict | None = None
+
+
+Matrix16 = Annotated[list[float], Field(min_length=16, max_length=16)]
+
+
+class ShadowMapSolution(_Open):
+    """One shadow map (a cascade, or a cube face of a point light): matrices in the requested convention,
+    layout and frame, and what they cover."""
+
+    view_matrix: Matrix16 = Field(description="world (or stage) -> light view, 16 numbers in `layout` order")
+    projection_matrix: Matrix16 = Field(description="light view -> clip space of the convention")
+    texture_matrix: Matrix16 | None = Field(None, description="world (or stage) -> shadow-map texture coordinates")
+    resolution: tuple[int, int]
+    split: tuple[float | None, float | None] = Field(description="the camera view-depth range this map serves, "
+                                                     "metres (null: unbounded, e.g. a point light's faces)")
+    light_depth: tuple[float | None, float | None] | None = Field(None, description="the light view's near and "
+                                                                  "far depth")
+    warp: Warp = Warp()
+    depth_bias: dict = Field(default_factory=dict)
+    blend_band: tuple[float, float] | None = Field(None, description="[start, end] camera depth where this "
+                                                   "cascade blends into the next; null for the last or only map")
+    face: str | None = None
+    texel_snapped: bool = False
+    predicted_error: dict | None = None
+
+
+class LightSolution(_Open):
+    """One light's maps and the predicted error over all of them."""
+
+    type: str
+    usd_path: str | None = None
+    cascades: list[ShadowMapSolution]
+    predicted_error: dict
+
+
+class _ReadAsDict:
+    """Read access by key as on the JSON (`solution["lights"][0]`), for code written against plain dicts."""
+
+    def __getitem__(self, key: str):
+        data = self.model_dump(mode="json", by_alias=True)
+        return data[key]
+
+    def get(self, key: str, default=None):
+        try:
+            return self[key]
+        except KeyError:
+            return default
+
+    def __contains__(self, key: str) -> bool:
+        return key in self.model_dump(mode="json", by_alias=True)
+
+
+class Solution(_ReadAsDict, _Open):
+    """Light matrices, warp, cascades and predicted error per light (see docs/engine-integration.md).
+    The Python client returns this model; `solution["lights"]` reads it as the JSON dict too."""
 
     schema_version: int
     method: str
     convention: dict
-    lights: list[dict]
+    lights: list[LightSolution]
     timings_ms: dict
     provenance: dict
     solver: dict | None = None
+
+
+class BatchResultLine(_ReadAsDict, _Open):
+    """One line of `GET /v1/batches/{id}/results`: the configuration's `index` and either its solution's
+    fields (method, lights, ...) or an `error` {code, message}."""
+
+    index: int
+    error: dict | None = None
+    method: str | None = None
+    lights: list[LightSolution] | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+    def solution(self) -> Solution:
+        """The line as a `Solution` (ValueError for a failed configuration)."""
+        if self.error is not None:
+            raise ValueError(f"configuration {self.index} failed: {self.error.get('code')}: "
+                             f"{self.error.get('message')}")
+        data = self.model_dump(mode="json", by_alias=True)
+        data.pop("index", None)
+        data.pop("error", None)
+        return Solution.model_validate(data)
 
 
 class EvaluateRequest(_SceneRequest):

@@ -423,7 +423,7 @@ def _count(x) -> int:
 
 def warm_rig(loaded, path) -> dict | None:
     """The demo rig for the demo scene, else the scene's first camera and light at a small size."""
-    from .cli import validate_rig
+    from .schemas import validate_rig
 
     if Path(path).resolve() == DEMO_SCENE.resolve():
         return validate_rig(json.loads(DEMO_RIG.read_text()))

@@ -18,7 +18,7 @@ import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
-from serverkit import DEMO, TINY_RIG, TOKENS, free_port, running
+from serverkit import DEMO, REPO, TINY_RIG, TOKENS, free_port, running
 
 from shadowopt.api.client import (AsyncClient, AuthError, Client, ClientError, ConnectionFailed, NotFoundError,
                                   ServerError, ShadowoptError)
@@ -264,3 +264,115 @@ def test_client_import_needs_no_rendering_stack():
             "'torch', 'pxr', 'scipy'}))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+# -- typed answers, the README's client examples, progress in a log file ----------------------------
+
+def test_optimize_and_results_are_typed_models(alice):
+    from shadowopt.api.schemas import BatchResultLine, LightSolution, Solution
+
+    scene = alice.upload_scene(DEMO)
+    sol = alice.optimize(scene.scene_id, TINY_RIG, method="focused")
+    assert isinstance(sol, Solution) and isinstance(sol.lights[0], LightSolution)
+    m = sol.lights[0].cascades[0]
+    assert len(m.view_matrix) == len(m.projection_matrix) == len(m.texture_matrix) == 16
+    assert m.resolution == (256, 256) and m.split[0] < m.split[1]
+    assert sol["lights"][0]["cascades"][0]["resolution"] == [256, 256]  # read as the JSON too
+    assert alice.evaluate(scene.scene_id, TINY_RIG, sol)["receiver_pixels"] > 0  # a Solution goes back in
+    batch = alice.submit_batch(scene.scene_id, [TINY_RIG], method="focused")
+    assert alice.wait(batch, progress=False, poll_s=0.1, timeout=120).state == "done"
+    (ok,) = list(alice.iter_results(batch))
+    assert isinstance(ok, BatchResultLine) and ok.ok and ok.resolved["camera"]["usd_path"] == "/World/Camera"
+    failed = BatchResultLine.model_validate({"index": 1, "error": {"code": "invalid_rig", "message": "x"}})
+    assert not failed.ok and failed["error"]["code"] == "invalid_rig"
+    replay = ok.solution()
+    assert isinstance(replay, Solution) and replay.lights[0].cascades[0].resolution == (256, 256)
+    with pytest.raises(ValueError, match="configuration 1 failed"):
+        failed.solution()
+
+
+def _readme_python_blocks(section: str) -> list[str]:
+    text = (REPO / "README.md").read_text()
+    part = text[text.index(section):]
+    part = part[:part.index("\n## ", 1)]
+    blocks, rest = [], part
+    while "```python\n" in rest:
+        rest = rest[rest.index("```python\n") + len("```python\n"):]
+        blocks.append(rest[:rest.index("```")])
+    return blocks
+
+
+def test_readme_client_examples_run_verbatim(server, monkeypatch, capsys):
+    """The README's Python client blocks, as printed, against a real server: the camera-path batch's lines
+    echo the demo USD camera's own field of view (2 atan(20.25 / 36), from its aperture and focal length; not
+    the 60 deg default) at each path position, and its segments are the runs of cameras whose maps share a
+    warp kind and resolution (computed here from the lines themselves)."""
+    import math
+
+    blocks = _readme_python_blocks("## Python client")
+    assert len(blocks) == 2
+    monkeypatch.setenv("SHADOWOPT_URL", server)
+    monkeypatch.setenv("SHADOWOPT_TOKEN", TOKENS["alice"])
+    monkeypatch.chdir(REPO)
+    ns: dict = {}
+    for block in blocks:
+        exec(compile(block, "README.md", "exec"), ns)
+    c, batch = ns["c"], ns["batch"]
+    try:
+        assert ns["solution"].lights[0].predicted_error["p95_m"] > 0
+        lines = list(c.iter_results(batch))
+        assert [l.index for l in lines] == [0, 1, 2, 3]
+        fov = math.degrees(2 * math.atan(20.25 / 36))
+        xs = [l.resolved["camera"]["position"][0] for l in lines]
+        assert xs == pytest.approx([0, 2, 4, 6])
+        assert all(l.resolved["camera"]["fov_y_deg"] == pytest.approx(fov, abs=1e-3) for l in lines)
+        kinds = [tuple((m.warp.kind, m.resolution) for m in l.lights[0].cascades) for l in lines]
+        want = [[0, 0]]
+        for i in range(1, 4):
+            if kinds[i] == kinds[i - 1]:
+                want[-1][1] = i
+            else:
+                want.append([i, i])
+        hints = c.batch(batch).interpolation
+        assert hints["segments"] == want
+        assert len(hints["breaks"]) == len(want) - 1
+        out = capsys.readouterr()
+        assert str(want) in out.out
+    finally:
+        c.close()
+
+
+def test_progress_in_a_log_file_is_a_line_every_few_seconds():
+    """Not a terminal: one newline-terminated line at the start, then at most one per LOG_INTERVAL_S of the
+    (stand-in) clock, and the final state once; a terminal gets tqdm; off is nothing."""
+    import io
+
+    from shadowopt.api.progress import LOG_INTERVAL_S, progress_bar, progress_mode
+
+    now = [0.0]
+    log = io.StringIO()
+    bar = progress_bar(200, "batch b1", enabled=True, stream=log, clock=lambda: now[0])
+    for k in range(200):  # 200 updates over 50 s
+        now[0] = k * 0.25
+        bar.set_postfix_str("running", refresh=True)
+        bar.update(1)
+    bar.set_postfix_str("done")
+    bar.close()
+    lines = log.getvalue().splitlines()
+    assert "\r" not in log.getvalue() and log.getvalue().endswith("\n")
+    assert 2 <= len(lines) <= 50 / LOG_INTERVAL_S + 2, lines
+    assert lines[-1] == "batch b1: 200/200 conf done"
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    assert progress_mode(True, Tty()) == "bar" and progress_mode(True, io.StringIO()) == "log"
+    assert progress_mode(False, Tty()) == "off" and progress_bar(3, "x", enabled=False) is None
+    assert type(progress_bar(3, "x", stream=Tty())).__name__ == "tqdm"
+
+
+def test_the_server_does_not_import_the_cli():
+    code = "import sys, shadowopt.api.server; print('shadowopt.api.cli' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"
