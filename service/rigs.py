@@ -69,6 +69,11 @@ def resolve_camera(spec: dict, scene: LoadedScene, to_world: np.ndarray | None) 
         c = found[0]
         position, forward, up = c.position, c.forward, c.up
         fov, near, far = c.fov_y_deg, c.near, c.far
+        if spec.get("position") is not None:  # a pose of its own (a camera path's) with the USD camera's intrinsics
+            position = pt(spec["position"])
+            forward = pt(spec["target"]) - position if spec.get("target") is not None else dr(spec["forward"])
+        if spec.get("up") is not None:
+            up = dr(spec["up"])
     else:
         position = pt(spec["position"])
         forward = pt(spec["target"]) - position if spec.get("target") is not None else dr(spec["forward"])
