@@ -5,7 +5,7 @@ The parent process writes each configuration's outcome to the Store as it arrive
 so a crash loses at most the configurations in flight; `BatchRunner.resume()` re-queues only the
 pending indices. Workers load the scene once per process (service.scenes.SCENES) and call
 service.solve.solve. Rigs reach this module already validated (the server and the CLI use the pydantic
-Rig); this module does not import api.
+Rig); this module imports nothing of api but its progress bar (api.progress, standard library only).
 """
 from __future__ import annotations
 
@@ -149,10 +149,16 @@ def _range(v, field: str, lo: float, hi: float) -> tuple[float, float]:
 
 
 def _merge_pose(base_cam, pose: dict) -> dict:
-    """A pose over the base camera: a new position or usd_path replaces the base's pose entirely."""
+    """A pose over the base camera. A pose naming a usd_path replaces the base's camera (pose and source); a
+    pose with a position replaces the base's position and aim but keeps its usd_path, so a USD camera keeps
+    its own intrinsics (field of view, near, far, up: service.rigs.resolve_camera) along the path; fields the
+    pose gives (fov_y_deg, near, far, up, resolution) win."""
     cam = dict(base_cam) if isinstance(base_cam, dict) else {}
-    if "position" in pose or "usd_path" in pose:
+    if "usd_path" in pose:
         for k in ("usd_path", "position", "target", "forward"):
+            cam.pop(k, None)
+    elif "position" in pose:
+        for k in ("position", "target", "forward"):
             cam.pop(k, None)
     if "target" in pose:
         cam.pop("forward", None)
@@ -334,8 +340,10 @@ def interpolation_hints(results: list[dict], shape: tuple[int, int] | None = Non
     Neighbours are consecutive indices; with `shape = (cameras, lights)` (a camera path crossed with
     light directions, index = camera * lights + light) also the same light at consecutive cameras.
     Returns {"smooth_fields", "switch_fields", "breaks": [{"between": [i, j], "reasons": [...]}],
-    "segments": [[first, last], ...]} where segments are runs of consecutive indices with no break.
-    Interpolate smooth fields element-wise within a segment, never across a break.
+    "segments": [[first, last], ...]} where segments are runs of consecutive indices with no break (along
+    the lights of one camera; along the cameras when there is one light), and for a grid of several cameras
+    and lights also "camera_segments": the same light at consecutive cameras, [first, last] stepping by
+    the number of lights. Interpolate smooth fields element-wise within a segment, never across a break.
     """
     by_index = {r["index"]: r for r in results}
     pairs = []
@@ -361,22 +369,46 @@ def interpolation_hints(results: list[dict], shape: tuple[int, int] | None = Non
         reasons = _switch_reasons(a, b)
         if reasons:
             breaks.append({"between": [i, j], "reasons": reasons})
-    return {"smooth_fields": SMOOTH_FIELDS, "switch_fields": SWITCH_FIELDS, "breaks": breaks,
-            "segments": _segments(sorted(k for k, r in by_index.items() if "error" not in r),
-                                  {tuple(b["between"]) for b in breaks}, shape),
-            "neighbours": "consecutive indices" if shape is None else
-            f"index = camera * {shape[1]} + light; neighbours along both axes"}
+    ok = sorted(k for k, r in by_index.items() if "error" not in r)
+    broken = {tuple(b["between"]) for b in breaks}
+    hints = {"smooth_fields": SMOOTH_FIELDS, "switch_fields": SWITCH_FIELDS, "breaks": breaks,
+             "segments": _segments(ok, broken, shape),
+             "neighbours": "consecutive indices" if shape is None else
+             f"index = camera * {shape[1]} + light; neighbours along both axes"}
+    if shape is not None and shape[0] > 1 and shape[1] > 1:
+        hints["camera_segments"] = _camera_segments(set(ok), broken, shape)
+    return hints
 
 
 def _segments(ok: list[int], broken: set, shape) -> list[list[int]]:
-    """Runs of consecutive successful indices along the index order (the light axis for a grid)."""
+    """Runs of consecutive successful indices along the index order: the light axis of a grid, or the
+    camera axis when a camera path has one light (then consecutive indices are consecutive cameras)."""
     out = []
     for i in ok:
-        same_row = shape is None or (i - 1) // shape[1] == i // shape[1]
+        same_row = shape is None or shape[1] == 1 or (i - 1) // shape[1] == i // shape[1]
         if out and out[-1][1] == i - 1 and same_row and (i - 1, i) not in broken:
             out[-1][1] = i
         else:
             out.append([i, i])
+    return out
+
+
+def _camera_segments(ok: set, broken: set, shape) -> list[list[int]]:
+    """For a grid with several lights: runs of the same light at consecutive cameras, [first, last] indices
+    (stepping by the number of lights), in the order of the light then the first camera."""
+    cams, lights = shape
+    out = []
+    for l in range(lights):
+        run = None
+        for c in range(cams):
+            i = c * lights + l
+            if i in ok and run is not None and run[1] == i - lights and (i - lights, i) not in broken:
+                run[1] = i
+            elif i in ok:
+                run = [i, i]
+                out.append(run)
+            else:
+                run = None
     return out
 
 
@@ -423,6 +455,11 @@ def _solve_with(get_entry, config: dict, settings: dict) -> dict:
         entry = get_entry()
         sol = solve(entry, rig, method=config.get("method") or settings.get("method") or DEFAULT_METHOD,
                     solver=settings.get("solver"), time_budget_ms=settings.get("time_budget_ms"))
+        if "resolved" not in sol:  # what this configuration was solved for (service.echo)
+            from .echo import resolved_echo
+            from .rigs import resolve_rig
+
+            sol["resolved"] = resolved_echo(resolve_rig(rig, entry.loaded), rig.get("frame", "world"))
         return {"result": sol}
     except SceneError as e:
         return {"error": {"code": e.code, "message": e.message}}
@@ -868,10 +905,23 @@ def run_batch(scene_path, configurations: list[dict], backend: str = "local", wo
             "errors": st["errors"], "seconds": round(time.perf_counter() - t0, 3), "out": str(out_path)}
 
 
-def _stream(runner: BatchRunner, store: Store, batch_id: str, total: int, out_path, show: bool) -> None:
-    from tqdm import tqdm
+class _NoBar:
+    n = 0
 
-    bar = tqdm(total=total, desc="batch", unit="config", file=sys.stderr, disable=not show, dynamic_ncols=True)
+    def update(self, k: int = 1) -> None:
+        self.n += k
+
+    def set_postfix(self, **kw) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _stream(runner: BatchRunner, store: Store, batch_id: str, total: int, out_path, show: bool) -> None:
+    from ..api.progress import progress_bar
+
+    bar = progress_bar(total, "batch", unit="config", enabled=show) or _NoBar()
     out = open(out_path, "w") if out_path else None
     next_index = 0
     try:

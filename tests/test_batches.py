@@ -50,7 +50,8 @@ def test_keyframes_interpolate_position_target_and_fov_linearly():
     assert [c["position"] for c in cams] == [[0, 2, 0], [2, 2, 0], [4, 2, 0], [4, 4, 0], [4, 6, 0]]
     assert [c["target"][0] for c in cams] == [0, 2, 4, 4, 4]
     assert [c["fov_y_deg"] for c in cams] == [40, 50, 60, 60, 60]
-    assert all("usd_path" not in c and c["resolution"] == [160, 90] for c in cams)  # base camera's rest is kept
+    # the base camera's rest is kept, its usd_path too (its intrinsics, when the pose does not give them)
+    assert all(c["usd_path"] == "/World/Camera" and c["resolution"] == [160, 90] for c in cams)
     validate_rig(expand_configurations(req)[1]["rig"])  # a valid rig for the API schema
 
 
@@ -134,6 +135,94 @@ def test_interpolation_hints_break_where_warp_kind_or_cascade_count_switches():
     assert grid["segments"] == [[0, 1], [2, 2], [3, 3]]
 
 
+def test_hints_along_a_camera_path_with_one_light_join_consecutive_cameras():
+    """One light along 6 cameras (shape (6, 1)): consecutive indices are consecutive cameras; the segments
+    are the runs between the breaks (a warp-kind switch between 2 and 3, a failed configuration 5)."""
+    results = [_fake(0, ["perspective"]), _fake(1, ["perspective"]), _fake(2, ["perspective"]), _fake(3, ["none"]),
+               _fake(4, ["none"]), {"index": 5, "error": {"code": "invalid_rig", "message": "x"}}]
+    h = interpolation_hints(results, (6, 1))
+    assert [b["between"] for b in h["breaks"]] == [[2, 3], [4, 5]]
+    assert h["segments"] == [[0, 2], [3, 4]]
+    assert "camera_segments" not in h
+    # 3 cameras x 2 lights: light 1 switches at camera 2; camera_segments run along the cameras per light.
+    grid = interpolation_hints([_fake(0, ["none"]), _fake(1, ["none"]), _fake(2, ["none"]), _fake(3, ["none"]),
+                                _fake(4, ["none"]), _fake(5, ["log"])], (3, 2))
+    assert grid["segments"] == [[0, 1], [2, 3], [4, 4], [5, 5]]
+    assert grid["camera_segments"] == [[0, 4], [1, 3], [5, 5]]
+
+
+def _stage_with_camera(path: Path, fov_y_deg: float, near: float, far: float, roll_deg: float) -> Path:
+    """A ground quad and a UsdGeom.Camera whose vertical fov, clipping range and roll are known."""
+    from pxr import Gf, Usd, UsdGeom
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    ground = UsdGeom.Mesh.Define(stage, "/World/Ground")
+    ground.CreatePointsAttr([(-20, 0, -20), (20, 0, -20), (20, 0, 20), (-20, 0, 20)])
+    ground.CreateFaceVertexCountsAttr([4])
+    ground.CreateFaceVertexIndicesAttr([0, 3, 2, 1])
+    cube = UsdGeom.Cube.Define(stage, "/World/Box")
+    cube.AddTranslateOp().Set(Gf.Vec3d(0, 1, 0))
+    cam = UsdGeom.Camera.Define(stage, "/World/Cam")
+    v_ap = 24.0
+    cam.CreateVerticalApertureAttr(v_ap)
+    cam.CreateHorizontalApertureAttr(v_ap * 16 / 9)
+    cam.CreateFocalLengthAttr(v_ap / 2 / math.tan(math.radians(fov_y_deg) / 2))
+    cam.CreateClippingRangeAttr(Gf.Vec2f(near, far))
+    cam.AddTranslateOp().Set(Gf.Vec3d(0, 3, 12))
+    cam.AddRotateZOp().Set(roll_deg)
+    stage.GetRootLayer().Save()
+    return path
+
+
+def test_a_camera_path_over_a_usd_camera_keeps_its_fov_near_far_and_up(tmp_path):
+    """The base rig names a USD camera of known intrinsics (fov 33 deg, clip [0.5, 80], rolled 90 deg so its
+    up is -X, not +Y); each pose of the path moves it but keeps them, unless the pose gives its own fov."""
+    from shadowopt.renderers.usd_loader import load_scene
+    from shadowopt.service.echo import resolved_echo
+    from shadowopt.service.rigs import resolve_rig
+
+    scene = load_scene(_stage_with_camera(tmp_path / "cam.usda", 33.0, 0.5, 80.0, 90.0))
+    base = {"camera": {"usd_path": "/World/Cam", "resolution": [160, 90]}, "lights": [{"type": "directional",
+            "direction": [0.3, -1, 0.2]}]}
+    req = {"rig": base, "camera_path": {"samples": 3, "keyframes": [
+        {"position": [0, 2, 10], "target": [0, 0, 0]}, {"position": [6, 2, 8], "target": [0, 0, 0]}]}}
+    echoes = [resolved_echo(resolve_rig(validate_rig(c["rig"]), scene))["camera"] for c in expand_configurations(req)]
+    for e, pos in zip(echoes, ([0, 2, 10], [3, 2, 9], [6, 2, 8])):
+        assert e["fov_y_deg"] == pytest.approx(33.0, abs=1e-4)
+        assert (e["near"], e["far"]) == pytest.approx((0.5, 80.0))
+        assert e["position"] == pytest.approx(pos)
+        assert np.dot(e["forward"], -np.asarray(pos) / np.linalg.norm(pos)) == pytest.approx(1.0)
+        assert e["up"][0] < -0.75 and abs(np.dot(e["up"], e["forward"])) < 1e-9  # the camera's own up (rolled to -X), made perpendicular to the new forward
+        assert e["usd_path"] == "/World/Cam"
+    poses = {"rig": base, "camera_path": {"poses": [{"position": [0, 2, 10], "target": [0, 0, 0], "fov_y_deg": 50}]}}
+    (cfg,) = expand_configurations(poses)
+    assert resolved_echo(resolve_rig(validate_rig(cfg["rig"]), scene))["camera"]["fov_y_deg"] == 50
+
+
+MCUSD = Path("/work/shared/usd-assets/full_assets/McUsd/McUsd.usda")
+
+
+@pytest.mark.skipif(not MCUSD.exists(), reason="the McUsd asset is not on this machine")
+def test_mcusd_camera_keeps_its_45_7_degree_fov_along_a_path():
+    from shadowopt.renderers.usd_loader import load_scene
+    from shadowopt.service.echo import resolved_echo
+    from shadowopt.service.rigs import resolve_rig
+
+    scene = load_scene(MCUSD)
+    cam = scene.cameras[0]
+    base = {"camera": {"usd_path": cam.usd_path, "resolution": [160, 90]}, "lights": [{"type": "directional",
+            "direction": [0.3, -1, 0.2]}]}
+    p0 = [float(x) for x in cam.position]
+    target = [float(a + b) for a, b in zip(cam.position, cam.forward)]
+    req = {"rig": base, "camera_path": {"poses": [{"position": p0, "target": target},
+                                                  {"position": [p0[0] + 1, p0[1], p0[2]], "target": target}]}}
+    for c in expand_configurations(req):
+        e = resolved_echo(resolve_rig(validate_rig(c["rig"]), scene))["camera"]
+        assert e["fov_y_deg"] == pytest.approx(45.7, abs=0.05) and e["near"] == pytest.approx(cam.near)
+
+
 # -- execution on a real spawn pool ----------------------------------------------------------------
 
 @pytest.fixture(scope="module")
@@ -165,6 +254,14 @@ def test_a_batch_runs_to_done_in_index_order_and_a_bad_configuration_is_only_an_
     # Each result answers its own configuration: the light view follows the sun arc.
     views = [np.array(r["lights"][0]["cascades"][0]["internal"]["view"]) for r in ok]
     assert all(not np.allclose(a, c) for a, c in zip(views, views[1:]))
+    # Each line echoes what it was solved for: the demo camera's own fov (2 atan(20.25 / (2 * 18)), its
+    # aperture and focal length) and the arc's sun direction.
+    for r in ok:
+        cam = r["resolved"]["camera"]
+        assert cam["fov_y_deg"] == pytest.approx(math.degrees(2 * math.atan(20.25 / 36)), abs=1e-3)
+        assert cam["usd_path"] == "/World/Camera" and cam["resolution"] == [160, 90]
+        want = np.asarray(configs[r["index"]]["rig"]["lights"][0]["direction"])
+        assert r["resolved"]["lights"][0]["direction"] == pytest.approx((want / np.linalg.norm(want)).tolist())
     hints = interpolation_hints(lines)
     assert [2, 3] in [x["between"] for x in hints["breaks"]] and [3, 4] in [x["between"] for x in hints["breaks"]]
     worker_env = runner._impl.pool.submit(os.getenv, "DRJIT_LIBLLVM_PATH").result(timeout=60)
