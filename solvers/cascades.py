@@ -118,15 +118,19 @@ def allocate_mean(P, Q, budget: int) -> list[tuple[int, int]]:
     area A, minimising over w/h (Lagrange on w h = A) gives w/h = sqrt(P/Q) and the value C_k / A,
     C_k = 2 sqrt(P_k Q_k). Minimising sum_k C_k / A_k under sum_k A_k = T (Lagrange: C_k / A_k^2
     equal) gives A_k = T sqrt(C_k) / S, S = sum_j sqrt(C_j), and the value S^2 / T (objective_mean).
-    Maps with C_k = 0 share the budget equally when every map has C_k = 0; else they get MIN_RES."""
+    A side the ideal aspect puts below MIN_RES stays at MIN_RES; that map's cost is then
+    Q MIN^2 / A^2 + P / MIN^2, its Lagrange area (2 Q MIN^2 / lam)^(1/3), and lam is found by
+    bisection so that the areas sum to T. No terms at all: the budget in equal squares."""
     area, aspect = _mean_areas(P, Q, budget)
     return _sides(area, aspect, max(int(budget), MIN_RES * MIN_RES * len(area)))
 
 
 def objective_mean(P, Q, budget: int) -> float:
-    """The value allocate_mean's areas reach before rounding: (sum_k sqrt(2 sqrt(P_k Q_k)))^2 / T."""
-    C = _terms(P, Q)[0]
-    return float(np.sum(np.sqrt(C))) ** 2 / float(budget)
+    """The value allocate_mean's areas reach before rounding: (sum_k sqrt(2 sqrt(P_k Q_k)))^2 / T when
+    no side is held at MIN_RES."""
+    P = np.maximum(np.nan_to_num(np.asarray(P, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
+    Q = np.maximum(np.nan_to_num(np.asarray(Q, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
+    return _value_at(P, Q, *_mean_areas(P, Q, budget))
 
 
 def with_receivers(P, Q, W, Pr, Qr, N):
@@ -151,40 +155,100 @@ def _terms(P, Q):
     P = np.maximum(np.nan_to_num(np.asarray(P, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
     Q = np.maximum(np.nan_to_num(np.asarray(Q, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        aspect = np.where((P > 0) & (Q > 0), np.sqrt(P / Q), 1.0)
+        aspect = np.where(Q > 0, np.sqrt(P / np.where(Q > 0, Q, 1.0)), np.where(P > 0, np.inf, 1.0))
     return 2.0 * np.sqrt(P * Q), aspect
 
 
+def _area_at(lam: float, P, Q, C, aspect) -> np.ndarray:
+    """Each map's area where the marginal gain of a texel is lam: sqrt(C / lam) (the aspect free);
+    a side the ideal aspect would take below MIN_RES stays there, and then the map's cost is
+    Q MIN^2 / A^2 (+ P / MIN^2) with A = (2 Q MIN^2 / lam)^(1/3) (likewise for the other side)."""
+    A = np.sqrt(C / lam)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        w_low = np.sqrt(A * aspect) < MIN_RES
+        h_low = np.sqrt(A / aspect) < MIN_RES
+        m2 = float(MIN_RES) ** 2
+        A = np.where(w_low, np.cbrt(2.0 * Q * m2 / lam), A)
+        A = np.where(h_low & ~w_low, np.cbrt(2.0 * P * m2 / lam), A)
+    return np.maximum(np.nan_to_num(A, nan=0.0, posinf=0.0), m2)
+
+
 def _mean_areas(P, Q, budget):
+    """Areas and aspects of allocate_mean: sum_k A_k(lam) = T, A_k(lam) by _area_at, lam by bisection
+    (in the unclamped case A_k = T sqrt(C_k) / S exactly)."""
     C, aspect = _terms(P, Q)
+    P = np.maximum(np.nan_to_num(np.asarray(P, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
+    Q = np.maximum(np.nan_to_num(np.asarray(Q, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
     n = len(C)
     T = float(max(int(budget), MIN_RES * MIN_RES * n))
+    if not np.any((P > 0) | (Q > 0)):
+        return np.full(n, T / n), np.ones(n)
     S = float(np.sum(np.sqrt(C)))
-    area = T * np.sqrt(C) / S if S > 0 else np.full(n, T / n)
-    return np.maximum(area, MIN_RES * MIN_RES), aspect
+    if S > 0:  # the closed form, when no side falls below MIN_RES
+        area = T * np.sqrt(C) / S
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            ok = np.all(np.sqrt(area * aspect) >= MIN_RES) and np.all(np.sqrt(area / aspect) >= MIN_RES)
+        if ok:
+            return area, aspect
+    lo, hi = -200.0, 200.0  # log lam
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if float(np.sum(_area_at(math.exp(mid), P, Q, C, aspect))) > T:
+            lo = mid
+        else:
+            hi = mid
+    area = _area_at(math.exp(hi), P, Q, C, aspect)
+    area *= T / max(float(np.sum(area)), 1e-300) if float(np.sum(area)) > T else 1.0
+    return area, np.nan_to_num(aspect, posinf=1e12)
+
+
+def _value_at(P, Q, area, aspect) -> float:
+    w = np.clip(np.sqrt(area * aspect), MIN_RES, MAX_RES)
+    h = np.clip(area / w, MIN_RES, MAX_RES)
+    w = np.clip(area / h, MIN_RES, MAX_RES)
+    return float(np.sum(np.asarray(P, float) / w ** 2 + np.asarray(Q, float) / h ** 2))
+
+
+def map_gradients(smap, points: np.ndarray):
+    """(ds/dX, dt/dX, s, t, w) at world points: the map's coordinate gradients (N, 3) per unit s and t
+    (s, t in [0, 1], the log warp on t included), as solvers.metric.footprint computes them in
+    Dr.Jit (d(c_i / c_w)/dX = (row_i c_w - c_i row_w) / c_w^2, s = (x_ndc + 1) / 2), in NumPy for
+    the allocation's terms (a few hundred points, where a kernel launch costs more than the math;
+    tests check the two against each other)."""
+    X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    M = smap.matrix
+    c = X @ M[:3, :3].T + M[:3, 3]
+    cw = (X @ M[3, :3] + M[3, 3])[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / (cw * cw)
+        gs = (M[0, :3][None] * cw - c[:, 0:1] * M[3, :3][None]) * (0.5 * inv)
+        gt = (M[1, :3][None] * cw - c[:, 1:2] * M[3, :3][None]) * (0.5 * inv)
+        s = (c[:, 0] / cw[:, 0] + 1.0) * 0.5
+        t = (c[:, 1] / cw[:, 0] + 1.0) * 0.5
+        if smap.log_warp is not None:
+            gt = gt * smap.log_warp.derivative(t)[:, None]
+            t = smap.log_warp.apply(t)
+    return gs, gt, s, t, cw[:, 0]
 
 
 def mean_terms(smap, samples, origin=None) -> tuple[float, float]:
     """(P, Q) of allocate_mean for one map over its samples: sum_i w_i p_i and sum_i w_i q_i, where
-    h_i = p_i / width^2 + q_i / height^2 (from the metric at two resolutions: h(1, 1) = p + q,
-    h(2, 1) = p / 4 + q). Weights as the samples carry them (divide by the light's total weight
-    for the objective's share)."""
-    import copy
-
-    from .metric import device_samples, per_sample
-
+    h_i = p_i / width^2 + q_i / height^2: with J at resolution 1 (rows ds/dX (dX/dx, dX/dy) and
+    likewise t), F = J^-1 has columns (j11, -j10) / det and (-j01, j00) / det, and a resolution
+    (width, height) scales J's rows by width and height, so p = (j10^2 + j11^2) / det^2 and
+    q = (j00^2 + j01^2) / det^2 (solvers.metric's h at any resolution; inf when a sample has no
+    valid footprint, as the metric says). Weights as the samples carry them (divide by the light's
+    total weight for the objective's share). `origin` is accepted for the metric's signature."""
     if len(samples) == 0:
         return 0.0, 0.0
-    ds = device_samples(samples, origin)
-    one = copy.copy(smap)
-    one.resolution = (1, 1)
-    h11, _, ok1 = per_sample(one, ds)
-    one.resolution = (2, 1)
-    h21, _, ok2 = per_sample(one, ds)
-    ok = ok1 & ok2 & np.isfinite(h11) & np.isfinite(h21)
-    if not ok.all():
+    gs, gt, _, _, w = map_gradients(smap, samples.position)
+    j00, j01 = np.sum(gs * samples.dx, 1), np.sum(gs * samples.dy, 1)
+    j10, j11 = np.sum(gt * samples.dx, 1), np.sum(gt * samples.dy, 1)
+    det = j00 * j11 - j01 * j10
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = (j10 * j10 + j11 * j11) / (det * det)
+        q = (j00 * j00 + j01 * j01) / (det * det)
+    if not (np.all(w > 0) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
         return math.inf, math.inf
-    p = np.maximum(4.0 / 3.0 * (h11 - h21), 0.0)
-    q = np.maximum(h11 - p, 0.0)
-    w = np.asarray(samples.weight, dtype=np.float64)
-    return float(np.sum(w * p)), float(np.sum(w * q))
+    wt = np.asarray(samples.weight, dtype=np.float64)
+    return float(np.sum(wt * p)), float(np.sum(wt * q))

@@ -11,7 +11,7 @@ import numpy as np
 
 from .baselines import _with_bias, fit_baseline, texel_extents
 from .cameras import Camera
-from .cascades import allocate_mean, mean_terms, pixel_world_size, with_receivers
+from .cascades import allocate_mean, map_gradients, mean_terms, pixel_world_size, with_receivers
 from .lights import DirectionalLight
 from .metric import serial_kernels
 from .optimize import DEFAULT_METHOD, METHODS, Problem, minimize, optimizable, single_map_spot
@@ -42,26 +42,37 @@ def receiver_h(smap, pts: np.ndarray, camera: Camera, light) -> float:
     does): ((metres per texel along s)^2 + (along t)^2) / (world size of a full-resolution pixel)^2.
     Scores a cascade the samples do not reach (no shadow boundary in its depth range): there the
     metric has no sample, so every candidate would score 0. inf when a receiver is outside the map."""
-    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
-    if not len(pts):
-        return 0.0
-    if len(pts) > RECEIVER_SCORE_POINTS:
-        pts = pts[np.random.default_rng(0).choice(len(pts), RECEIVER_SCORE_POINTS, replace=False)]
-    per_s, per_t = texel_extents(smap, pts, light)
-    pix = pixel_world_size(camera, pts)
-    h = ((per_s / smap.resolution[0]) ** 2 + (per_t / smap.resolution[1]) ** 2) / pix ** 2
-    return float(np.mean(h)) if np.isfinite(h).all() else float("inf")
+    p, q = receiver_terms(smap, pts, camera, light)
+    return p / smap.resolution[0] ** 2 + q / smap.resolution[1] ** 2
 
 
-def receiver_terms(smap, pts: np.ndarray, camera: Camera, light) -> tuple[float, float]:
+def receiver_terms(smap, pts: np.ndarray, camera: Camera, light, n: int = RECEIVER_SCORE_POINTS) -> tuple[float, float]:
     """(P, Q) of receiver_h: its mean h is P / width^2 + Q / height^2 (means over the receivers of
-    (metres per unit s / pixel size)^2 and likewise t)."""
+    (metres per unit s / pixel size)^2 and likewise t, measured in the plane perpendicular to the light
+    as baselines.texel_extents does, from the map's analytic gradients; at most n receivers, a seeded
+    random subset; inf when one is outside the map)."""
     pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
     if not len(pts):
         return 0.0, 0.0
-    if len(pts) > RECEIVER_SCORE_POINTS:
-        pts = pts[np.random.default_rng(0).choice(len(pts), RECEIVER_SCORE_POINTS, replace=False)]
-    per_s, per_t = texel_extents(smap, pts, light)
+    if len(pts) > n:
+        pts = pts[np.random.default_rng(0).choice(len(pts), n, replace=False)]
+    if not isinstance(light, DirectionalLight):
+        per_s, per_t = texel_extents(smap, pts, light)
+    else:
+        d = light.direction
+        e1 = np.cross(d, [0.0, 1.0, 0.0])
+        if np.linalg.norm(e1) < 1e-6:
+            e1 = np.cross(d, [1.0, 0.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(d, e1)
+        gs, gt, s, t, w = map_gradients(smap, pts)
+        j00, j01, j10, j11 = gs @ e1, gs @ e2, gt @ e1, gt @ e2
+        det = np.abs(j00 * j11 - j01 * j10)
+        eps = 1e-6
+        inside = (w > 0) & (s >= -eps) & (s <= 1 + eps) & (t >= -eps) & (t <= 1 + eps) & (det > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            per_s = np.where(inside, np.hypot(j11, j10) / det, np.nan)
+            per_t = np.where(inside, np.hypot(j01, j00) / det, np.nan)
     pix = pixel_world_size(camera, pts)
     p, q = (per_s / pix) ** 2, (per_t / pix) ** 2
     if not (np.isfinite(p).all() and np.isfinite(q).all()):
@@ -69,7 +80,8 @@ def receiver_terms(smap, pts: np.ndarray, camera: Camera, light) -> tuple[float,
     return float(np.mean(p)), float(np.mean(q))
 
 
-def cascade_terms(maps, subs, parts, camera, light, total_weight: float, shares=None):
+def cascade_terms(maps, subs, parts, camera, light, total_weight: float, shares=None,
+                  n_receivers: int = RECEIVER_SCORE_POINTS):
     """Per cascade, (P, Q) for solvers.cascades.allocate_mean: the samples' terms (weights over the
     light's total) plus the receivers' (cascades.with_receivers; `shares`: each cascade's share of
     the receivers, default from len(parts))."""
@@ -78,7 +90,7 @@ def cascade_terms(maps, subs, parts, camera, light, total_weight: float, shares=
         p, q = mean_terms(smap, sub, camera.position) if len(sub) else (0.0, 0.0)
         P.append(p / total_weight), Q.append(q / total_weight)
         W.append(float(np.sum(sub.weight)) / total_weight if len(sub) else 0.0)
-        pr, qr = receiver_terms(smap, pts, camera, light)
+        pr, qr = receiver_terms(smap, pts, camera, light, n_receivers)
         Pr.append(pr), Qr.append(qr)
     if shares is None:
         n = np.array([len(p) for p in parts], float)
@@ -141,8 +153,14 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
             sr = optimize_splits(camera, light, samples, receivers, casters_bounds, resolution, int(cascades),
                                  texel_budget=texel_budget, receiver_slack=receiver_slack)
             split_at, split_info = sr.split_at, sr.to_json()
+    by_mean = bool(texel_budget) and isinstance(light, DirectionalLight) and int(cascades) > 1
+    if by_mean:  # allocate_mean sets the resolutions below: the baselines' own eq. 83 is not needed
+        side = max(16, math.isqrt(int(texel_budget) // int(cascades)))
+        resolution, budget_for_fit = (side, side), None
+    else:
+        budget_for_fit = texel_budget
     common = dict(resolution=resolution, cascades=cascades, splits=splits, split_lambda=split_lambda,
-                  texel_budget=texel_budget, receiver_slack=receiver_slack, split_at=split_at)
+                  texel_budget=budget_for_fit, receiver_slack=receiver_slack, split_at=split_at)
     hulls: dict = {}  # the receivers' light-plane hull per cascade, shared by the four methods
     fitted = {m: fit_baseline(m, camera, light, receivers, casters_bounds, allow_log=allow_log and m == "logpsm",
                               hull_cache=hulls, **common) for m in BASELINES}
@@ -168,7 +186,6 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
     depth = (receivers - camera.position) @ camera.forward if len(receivers) else np.zeros(0)
     slack = np.zeros(len(receivers)) if receiver_slack is None else np.asarray(receiver_slack, float)
     out_maps, info, kept = [], [], []
-    by_mean = bool(texel_budget) and isinstance(light, DirectionalLight) and len(ref) > 1
     subs = []
     total_w = max(float(np.sum(samples.weight)), 1e-300)
     shares = _depth_shares(ref, depth)

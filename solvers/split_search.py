@@ -26,7 +26,8 @@ from .metric import predicted_error
 from .optimized_maps import _depth_shares, cascade_terms
 from .samples import Samples
 
-SEARCH_RECEIVERS = 1500  # receivers kept for the search's map fits (the final maps fit all of them)
+SEARCH_RECEIVERS = 500  # receivers kept for the search's map fits (the final maps fit all of them)
+SEARCH_RECEIVER_TERMS = 128  # of those, per cascade, the ones its receivers' terms are measured on
 
 
 @dataclass
@@ -84,7 +85,8 @@ def optimize_splits(camera, light, samples: Samples, receivers: np.ndarray, cast
         for m in fitted.maps:
             sel = (samples.view_depth >= m.split[0]) & (samples.view_depth <= m.split[1])
             subs.append(samples.subset(sel))
-        terms = cascade_terms(fitted.maps, subs, fitted.parts, camera, light, total_w, _depth_shares(fitted.maps, depth))
+        terms = cascade_terms(fitted.maps, subs, fitted.parts, camera, light, total_w, _depth_shares(fitted.maps, depth),
+                              SEARCH_RECEIVER_TERMS)
         v = objective_mean(*terms, texel_budget) if terms is not None else math.inf
         return v if math.isfinite(v) else 1e300
 

@@ -35,7 +35,9 @@ def test_mean_allocation_minimises_the_closed_form_mean():
         res = allocate_mean(P, Q, T)
         assert sum(w * h for w, h in res) <= T
         best = _value(P, Q, res)
-        assert best == pytest.approx(objective_mean(P, Q, T), rel=0.01)
+        closed = sum(np.sqrt(2 * np.sqrt(P * Q))) ** 2 / T
+        assert objective_mean(P, Q, T) == pytest.approx(closed, rel=1e-9)
+        assert best == pytest.approx(closed, rel=0.01)
         shares = np.linspace(0.05, 0.9, 18)
         aspects = np.exp(np.linspace(-2.5, 2.5, 11))
         for a0, a1 in itertools.product(shares, shares):
@@ -45,7 +47,7 @@ def test_mean_allocation_minimises_the_closed_form_mean():
             for asp in itertools.product(aspects, repeat=1):
                 trial = [(np.sqrt(A * np.sqrt(p / q) * asp[0]), np.sqrt(A / np.sqrt(p / q) / asp[0]))
                          for A, p, q in zip(areas, P, Q)]
-                assert _value(P, Q, trial) >= objective_mean(P, Q, T) * (1 - 1e-9)
+                assert _value(P, Q, trial) >= closed * (1 - 1e-9)
                 assert _value(P, Q, trial) >= best * (1 - 0.005)  # sides rounded down
 
 
@@ -78,14 +80,44 @@ def test_mean_terms_predict_the_metric_at_any_resolution():
     # h_i = p_i / w^2 + q_i / h^2 exactly (the metric's footprint scales with the resolution):
     # the weighted mean at any resolution from the two-resolution terms equals the metric's own
     pts, samples = ground_samples(CAM)
-    for method in ("focused", "lispsm"):
-        smap = baseline(method, CAM, SUN, pts, BOUNDS, resolution=(512, 512))[0]
+    for method in ("focused", "lispsm", "logpsm"):
+        smap = baseline(method, CAM, SUN, pts, BOUNDS, resolution=(512, 512), allow_log=True)[0]
+        assert (smap.log_warp is not None) == (method == "logpsm")
         p, q = mean_terms(smap, samples, CAM.position)
         W = float(np.sum(samples.weight))
         for res in ((512, 512), (300, 1100), (2048, 64)):
             smap.resolution = res
             got = predicted_objective([smap], samples, CAM.position)
             assert (p / res[0] ** 2 + q / res[1] ** 2) / W == pytest.approx(got, rel=1e-6), (method, res)
+
+
+def test_receiver_terms_match_texel_extents():
+    # the analytic gradients give the same metres per unit s, t as baselines.texel_extents' central
+    # differences (perpendicular to the light), for warped and log maps
+    from shadowopt.solvers.baselines import texel_extents
+    from shadowopt.solvers.cascades import pixel_world_size
+    from shadowopt.solvers.optimized_maps import receiver_terms
+
+    pts, _ = ground_samples(CAM)
+    for method in ("focused", "lispsm", "logpsm"):
+        smap = baseline(method, CAM, SUN, pts, BOUNDS, resolution=(512, 512), allow_log=True)[0]
+        per_s, per_t = texel_extents(smap, pts, SUN)
+        pix = pixel_world_size(CAM, pts)
+        want = (float(np.mean((per_s / pix) ** 2)), float(np.mean((per_t / pix) ** 2)))
+        assert receiver_terms(smap, pts, CAM, SUN, n=len(pts)) == pytest.approx(want, rel=1e-4), method
+
+
+def test_a_side_held_at_the_floor_still_gets_its_optimal_area():
+    # P ~ 0 (the map's s axis already fine): the ideal width is below MIN_RES; the allocation keeps
+    # it at MIN_RES and gives the map the area its Q needs, found by brute force over its height
+    T = 4 * 256 * 256
+    P, Q = np.array([3.9e9, 4.7e8, 3.1e8, 2.6e-5]), np.array([2.5e8, 2.1e5, 3.6e4, 1.6e8])
+    res = allocate_mean(P, Q, T)
+    assert res[3][0] == MIN_RES and res[3][1] > 200
+    best = _value(P, Q, res)
+    for h3 in range(17, 2000, 29):  # give map 3 another height, the others share the rest optimally
+        rest = allocate_mean(P[:3], Q[:3], T - MIN_RES * h3)
+        assert _value(P, Q, rest + [(MIN_RES, h3)]) >= best * (1 - 0.01)
 
 
 def test_budgeted_cascades_spend_the_budget_and_beat_eq_83():
