@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import time
+from functools import lru_cache
 
 import numpy as np
 
@@ -46,6 +47,17 @@ def receiver_h(smap, pts: np.ndarray, camera: Camera, light) -> float:
     return p / smap.resolution[0] ** 2 + q / smap.resolution[1] ** 2
 
 
+@lru_cache(maxsize=64)
+def _light_plane_axes(d: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit axes perpendicular to the light direction d (baselines.texel_extents' e1, e2)."""
+    d = np.asarray(d, float)
+    e1 = np.cross(d, [0.0, 1.0, 0.0])
+    if np.linalg.norm(e1) < 1e-6:
+        e1 = np.cross(d, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(d, e1)
+
+
 def receiver_terms(smap, pts: np.ndarray, camera: Camera, light, n: int = RECEIVER_SCORE_POINTS) -> tuple[float, float]:
     """(P, Q) of receiver_h: its mean h is P / width^2 + Q / height^2 (means over the receivers of
     (metres per unit s / pixel size)^2 and likewise t, measured in the plane perpendicular to the light
@@ -59,12 +71,7 @@ def receiver_terms(smap, pts: np.ndarray, camera: Camera, light, n: int = RECEIV
     if not isinstance(light, DirectionalLight):
         per_s, per_t = texel_extents(smap, pts, light)
     else:
-        d = light.direction
-        e1 = np.cross(d, [0.0, 1.0, 0.0])
-        if np.linalg.norm(e1) < 1e-6:
-            e1 = np.cross(d, [1.0, 0.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(d, e1)
+        e1, e2 = _light_plane_axes(tuple(float(v) for v in light.direction))
         gs, gt, s, t, w = map_gradients(smap, pts)
         j00, j01, j10, j11 = gs @ e1, gs @ e2, gt @ e1, gt @ e2
         det = np.abs(j00 * j11 - j01 * j10)
@@ -101,13 +108,14 @@ def cascade_terms(maps, subs, parts, camera, light, total_weight: float, shares=
 
 
 def _depth_shares(maps, depth: np.ndarray) -> np.ndarray:
-    """Each cascade's share of the receivers by view depth (the cascade that serves them)."""
-    from .shadow_map import map_for_depth
-
+    """Each cascade's share of the receivers by view depth (map_for_depth's rule: the first cascade
+    whose [near, far] split holds the depth; `depth` sorted or not)."""
     if not len(depth):
         return np.full(len(maps), 1.0 / max(len(maps), 1))
-    idx = map_for_depth(maps, depth)
-    return np.bincount(idx[idx >= 0], minlength=len(maps))[:len(maps)] / float(len(depth))
+    d = depth if np.all(depth[:-1] <= depth[1:]) else np.sort(depth)
+    bounds = np.searchsorted(d, [m.split[1] for m in maps], side="right")
+    counts = np.diff(np.concatenate([[0], np.maximum.accumulate(bounds)]))
+    return counts / float(len(d))
 
 
 def _reallocate(maps, subs, parts, camera, light, budget, total_weight, shares, also=None) -> None:
