@@ -118,17 +118,18 @@ def _hull_normals(q: np.ndarray, is_hull: bool):
     return hull, np.vstack([n, np.column_stack([-n[:, 1], n[:, 0]])])
 
 
-def _objective_affine(q: np.ndarray, G: np.ndarray, resolution, is_hull: bool):
+def _objective_affine(hn, G: np.ndarray, resolution):
     """The affine part that minimises the weighted mean h among the parallelograms around q with
     sides along two of the hull's edge normals or their perpendiculars (the minimum-area
     parallelogram and every flush rectangle included), both assignments of the two to s and t: with
     u = A q + b and A = diag(α, β) N (N the two unit normals, α, β texels per unit across the hull's
     widths), h = tr(Ḡ A^-1 A^-T) = c0ᵀḠc0/α² + c1ᵀḠc1/β², c0, c1 the columns of N^-1, Ḡ the samples'
-    mean (J_q J_q^T)^-1 (solvers.metric.warped_moments). Returns ((i, j) or None, value)."""
+    mean (J_q J_q^T)^-1 (solvers.metric.warped_moments). hn: _hull_normals of the warped fit points
+    (None: fewer than three). Returns ((i, j) or None, value)."""
     g00, g01, g11, wsum, lost = (float(v) for v in G)
-    if len(q) < 3 or lost > 0 or not wsum > 0:
+    if hn is None or lost > 0 or not wsum > 0:
         return None, math.inf
-    hull, n = _hull_normals(q, is_hull)
+    hull, n = hn
     if len(hull) < 3 or len(n) < 2:
         return None, math.inf
     g00, g01, g11 = g00 / wsum, g01 / wsum, g11 / wsum
@@ -151,12 +152,12 @@ def _objective_affine(q: np.ndarray, G: np.ndarray, resolution, is_hull: bool):
     return ((int(i), int(j)), v) if math.isfinite(v) else (None, math.inf)
 
 
-def _affine_from_choice(q: np.ndarray, choice, is_hull: bool):
-    """_affine_fit's (C, lo, hi) for the normals `choice` = (i, j) of _hull_normals (the minimum-area
-    parallelogram when choice is None)."""
-    if choice is None:
+def _affine_from_choice(q: np.ndarray, hn, choice, is_hull: bool):
+    """_affine_fit's (C, lo, hi) for the normals `choice` = (i, j) of hn = _hull_normals(q) (the
+    minimum-area parallelogram when choice is None)."""
+    if choice is None or hn is None:
         return _affine_fit(q, "parallelogram", (1, 1), is_hull)
-    _, n = _hull_normals(q, is_hull)
+    n = hn[1]
     if max(choice) >= len(n):
         return _affine_fit(q, "parallelogram", (1, 1), is_hull)
     a, b = n[choice[0]], n[choice[1]]
@@ -346,11 +347,12 @@ class Problem:
         h = self.n_hull or len(v)
         q = np.column_stack([v[:h, 0] / wv[:h], (v[:h, 1] - y0) / wv[:h]])
         if self.affine == "objective":
+            hn = _hull_normals(q, self.n_hull > 0) if len(q) >= 3 else None
             if choice is None:
                 G = warped_moments(recentre(W @ view, self.ds.origin), self.ds)
                 self.nfev += 1
-                choice, self.last_value = _objective_affine(q, G, self.resolution, self.n_hull > 0)
-            C, lo, hi = _affine_from_choice(q, choice, self.n_hull > 0)
+                choice, self.last_value = _objective_affine(hn, G, self.resolution)
+            C, lo, hi = _affine_from_choice(q, hn, choice, self.n_hull > 0)
             self.last_choice = choice
         else:
             C, lo, hi = _affine_fit(q, self.affine, self.resolution, self.n_hull > 0)
