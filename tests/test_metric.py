@@ -165,3 +165,28 @@ def test_samples_prefer_boundaries_and_fall_back_to_all_facing():
     s = select_samples(cam, light, pos, nrm, hit, np.zeros((3, 3), bool), boundary)
     assert s.kind == "none" and len(s) == 0
     assert predicted_error([], s)["samples"] == 0
+
+
+def test_warped_moments_give_every_affine_parts_objective():
+    """metric.warped_moments (the optimizer's affine fit): for q = the first two rows of a perspective
+    P over its fourth, and any affine A on q, tr(Ḡ (AᵀA)^-1) equals the objective of the map A∘P
+    computed directly (objective on the composed matrix)."""
+    from shadowopt.solvers.metric import warped_moments
+
+    cam = Camera.look_at([0, 2, 0], [0, 0, 20], fov_y_deg=60, resolution=(800, 600))
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(-10, 10, 300), np.zeros(300), rng.uniform(3, 40, 300)])
+    s = samples_on_plane(cam, pts, [0, 1, 0])
+    ds = DeviceSamples(s, cam.position)
+    Pq = np.array([[1.0, 0, 0.2, 0], [0, 0.1, 1.0, 0], [0, 1.0, 0, 0], [0, 0, 0.05, 1.0]])  # w = 1 + z/20 > 0
+    G = warped_moments(recentre(Pq, ds.origin), ds)
+    Gm = np.array([[G[0], G[1]], [G[1], G[2]]]) / G[3]
+    assert G[4] == 0
+    for _ in range(4):
+        A2 = rng.normal(size=(2, 2)) * 50
+        A = np.eye(4)
+        A[:2, :2] = A2
+        M = A @ Pq  # u_ndc = A q (resolution 2: u = (ndc + 1) / 2 * 2 = q-space units times A)
+        want = float(objective(matrix_to_device(recentre(M, ds.origin)), (2.0, 2.0), None, ds)[0])
+        got = float(np.trace(Gm @ np.linalg.inv(A2.T @ A2)))
+        assert got == pytest.approx(want, rel=1e-9)
