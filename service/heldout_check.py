@@ -262,6 +262,24 @@ def tables(summaries: dict, proto: dict, settings: dict) -> str:
     return "\n".join(out)
 
 
+def write_rig(scene: str, sun: int, dest: Path, rig_name: str | None = None, store: Path | None = None,
+              shadow: dict | None = None) -> tuple[Path, Path]:
+    """A rig file for `shadowopt compare --rig` reproducing stored sun `sun` of a held-out scene rig
+    (its camera at the stored screen, that sun, one map at the stored resolution): (scene path, rig file)."""
+    sspec = heldout_definitions()["scenes"][scene]
+    rig_name = rig_name or next(iter(sspec["rigs"]))
+    store = Path(store) if store is not None else OUT / "results"
+    stored = json.loads((store / f"{scene}--{rig_name}.json").read_text())
+    d = stored["dirs"][sun]
+    rig = {"camera": {**sspec["rigs"][rig_name]["camera"], "resolution": stored["screen"]},
+           "lights": [{"type": "directional", "direction": [float(x) for x in d]}],
+           "shadow": shadow or {"resolution": stored["map"], "cascades": 1}}
+    dest = Path(dest)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    dest.write_text(json.dumps(rig, indent=1))
+    return heldout_scenes([scene])[scene][0], dest
+
+
 def _wxh(s: str):
     w, _, h = s.lower().partition("x")
     return [int(w), int(h or w)]
@@ -280,7 +298,13 @@ def main(argv=None) -> int:
     ap.add_argument("--reuse", action="store_true", help="take stored scene rigs measured with the same settings")
     ap.add_argument("--store", type=Path)
     ap.add_argument("--out", type=Path, help="write the Markdown table here (e.g. out/heldout/results.md)")
+    ap.add_argument("--rig-for", metavar="SCENE:SUN", help="only write a compare rig for a stored sun (to --out) and print the scene path")
     a = ap.parse_args(argv)
+    if a.rig_for:
+        scene, _, sun = a.rig_for.partition(":")
+        path, rig = write_rig(scene, int(sun), a.out or OUT / f"{scene}-sun{sun}.json", store=a.store)
+        print(path, rig)
+        return 0
     res = run(scenes=a.scenes, lights=a.lights, seed=a.seed, screen=a.screen, map_res=a.map,
               cascade_scenes=a.cascade_scenes.split(",") if a.cascade_scenes else None, cascade_lights=a.cascade_lights,
               cascades=not a.no_cascades, reuse=a.reuse, store=a.store, results_md=a.out)

@@ -143,3 +143,16 @@ def test_check_counts_the_per_sun_bound_and_the_best_baseline():
     mis["optimized"] = [99, 100, 10]  # lower on sun 0, tied on suns 1 and 2: lowest everywhere
     s = heldout_check.scene_summary(rec, dirs, proto)["single"]
     assert s["suns_not_lowest"] == 0 and s["optimized_over_best"] == pytest.approx(209 / 320)
+
+
+def test_write_rig_reproduces_a_stored_sun(tmp_path):
+    """The compare rig for a stored sun carries that sun's direction, the stored screen and map."""
+    from shadowopt.api.schemas import validate_rig
+
+    dirs = [[0.0, -1.0, 0.0], [0.6, -0.8, 0.0]]
+    (tmp_path / "colonnade--nave.json").write_text(json.dumps({"dirs": dirs, "screen": [320, 240], "map": [256, 256]}))
+    scene, rig_file = heldout_check.write_rig("colonnade", 1, tmp_path / "rig.json", store=tmp_path)
+    rig = validate_rig(json.loads(rig_file.read_text()))
+    assert scene.name == "colonnade.usda" and scene.exists()
+    assert rig["lights"][0]["direction"] == pytest.approx([0.6, -0.8, 0.0])
+    assert list(rig["camera"]["resolution"]) == [320, 240] and list(rig["shadow"]["resolution"]) == [256, 256]
