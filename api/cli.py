@@ -325,6 +325,23 @@ def cmd_batch(args) -> int:
     return 0
 
 
+def cmd_pack(args) -> int:
+    """A local stage with its references, sublayers and payloads as one .usdz to upload."""
+    from ..service.packing import pack_stage
+
+    res = pack_stage(args.scene, args.out)
+    if args.json:
+        print(json.dumps(res, indent=2))
+    else:
+        print(f"{args.out}: {res['entries']} entries ({res['layers']} layers), {res['bytes']} bytes")
+        other = [a for a in res["assets"] if not a.lower().endswith((".usd", ".usda", ".usdc", ".usdz"))]
+        if other:
+            print(f"  note: {len(other)} non-USD file(s) packed (e.g. {other[0]}); the service does not read them")
+        for u in res["unresolved"]:
+            print(f"  warning: {u} is named by the stage but does not exist; left out", file=sys.stderr)
+    return 0
+
+
 def cmd_serve(args) -> int:
     from .server import check_host, serve
     from .settings import SettingsError, load_settings
@@ -461,6 +478,12 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--time-budget-ms", type=float, default=None, help="per configuration")
     sp.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     sp.set_defaults(func=cmd_batch)
+
+    sp = sub.add_parser("pack", help="package a stage and the files it references as one .usdz to upload")
+    sp.add_argument("scene", help="a .usd, .usda or .usdc stage")
+    sp.add_argument("--out", required=True, metavar="FILE.usdz", help="the package to write")
+    sp.add_argument("--json", action="store_true")
+    sp.set_defaults(func=cmd_pack)
 
     sp = sub.add_parser("serve", help="start the REST service")
     sp.add_argument("--host", default=None, help="default 127.0.0.1; another address needs tokens configured")

@@ -149,13 +149,39 @@ def batch_id_of(batch) -> str:
     return batch if isinstance(batch, str) else batch.batch_id
 
 
-def _scene_upload(path_or_bytes, filename: str | None) -> dict:
+def _scene_upload(path_or_bytes, filename: str | None, pack: bool | None = None) -> dict:
     if isinstance(path_or_bytes, (bytes, bytearray, memoryview)):
         data, name = bytes(path_or_bytes), filename or "scene.usda"
     else:
-        p = Path(path_or_bytes)
-        data, name = p.read_bytes(), filename or p.name
+        data, name = scene_bytes(Path(path_or_bytes), pack)
+        name = filename or name
     return {"file": (name, data, "application/octet-stream")}
+
+
+def scene_bytes(path: Path, pack: bool | None = None) -> tuple[bytes, str]:
+    """What `upload_scene` sends for a local path: a folder as a .zip (the server finds its root layer);
+    a stage that names other files (references, sublayers, payloads) packed as one .usdz with usd-core's
+    UsdUtils (service.packing, when usd-core is installed; `pack=None` decides, True insists, False
+    sends the file as it is); anything else as it is."""
+    if path.is_dir():
+        from ..service.packing import zip_folder_bytes
+
+        return zip_folder_bytes(path)
+    if pack is not False and path.suffix.lower() in (".usd", ".usda", ".usdc"):
+        try:
+            from ..renderers.scene_data import SceneError
+            from ..service.packing import needs_package, pack_bytes
+        except ImportError:  # the bare client install: no usd-core; the server says what it cannot open
+            if pack:
+                raise
+        else:
+            try:
+                if pack or needs_package(path):
+                    return pack_bytes(path)
+            except (ImportError, SceneError):  # no usd-core, or a stage it cannot read: the server will say why
+                if pack:
+                    raise
+    return path.read_bytes(), path.name
 
 
 class _Calls:
@@ -166,8 +192,8 @@ class _Calls:
         return _Call("GET", "/healthz", accept=(503,), parse=lambda r: Health.model_validate(r.json()))
 
     @staticmethod
-    def upload_scene(path_or_bytes, filename):
-        return _Call("POST", "/v1/scenes", files=_scene_upload(path_or_bytes, filename),
+    def upload_scene(path_or_bytes, filename, pack=None):
+        return _Call("POST", "/v1/scenes", files=_scene_upload(path_or_bytes, filename, pack),
                      parse=lambda r: SceneInfo.model_validate(r.json()))
 
     @staticmethod
@@ -366,9 +392,11 @@ class Client(_Base):
                 raise TimeoutError(f"{self.base_url}/healthz not ready after {timeout} s")
             time.sleep(poll_s)
 
-    def upload_scene(self, path_or_bytes, filename: str | None = None) -> SceneInfo:
-        """Upload a .usda/.usdc/.usdz (a path or its bytes; give `filename` with bytes of another kind)."""
-        return self._call(_Calls.upload_scene(path_or_bytes, filename))
+    def upload_scene(self, path_or_bytes, filename: str | None = None, pack: bool | None = None) -> SceneInfo:
+        """Upload a .usd/.usda/.usdc/.usdz or a .zip of a scene's folder (a path or its bytes; give `filename`
+        with bytes of another kind). A local stage that names other files is packed into one .usdz first
+        (with usd-core installed; `pack=False` sends it as it is), a folder is sent as a .zip."""
+        return self._call(_Calls.upload_scene(path_or_bytes, filename, pack))
 
     def list_scenes(self) -> list[dict]:
         return self._call(_Calls.list_scenes())
@@ -527,8 +555,8 @@ class AsyncClient(_Base):
                 raise TimeoutError(f"{self.base_url}/healthz not ready after {timeout} s")
             await asyncio.sleep(poll_s)
 
-    async def upload_scene(self, path_or_bytes, filename: str | None = None) -> SceneInfo:
-        return await self._call(_Calls.upload_scene(path_or_bytes, filename))
+    async def upload_scene(self, path_or_bytes, filename: str | None = None, pack: bool | None = None) -> SceneInfo:
+        return await self._call(_Calls.upload_scene(path_or_bytes, filename, pack))
 
     async def list_scenes(self) -> list[dict]:
         return await self._call(_Calls.list_scenes())

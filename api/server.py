@@ -54,7 +54,7 @@ log = logging.getLogger("shadowopt.server")
 REPO = Path(__file__).resolve().parents[1]
 DEMO_SCENE = REPO / "configs" / "demo_scene.usda"
 DEMO_RIG = REPO / "configs" / "demo_rig.json"
-SCENE_SUFFIXES = (".usda", ".usdc", ".usdz", ".usd")
+SCENE_SUFFIXES = (".usda", ".usdc", ".usdz", ".usd", ".zip")  # .zip: a scene's folder, stored as a .usdz
 LOCAL_TENANT = "local"  # the tenant of every request when no tokens are configured (loopback only)
 
 # --- errors -------------------------------------------------------------------------------------
@@ -692,7 +692,8 @@ def add_system_routes(app: FastAPI, svc: Service) -> None:
 
 # --- scenes -------------------------------------------------------------------------------------
 
-UPLOAD_BODY = {"requestBody": {"required": True, "description": "the USD file: the raw bytes (filename in the "
+UPLOAD_BODY = {"requestBody": {"required": True, "description": "the USD file (a multi-file scene as one package: "
+               "a .usdz, or a .zip of its folder): the raw bytes (filename in the "
                "`filename` query parameter or the X-Filename header) or multipart/form-data with a `file` part",
                "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}},
                            "multipart/form-data": {"schema": {
@@ -701,7 +702,8 @@ UPLOAD_BODY = {"requestBody": {"required": True, "description": "the USD file: t
 
 
 def add_scene_routes(app: FastAPI, svc: Service, Tenant) -> None:
-    @app.post("/v1/scenes", summary="Upload a .usda/.usdc/.usdz scene; answers what the loader found",
+    @app.post("/v1/scenes", summary="Upload a .usda/.usdc/.usdz scene (or a .zip of a scene's folder); answers "
+              "what the loader found",
               response_model=S.SceneInfo, status_code=201, openapi_extra=UPLOAD_BODY, tags=["scenes"],
               responses={200: {"model": S.SceneInfo, "description": "the same file was uploaded before"},
                          **error_responses(*AUTHED, 413, 422, 503)})
@@ -713,6 +715,8 @@ def add_scene_routes(app: FastAPI, svc: Service, Tenant) -> None:
         async with svc.heavy(tenant, request, watch=False) as ticket:
             data, name = await read_upload(request, svc.settings.max_upload_bytes, filename or x_filename)
             ticket.watch(request.receive)
+            if name.lower().endswith(".zip"):  # a scene's folder: checked entry by entry, stored as a .usdz
+                data, name = await run_in_threadpool(zip_upload, data, name)
             info, created = await store_and_load(svc, ticket, data, name)
         return json_response({**info, "created": created}, status=201 if created else 200)
 
@@ -779,11 +783,25 @@ async def read_upload(request: Request, limit: int, name: str | None) -> tuple[b
                        "header X-Filename, or the multipart part's filename)", "filename")
     name = os.path.basename(name.replace("\\", "/"))
     if not name.lower().endswith(SCENE_SUFFIXES):
-        raise ApiError(422, "unsupported_format", f"filename: {name!r} is not a .usda, .usdc or .usdz file",
+        raise ApiError(422, "unsupported_format", f"filename: {name!r} is not a .usd, .usda, .usdc or .usdz file "
+                       "or a .zip of a scene's folder",
                        "filename")
     if not body:
         raise ApiError(422, "invalid_request", "body: the upload is empty", "body")
     return body, name
+
+
+def zip_upload(data: bytes, name: str) -> tuple[bytes, str]:
+    """service.packing.zip_to_usdz; a refused entry, limit or damaged zip is a 422 naming the entry as the
+    zip names it (413 over the unpacked-size limit)."""
+    from ..renderers.scene_data import SceneError
+    from ..service.packing import zip_to_usdz
+
+    try:
+        return zip_to_usdz(data, name)
+    except SceneError as e:
+        status = 413 if e.code == "sandbox_limit" else 422
+        raise ApiError(status, e.code, f"file: {redact(e.message)}", "file") from e
 
 
 # over a resource limit: too large (too_large_for_cache: one scene's estimated bytes over the tenant's share of

@@ -81,7 +81,9 @@ def check_asset_path(asset_path: str, anchor: str, mode: str, asset_root: str | 
         return True, "ok"
     # sandbox
     if archive is None:
-        return False, f"{asset_path!r}: an uploaded single-file scene may not open other files"
+        return False, (f"{asset_path!r}: an uploaded single-file scene may not open other files (upload the scene "
+                       "with the files it names as one package: a .usdz, e.g. from `shadowopt pack`, or a .zip of "
+                       "its folder)")
     if os.path.isabs(asset_path) or asset_path.startswith("\\"):
         return False, f"{asset_path!r} is an absolute path"
     if "[" in asset_path:

@@ -1,0 +1,204 @@
+"""Multi-file scenes as one package (service/packing.py): `shadowopt pack`, the client packing a stage that
+names other files, a .zip of a scene's folder uploaded over a real uvicorn (tests/serverkit.py) and read in
+the sandbox, and zips whose entries would leave their folder refused naming the entry."""
+from __future__ import annotations
+
+import io
+import json
+import stat
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import httpx
+import pytest
+from serverkit import REPO, TOKENS, auth, running
+
+from shadowopt.api.client import Client
+from shadowopt.renderers.scene_data import SceneError
+from shadowopt.service.packing import needs_package, zip_folder_bytes, zip_to_usdz
+
+CHESS = Path("/work/shared/usd-assets/full_assets/OpenChessSet/chess_set.usda")
+CLI = [sys.executable, "-m", "shadowopt.api.cli"]
+
+PART = """#usda 1.0
+(
+    defaultPrim = "Part"
+)
+def Mesh "Part"
+{
+    int[] faceVertexCounts = [3, 3]
+    int[] faceVertexIndices = [0, 1, 2, 0, 2, 3]
+    point3f[] points = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)]
+}
+"""
+ROOT = """#usda 1.0
+(
+    upAxis = "Y"
+    metersPerUnit = 1
+    defaultPrim = "World"
+)
+def Xform "World"
+{
+    def Mesh "Ground"
+    {
+        int[] faceVertexCounts = [4]
+        int[] faceVertexIndices = [0, 3, 2, 1]
+        point3f[] points = [(-5, 0, -5), (5, 0, -5), (5, 0, 5), (-5, 0, 5)]
+    }
+    def "A" (
+        prepend references = @./parts/part.usda@
+    )
+    {
+        double3 xformOp:translate = (0, 1, 0)
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+    }
+    def "B" (
+        prepend payload = @./parts/part.usda@
+    )
+    {
+        double3 xformOp:translate = (2, 1, 0)
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+    }
+}
+"""
+TRIANGLES = 2 + 2 * 2  # the ground quad, and the part's two triangles referenced once and loaded once as a payload
+
+
+def multi_file_stage(folder: Path) -> Path:
+    (folder / "parts").mkdir(parents=True)
+    (folder / "parts" / "part.usda").write_text(PART)
+    (folder / "scene.usda").write_text(ROOT)
+    return folder / "scene.usda"
+
+
+def zip_bytes(entries: dict[str, bytes], links: tuple[str, ...] = ()) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        for name, data in entries.items():
+            info = zipfile.ZipInfo(name)
+            if name in links:
+                info.external_attr = (stat.S_IFLNK | 0o777) << 16
+            z.writestr(info, data)
+    return buf.getvalue()
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    with running(tmp_path_factory.mktemp("packing") / "data") as srv:
+        yield srv
+
+
+# -- the package functions ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("bad, shown, why", [("../escape.usda", "../escape.usda", "'..' leads out"),
+                                             ("/etc/abs.usda", "etc/abs.usda", "an absolute path"),
+                                             ("scene/..\\..\\up.usda", "scene/..\\..\\up.usda", "'..' leads out"),
+                                             ("C:/drive.usda", "C:/drive.usda", "a path on a drive")])
+def test_a_zip_entry_leaving_the_folder_is_refused_naming_it(bad, shown, why):
+    data = zip_bytes({"scene/scene.usda": ROOT.encode(), bad: PART.encode()})
+    with pytest.raises(SceneError) as e:
+        zip_to_usdz(data, "scene.zip")
+    assert e.value.code == "unsafe_archive" and f"zip entry {shown!r}: {why}" in e.value.message
+
+
+def test_a_symlink_entry_is_refused():
+    data = zip_bytes({"scene.usda": ROOT.encode(), "parts/part.usda": b"/etc/passwd"}, links=("parts/part.usda",))
+    with pytest.raises(SceneError, match="'parts/part.usda': a symbolic link"):
+        zip_to_usdz(data, "scene.zip")
+
+
+def test_a_zip_of_a_folder_becomes_a_package_with_its_root_layer_first(tmp_path):
+    stage = multi_file_stage(tmp_path / "site")
+    assert needs_package(stage) and not needs_package(REPO / "configs" / "demo_scene.usda")
+    data, name = zip_folder_bytes(tmp_path / "site")
+    usdz, pkg = zip_to_usdz(data, name)
+    assert pkg == "scene.usdz"
+    with zipfile.ZipFile(io.BytesIO(usdz)) as z:
+        assert z.namelist() == ["scene.usda", "parts/part.usda"]
+        assert all(i.compress_type == zipfile.ZIP_STORED for i in z.infolist())  # as a usdz must be
+    assert zip_to_usdz(data, name)[0] == usdz  # the same zip gives the same package (the same scene id)
+    two = zip_bytes({"a.usda": ROOT.encode(), "b.usda": ROOT.encode()})
+    with pytest.raises(SceneError) as e:
+        zip_to_usdz(two, "x.zip")
+    assert e.value.code == "ambiguous_root" and "a.usda, b.usda" in e.value.message
+    assert zip_to_usdz(two, "b.zip")[1] == "b.usdz"  # the zip's name says which
+
+
+def test_cli_pack_writes_a_usdz_the_sandbox_loads_whole(tmp_path):
+    from shadowopt.renderers.usd_loader import load_scene
+
+    stage = multi_file_stage(tmp_path / "site")
+    out = tmp_path / "site.usdz"
+    r = subprocess.run(CLI + ["pack", str(stage), "--out", str(out), "--json"], capture_output=True, text=True,
+                       cwd=REPO, timeout=120)
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    assert res["entries"] == 2 and res["layers"] == 2 and res["unresolved"] == []
+    assert load_scene(out, sandbox=True).info()["triangles"] == TRIANGLES
+    alone = load_scene(stage).info()["triangles"]  # the same stage read from its folder
+    assert alone == TRIANGLES
+    bad = subprocess.run(CLI + ["pack", str(stage), "--out", str(tmp_path / "x.zip")], capture_output=True,
+                         text=True, cwd=REPO, timeout=120)
+    assert bad.returncode == 2 and "--out" in bad.stderr and "Traceback" not in bad.stderr
+
+
+# -- over a real server ----------------------------------------------------------------------------
+
+def test_client_packs_a_multi_file_stage_and_uploads_a_folder(server, tmp_path):
+    stage = multi_file_stage(tmp_path / "site")
+    with Client(server.base, token=TOKENS["alice"]) as c:
+        info = c.upload_scene(stage)
+        assert info.triangles == TRIANGLES and info.filename == "scene.usdz"
+        folder = c.upload_scene(tmp_path / "site")  # a folder goes as a .zip; the server finds scene.usda
+        assert folder.triangles == TRIANGLES and folder.filename == "scene.usdz"
+        alone = c.upload_scene(stage, pack=False)  # as it is, the single file may not open its parts
+    assert alone.triangles == 2 and alone.filename == "scene.usda"
+    refused = [w for w in alone.warnings if "parts/part.usda" in w]
+    assert refused and all("one package" in w and str(tmp_path) not in w for w in refused)
+
+
+@pytest.mark.parametrize("bad, shown", [("../../escape.usda", "../../escape.usda"), ("/abs/escape.usda", "abs/escape.usda")])
+def test_server_refuses_an_unsafe_zip_entry_with_422_naming_it(server, bad, shown):
+    data = zip_bytes({"scene/scene.usda": ROOT.encode(), bad: PART.encode()})
+    r = httpx.post(f"{server.base}/v1/scenes", params={"filename": "scene.zip"}, content=data,
+                   headers={**auth("alice"), "Content-Type": "application/octet-stream"}, timeout=60)
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert err["code"] == "unsafe_archive" and err["field"] == "file" and f"zip entry {shown!r}" in err["message"]
+    assert str(server.data_dir) not in r.text and "/tmp" not in r.text
+
+
+def test_server_refuses_a_symlink_zip_entry(server):
+    data = zip_bytes({"scene.usda": ROOT.encode(), "parts/part.usda": b"/etc/passwd"}, links=("parts/part.usda",))
+    r = httpx.post(f"{server.base}/v1/scenes", params={"filename": "scene.zip"}, content=data,
+                   headers={**auth("alice"), "Content-Type": "application/octet-stream"}, timeout=60)
+    assert r.status_code == 422 and "'parts/part.usda': a symbolic link" in r.json()["error"]["message"]
+
+
+@pytest.mark.skipif(not CHESS.exists(), reason="the OpenChessSet asset is not on this machine")
+def test_the_chess_set_packs_uploads_and_optimizes(server, tmp_path):
+    """The chess set (references and payloads over 29 layers) packed by `shadowopt pack`, uploaded and
+    optimized with an explicit camera and sun: every one of its triangles is read in the sandbox (the same
+    count as reading it from its folder) and the solution is for that camera."""
+    from shadowopt.renderers.usd_loader import load_scene
+
+    out = tmp_path / "chess.usdz"
+    r = subprocess.run(CLI + ["pack", str(CHESS), "--out", str(out)], capture_output=True, text=True, cwd=REPO,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    local = load_scene(CHESS).info()["triangles"]
+    with Client(server.base, token=TOKENS["alice"], timeout=300) as c:
+        info = c.upload_scene(out)
+        assert info.triangles == local > 1_000_000
+        lo, hi = info.bounds["min"], info.bounds["max"]
+        centre = [(a + b) / 2 for a, b in zip(lo, hi)]
+        size = max(b - a for a, b in zip(lo, hi))
+        rig = {"camera": {"position": [centre[0], centre[1] + 0.6 * size, centre[2] + 0.9 * size], "target": centre,
+                          "resolution": [160, 90]},
+               "lights": [{"type": "directional", "direction": [0.3, -1.0, -0.4]}],
+               "shadow": {"resolution": [256, 256]}, "coarse_long_side": 48}
+        sol = c.optimize(info.scene_id, rig, method="focused")
+    assert sol.lights[0].predicted_error["samples"] > 0
+    assert sol.lights[0].cascades[0].resolution == (256, 256)
