@@ -10,22 +10,28 @@ perpendicular to l, which leaves two projective degrees of freedom besides the s
   u = 0 is no warp (n' = ∞, the focused map), u > 0 a perspective warp (u ≈ D/n' for weak warps,
   ≈ log(D/n') for strong ones), u < 0 a warp centred beyond the far end. Unlike log n' this
   variable is smooth through the no-warp map, so a gradient step can leave the focused start.
-Given (φ, u) the six affine degrees of freedom are not searched: they are fitted, as the minimum-area
-parallelogram (default `affine="parallelogram"`; "rectangle" and "axis" also exist) around every
-receiver and sample in warped space, so that no receiver leaves the map. Only the vertices of the
-points' hull in the light plane (solvers.fitting.light_plane_hull) and the two depth extremes enter
-the fit: the warp is a 2D projective map of light-plane coordinates, so hulls are kept. The family contains
-focused (u = 0, φ = its minimum-area rectangle's angle), LiSPSM (φ = 0, n' = n_opt) and LogPSM's
-perspective part (φ = 0, n' from η); those are the starting points, and the baseline maps
-themselves are candidates, so the result is never worse than the best of them.
+Given (φ, u) the six affine degrees of freedom are not searched: they are fitted around every
+receiver and sample in warped space, so that no receiver leaves the map, then padded PAD_TEXELS
+texels in map space (after the warp). Default `affine="objective"`: among the parallelograms with
+sides along two of the warped hull's edge normals or their perpendiculars (both s/t assignments), the
+one with the least objective, exact from one metric pass (solvers.metric.warped_moments:
+h = tr(Ḡ A^-1 A^-T) for the affine part A); "parallelogram" (minimum area), "rectangle" and "axis"
+also exist. Only the vertices of the points' hull in the light plane
+(solvers.fitting.light_plane_hull) and the two depth extremes enter the fit: the warp is a 2D
+projective map of light-plane coordinates, so hulls are kept. The family contains focused (u = 0,
+φ = its minimum-area rectangle's angle), LiSPSM (φ = 0, n' = n_opt), LogPSM's perspective part
+(φ = 0, n' from η) and the constant-footprint map of the receivers' best plane (Chong 2003
+Theorem 1, Problem.plane_x); those are the starting points, and the baseline maps themselves are
+candidates, so the result is never worse than the best of them.
 
 Objective: solvers.metric.objective (the weighted mean of Chong & Gortler's h), the number the
 solution predicts. Gradient with respect to (φ, u), `gradient="ad"` (default): Dr.Jit AD gives
 df/dP exactly for the 16 entries of P (affine part fixed, as the paper does for its step); the
 refit's dependence dP/d(φ, u) comes from central differences of the NumPy fit (no metric
 evaluation), and the chain rule joins them: one metric pass per gradient. `gradient="fd"`:
-central differences of f (four metric passes). The fit is a min/max over the receivers' hull, so
-f is only piecewise smooth; both agree away from the kinks (tests/test_optimize.py).
+central differences of f (four metric passes). The fit is a min/max over the receivers' hull and a
+minimum over the candidate parallelograms, so f is continuous but only piecewise smooth; both
+gradients agree away from the kinks (tests/test_optimize.py).
 """
 from __future__ import annotations
 
