@@ -107,6 +107,13 @@ def cascade_terms(maps, subs, parts, camera, light, total_weight: float, shares=
     return with_receivers(P, Q, W, Pr, Qr, shares)
 
 
+def _mean_h(smap, sub: Samples) -> float:
+    """The weighted mean h of one map over samples from mean_terms (no kernel launch; inf when a
+    sample has no valid footprint): to rank candidates before the allocation."""
+    p, q = mean_terms(smap, sub)
+    return (p / smap.resolution[0] ** 2 + q / smap.resolution[1] ** 2) / max(float(np.sum(sub.weight)), 1e-300)
+
+
 def _depth_shares(maps, depth: np.ndarray) -> np.ndarray:
     """Each cascade's share of the receivers by view depth (map_for_depth's rule: the first cascade
     whose [near, far] split holds the depth; `depth` sorted or not)."""
@@ -207,7 +214,7 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
         firsts = []
         for k, (sel_s, sub) in enumerate(subs):
             pts = bias_points["focused"][k]
-            sc = ({m: predicted_objective([maps[k]], sub, camera.position) for m, maps in per_method.items()} if len(sub)
+            sc = ({m: _mean_h(maps[k], sub) for m, maps in per_method.items()} if len(sub)
                   else {m: receiver_h(maps[k], pts, camera, light) for m, maps in per_method.items()})
             firsts.append(per_method[min(sc, key=sc.get)][k])
         _reallocate(firsts, [sub for _, sub in subs], bias_points["focused"], camera, light, texel_budget, total_w,
