@@ -56,6 +56,8 @@ def test_cli_flags_override_the_rig_and_bad_flags_exit_2(tmp_path):
     ("not json", "not valid JSON"),
     ('{"camera": {"position": [0, 1, 0], "target": [0, 0, 5]}, "lights": [{"type": "sun"}]}', "lights.0.type"),
     ('{"camera": {"usd_path": "/World/NoCam"}, "lights": [{"usd_path": "/World/Sun"}]}', "camera.usd_path"),
+    ('{"camera": {"usd_path": "/World/Camera", "target": [0, 0, 5]}, "lights": [{"usd_path": "/World/Sun"}]}',
+     "camera: target and forward need a position"),
 ])
 def test_bad_rigs_exit_2_naming_the_field(tmp_path, content, words):
     rig = tmp_path / "rig.json"
