@@ -144,15 +144,14 @@ def _objective_affine(hn, G: np.ndarray, resolution):
     W, H = float(resolution[0]), float(resolution[1])
     a = (W - 2 * PAD_TEXELS) / np.maximum(width, 1e-300)  # texels per unit across each width, along s
     b = (H - 2 * PAD_TEXELS) / np.maximum(width, 1e-300)  # ... along t
-    ni, nj = n[:, None, :], n[None, :, :]
-    det = ni[..., 0] * nj[..., 1] - ni[..., 1] * nj[..., 0]
-    ok = np.abs(det) > 1e-9
-    det = np.where(ok, det, 1.0)
-    c0x, c0y = nj[..., 1] / det, -nj[..., 0] / det  # N^-1 = [[nj1, -ni1], [-nj0, ni0]] / det
-    c1x, c1y = -ni[..., 1] / det, ni[..., 0] / det
-    q0 = g00 * c0x * c0x + 2 * g01 * c0x * c0y + g11 * c0y * c0y
-    q1 = g00 * c1x * c1x + 2 * g01 * c1x * c1y + g11 * c1y * c1y
-    val = np.where(ok, q0 / (a[:, None] ** 2) + q1 / (b[None, :] ** 2), np.inf)
+    # N^-1 = [[nj1, -ni1], [-nj0, ni0]] / det: c0 = ±n_j⊥ / det, c1 = ±n_i⊥ / det (⊥: a quarter turn), so
+    # h(i, j) = (Q(n_j⊥) / a_i² + Q(n_i⊥) / b_j²) / det_ij², Q(v) = vᵀḠv
+    nx, ny = n[:, 0], n[:, 1]
+    qp = g00 * ny * ny - 2.0 * g01 * nx * ny + g11 * nx * nx
+    det = np.outer(nx, ny) - np.outer(ny, nx)
+    d2 = det * det
+    ok = d2 > 1e-18
+    val = np.where(ok, (qp[None, :] / (a * a)[:, None] + qp[:, None] / (b * b)[None, :]) / np.where(ok, d2, 1.0), np.inf)
     i, j = np.unravel_index(int(np.argmin(val)), val.shape)
     v = float(val[i, j])
     return ((int(i), int(j)), v) if math.isfinite(v) else (None, math.inf)
@@ -277,7 +276,7 @@ class Problem:
         if affine not in AFFINE_FITS:
             raise ValueError(f"affine must be one of {', '.join(AFFINE_FITS)}, got {affine!r}")
         self.affine = affine
-        self.last_choice, self.last_value = None, math.inf
+        self.last_choice, self.last_value, self.choices = None, math.inf, {}
         self.nfev = 0
         self.njev = 0
         self.seen: dict = {}  # f at each point evaluated
@@ -337,10 +336,11 @@ class Problem:
         n_prime = math.inf if abs(u) < 1e-12 else (y1 - y0) / math.expm1(u)
         return view, proj, (float(d.min()), float(-v[:, 2].max())), n_prime
 
-    def _fit(self, x, choice=None):
+    def _fit(self, x, choice=None, fresh=False):
         """(view, projection, fit points and corners in the view) for x = (φ, u). affine="objective":
         `choice` (the two hull normals of the affine part) as chosen at x, or None to choose it (one
-        metric pass: solvers.metric.warped_moments); the chosen value is left in last_value."""
+        metric pass: solvers.metric.warped_moments; the choice made at an x before is reused unless
+        `fresh`); the chosen value is left in last_value."""
         phi, u = float(x[0]), float(x[1])
         view = rotation_z(phi) @ self.view0  # warp axis: +Y of the rotated frame
         v = to_view(view, self.fit_pts)
@@ -354,10 +354,14 @@ class Problem:
         q = np.column_stack([v[:h, 0] / wv[:h], (v[:h, 1] - y0) / wv[:h]])
         if self.affine == "objective":
             hn = _hull_normals(q, self.n_hull > 0) if len(q) >= 3 else None
+            key = (phi, u)
+            if choice is None and not fresh:
+                choice = self.choices.get(key)
             if choice is None:
                 G = warped_moments(recentre(W @ view, self.ds.origin), self.ds)
                 self.nfev += 1
                 choice, self.last_value = _objective_affine(hn, G, self.resolution)
+                self.choices[key] = choice
             C, lo, hi = _affine_from_choice(q, hn, choice, self.n_hull > 0)
             self.last_choice = choice
         else:
@@ -453,7 +457,7 @@ class Problem:
     def _evaluate(self, x) -> float:
         if self.affine == "objective" and not self.log:
             self.last_value = math.inf
-            self._fit(x)  # the moments pass gives the objective of the best affine part
+            self._fit(x, fresh=True)  # the moments pass gives the objective of the best affine part
             return self.last_value
         if self.log:
             self.nfev += 1
