@@ -291,6 +291,9 @@ class Solution(_ReadAsDict, _Open):
     timings_ms: dict
     provenance: dict
     solver: dict | None = None
+    resolved: dict | None = Field(None, description="what was solved for: the camera (position, forward, up, "
+                                  "fov_y_deg, near, far, resolution), each light (type, direction and/or position, "
+                                  "cone_deg), in the world frame (+Y up, metres), and the output convention")
 
 
 class BatchResultLine(_ReadAsDict, _Open):
@@ -301,6 +304,8 @@ class BatchResultLine(_ReadAsDict, _Open):
     error: dict | None = None
     method: str | None = None
     lights: list[LightSolution] | None = None
+    resolved: dict | None = Field(None, description="the camera and lights this configuration was solved for "
+                                  "(as Solution.resolved)")
 
     @property
     def ok(self) -> bool:
