@@ -202,3 +202,15 @@ def test_the_chess_set_packs_uploads_and_optimizes(server, tmp_path):
         sol = c.optimize(info.scene_id, rig, method="focused")
     assert sol.lights[0].predicted_error["samples"] > 0
     assert sol.lights[0].cascades[0].resolution == (256, 256)
+
+
+@pytest.mark.skipif(not CHESS.exists(), reason="the OpenChessSet asset is not on this machine")
+def test_the_chess_set_alone_is_refused_saying_how_and_showing_no_server_path(server):
+    """Its root layer by itself holds no geometry (all of it is in referenced files): 422 empty_stage whose
+    message says how to upload the scene whole, and names no folder of the server."""
+    r = httpx.post(f"{server.base}/v1/scenes", params={"filename": CHESS.name}, content=CHESS.read_bytes(),
+                   headers={**auth("alice"), "Content-Type": "application/octet-stream"}, timeout=120)
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert err["code"] == "empty_stage" and "one package" in err["message"] and ".zip" in err["message"]
+    assert str(server.data_dir) not in r.text and str(server.data_dir.parent) not in r.text
