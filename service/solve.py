@@ -43,6 +43,7 @@ class LightProblem:
 
 EDGE_REACH = 1.5  # coarse pixels: a full-resolution receiver next to a coarse non-receiver can be up to ~1.4 coarse pixels (diagonally) from the nearest coarse receiver
 REACH_DEPTH_FACTOR = 2.0  # an extrapolated receiver stays within this factor of its coarse hit's distance
+FINE_REACH_DEPTH_FACTOR = 1.25  # the same for the edge pass's one-fine-step reach (a fine step is a pixel or two)
 
 
 def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds=None,
@@ -85,16 +86,16 @@ def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds=Non
         # fine step (the full-resolution pixels between two fine rays) along their planes
         u, v = fine.uv()
         parts.append(tangent_reach(camera, buffers, u[fine_edge], v[fine_edge], fine.position[fine_edge],
-                                   fine.normal[fine_edge], 1.0 / fine.factor))
+                                   fine.normal[fine_edge], 1.0 / fine.factor, FINE_REACH_DEPTH_FACTOR))
         slacks.append(_reach_slack(camera, parts[-1], fine.depth[fine_edge]))
     return np.vstack(parts), np.concatenate(slacks)
 
 
 def tangent_reach(camera, buffers: CoarseBuffers, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np.ndarray,
-                  reach: float) -> np.ndarray:
+                  reach: float, factor: float = REACH_DEPTH_FACTOR) -> np.ndarray:
     """(4 E, 3): where the rays through the screen points (u +- reach, v +- reach) (coarse-pixel units,
     u right, v down) meet the tangent planes of the hits p (normals n), the distance along each ray kept
-    within REACH_DEPTH_FACTOR of the hit's distance (the hit's distance itself where the plane is
+    within `factor` of the hit's distance (the hit's distance itself where the plane is
     parallel or behind: the footprint at that depth). On a plane the full-resolution receivers within
     `reach` of the screen point lie in the hull of these four points."""
     n = np.asarray(n, dtype=np.float64)
@@ -111,7 +112,7 @@ def tangent_reach(camera, buffers: CoarseBuffers, u: np.ndarray, v: np.ndarray, 
     with np.errstate(divide="ignore", invalid="ignore"):
         s = np.sum(n * (p - camera.position), axis=1)[:, None] / nd  # ray-plane distance
     ok = np.isfinite(s) & (s > 0)
-    s = np.where(ok, np.clip(s, dist[:, None] / REACH_DEPTH_FACTOR, dist[:, None] * REACH_DEPTH_FACTOR), dist[:, None])
+    s = np.where(ok, np.clip(s, dist[:, None] / factor, dist[:, None] * factor), dist[:, None])
     return (camera.position + s[..., None] * d).reshape(-1, 3)
 
 
