@@ -716,7 +716,7 @@ def add_scene_routes(app: FastAPI, svc: Service, Tenant) -> None:
             data, name = await read_upload(request, svc.settings.max_upload_bytes, filename or x_filename)
             ticket.watch(request.receive)
             if name.lower().endswith(".zip"):  # a scene's folder: checked entry by entry, stored as a .usdz
-                data, name = await run_in_threadpool(zip_upload, data, name)
+                data, name = await run_in_threadpool(zip_upload, data, name, svc.settings.max_upload_bytes)
             info, created = await store_and_load(svc, ticket, data, name)
         return json_response({**info, "created": created}, status=201 if created else 200)
 
@@ -791,14 +791,15 @@ async def read_upload(request: Request, limit: int, name: str | None) -> tuple[b
     return body, name
 
 
-def zip_upload(data: bytes, name: str) -> tuple[bytes, str]:
-    """service.packing.zip_to_usdz; a refused entry, limit or damaged zip is a 422 naming the entry as the
-    zip names it (413 over the unpacked-size limit)."""
+def zip_upload(data: bytes, name: str, max_upload_bytes: int) -> tuple[bytes, str]:
+    """service.packing.zip_to_usdz, unpacking at most 4 x max_upload_bytes (and the packing module's own cap);
+    a refused entry, limit or damaged zip is a 422 naming the entry as the zip names it (413 over the
+    unpacked-size limit)."""
     from ..renderers.scene_data import SceneError
-    from ..service.packing import zip_to_usdz
+    from ..service.packing import MAX_UNPACKED_BYTES, zip_to_usdz
 
     try:
-        return zip_to_usdz(data, name)
+        return zip_to_usdz(data, name, max_unpacked=min(MAX_UNPACKED_BYTES, 4 * max_upload_bytes))
     except SceneError as e:
         status = 413 if e.code == "sandbox_limit" else 422
         raise ApiError(status, e.code, f"file: {redact(e.message)}", "file") from e

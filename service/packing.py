@@ -118,7 +118,7 @@ def _why_unsafe(name: str) -> str:
     return "'..' leads out of the folder"
 
 
-def _checked_entries(z: zipfile.ZipFile) -> list[zipfile.ZipInfo]:
+def _checked_entries(z: zipfile.ZipFile, max_unpacked: int = MAX_UNPACKED_BYTES) -> list[zipfile.ZipInfo]:
     infos = z.infolist()
     if len(infos) > MAX_ZIP_ENTRIES:
         raise SceneError("sandbox_limit", f"zip entries: {len(infos)} entries, over the limit of {MAX_ZIP_ENTRIES}; "
@@ -138,8 +138,8 @@ def _checked_entries(z: zipfile.ZipFile) -> list[zipfile.ZipInfo]:
         if stat.S_IFMT(mode) not in (0, stat.S_IFREG):  # no type bits (e.g. a zip made on Windows): a file
             raise _refuse(name, "not a regular file")
         total += info.file_size
-        if total > MAX_UNPACKED_BYTES:
-            raise SceneError("sandbox_limit", f"zip size: over {MAX_UNPACKED_BYTES} bytes unpacked; refused")
+        if total > max_unpacked:
+            raise SceneError("sandbox_limit", f"zip size: over {max_unpacked} bytes unpacked; refused")
         files.append(info)
     if not files:
         raise SceneError("empty_stage", "the zip holds no files")
@@ -177,9 +177,13 @@ def _root_layer(names: list[str], zip_name: str, prefix: str) -> str:
                      "keep only the scene's root layer at the top, or name the zip after it")
 
 
-def zip_to_usdz(data: bytes, name: str) -> tuple[bytes, str]:
+def zip_to_usdz(data: bytes, name: str, max_unpacked: int = MAX_UNPACKED_BYTES) -> tuple[bytes, str]:
     """An uploaded .zip of a scene's folder as .usdz bytes (root layer first; usd-core's Sdf.ZipFileWriter,
-    which stores entries uncompressed and aligned as a usdz needs) and the package's name."""
+    which stores entries uncompressed and aligned as a usdz needs) and the package's name. The entries'
+    sizes as the zip declares them add up to at most `max_unpacked` bytes, and no entry is read past its
+    declared size; a damaged entry (bad CRC, unknown compression) is refused naming it."""
+    import zlib
+
     from pxr import Sdf
 
     try:
@@ -187,28 +191,36 @@ def zip_to_usdz(data: bytes, name: str) -> tuple[bytes, str]:
     except (zipfile.BadZipFile, OSError, ValueError) as e:
         raise SceneError("corrupt", f"{os.path.basename(name)}: the zip archive is damaged ({type(e).__name__})") from e
     with z:
-        files = _checked_entries(z)
+        files = _checked_entries(z, max_unpacked)
         prefix, inside = _inside_names(files)
         root = _root_layer(list(inside), name, prefix)
         with tempfile.TemporaryDirectory(prefix="shadowopt-zip-") as tmp:
             for inner, info in inside.items():
                 target = os.path.join(tmp, *inner.split("/"))
                 os.makedirs(os.path.dirname(target), exist_ok=True)
-                with z.open(info) as src, open(target, "wb") as dst:
-                    left = info.file_size
-                    while True:
-                        chunk = src.read(min(1 << 20, left + 1))
-                        if not chunk:
-                            break
-                        left -= len(chunk)
-                        if left < 0:
-                            raise _refuse(info.filename, "more bytes than its header says")
-                        dst.write(chunk)
+                try:
+                    with z.open(info) as src, open(target, "wb") as dst:
+                        left = info.file_size
+                        while True:
+                            chunk = src.read(min(1 << 20, left + 1))
+                            if not chunk:
+                                break
+                            left -= len(chunk)
+                            if left < 0:
+                                raise _refuse(info.filename, "more bytes than its header says")
+                            dst.write(chunk)
+                except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError) as e:
+                    raise SceneError("corrupt", f"zip entry {info.filename.lstrip('/')!r} is damaged or cannot be "
+                                     f"unpacked ({type(e).__name__})") from e
             out = os.path.join(tmp, ".package.usdz")
-            writer = Sdf.ZipFileWriter.CreateNew(out)
-            for inner in [root] + sorted(n for n in inside if n != root):
-                writer.AddFile(os.path.join(tmp, *inner.split("/")), inner)
-            writer.Save()
+            try:
+                writer = Sdf.ZipFileWriter.CreateNew(out)
+                for inner in [root] + sorted(n for n in inside if n != root):
+                    writer.AddFile(os.path.join(tmp, *inner.split("/")), inner)
+                writer.Save()
+            except Exception as e:  # pxr.Tf.ErrorException
+                raise SceneError("corrupt", f"{os.path.basename(name)}: the package could not be written "
+                                 f"({type(e).__name__})") from e
             with open(out, "rb") as f:
                 package = f.read()
     return package, Path(root).stem + ".usdz"

@@ -109,6 +109,19 @@ def test_a_symlink_entry_is_refused():
         zip_to_usdz(data, "scene.zip")
 
 
+def test_a_damaged_or_oversized_zip_is_refused_naming_why():
+    data = bytearray(zip_bytes({"scene.usda": ROOT.encode(), "parts/part.usda": PART.encode()}))
+    at = bytes(data).index(b"[3, 3]")  # flip a byte of the stored part: its CRC no longer matches
+    data[at] ^= 0x20
+    with pytest.raises(SceneError) as e:
+        zip_to_usdz(bytes(data), "scene.zip")
+    assert e.value.code == "corrupt" and "'parts/part.usda'" in e.value.message
+    big = zip_bytes({"scene.usda": ROOT.encode(), "pad.bin": b"\0" * 5000})
+    with pytest.raises(SceneError) as e:
+        zip_to_usdz(big, "scene.zip", max_unpacked=4096)
+    assert e.value.code == "sandbox_limit" and "4096" in e.value.message
+
+
 def test_a_zip_of_a_folder_becomes_a_package_with_its_root_layer_first(tmp_path):
     stage = multi_file_stage(tmp_path / "site")
     assert needs_package(stage) and not needs_package(REPO / "configs" / "demo_scene.usda")
