@@ -107,6 +107,27 @@ def cascade_terms(maps, subs, parts, camera, light, total_weight: float, shares=
     return with_receivers(P, Q, W, Pr, Qr, shares)
 
 
+def _receiver_weights(maps, subs, parts, camera, light, total_weight: float, shares):
+    """Per cascade, rho_k = kappa N_k / W_k: the weight of its receivers' mean h beside its samples'
+    mean h in cascades.with_receivers' objective (kappa from `maps`, one baseline per cascade; W_k
+    the cascade's share of the sample weight, N_k its share of the receivers). None when a term is
+    not finite (a receiver outside a map)."""
+    P, Q, W, Pr, Qr = [], [], [], [], []
+    for smap, sub, pts in zip(maps, subs, parts):
+        p, q = mean_terms(smap, sub) if len(sub) else (0.0, 0.0)
+        P.append(p / total_weight), Q.append(q / total_weight)
+        W.append(float(np.sum(sub.weight)) / total_weight if len(sub) else 0.0)
+        pr, qr = receiver_terms(smap, pts, camera, light)
+        Pr.append(pr), Qr.append(qr)
+    if not all(math.isfinite(v) for v in P + Q + Pr + Qr):
+        return None
+    P, Q, W, Pr, Qr = (np.asarray(v, float) for v in (P, Q, W, Pr, Qr))
+    C, c = 2.0 * np.sqrt(P * Q), 2.0 * np.sqrt(Pr * Qr)
+    den = float(np.sum((W * c)[C > 0]))
+    kappa = float(np.sum(C)) / den if den > 0 and np.sum(C) > 0 else 1.0
+    return kappa * np.asarray(shares, float) / np.maximum(W, 1e-300)
+
+
 def _mean_h(smap, sub: Samples) -> float:
     """The weighted mean h of one map over samples from mean_terms (no kernel launch; inf when a
     sample has no valid footprint): to rank candidates before the allocation."""
@@ -219,6 +240,10 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
             firsts.append(per_method[min(sc, key=sc.get)][k])
         _reallocate(firsts, [sub for _, sub in subs], bias_points["focused"], camera, light, texel_budget, total_w,
                     shares, [[maps[k] for maps in per_method.values()] + [ref[k]] for k in range(len(ref))])
+    rho = None
+    if isinstance(light, DirectionalLight) and len(ref) > 1 and len(receivers) > 0:
+        rho = _receiver_weights([per_method["lispsm"][k] for k in range(len(ref))], [sub for _, sub in subs],
+                                bias_points["lispsm"], camera, light, total_w, shares)
     for k, rmap in enumerate(ref):
         lo, hi = rmap.split
         sel_s, sub = subs[k]
@@ -236,10 +261,21 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
         else:  # no sample in this cascade: every map scores 0 on the samples; score on its receivers
             pts = part_r if len(part_r) else receivers
             scores = {m: receiver_h(maps[k], pts, camera, light) for m, maps in per_method.items()}
-        best_name = min(scores, key=scores.get)
+        # With cascades, a candidate is scored on the samples' mean h plus its receivers' (rho[k] x
+        # receiver_h): the objective allocate_mean spends the budget on (cascades.with_receivers, per
+        # cascade: divided by its share of the sample weight), so a map that serves the boundary
+        # samples but leaves the cascade's other receivers huge, warped texels (and bias) is not kept.
+        pts_k = part_r if len(part_r) else receivers
+        rh = ({m: receiver_h(maps[k], pts_k, camera, light) for m, maps in per_method.items()}
+              if rho is not None and len(sub) > 0 else {})
+        total = {m: v + rho[k] * rh[m] for m, v in scores.items()} if rh else scores
+        best_name = min(total, key=total.get)
         best_map, best_f = per_method[best_name][k], scores[best_name]
         entry = {"cascade": k, "baselines": {m: float(v) for m, v in scores.items()},
                  "scored_on": "samples" if len(sub) > 0 else "receivers"}
+        if rh:
+            entry["receiver_h"] = {m: float(v) for m, v in rh.items()}
+            entry["receiver_weight"] = float(rho[k])
         if len(sub) == 0:
             best_f = 0.0  # the solution's objective: the mean h over its samples (none here)
         if optimizable(light) and len(sub) > 0 and len(receivers) > 0:
@@ -261,7 +297,13 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
                     entry["result"]["warp"] = "log"
             # strictly lower beyond roundoff: a baseline map the search returned as it is (res.fun is the
             # Dr.Jit sum, best_f the NumPy one) keeps its baseline name
-            if res.map is not None and res.fun < best_f * (1.0 - 1e-12):
+            if rh and res.map is not None:
+                rh_opt = receiver_h(res.map, pts_k, camera, light)
+                entry["receiver_h"]["optimized"] = float(rh_opt)
+                if res.fun + rho[k] * rh_opt < total[best_name] * (1.0 - 1e-12):
+                    best_map, best_f, best_name = res.map, res.fun, "optimized"
+                    best_map.eta = None
+            elif res.map is not None and res.fun < best_f * (1.0 - 1e-12):
                 best_map, best_f, best_name = res.map, res.fun, "optimized"
                 best_map.eta = None
         prev = previous_x[k] if previous_x is not None and k < len(previous_x) else None

@@ -153,15 +153,15 @@ def test_a_cascade_without_samples_does_not_take_the_scene_wide_map():
 
 @pytest.mark.slow
 def test_four_cascades_on_the_interior_rig_against_ray_traced_visibility():
-    # The corpus interior with 4 cascades broke (issue 10: 16x practical+LiSPSM) where the near cascade
-    # has no shadow boundary; on a few suns optimized (practical splits and optimized splits under
+    # The corpus interior with 4 cascades broke (issue 10: 16x practical+LiSPSM); on two suns optimized (practical splits and optimized splits under
     # the budget) stays within 1.25x practical+LiSPSM + 50 pixels per sun.
     from shadowopt.api.cli import validate_rig
     from shadowopt.service import benchmarks as B
     from shadowopt.service.scenes import SceneCache
 
     configs = B.quality_configs(B.definitions()["quality"], ("cascades",))
-    dirs = B.hemisphere_directions(30, 5, 2)[:2]
+    dirs = B.hemisphere_directions(30, 5, 2)[[0, 7]]  # 0: a near cascade with no sample; 7: an optimized
+    # map serving the boundary samples but not the cascade's other receivers (12,328 vs 214 before)
     (path, spec), = B.corpus_scenes(["interior"])[0].values()
     entry = SceneCache().get(path)
     rig = next(iter(spec["rigs"].values()))
