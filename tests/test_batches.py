@@ -432,11 +432,19 @@ def test_cli_batch_writes_json_lines_in_index_order(tmp_path):
     cfg = tmp_path / "arc.json"
     cfg.write_text(json.dumps({"rig": TINY, "sun_arc": {"azimuth_deg": 220, "elevation_deg": [20, 70], "samples": 3}}))
     out = tmp_path / "out.jsonl"
+    t0 = time.monotonic()
     p = _cli("batch", DEMO, "--configs", cfg, "--out", out, "--workers", "1", "--method", "focused")
+    took = time.monotonic() - t0
     assert p.returncode == 0, p.stderr
     lines = [json.loads(x) for x in out.read_text().splitlines()]
     assert [x["index"] for x in lines] == [0, 1, 2] and all(x["method"] == "focused" for x in lines)
     assert "3 done, 0 failed" in p.stdout and "batch" in p.stderr  # summary, and the progress bar on stderr
+    # stderr is a pipe, not a terminal: progress as whole lines (no carriage returns), few of them, the last final
+    progress = [x for x in p.stderr.splitlines() if x.startswith("batch: ")]
+    from shadowopt.api.progress import LOG_INTERVAL_S
+
+    assert "\r" not in p.stderr and progress[-1] == "batch: 3/3 config"
+    assert 1 <= len(progress) <= 2 + took / LOG_INTERVAL_S, progress
 
 
 @pytest.mark.parametrize("content, words", [
