@@ -201,7 +201,7 @@ def test_a_camera_path_over_a_usd_camera_keeps_its_fov_near_far_and_up(tmp_path)
     assert resolved_echo(resolve_rig(validate_rig(cfg["rig"]), scene))["camera"]["fov_y_deg"] == 50
 
 
-MCUSD = Path("/work/shared/usd-assets/full_assets/McUsd/McUsd.usda")
+MCUSD = REPO.parent / "shared" / "usd-assets" / "full_assets" / "McUsd" / "McUsd.usda"  # read in place
 
 
 @pytest.mark.skipif(not MCUSD.exists(), reason="the McUsd asset is not on this machine")

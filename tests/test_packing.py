@@ -19,7 +19,7 @@ from shadowopt.api.client import Client
 from shadowopt.renderers.scene_data import SceneError
 from shadowopt.service.packing import needs_package, zip_folder_bytes, zip_to_usdz
 
-CHESS = Path("/work/shared/usd-assets/full_assets/OpenChessSet/chess_set.usda")
+CHESS = REPO.parent / "shared" / "usd-assets" / "full_assets" / "OpenChessSet" / "chess_set.usda"  # read in place
 CLI = [sys.executable, "-m", "shadowopt.api.cli"]
 
 PART = """#usda 1.0
