@@ -164,8 +164,12 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
                    time_budget_ms: float | None = None, receiver_slack=None, x0=None, previous_x=None,
                    hysteresis: float = 0.8, sample_rows: np.ndarray | None = None):
     """`method: optimized`: per cascade, the optimized map or the best baseline, whichever the metric
-    scores lower on that cascade's samples (so never worse than the best baseline). Returns
-    (maps, solver_json).
+    scores lower on that cascade's samples (so never worse than the best baseline). With several
+    cascades (directional light) the score adds rho_k x the candidate's receivers' mean h (receiver_h;
+    _receiver_weights), and a cascade no sample reaches is scored on its receivers alone. With a
+    texel budget the resolutions are solvers.cascades.allocate_mean's for the samples' plus the
+    receivers' mean h (before the search, from each cascade's best baseline, and again for the
+    maps kept), not eq. 83. Returns (maps, solver_json).
 
     Temporal stability (Chong & Gortler 2007 §3): with `previous_x` (the previous solution's x per
     cascade), the previous projective parameters are refit to the current receivers and kept unless
