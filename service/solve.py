@@ -52,7 +52,7 @@ def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds=Non
     row-major order: sample_rows), the edge pass's hits that are receivers (`buffers.fine`,
     renderers.coarse.fine_points, where `fine_receivers` is True: rays through a finer grid over the
     coarse pixels next to a geometric edge and along the screen's border, so slivers and silhouettes a
-    coarse ray missed are real hit points), and, for the mask's edge pixels the edge pass did not
+    coarse ray missed are real hit points; those on the fine grid's own edges and on the border), and, for the mask's edge pixels the edge pass did not
     refine (the receiver region ends on a continuous surface: facing or cone changes), where the rays
     EDGE_REACH coarse pixels away meet the pixel's tangent plane, kept within REACH_DEPTH_FACTOR of the
     hit's distance (the pixel's footprint at its own depth where the plane is grazing or behind).
@@ -74,8 +74,13 @@ def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds=Non
         edge &= ~edge_cells(buffers.hit, buffers.depth)
     if use_fine:
         fine_edge, fine_slack = fine.edges(fine_receivers)
-        parts.append(fine.position[fine_receivers])
-        slacks.append(fine_slack[fine_receivers])
+        # the edge pass's receivers on its own edges and on the screen's border: those inside a
+        # continuous fine patch lie between them (fewer points for every fit)
+        vj, vi = np.divmod(fine.flat, fine.grid_shape[1])
+        border = (vi == 0) | (vj == 0) | (vi == fine.grid_shape[1] - 1) | (vj == fine.grid_shape[0] - 1)
+        keep = fine_edge | (border & fine_receivers)
+        parts.append(fine.position[keep])
+        slacks.append(fine_slack[keep])
     rows, cols = np.nonzero(edge)
     if len(rows):
         parts.append(tangent_reach(camera, buffers, cols + 0.5, rows + 0.5, buffers.position[rows, cols],
