@@ -230,7 +230,9 @@ def test_texel_snapping_fixes_the_grid_in_the_world_and_keeps_every_receiver():
         assert m0.snapped == m1.snapped == snap
         d = np.abs(f0 - f1)
         out[snap] = float(np.max(np.minimum(d, 1.0 - d)))
-    assert out[True] < 1e-6, out
+    # 1e-5 texels, not 0: the focused rectangle's angle follows the receivers' light-plane hull, whose
+    # edge-pass and tangent-reach points move with the camera (measured 1.7e-6 texels, a ~1e-8 rad turn)
+    assert out[True] < 1e-5, out
     assert out[False] > 1e-3, out
 
 
