@@ -21,6 +21,7 @@ from ..solvers.optimized_maps import optimized_maps
 from ..solvers.samples import Samples, select_samples
 from ..solvers.shadow_map import ShadowMap
 from .pipeline import coarse_pass
+from .echo import resolved_echo
 from .request_cost import flush_if_large, solve_work
 from .rigs import ResolvedRig
 from .scenes import SceneEntry
@@ -192,6 +193,7 @@ def solution_json(entry: SceneEntry, resolved: ResolvedRig, method: str, per_lig
                        "frame": out.get("frame", "world"),
                        "world_frame": "right-handed, +Y up, meters; matrices act on column vectors"},
         "lights": per_light,
+        "resolved": resolved_echo(resolved),
         "timings_ms": {k: round(v, 3) for k, v in timings.items()},
         "provenance": {"scene_hash": entry.loaded.scene_hash, "software": f"shadowopt {ver}",
                        "settings": settings, "seed": settings.get("seed", 0)},
