@@ -368,7 +368,9 @@ def test_every_candidate_map_kept_carries_its_depth_bias(demo_problem):
         assert smap.depth_bias["texel_world_size"] > 0 and math.isfinite(smap.depth_bias["texel_world_size"])
         if entry["chosen"] != "optimized":
             k = entry["cascade"]
-            assert smap.depth_bias == baseline(entry["chosen"], cam, p.light, p.receivers, bounds, **opts)[k].depth_bias
+            # optimized_maps' logpsm candidate is its perspective part (allow_log=False, the default there)
+            assert smap.depth_bias == baseline(entry["chosen"], cam, p.light, p.receivers, bounds, allow_log=False,
+                                               **opts)[k].depth_bias
 
 
 def test_frozen_objective_equals_the_traced_one_for_any_size_and_thread(ground):
