@@ -412,8 +412,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--screen", type=_parse_wxh, default=None, metavar="WxH", help="measure at this screen "
                     "resolution (default: the rig's; predicted error stays in the rig's pixels)")
     sp.add_argument("--heatmap", default=None, metavar="FILE.png", help="write a heatmap with its legend")
-    sp.add_argument("--heatmap-mode", choices=["m", "errors"], default="m", help="m: the per-pixel m in Lloyd's "
-                    "colour key; errors: wrongly shadowed and wrongly lit pixels in two colours over the exact "
+    sp.add_argument("--heatmap-mode", choices=["m", "errors"], default="m", help="m: the per-pixel m in the colour key of "
+                    "Lloyd et al. (2007); errors: wrongly shadowed and wrongly lit pixels in two colours over the exact "
                     "shading (default m)")
     sp.add_argument("--grid", type=int, default=None, metavar="N", help="overlay the texel grid every N texels")
     sp.add_argument("--json", action="store_true")
@@ -431,7 +431,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_compare)
 
-    sp = sub.add_parser("analyze", help="Lloyd's scene-independent critical resolution and storage factors")
+    sp = sub.add_parser("analyze", help="Lloyd et al. (2007): scene-independent critical resolution and storage factors")
     sp.add_argument("--f-over-n", type=float, required=True)
     sp.add_argument("--theta-deg", type=float, required=True, help="half field of view of the view frustum")
     sp.add_argument("--gamma-deg", type=float, required=True, help="angle between light and view direction (90 = overhead)")

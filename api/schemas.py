@@ -329,7 +329,7 @@ class EvaluateRequest(_SceneRequest):
     screen: Resolution | None = Field(None, description="screen resolution (default: the rig camera's)")
     heatmap: bool = Field(False, description="also return a heatmap with its legend as PNG (base64)")
     heatmap_mode: Literal["m", "errors"] = Field(
-        "m", description="m: the per-pixel m in Lloyd's colour key; errors: wrongly shadowed and wrongly lit "
+        "m", description="m: the per-pixel m in the colour key of Lloyd et al. (2007); errors: wrongly shadowed and wrongly lit "
         "pixels in two colours over the exact shading, with their counts in the legend. The screen-sized "
         "picture is the PNG's top-left region, the legend the strip below it")
     grid_every: Annotated[int, Field(ge=1, le=4096)] | None = Field(None, description="texel grid overlay, texels")
