@@ -12,7 +12,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..renderers.coarse import CoarseBuffers
+from ..renderers.coarse import DEPTH_CONTINUITY, CoarseBuffers
 from ..solvers.baselines import baseline
 from ..solvers.conventions import export_matrices
 from ..solvers.metric import error_stats, map_texels, per_sample_maps, with_limit
@@ -82,6 +82,9 @@ def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds=Non
         keep = fine_edge | (border & fine_receivers)
         parts.append(fine.position[keep])
         slacks.append(fine_slack[keep])
+        cell_pts, cell_slack = cell_frusta(camera, buffers, fine, fine_receivers)
+        parts.append(cell_pts)
+        slacks.append(cell_slack)
     rows, cols = np.nonzero(edge)
     if len(rows):
         parts.append(tangent_reach(camera, buffers, cols + 0.5, rows + 0.5, buffers.position[rows, cols],
@@ -95,6 +98,68 @@ def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds=Non
                                    fine.normal[fine_edge], 1.0 / fine.factor, FINE_REACH_DEPTH_FACTOR))
         slacks.append(_reach_slack(camera, parts[-1], fine.depth[fine_edge]))
     return np.vstack(parts), np.concatenate(slacks)
+
+
+def cell_frusta(camera, buffers: CoarseBuffers, fine, fine_receivers: np.ndarray,
+                continuity: float = DEPTH_CONTINUITY) -> tuple[np.ndarray, np.ndarray]:
+    """(8 C, 3) points and their view-depth slack: for each coarse cell the edge pass traced that has a
+    receiver among its fine hits and a discontinuity there (a traced corner that missed or is not a
+    receiver, or hits whose view depths span more than `continuity`), the corners of the cell's view
+    frustum (its four corner rays) at the smallest and the largest view depth of its fine hits. A sliver
+    thinner than a fine step between those rays (never traced) lies in that frustum when its depth is
+    within the hits' range; the frustum is convex and every fit is projective, so containing the eight
+    corners contains it. Slack: the depth range (every cascade meeting it fits the corners)."""
+    from ..renderers.coarse import edge_cells
+
+    f = fine.factor
+    h, w = buffers.height, buffers.width
+    W = fine.grid_shape[1]
+    cells = edge_cells(buffers.hit, buffers.depth).ravel()
+    n_cells = h * w
+    has_rec = np.zeros(n_cells, dtype=bool)
+    has_other = np.zeros(n_cells, dtype=bool)
+    dmin = np.full(n_cells, np.inf)
+    dmax = np.full(n_cells, -np.inf)
+    hit_flat = np.zeros(fine.grid_shape[0] * W, dtype=bool)
+    hit_flat[fine.flat] = True
+    missed = fine.traced[~hit_flat[fine.traced]]
+    rec = np.asarray(fine_receivers, dtype=bool)
+    for flat, kind in ((fine.flat, 0), (missed, 1)):
+        vj, vi = np.divmod(flat, W)
+        for dj in (0, 1):
+            for di in (0, 1):
+                cj, ci = vj // f - dj, vi // f - di
+                ok = (cj >= 0) & (cj < h) & (ci >= 0) & (ci < w)
+                if dj:
+                    ok &= vj % f == 0
+                if di:
+                    ok &= vi % f == 0
+                c = np.where(ok, cj * w + ci, 0)
+                ok &= cells[c]
+                c = c[ok]
+                if kind == 1:
+                    has_other[c] = True
+                    continue
+                r = rec[ok]
+                has_rec[c[r]] = True
+                has_other[c[~r]] = True
+                d = fine.depth[ok]
+                np.minimum.at(dmin, c, d)
+                np.maximum.at(dmax, c, d)
+    sel = np.nonzero(has_rec & (has_other | (dmax > dmin * (1.0 + continuity))))[0]
+    if not len(sel):
+        return np.zeros((0, 3)), np.zeros(0)
+    cj, ci = np.divmod(sel, w)
+    th = camera.tan_half_fov_y
+    tw = th * camera.aspect
+    u = ci[:, None] + np.array([0, 1, 0, 1])  # the cell's corners, coarse-pixel units
+    v = cj[:, None] + np.array([0, 0, 1, 1])
+    x = (u * (2.0 / w) - 1.0) * tw  # Camera.ray_directions' convention; forward component 1
+    y = (1.0 - v * (2.0 / h)) * th
+    d = camera.forward + x[..., None] * camera.right + y[..., None] * camera.up  # (C, 4, 3)
+    pts = np.concatenate([camera.position + dmin[sel, None, None] * d,
+                          camera.position + dmax[sel, None, None] * d], axis=1).reshape(-1, 3)
+    return pts, np.repeat(dmax[sel] - dmin[sel], 8)
 
 
 def tangent_reach(camera, buffers: CoarseBuffers, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np.ndarray,
