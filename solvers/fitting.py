@@ -138,6 +138,35 @@ def depth_range(d: np.ndarray, margin: float = 0.01, floor: float | None = None)
     return near - margin * span, far + margin * span
 
 
+HULL_PREFILTER_POINTS = 1000  # below this, Qhull on every point is as fast as the prefilter
+
+
+def _outside_octagon(xy: np.ndarray) -> np.ndarray | None:
+    """Rows of xy that may be hull vertices (Akl & Toussaint 1978): the extreme points along 8
+    directions are hull vertices, and a point strictly inside their convex polygon is not one, so
+    the hull of the rest is the hull of all (a margin of 1e-9 of the extent keeps points near an
+    edge). None when the polygon is degenerate (the caller hulls every point)."""
+    x, y = xy[:, 0], xy[:, 1]
+    u, v = x + y, x - y
+    ext = [int(np.argmax(x)), int(np.argmax(u)), int(np.argmax(y)), int(np.argmin(v)),
+           int(np.argmin(x)), int(np.argmin(u)), int(np.argmin(y)), int(np.argmax(v))]  # counter-clockwise
+    poly = []
+    for i in ext:
+        if not poly or (i != poly[-1] and i != poly[0]):
+            poly.append(i)
+    if len(poly) < 3:
+        return None
+    scale = float(max(x.max() - x.min(), y.max() - y.min()))
+    if not scale > 0:
+        return None
+    tol = 1e-9 * scale * scale
+    inside = np.ones(len(xy), dtype=bool)
+    for j in range(len(poly)):
+        (px, py), (qx, qy) = xy[poly[j]], xy[poly[(j + 1) % len(poly)]]
+        inside &= (qx - px) * (y - py) - (qy - py) * (x - px) > tol
+    return np.flatnonzero(~inside)
+
+
 def light_plane_hull(direction: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The points a directional light's fits need, of many receivers: the vertices of their convex
     hull in the plane perpendicular to the light (counter-clockwise in any right-handed light view
@@ -156,8 +185,12 @@ def light_plane_hull(direction: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray
     a /= np.linalg.norm(a)
     b = np.cross(-d, a)  # (a, b, -d) right-handed: counter-clockwise in a view looking along d
     xy = np.column_stack([pts @ a, pts @ b])
+    cand = _outside_octagon(xy) if len(pts) >= HULL_PREFILTER_POINTS else None
     try:
-        hull = pts[ConvexHull(xy).vertices]  # Qhull: counter-clockwise for 2D input
+        if cand is None:
+            hull = pts[ConvexHull(xy).vertices]  # Qhull: counter-clockwise for 2D input
+        else:
+            hull = pts[cand[ConvexHull(xy[cand]).vertices]]
     except Exception:  # collinear or coincident: every point
         return pts, pts[:0]
     z = pts @ d
