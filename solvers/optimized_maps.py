@@ -58,16 +58,41 @@ def _light_plane_axes(d: tuple) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(d, e1)
 
 
+@lru_cache(maxsize=64)
+def _subset_rows(count: int, n: int) -> np.ndarray:
+    """receiver_terms' seeded subset of n of count rows (the same rows on every call)."""
+    rows = np.random.default_rng(0).choice(count, n, replace=False)
+    rows.setflags(write=False)
+    return rows
+
+
+_SCORED: dict = {}  # id(pts) -> (pts, camera, n, subset, pixel sizes): the split search and the cascades'
+                    # candidates score many maps on the same receivers (speed only: the same numbers)
+
+
+def _scored_receivers(pts, camera, n: int):
+    """(subset, pixel_world_size there) of receiver_terms, kept for the last few receiver arrays."""
+    hit = _SCORED.get(id(pts))
+    if hit is not None and hit[0] is pts and hit[1] is camera and hit[2] == n:
+        return hit[3], hit[4]
+    sub = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+    if len(sub) > n:
+        sub = sub[_subset_rows(len(sub), n)]
+    pix = pixel_world_size(camera, sub) if len(sub) else np.zeros(0)
+    if len(_SCORED) >= 32:
+        _SCORED.pop(next(iter(_SCORED)))
+    _SCORED[id(pts)] = (pts, camera, n, sub, pix)
+    return sub, pix
+
+
 def receiver_terms(smap, pts: np.ndarray, camera: Camera, light, n: int = RECEIVER_SCORE_POINTS) -> tuple[float, float]:
     """(P, Q) of receiver_h: its mean h is P / width^2 + Q / height^2 (means over the receivers of
     (metres per unit s / pixel size)^2 and likewise t, measured in the plane perpendicular to the light
     as baselines.texel_extents does, from the map's analytic gradients; at most n receivers, a seeded
     random subset; inf when one is outside the map)."""
-    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+    pts, pix = _scored_receivers(pts, camera, n)
     if not len(pts):
         return 0.0, 0.0
-    if len(pts) > n:
-        pts = pts[np.random.default_rng(0).choice(len(pts), n, replace=False)]
     if not isinstance(light, DirectionalLight):
         per_s, per_t = texel_extents(smap, pts, light)
     else:
@@ -80,7 +105,6 @@ def receiver_terms(smap, pts: np.ndarray, camera: Camera, light, n: int = RECEIV
         with np.errstate(divide="ignore", invalid="ignore"):
             per_s = np.where(inside, np.hypot(j11, j10) / det, np.nan)
             per_t = np.where(inside, np.hypot(j01, j00) / det, np.nan)
-    pix = pixel_world_size(camera, pts)
     p, q = (per_s / pix) ** 2, (per_t / pix) ** 2
     if not (np.isfinite(p).all() and np.isfinite(q).all()):
         return math.inf, math.inf
