@@ -15,7 +15,7 @@ import numpy as np
 from ..renderers.coarse import DEPTH_CONTINUITY, CoarseBuffers
 from ..solvers.baselines import baseline
 from ..solvers.conventions import export_matrices
-from ..solvers.metric import error_stats, map_texels, per_sample_maps, with_limit
+from ..solvers.metric import error_stats, map_texels, per_sample_maps, sample_pixels, with_limit
 from ..solvers.optimize import DEFAULT_METHOD as DEFAULT_SOLVER
 from ..solvers.optimized_maps import optimized_maps
 from ..solvers.samples import Samples, select_samples
@@ -229,11 +229,12 @@ def sample_rows(samples: Samples, mask: np.ndarray) -> np.ndarray:
 def maps_error(maps: list[ShadowMap], samples: Samples, origin) -> tuple[dict, list[dict]]:
     """predicted_error for the whole light and for each map (over the samples it serves)."""
     h, m, idx = per_sample_maps(maps, samples, origin)
-    total = error_stats(h, m, samples.weight)
+    a = sample_pixels(samples)  # misclassified_pixels: solvers.metric.predicted_misclassified
+    total = error_stats(h, m, samples.weight, a)
     total["unserved_samples"] = int(np.sum(idx < 0))
     with_limit(total, samples, map_texels(maps))  # limit, ratio_to_limit: solvers.metric.texel_limit
-    per_map = [with_limit(error_stats(h[idx == k], m[idx == k], samples.weight[idx == k]), samples.subset(idx == k),
-                          map_texels([smap])) for k, smap in enumerate(maps)]
+    per_map = [with_limit(error_stats(h[idx == k], m[idx == k], samples.weight[idx == k], a[idx == k]),
+                          samples.subset(idx == k), map_texels([smap])) for k, smap in enumerate(maps)]
     return total, per_map
 
 

@@ -28,7 +28,11 @@ from .shadow_map import ShadowMap, map_for_depth
 DET_FLOOR = 1e-18  # |det J| below this counts as degenerate (the sample sees no texel change)
 W_FLOOR = 1e-12  # clip w below this: the point is behind a perspective light's centre of projection
 ERROR_FIELDS = ("objective", "mean_m", "median_m", "p95_m", "max_m", "frac_m_gt_1", "samples", "limit",
-                "ratio_to_limit")
+                "ratio_to_limit", "misclassified_pixels")
+# K of predicted_misclassified: measured misclassified pixels per unit of Σ a_i √h_i. Calibrated on the
+# corpus (10 scenes x 6 suns x 5 methods, one 400² map, 500² screen, exact ray-traced visibility):
+# the median over scenes of each scene's median measured/Σ a √h (scene medians 0.004-0.016).
+MISCLASSIFIED_K = 0.0098
 
 
 _ad_module = []
@@ -246,12 +250,41 @@ def _cube_index(maps: list[ShadowMap], samples: Samples) -> np.ndarray:
     return idx
 
 
-def error_stats(h: np.ndarray, m: np.ndarray, weight: np.ndarray | None = None) -> dict:
-    """The predicted_error / measured_error fields. `objective` is the weighted mean of h."""
+def predicted_misclassified(h: np.ndarray, pixels: np.ndarray | None = None,
+                            weight: np.ndarray | None = None) -> float:
+    """Predicted misclassified full-resolution pixels: K Σ_i a_i w'_i √h_i, a_i = full-resolution pixels
+    each sample stands for (Samples.pixels), w'_i = w_i Σa / Σ a w (the weights, normalised so that
+    uniform weights give 1), K = MISCLASSIFIED_K.
+
+    √h = ||F||_F is the texel footprint's size in pixels (Chong & Gortler 2007 eqs. 6 and 9): along a
+    shadow edge the band of wrongly shadowed pixels is about one footprint wide, so the count grows
+    with the boundary pixels times the footprint. A count, unlike the objective (a mean), ranks
+    solutions across suns with different amounts of shadow boundary: pooled Spearman against
+    measured misclassified pixels on the corpus 0.80 (the objective: 0.41). inf if any h is not finite."""
+    h = np.asarray(h, dtype=np.float64)
+    if len(h) == 0:
+        return 0.0
+    if not np.isfinite(h).all():
+        return float("inf")
+    a = np.ones(len(h)) if pixels is None else np.asarray(pixels, dtype=np.float64)
+    w = np.ones(len(h)) if weight is None else np.asarray(weight, dtype=np.float64)
+    aw = float(np.sum(a * w))
+    if aw <= 0:
+        return 0.0
+    return float(MISCLASSIFIED_K * np.sum(a * w * np.sqrt(np.maximum(h, 0.0))) * float(np.sum(a)) / aw)
+
+
+def error_stats(h: np.ndarray, m: np.ndarray, weight: np.ndarray | None = None,
+                pixels: np.ndarray | None = None) -> dict:
+    """The predicted_error / measured_error fields. `objective` is the weighted mean of h;
+    `misclassified_pixels` (predicted_misclassified) only when `pixels` (a_i) is given."""
     n = int(len(m))
     if n == 0:
-        return {"objective": 0.0, "mean_m": 0.0, "median_m": 0.0, "p95_m": 0.0, "max_m": 0.0,
-                "frac_m_gt_1": 0.0, "samples": 0}
+        out = {"objective": 0.0, "mean_m": 0.0, "median_m": 0.0, "p95_m": 0.0, "max_m": 0.0,
+               "frac_m_gt_1": 0.0, "samples": 0}
+        if pixels is not None:
+            out["misclassified_pixels"] = 0.0
+        return out
     finite = np.isfinite(h) & np.isfinite(m)
     out = {
         "objective": objective_of(h, m, weight),
@@ -262,6 +295,8 @@ def error_stats(h: np.ndarray, m: np.ndarray, weight: np.ndarray | None = None) 
         "frac_m_gt_1": float(np.mean(m > 1.0)),
         "samples": n,
     }
+    if pixels is not None:
+        out["misclassified_pixels"] = predicted_misclassified(h, pixels, weight)
     return out
 
 
@@ -312,6 +347,11 @@ def with_limit(stats: dict, samples: Samples, texels: int) -> dict:
     return stats
 
 
+def sample_pixels(samples: Samples) -> np.ndarray:
+    """a_i: full-resolution pixels each sample stands for (one each when Samples.pixels is None)."""
+    return np.ones(len(samples)) if samples.pixels is None else np.asarray(samples.pixels, dtype=np.float64)
+
+
 def map_texels(maps: list[ShadowMap]) -> int:
     return int(sum(int(m.resolution[0]) * int(m.resolution[1]) for m in maps))
 
@@ -325,7 +365,7 @@ def predicted_objective(maps: list[ShadowMap], samples: Samples, origin: np.ndar
 def predicted_error(maps: list[ShadowMap], samples: Samples, origin: np.ndarray | None = None) -> dict:
     """`predicted_error` of a solution's maps for one light's samples."""
     h, m, idx = per_sample_maps(maps, samples, origin)
-    stats = error_stats(h, m, samples.weight)
+    stats = error_stats(h, m, samples.weight, sample_pixels(samples))
     stats["unserved_samples"] = int(np.sum(idx < 0))
     return with_limit(stats, samples, map_texels(maps))
 

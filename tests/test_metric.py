@@ -190,3 +190,30 @@ def test_warped_moments_give_every_affine_parts_objective():
         want = float(objective(matrix_to_device(recentre(M, ds.origin)), (2.0, 2.0), None, ds)[0])
         got = float(np.trace(Gm @ np.linalg.inv(A2.T @ A2)))
         assert got == pytest.approx(want, rel=1e-9)
+
+
+def test_predicted_misclassified_pixels_by_hand():
+    from shadowopt.solvers.metric import MISCLASSIFIED_K, predicted_misclassified
+
+    # h = 4, 9 (footprints of 2 and 3 pixels), a = 2, 1 pixels, weights 1, 3:
+    # Σ a w √h = 2*1*2 + 1*3*3 = 13, normalised by Σa / Σaw = 3 / 5.
+    assert predicted_misclassified(np.array([4.0, 9.0]), np.array([2.0, 1.0]), np.array([1.0, 3.0])) == \
+        pytest.approx(MISCLASSIFIED_K * 13 * 3 / 5, rel=1e-12)
+    assert predicted_misclassified(np.array([4.0, 9.0]), np.array([2.0, 1.0])) == pytest.approx(MISCLASSIFIED_K * 7)
+    assert predicted_misclassified(np.array([4.0, np.inf]), np.array([2.0, 1.0])) == float("inf")
+    assert predicted_misclassified(np.array([]), np.array([])) == 0.0
+
+
+def test_predicted_error_counts_misclassified_pixels_in_full_resolution_pixels():
+    # The overhead closed form: every sample's footprint is a x a pixels (√h = √2 a); samples standing
+    # for 3 and 5 full-resolution pixels predict K √2 a (3 + 5) pixels, whatever their weights.
+    from shadowopt.solvers.metric import MISCLASSIFIED_K
+
+    cam = Camera.look([0, 10, 0], [0, -1, 0], up=[0, 0, 1], fov_y_deg=90, resolution=(1000, 1000))
+    sm = ShadowMap(look_down_view([0, 20, 0]), ortho(10, 10, 1, 50), (1000, 1000))
+    s = samples_on_plane(cam, np.array([[0.0, 0, 0], [1.0, 0, 1.0]]), [0, 1, 0])
+    s.pixels = np.array([3.0, 5.0])
+    s.weight = np.array([1.0, 4.0])
+    a = (20 / 1000) / 0.02
+    err = predicted_error([sm], s)
+    assert err["misclassified_pixels"] == pytest.approx(MISCLASSIFIED_K * np.sqrt(2) * a * 8, rel=1e-6)
