@@ -336,11 +336,12 @@ class Problem:
         n_prime = math.inf if abs(u) < 1e-12 else (y1 - y0) / math.expm1(u)
         return view, proj, (float(d.min()), float(-v[:, 2].max())), n_prime
 
-    def _fit(self, x, choice=None, fresh=False):
+    def _fit(self, x, choice=None, fresh=False, value_only=False):
         """(view, projection, fit points and corners in the view) for x = (φ, u). affine="objective":
         `choice` (the two hull normals of the affine part) as chosen at x, or None to choose it (one
         metric pass: solvers.metric.warped_moments; the choice made at an x before is reused unless
-        `fresh`); the chosen value is left in last_value."""
+        `fresh`); the chosen value is left in last_value. `value_only` (affine="objective"): stop once
+        the choice and its value are made (the objective evaluation needs no matrix); returns None."""
         phi, u = float(x[0]), float(x[1])
         view = rotation_z(phi) @ self.view0  # warp axis: +Y of the rotated frame
         v = to_view(view, self.fit_pts)
@@ -349,7 +350,8 @@ class Problem:
         k = math.expm1(u) / (y1 - y0)  # w' = 1 + k (y - y0): 1 at the near end, e^u at the far end
         W = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, -y0], [0, 0, 1.0, 0], [0, k, 0, 1.0 - k * y0]])
         wv = 1.0 + k * (v[:, 1] - y0)
-        near, far = self._depth_range(v, dv, wv, k, y0, y1)
+        if not value_only:
+            near, far = self._depth_range(v, dv, wv, k, y0, y1)
         h = self.n_hull or len(v)
         q = np.column_stack([v[:h, 0] / wv[:h], (v[:h, 1] - y0) / wv[:h]])
         if self.affine == "objective":
@@ -362,6 +364,9 @@ class Problem:
                 self.nfev += 1
                 choice, self.last_value = _objective_affine(hn, G, self.resolution)
                 self.choices[key] = choice
+            if value_only:
+                self.last_choice = choice
+                return None
             C, lo, hi = _affine_from_choice(q, hn, choice, self.n_hull > 0)
             self.last_choice = choice
         else:
@@ -457,7 +462,7 @@ class Problem:
     def _evaluate(self, x) -> float:
         if self.affine == "objective" and not self.log:
             self.last_value = math.inf
-            self._fit(x, fresh=True)  # the moments pass gives the objective of the best affine part
+            self._fit(x, fresh=True, value_only=True)  # the moments pass: the objective of the best affine part
             return self.last_value
         if self.log:
             self.nfev += 1
