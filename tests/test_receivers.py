@@ -126,3 +126,27 @@ def test_focused_fit_on_a_close_up_is_the_visible_receivers_area():
         truth = float(np.prod(rhi - rlo))
         fitted = (2.0 / smap.projection[0, 0]) * (2.0 / smap.projection[1, 1])
         print("AREA", sun, fitted / truth); assert truth <= fitted <= 1.08 * truth, (sun, fitted / truth)
+
+
+def test_sliver_between_fine_rays_inside_every_map():
+    """The street canyon at 1920x1080, sun 3 of the corpus benchmark's seed: a lit wall face one
+    full-resolution pixel wide at 195 m, between a receding wall and a farther face, falls between the
+    edge pass's fine rays (6 per coarse pixel, 1.8 px apart). Before service.solve.cell_frusta LiSPSM
+    left 13 of its pixels outside the map (LogPSM 16, 4 cascades 27); the cell's frustum over its fine
+    hits' depth range contains it."""
+    from shadowopt.service.benchmarks import corpus_scenes, hemisphere_directions
+    from shadowopt.service.scenes import SceneCache
+
+    found, _ = corpus_scenes(["street_canyon"])
+    path, spec = found["street_canyon"]
+    entry = SceneCache().get(path)
+    d = hemisphere_directions(30, 5, 2)[3]
+    cam = spec["rigs"]["street"]["camera"]
+    sb = None
+    for cascades, method in ((1, "lispsm"), (1, "logpsm"), (4, "lispsm")):
+        rig = _rig(cam, d, (1920, 1080), cascades)
+        if sb is None:
+            r = resolve_rig(rig, entry.loaded)
+            sb = render_screen(entry.rays, r.camera, r.lights[0], shadow_rays=False)
+        maps = maps_from_solution(solve(entry, rig, method=method))[0]
+        assert outside_mask(sb, maps).sum() == 0, (cascades, method)
