@@ -75,6 +75,7 @@ from .fitting import (box_corners, depth_range, extent_floor, frustum, light_pla
                       rotation_z, texel_margin, to_view)
 from .light_frames import CUBE_FACES, cube_face_views, directional_view, look_matrix, perpendicular_up, spot_view
 from .lights import DirectionalLight, PointLight, SpotLight
+from .samples import seeded_rows
 from .shadow_map import LogWarp, ShadowMap
 from .warp import MAX_N_OVER_DEPTH, NO_WARP_SIN, eta_from_n_prime, eta_shaping, gamma_deg, lispsm_n, log_warp, n_prime_from_eta, warp_matrix
 
@@ -139,7 +140,7 @@ def _texel_world_size(smap: ShadowMap, pts: np.ndarray, light) -> float:
     side, perpendicular to the light); 0 when no point is inside."""
     pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
     if len(pts) > 512:  # a percentile of a random sample
-        pts = pts[np.random.default_rng(0).choice(len(pts), 512, replace=False)]
+        pts = pts[seeded_rows(len(pts), 512)]
     per_s, per_t = texel_extents(smap, pts, light)
     size = np.maximum(per_s / smap.resolution[0], per_t / smap.resolution[1])
     size = size[np.isfinite(size)]
@@ -482,7 +483,7 @@ def _allocate(maps: list[ShadowMap], camera: Camera, receivers: np.ndarray, dept
         sel = (depth >= smap.split[0]) & (depth <= smap.split[1]) if len(receivers) else np.zeros(0, bool)
         pts = receivers[sel] if sel.any() else receivers
         if len(pts) > 4000:
-            pts = pts[np.random.default_rng(0).choice(len(pts), 4000, replace=False)]
+            pts = pts[seeded_rows(len(pts), 4000)]
         per_s, per_t = texel_extents(smap, pts, light)
         pix = pixel_world_size(camera, pts)
         rs, rt = critical_factors(per_s, per_t, pix)

@@ -16,7 +16,7 @@ from .cascades import allocate_mean, map_gradients, mean_terms, pixel_world_size
 from .lights import DirectionalLight
 from .metric import serial_kernels
 from .optimize import DEFAULT_METHOD, METHODS, Problem, minimize, optimizable, single_map_spot
-from .samples import Samples
+from .samples import Samples, seeded_rows
 
 
 def _shared_hull(fitted, k: int, part: np.ndarray, sub: Samples, receivers: np.ndarray, sample_rows, sel_s, sel_r):
@@ -58,14 +58,6 @@ def _light_plane_axes(d: tuple) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(d, e1)
 
 
-@lru_cache(maxsize=64)
-def _subset_rows(count: int, n: int) -> np.ndarray:
-    """receiver_terms' seeded subset of n of count rows (the same rows on every call)."""
-    rows = np.random.default_rng(0).choice(count, n, replace=False)
-    rows.setflags(write=False)
-    return rows
-
-
 _SCORED: dict = {}  # id(pts) -> (pts, camera, n, subset, pixel sizes): the split search and the cascades'
                     # candidates score many maps on the same receivers (speed only: the same numbers)
 
@@ -77,7 +69,7 @@ def _scored_receivers(pts, camera, n: int):
         return hit[3], hit[4]
     sub = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
     if len(sub) > n:
-        sub = sub[_subset_rows(len(sub), n)]
+        sub = sub[seeded_rows(len(sub), n)]
     pix = pixel_world_size(camera, sub) if len(sub) else np.zeros(0)
     if len(_SCORED) >= 32:
         _SCORED.pop(next(iter(_SCORED)))

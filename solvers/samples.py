@@ -17,6 +17,7 @@ aliasing on near edge-on surfaces is then large but finite; no light matrix coul
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
@@ -144,3 +145,13 @@ def select_samples(camera: Camera, light: Light, position: np.ndarray, normal: n
     per_pixel = camera.resolution[0] * camera.resolution[1] / float(hit.shape[0] * hit.shape[1])
     return Samples(p, n, dx, dy, depth, np.ones(len(p)), np.stack([rows, cols], -1), kind,
                    np.full(len(p), per_pixel))
+
+
+@lru_cache(maxsize=128)
+def seeded_rows(count: int, n: int) -> np.ndarray:
+    """np.random.default_rng(0).choice(count, n, replace=False): the seeded subset of n of count rows
+    that the fits and scores measure on (read-only; computed once per (count, n): a permutation of
+    count rows costs milliseconds and the same receivers are subsampled for every candidate map)."""
+    rows = np.random.default_rng(0).choice(count, n, replace=False)
+    rows.setflags(write=False)
+    return rows

@@ -24,7 +24,7 @@ from .baselines import fit_baseline
 from .cascades import objective_mean, receiver_depth_range, split_depths
 from .metric import predicted_error
 from .optimized_maps import _depth_shares, cascade_terms
-from .samples import Samples
+from .samples import Samples, seeded_rows
 
 SEARCH_RECEIVERS = 500  # receivers kept for the search's map fits (the final maps fit all of them)
 SEARCH_RECEIVER_TERMS = 128  # of those, per cascade, the ones its receivers' terms are measured on
@@ -48,7 +48,7 @@ class SplitResult:
 def _subsample(receivers: np.ndarray, slack: np.ndarray | None, n: int):
     if len(receivers) <= n:
         return receivers, slack
-    idx = np.random.default_rng(0).choice(len(receivers), n, replace=False)
+    idx = seeded_rows(len(receivers), n)
     # keep the extremes along each axis so the fits span what the full set spans
     idx = np.unique(np.concatenate([idx, np.argmin(receivers, 0), np.argmax(receivers, 0)]))
     return receivers[idx], (None if slack is None else slack[idx])
