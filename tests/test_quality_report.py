@@ -120,3 +120,51 @@ def test_speed_error_plot_is_an_image(tmp_path):
     img = Image.open(p)
     assert img.size[0] >= 4 * 300 and img.size[1] >= 2 * 250  # 5 panels: 4 per row, two rows
     assert len(np.unique(np.asarray(img.convert("RGB")).reshape(-1, 3), axis=0)) > 5  # markers in several colours, not a blank page
+
+
+def _with_pixels(rec, seed=5):
+    """rec with predicted misclassified pixels: measured times a known factor (2 or 4) and noise in rank."""
+    rng = np.random.default_rng(seed)
+    rec[qr.PREDICTED_KEY] = {"single": {}}
+    for m in METHODS:
+        meas = np.asarray(rec["misclassified"]["single"][m], float)
+        rec[qr.PREDICTED_KEY]["single"][m] = (meas / rng.choice([2.0, 4.0], len(meas)) + rng.uniform(0, 3, len(meas))).tolist()
+    return rec
+
+
+def test_predicted_pixels_column_against_scipy_and_old_records_show_dashes():
+    spec = {**definitions()["quality_corpus"], "cascades_note": "n/a"}
+    rec = _with_pixels(_record(n_suns=6, seed=3))
+    s = _scene_stats(rec, _dirs(6), spec)
+    pp = s["single"]["pixel_prediction"]
+    pred = np.concatenate([rec[qr.PREDICTED_KEY]["single"][m] for m in METHODS])
+    meas = np.concatenate([rec["misclassified"]["single"][m] for m in METHODS])
+    obj = np.concatenate([rec["objective"]["single"][m] for m in METHODS])
+    assert pp["n"] == 30 and pp["spearman"] == pytest.approx(spearmanr(pred, meas).statistic, abs=1e-12)
+    assert pp["spearman_objective"] == pytest.approx(spearmanr(obj, meas).statistic, abs=1e-12)
+    assert pp["median"] == pytest.approx(np.median(meas / pred)) and pp["p90"] == pytest.approx(np.percentile(meas / pred, 90))
+    assert s["verdicts"]["spearman_pixels"] is bool(pp["spearman"] >= spec["targets"]["spearman"])
+    old = _scene_stats(_record(n_suns=6, seed=3), _dirs(6), spec)
+    assert old["single"]["pixel_prediction"] is None and old["verdicts"]["spearman_pixels"] is None
+    text = _tables_corpus({"new": {**s, "triangles": 1}, "old": {**old, "triangles": 1}}, {}, spec, None, None)
+    lines = text.splitlines()
+    head = next(ln for ln in lines if "Spearman predicted pixels pooled" in ln)
+    new_row = next(ln for ln in lines if ln.startswith("| new | ") and ln.count("|") == head.count("|"))
+    assert new_row.rstrip(" |").endswith(f"{pp['spearman']:.2f}")
+    assert f"| new | 30 | {pp['spearman']:.2f} | {pp['spearman_objective']:.2f} |" in text
+    assert "| old | - | - | - | - | - |" in text
+    verdict_head = next(ln for ln in lines if "Spearman predicted pixels >=" in ln)
+    assert "Spearman objective >=" in verdict_head
+
+
+def test_fingerprint_changes_with_the_record_keys(tmp_path, monkeypatch):
+    # a record stored without predicted_misclassified is measured again by --reuse
+    from shadowopt.service import benchmarks as b
+
+    f = tmp_path / "s.usda"
+    f.write_text("#usda 1.0\n")
+    args = (f, {"fov_y_deg": 60}, [500, 500], {"single": {}}, {"single": _dirs(2)})
+    new = b._corpus_fingerprint(*args)
+    assert qr.PREDICTED_KEY in b.RECORD_KEYS
+    monkeypatch.setattr(b, "RECORD_KEYS", tuple(k for k in b.RECORD_KEYS if k != qr.PREDICTED_KEY))
+    assert b._corpus_fingerprint(*args) != new
