@@ -3,6 +3,7 @@ light-space bounds. Projections map to the canonical OpenGL clip space (solvers.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 from scipy.spatial import ConvexHull
@@ -167,6 +168,20 @@ def _outside_octagon(xy: np.ndarray) -> np.ndarray | None:
     return np.flatnonzero(~inside)
 
 
+@lru_cache(maxsize=256)
+def _plane_axes(direction: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """light_plane_hull's (unit d, a, b) for a light direction (once per direction: np.cross on
+    3-vectors costs more than the projection of a few hundred points)."""
+    d = np.asarray(direction, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    a = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(-d, a)  # (a, b, -d) right-handed: counter-clockwise in a view looking along d
+    for v in (d, a, b):
+        v.setflags(write=False)
+    return d, a, b
+
+
 def light_plane_hull(direction: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The points a directional light's fits need, of many receivers: the vertices of their convex
     hull in the plane perpendicular to the light (counter-clockwise in any right-handed light view
@@ -177,13 +192,9 @@ def light_plane_hull(direction: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray
     vertex order, so min/max and hull-edge fits over the vertices equal those over all points.
     Returns (hull, depth_extremes); fewer than 3 points or a degenerate set: all points as the hull."""
     pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
-    d = np.asarray(direction, dtype=np.float64)
-    d = d / np.linalg.norm(d)
     if len(pts) < 8:
         return pts, pts[:0]
-    a = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
-    a /= np.linalg.norm(a)
-    b = np.cross(-d, a)  # (a, b, -d) right-handed: counter-clockwise in a view looking along d
+    d, a, b = _plane_axes(tuple(float(v) for v in np.asarray(direction, dtype=np.float64).ravel()))
     xy = np.column_stack([pts @ a, pts @ b])
     cand = _outside_octagon(xy) if len(pts) >= HULL_PREFILTER_POINTS else None
     try:
