@@ -9,6 +9,13 @@ SPLIT_KINDS = ("uniform", "log", "practical")
 MIN_RES, MAX_RES = 16, 16384
 
 
+def _nan_to_num(x, **kw):
+    """np.nan_to_num(x, **kw), skipped when every value is finite (the usual case: the allocation's
+    bisection calls it on a few values per step, where nan_to_num's own overhead dominates)."""
+    x = np.asarray(x)
+    return x if np.isfinite(x).all() else np.nan_to_num(x, **kw)
+
+
 def split_depths(z_near: float, z_far: float, k: int, kind: str = "practical", lam: float = 0.5) -> np.ndarray:
     """k + 1 split depths over [z_near, z_far].
 
@@ -71,8 +78,8 @@ def allocate(R_s: np.ndarray, R_t: np.ndarray, budget: int) -> list[tuple[int, i
     Each side is kept in [MIN_RES, MAX_RES] (the other side then takes the partition's area, so the
     share σ_i T is kept where it can be); when the MIN_RES floor makes the maps exceed T, the shares
     of the unfloored maps shrink until the total is within T. Sides are rounded down."""
-    R_s = np.maximum(np.nan_to_num(np.asarray(R_s, dtype=np.float64), nan=1.0, posinf=1e12), 1e-12)
-    R_t = np.maximum(np.nan_to_num(np.asarray(R_t, dtype=np.float64), nan=1.0, posinf=1e12), 1e-12)
+    R_s = np.maximum(_nan_to_num(np.asarray(R_s, dtype=np.float64), nan=1.0, posinf=1e12), 1e-12)
+    R_t = np.maximum(_nan_to_num(np.asarray(R_t, dtype=np.float64), nan=1.0, posinf=1e12), 1e-12)
     budget = max(int(budget), MIN_RES * MIN_RES * len(R_s))
     S = R_s * R_t
     return _sides(S / S.sum() * budget, R_s / R_t, budget)
@@ -128,8 +135,8 @@ def allocate_mean(P, Q, budget: int) -> list[tuple[int, int]]:
 def objective_mean(P, Q, budget: int) -> float:
     """The value allocate_mean's areas reach before rounding: (sum_k sqrt(2 sqrt(P_k Q_k)))^2 / T when
     no side is held at MIN_RES."""
-    P = np.maximum(np.nan_to_num(np.asarray(P, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
-    Q = np.maximum(np.nan_to_num(np.asarray(Q, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
+    P = np.maximum(_nan_to_num(np.asarray(P, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
+    Q = np.maximum(_nan_to_num(np.asarray(Q, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
     return _value_at(P, Q, *_mean_areas(P, Q, budget))
 
 
@@ -144,7 +151,7 @@ def with_receivers(P, Q, W, Pr, Qr, N):
     W_k the cascade's share of the sample weight, c_k = 2 sqrt(Pr_k Qr_k); 1 without samples): where
     the samples are the receivers (a view with no boundary) both terms agree and the allocation is
     that of the samples alone. Returns (P', Q') = (P + kappa N Pr, Q + kappa N Qr)."""
-    P, Q, W, Pr, Qr, N = (np.nan_to_num(np.asarray(v, dtype=np.float64), nan=0.0) for v in (P, Q, W, Pr, Qr, N))
+    P, Q, W, Pr, Qr, N = (_nan_to_num(np.asarray(v, dtype=np.float64), nan=0.0) for v in (P, Q, W, Pr, Qr, N))
     C, c = _terms(P, Q)[0], _terms(Pr, Qr)[0]
     den = float(np.sum((W * c)[C > 0]))
     kappa = float(np.sum(C)) / den if den > 0 and np.sum(C) > 0 else 1.0
@@ -152,8 +159,8 @@ def with_receivers(P, Q, W, Pr, Qr, N):
 
 
 def _terms(P, Q):
-    P = np.maximum(np.nan_to_num(np.asarray(P, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
-    Q = np.maximum(np.nan_to_num(np.asarray(Q, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
+    P = np.maximum(_nan_to_num(np.asarray(P, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
+    Q = np.maximum(_nan_to_num(np.asarray(Q, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         aspect = np.where(Q > 0, np.sqrt(P / np.where(Q > 0, Q, 1.0)), np.where(P > 0, np.inf, 1.0))
     return 2.0 * np.sqrt(P * Q), aspect
@@ -170,15 +177,15 @@ def _area_at(lam: float, P, Q, C, aspect) -> np.ndarray:
         m2 = float(MIN_RES) ** 2
         A = np.where(w_low, np.cbrt(2.0 * Q * m2 / lam), A)
         A = np.where(h_low & ~w_low, np.cbrt(2.0 * P * m2 / lam), A)
-    return np.maximum(np.nan_to_num(A, nan=0.0, posinf=0.0), m2)
+    return np.maximum(_nan_to_num(A, nan=0.0, posinf=0.0), m2)
 
 
 def _mean_areas(P, Q, budget):
     """Areas and aspects of allocate_mean: sum_k A_k(lam) = T, A_k(lam) by _area_at, lam by bisection
     (in the unclamped case A_k = T sqrt(C_k) / S exactly)."""
     C, aspect = _terms(P, Q)
-    P = np.maximum(np.nan_to_num(np.asarray(P, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
-    Q = np.maximum(np.nan_to_num(np.asarray(Q, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
+    P = np.maximum(_nan_to_num(np.asarray(P, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
+    Q = np.maximum(_nan_to_num(np.asarray(Q, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
     n = len(C)
     T = float(max(int(budget), MIN_RES * MIN_RES * n))
     if not np.any((P > 0) | (Q > 0)):
@@ -199,7 +206,7 @@ def _mean_areas(P, Q, budget):
             hi = mid
     area = _area_at(math.exp(hi), P, Q, C, aspect)
     area *= T / max(float(np.sum(area)), 1e-300) if float(np.sum(area)) > T else 1.0
-    return area, np.nan_to_num(aspect, posinf=1e12)
+    return area, _nan_to_num(aspect, posinf=1e12)
 
 
 def _value_at(P, Q, area, aspect) -> float:
