@@ -42,6 +42,11 @@ class Samples:
     # (N,) full-resolution pixels each sample stands for (a_i of solvers.metric.texel_limit): a coarse
     # sample stands for (W H)/(w h) full-resolution pixels; None: one each (samples taken per pixel).
     pixels: np.ndarray | None = None
+    # (N,) f_i: how much more light-space area per pixel the metric's normal (after the grazing rule)
+    # claims than the surface's own normal, (|n'.l| / |n'.v|) / (|n.l| / |n.v|) (l towards the light,
+    # v towards the camera): a map spends det J_i / f_i texels on the pixel (solvers.metric.texel_limit).
+    # None: 1 each (no normal was turned).
+    light_area_factor: np.ndarray | None = None
     # Dr.Jit copies by origin (solvers.metric.device_samples) and recent subsets by mask, so that a
     # subset taken again (a cascade's samples, scored then predicted) is uploaded once: the arrays
     # above are never modified.
@@ -61,7 +66,8 @@ class Samples:
         if sub is None:
             sub = Samples(self.position[mask], self.normal[mask], self.dx[mask], self.dy[mask],
                           self.view_depth[mask], self.weight[mask], self.pixel[mask], self.kind,
-                          None if self.pixels is None else self.pixels[mask])
+                          None if self.pixels is None else self.pixels[mask],
+                          None if self.light_area_factor is None else self.light_area_factor[mask])
             if len(self._subsets) >= SUBSETS_KEPT:
                 self._subsets.pop(next(iter(self._subsets)))
             self._subsets[key] = sub
@@ -135,8 +141,16 @@ def select_samples(camera: Camera, light: Light, position: np.ndarray, normal: n
     n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
     to_cam = camera.position - p
     to_cam /= np.maximum(np.linalg.norm(to_cam, axis=-1, keepdims=True), 1e-300)
+    n0 = n
+    to_light = directions_to_light(light, p)
     n = limit_angle(n, to_cam, GRAZING_VIEW_DEG)
-    n = limit_angle(n, directions_to_light(light, p), GRAZING_LIGHT_DEG)
+    n = limit_angle(n, to_light, GRAZING_LIGHT_DEG)
+    area_factor = None
+    if n is not n0:  # some normal was turned: light-space area per pixel is |n.l| / |n.v|
+        def area(nn):
+            return np.abs(np.sum(nn * to_light, -1)) / np.maximum(np.abs(np.sum(nn * to_cam, -1)), 1e-12)
+
+        area_factor = area(n) / np.maximum(area(n0), 1e-12)
     if len(p):
         dx, dy, depth = pixel_derivatives(camera, p, n)
     else:
@@ -144,7 +158,7 @@ def select_samples(camera: Camera, light: Light, position: np.ndarray, normal: n
         depth = np.zeros(0)
     per_pixel = camera.resolution[0] * camera.resolution[1] / float(hit.shape[0] * hit.shape[1])
     return Samples(p, n, dx, dy, depth, np.ones(len(p)), np.stack([rows, cols], -1), kind,
-                   np.full(len(p), per_pixel))
+                   np.full(len(p), per_pixel), area_factor)
 
 
 @lru_cache(maxsize=128)
