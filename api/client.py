@@ -158,14 +158,33 @@ def _scene_upload(path_or_bytes, filename: str | None, pack: bool | None = None)
     return {"file": (name, data, "application/octet-stream")}
 
 
+def zip_folder_bytes(folder) -> tuple[bytes, str]:
+    """A local folder as .zip bytes and its name (regular files only: symbolic links, to files or folders,
+    are left out, so nothing outside the folder is sent). Standard library only: the bare client zips."""
+    import zipfile
+    from io import BytesIO
+
+    folder = Path(folder)
+    buf = BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+        for top, dirs, files in os.walk(folder, followlinks=False):
+            dirs.sort()
+            for name in sorted(files):
+                p = Path(top) / name
+                if p.is_file() and not p.is_symlink():
+                    z.write(p, p.relative_to(folder).as_posix())
+    return buf.getvalue(), folder.name + ".zip"
+
+
 def scene_bytes(path: Path, pack: bool | None = None) -> tuple[bytes, str]:
     """What `upload_scene` sends for a local path: a folder as a .zip (the server finds its root layer);
     a stage that names other files (references, sublayers, payloads) packed as one .usdz with usd-core's
-    UsdUtils (service.packing, when usd-core is installed; `pack=None` decides, True insists, False
-    sends the file as it is); anything else as it is."""
+    UsdUtils (service.packing, imported only here, when usd-core is installed); anything else as it is.
+    `pack=None` packs a stage that needs it, but refuses (SceneError "outside_folder", naming them) one
+    naming files outside its folder, which would be uploaded with it; `pack=True` packs whatever the stage
+    names; `pack=False` sends the file as it is."""
+    path = Path(path)
     if path.is_dir():
-        from ..service.packing import zip_folder_bytes
-
         return zip_folder_bytes(path)
     if pack is not False and path.suffix.lower() in (".usd", ".usda", ".usdc"):
         try:
@@ -177,9 +196,9 @@ def scene_bytes(path: Path, pack: bool | None = None) -> tuple[bytes, str]:
         else:
             try:
                 if pack or needs_package(path):
-                    return pack_bytes(path)
-            except (ImportError, SceneError):  # no usd-core, or a stage it cannot read: the server will say why
-                if pack:
+                    return pack_bytes(path, allow_outside=bool(pack))
+            except (ImportError, SceneError) as e:  # no usd-core, or a stage it cannot read: the server says why
+                if pack or getattr(e, "code", None) == "outside_folder":
                     raise
     return path.read_bytes(), path.name
 
@@ -395,7 +414,9 @@ class Client(_Base):
     def upload_scene(self, path_or_bytes, filename: str | None = None, pack: bool | None = None) -> SceneInfo:
         """Upload a .usd/.usda/.usdc/.usdz or a .zip of a scene's folder (a path or its bytes; give `filename`
         with bytes of another kind). A local stage that names other files is packed into one .usdz first
-        (with usd-core installed; `pack=False` sends it as it is), a folder is sent as a .zip."""
+        (with usd-core installed; `pack=False` sends it as it is), a folder is sent as a .zip. A stage naming
+        files outside its own folder is not packed unless `pack=True` (SceneError "outside_folder" naming
+        them): those files would be uploaded too."""
         return self._call(_Calls.upload_scene(path_or_bytes, filename, pack))
 
     def list_scenes(self) -> list[dict]:

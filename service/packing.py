@@ -1,14 +1,18 @@
 """Multi-file scenes as one package: a stage with the layers it references, sublayers and payloads.
 
-- `pack_stage(scene, out)`: a local stage and everything it depends on as one .usdz (usd-core's
-  UsdUtils.CreateNewUsdzPackage: the root layer first, dependencies at their paths relative to it,
-  paths outside its folder remapped inside the package). `shadowopt pack` and the client use it.
+- `pack_stage(scene, out, allow_outside=False)`: a local stage and everything it depends on as one .usdz
+  (usd-core's UsdUtils.CreateNewUsdzPackage: the root layer first, dependencies at their paths relative
+  to it). A stage naming a file outside its own folder (an absolute path, '..', a symbolic link leading
+  out) is refused naming those files unless `allow_outside`: a downloaded stage could otherwise pull
+  ~/.ssh/... into a package that is then uploaded. `shadowopt pack` and the client use it.
 - `needs_package(scene)`: whether a local stage names other files (UsdUtils.ComputeAllDependencies).
 - `zip_to_usdz(data, name)`: an uploaded .zip of a scene's folder turned into a .usdz the sandboxed
   loader reads like any package (its internal paths resolve inside it and nowhere else). Fail closed:
-  an entry that is absolute, climbs out with '..', names a drive, is a symbolic link, is encrypted, or
-  a zip over MAX_ZIP_ENTRIES entries or MAX_UNPACKED_BYTES unpacked is refused (SceneError
-  "unsafe_archive" / "sandbox_limit", naming the entry as the zip names it, never a server path).
+  an entry that is absolute, climbs out with '..', names a drive, is a symbolic link, is encrypted, names
+  the folder itself ('a/..') or is also the folder of another entry, or a zip over MAX_ZIP_ENTRIES entries
+  (counted from its end records before zipfile reads the central directory) or MAX_UNPACKED_BYTES unpacked
+  is refused (SceneError "unsafe_archive" / "sandbox_limit", naming the entry as the zip names it, never a
+  server path).
   The root layer is the one USD layer at the top of the folder (a single top-level folder, as zipping
   a folder makes, is looked into).
 """
@@ -18,6 +22,7 @@ import os
 import posixpath
 import re
 import stat
+import struct
 import tempfile
 import zipfile
 from io import BytesIO
@@ -35,7 +40,8 @@ ROOT_LAYER_EXTENSIONS = (".usd", ".usda", ".usdc")
 
 def dependencies(scene) -> tuple[list[str], list[str], list[str]]:
     """(layers, other assets, unresolved paths) the stage at `scene` depends on, as paths relative to
-    its folder where they lie inside it (usd-core's UsdUtils.ComputeAllDependencies)."""
+    its folder where they lie inside it, else as the absolute path of the file read (symbolic links
+    followed: a link in the folder leading out is outside) (usd-core's UsdUtils.ComputeAllDependencies)."""
     from pxr import UsdUtils
 
     src = os.path.abspath(os.fspath(scene))
@@ -45,9 +51,19 @@ def dependencies(scene) -> tuple[list[str], list[str], list[str]]:
     except Exception as e:  # pxr.Tf.ErrorException: a layer that does not parse
         raise SceneError("corrupt", f"{os.path.basename(src)}: usd-core cannot read the stage or a layer it names "
                          f"({type(e).__name__})") from e
-    rel = lambda p: os.path.relpath(p, base) if os.path.abspath(p).startswith(base + os.sep) else p  # noqa: E731
+    real_base = os.path.realpath(base)
+
+    def rel(p: str) -> str:
+        real = os.path.realpath(p)
+        return os.path.relpath(real, real_base) if real.startswith(real_base + os.sep) else real
+
     return ([rel(l.realPath or l.identifier) for l in layers], [rel(a) for a in assets],
             [str(u) for u in unresolved])
+
+
+def outside_files(layers: list[str], assets: list[str]) -> list[str]:
+    """The dependencies (as `dependencies` gives them) that lie outside the stage's folder."""
+    return [p for p in layers + assets if os.path.isabs(p)]
 
 
 def needs_package(scene) -> bool:
@@ -59,9 +75,11 @@ def needs_package(scene) -> bool:
     return len(layers) > 1 or bool(assets) or bool(unresolved)
 
 
-def pack_stage(scene, out) -> dict:
+def pack_stage(scene, out, allow_outside: bool = False) -> dict:
     """Write `scene` and its dependencies to the .usdz `out`; returns {"out", "entries", "bytes", "layers",
-    "assets", "unresolved"} (unresolved: paths the stage names that do not exist, left out)."""
+    "assets", "unresolved", "outside"} (unresolved: paths the stage names that do not exist, left out;
+    outside: files outside the stage's folder, packed only with `allow_outside`, else SceneError
+    "outside_folder" naming them)."""
     from pxr import UsdUtils
 
     src, out = Path(scene), Path(out)
@@ -72,33 +90,29 @@ def pack_stage(scene, out) -> dict:
     if out.suffix.lower() != ".usdz":
         raise SceneError("bad_option", f"--out: {out.name!r}: the package is a .usdz file")
     layers, assets, unresolved = dependencies(src)
+    outside = outside_files(layers, assets)
+    if outside and not allow_outside:
+        shown = ", ".join(outside[:5]) + (f" and {len(outside) - 5} more" if len(outside) > 5 else "")
+        raise SceneError("outside_folder", f"{src.name} names {len(outside)} file(s) outside its folder ({shown}); "
+                         "packing would upload them. Pack them anyway only if you trust the stage: "
+                         "`shadowopt pack --allow-outside`, or upload_scene(..., pack=True) in the client "
+                         "(pack=False sends the stage alone)")
     out.parent.mkdir(parents=True, exist_ok=True)
     if not UsdUtils.CreateNewUsdzPackage(os.fspath(src), os.fspath(out)):
         raise SceneError("corrupt", f"{src.name}: usd-core could not package the stage")
     with zipfile.ZipFile(out) as z:
         entries = z.namelist()
     return {"out": os.fspath(out), "entries": len(entries), "bytes": out.stat().st_size, "layers": len(layers),
-            "assets": assets, "unresolved": unresolved}
+            "assets": assets, "unresolved": unresolved, "outside": outside}
 
 
-def pack_bytes(scene) -> tuple[bytes, str]:
+def pack_bytes(scene, allow_outside: bool = False) -> tuple[bytes, str]:
     """`scene` packed as .usdz bytes and the package's file name (the stage's name with .usdz)."""
     src = Path(scene)
     with tempfile.TemporaryDirectory(prefix="shadowopt-pack-") as tmp:
         out = Path(tmp) / (src.stem + ".usdz")
-        pack_stage(src, out)
+        pack_stage(src, out, allow_outside=allow_outside)
         return out.read_bytes(), out.name
-
-
-def zip_folder_bytes(folder) -> tuple[bytes, str]:
-    """A local folder as .zip bytes (regular files only, symbolic links left out) and its name."""
-    folder = Path(folder)
-    buf = BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
-        for p in sorted(folder.rglob("*")):
-            if p.is_file() and not p.is_symlink():
-                z.write(p, p.relative_to(folder).as_posix())
-    return buf.getvalue(), folder.name + ".zip"
 
 
 # -- uploaded zips -----------------------------------------------------------------------------------
@@ -116,6 +130,42 @@ def _why_unsafe(name: str) -> str:
     if "\x00" in name:
         return "a NUL character in its name"
     return "'..' leads out of the folder"
+
+
+_EOCD = struct.Struct("<4s4H2LH")  # end of central directory record (APPNOTE.TXT 4.3.16)
+_EOCD64_LOCATOR = struct.Struct("<4sLQL")  # ZIP64 end of central directory locator (4.3.15)
+_EOCD64 = struct.Struct("<4sQ2H2L4Q")  # ZIP64 end of central directory record (4.3.14)
+_CENTRAL = struct.Struct("<4s4B4HL2L5H2L")  # central directory file header (4.3.12), 46 bytes
+
+
+def _declared_entries(data: bytes) -> int | None:
+    """How many entries the zip's central directory holds, from its end records and at most
+    MAX_ZIP_ENTRIES + 1 of its records, found as Python's zipfile finds them (_EndRecData, _RealGetContents):
+    the larger of the declared count and the records walked (zipfile walks the directory's declared size, not
+    its count, so a count that lies does not hide records). None when there is no end record (zipfile then
+    says the zip is damaged)."""
+    size = len(data)
+    at = size - _EOCD.size
+    if not (at >= 0 and data[at:at + 4] == b"PK\x05\x06" and data[-2:] == b"\0\0"):
+        at = data.rfind(b"PK\x05\x06", max(size - (1 << 16) - _EOCD.size, 0))
+        if at < 0 or at + _EOCD.size > size:
+            return None
+    _, _, _, _, count, size_cd, offset_cd, _ = _EOCD.unpack_from(data, at)
+    start = at - size_cd  # the directory ends where the end records begin (a zip appended to other bytes too)
+    loc = at - _EOCD64_LOCATOR.size
+    if loc >= 0 and data[loc:loc + 4] == b"PK\x06\x07" and loc - _EOCD64.size >= 0:
+        z64 = _EOCD64.unpack_from(data, loc - _EOCD64.size)
+        if z64[0] == b"PK\x06\x06":
+            count, size_cd = max(z64[6], z64[7]), z64[8]
+            start = loc - _EOCD64.size - size_cd
+    records, pos, end = 0, max(start, 0), max(start, 0) + size_cd
+    while pos < end and records <= MAX_ZIP_ENTRIES and pos + _CENTRAL.size <= size:
+        head = _CENTRAL.unpack_from(data, pos)
+        if head[0] != b"PK\x01\x02":
+            break
+        records += 1
+        pos += _CENTRAL.size + head[12] + head[13] + head[14]  # name, extra field and comment lengths
+    return max(count, records)
 
 
 def _checked_entries(z: zipfile.ZipFile, max_unpacked: int = MAX_UNPACKED_BYTES) -> list[zipfile.ZipInfo]:
@@ -147,18 +197,27 @@ def _checked_entries(z: zipfile.ZipFile, max_unpacked: int = MAX_UNPACKED_BYTES)
 
 
 def _inside_names(files: list[zipfile.ZipInfo]) -> tuple[str, dict[str, zipfile.ZipInfo]]:
-    """(prefix, {name below the prefix: entry}); the prefix is a single top-level folder shared by all."""
-    names = {posixpath.normpath(i.filename.replace("\\", "/")): i for i in files}
+    """(prefix, {name below the prefix: entry}); the prefix is a single top-level folder shared by all.
+    An entry that names the folder itself ('a/..', '.') or whose name is also a folder holding another
+    entry ('tex' and 'tex/a.png') is refused, named by its name below the prefix."""
+    names: dict[str, zipfile.ZipInfo] = {}
+    for i in files:
+        n = posixpath.normpath(i.filename.replace("\\", "/"))
+        if n in ("", "."):
+            raise _refuse(i.filename, "names the folder itself, not a file")
+        if n in names:
+            raise _refuse(i.filename, "a second entry of the same name")
+        names[n] = i
     tops = {n.split("/", 1)[0] for n in names}
     prefix = ""
     if len(tops) == 1 and all("/" in n for n in names):
         prefix = next(iter(tops)) + "/"
-    out = {}
-    for n, info in names.items():
-        inner = n[len(prefix):]
-        if inner in out:
-            raise _refuse(info.filename, "a second entry of the same name")
-        out[inner] = info
+    out = {n[len(prefix):]: info for n, info in names.items()}
+    folders = {inner.rsplit("/", 1)[0] for inner in out if "/" in inner}
+    folders |= {f.rsplit("/", k)[0] for f in folders for k in range(1, f.count("/") + 1)}
+    for inner in sorted(out):
+        if inner in folders:
+            raise _refuse(inner, "a file whose name is also a folder of other entries")
     return prefix, out
 
 
@@ -186,6 +245,11 @@ def zip_to_usdz(data: bytes, name: str, max_unpacked: int = MAX_UNPACKED_BYTES) 
 
     from pxr import Sdf
 
+    count = _declared_entries(data)
+    if count is not None and count > MAX_ZIP_ENTRIES:
+        least = "at least " if count == MAX_ZIP_ENTRIES + 1 else ""  # the walk stops one record past the limit
+        raise SceneError("sandbox_limit", f"zip entries: {least}{count} entries, over the limit of {MAX_ZIP_ENTRIES}; "
+                         "refused")
     try:
         z = zipfile.ZipFile(BytesIO(data))
     except (zipfile.BadZipFile, OSError, ValueError) as e:
@@ -195,10 +259,11 @@ def zip_to_usdz(data: bytes, name: str, max_unpacked: int = MAX_UNPACKED_BYTES) 
         prefix, inside = _inside_names(files)
         root = _root_layer(list(inside), name, prefix)
         with tempfile.TemporaryDirectory(prefix="shadowopt-zip-") as tmp:
+            files_dir = os.path.join(tmp, "files")  # the entries; the package is written beside, not among them
             for inner, info in inside.items():
-                target = os.path.join(tmp, *inner.split("/"))
-                os.makedirs(os.path.dirname(target), exist_ok=True)
+                target = os.path.join(files_dir, *inner.split("/"))
                 try:
+                    os.makedirs(os.path.dirname(target), exist_ok=True)
                     with z.open(info) as src, open(target, "wb") as dst:
                         left = info.file_size
                         while True:
@@ -212,11 +277,17 @@ def zip_to_usdz(data: bytes, name: str, max_unpacked: int = MAX_UNPACKED_BYTES) 
                 except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError) as e:
                     raise SceneError("corrupt", f"zip entry {info.filename.lstrip('/')!r} is damaged or cannot be "
                                      f"unpacked ({type(e).__name__})") from e
-            out = os.path.join(tmp, ".package.usdz")
+                except OSError as e:  # a name the file system refuses (too long, ...): no server path shown
+                    raise _refuse(info.filename, f"cannot be unpacked ({type(e).__name__}: "
+                                  f"{e.strerror or 'refused by the file system'})") from e
+            if inside[root].file_size == 0:
+                raise SceneError("empty_stage", f"the zip's root layer {root!r} is empty")
+            out = os.path.join(tmp, "out.usdz")
             try:
                 writer = Sdf.ZipFileWriter.CreateNew(out)
-                for inner in [root] + sorted(n for n in inside if n != root):
-                    writer.AddFile(os.path.join(tmp, *inner.split("/")), inner)
+                # an empty file is left out: usd-core cannot map it, and an empty file holds no layer or texel
+                for inner in [root] + sorted(n for n in inside if n != root and inside[n].file_size > 0):
+                    writer.AddFile(os.path.join(files_dir, *inner.split("/")), inner)
                 writer.Save()
             except Exception as e:  # pxr.Tf.ErrorException
                 raise SceneError("corrupt", f"{os.path.basename(name)}: the package could not be written "

@@ -5,9 +5,12 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import stat
+import struct
 import subprocess
 import sys
+import textwrap
 import zipfile
 from pathlib import Path
 
@@ -15,9 +18,10 @@ import httpx
 import pytest
 from serverkit import REPO, TOKENS, auth, running
 
-from shadowopt.api.client import Client
+from shadowopt.api.client import Client, scene_bytes, zip_folder_bytes
 from shadowopt.renderers.scene_data import SceneError
-from shadowopt.service.packing import needs_package, zip_folder_bytes, zip_to_usdz
+from shadowopt.service import packing
+from shadowopt.service.packing import MAX_ZIP_ENTRIES, needs_package, zip_to_usdz
 
 CHESS = REPO.parent / "shared" / "usd-assets" / "full_assets" / "OpenChessSet" / "chess_set.usda"  # read in place
 CLI = [sys.executable, "-m", "shadowopt.api.cli"]
@@ -227,3 +231,191 @@ def test_the_chess_set_alone_is_refused_saying_how_and_showing_no_server_path(se
     err = r.json()["error"]
     assert err["code"] == "empty_stage" and "one package" in err["message"] and ".zip" in err["message"]
     assert str(server.data_dir) not in r.text and str(server.data_dir.parent) not in r.text
+
+
+# -- a stage naming files outside its folder is not packed unasked ---------------------------------
+
+def stage_naming(folder: Path, asset: str) -> Path:
+    """A one-file stage whose prim names `asset` (an asset-valued attribute usd-core's packager follows)."""
+    stage = multi_file_stage(folder)
+    stage.write_text(ROOT.replace('def Mesh "Ground"', f'asset info:tex = @{asset}@\n    def Mesh "Ground"'))
+    return stage
+
+
+def secret_file(tmp_path: Path) -> Path:
+    (tmp_path / "home" / ".ssh").mkdir(parents=True)
+    secret = tmp_path / "home" / ".ssh" / "id_secret"
+    secret.write_text("PRIVATE KEY 0123456789")
+    return secret
+
+
+def package_holds(data: bytes, text: str) -> bool:
+    with zipfile.ZipFile(io.BytesIO(data)) as z:
+        return any(text.encode() in z.read(n) for n in z.namelist())
+
+
+@pytest.mark.parametrize("how", ["absolute", "relative", "link"])
+def test_client_does_not_pack_a_file_outside_the_stage_folder_unless_asked(tmp_path, how):
+    """An untrusted stage naming ~/.ssh/... (by absolute path, by '../..', or through a symbolic link in its
+    folder) is refused by upload_scene's automatic packing, naming the local file; pack=True packs it."""
+    secret = secret_file(tmp_path)
+    site = tmp_path / "downloads" / "site"
+    if how == "absolute":
+        stage = stage_naming(site, str(secret))
+    elif how == "relative":
+        stage = stage_naming(site, "../../home/.ssh/id_secret")
+    else:
+        stage = stage_naming(site, "./tex.png")
+        os.symlink(secret, site / "tex.png")
+    with pytest.raises(SceneError) as e:
+        scene_bytes(stage)
+    assert e.value.code == "outside_folder" and str(secret) in e.value.message and "pack=True" in e.value.message
+    data, name = scene_bytes(stage, pack=True)  # the user's explicit choice
+    assert name == "scene.usdz" and package_holds(data, "PRIVATE KEY")
+    alone, _ = scene_bytes(stage, pack=False)
+    assert alone == stage.read_bytes()
+
+
+def test_cli_pack_refuses_a_file_outside_the_stage_folder_unless_allowed(tmp_path):
+    secret = secret_file(tmp_path)
+    stage = stage_naming(tmp_path / "site", str(secret))
+    out = tmp_path / "site.usdz"
+    r = subprocess.run(CLI + ["pack", str(stage), "--out", str(out)], capture_output=True, text=True, cwd=REPO,
+                       timeout=120)
+    assert r.returncode == 2 and str(secret) in r.stderr and "--allow-outside" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and not out.exists()
+    r = subprocess.run(CLI + ["pack", str(stage), "--out", str(out), "--allow-outside"], capture_output=True,
+                       text=True, cwd=REPO, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert package_holds(out.read_bytes(), "PRIVATE KEY")
+
+
+# -- zips whose names collide are refused with a 422, not a 500 -------------------------------------
+
+@pytest.mark.parametrize("entries, shown, why", [
+    ({"scene.usda": ROOT, "tex": "x", "tex/a.png": "y"}, "tex", "also a folder"),
+    ({"scene.usda": ROOT, "tex/a.png": "y", "tex": "x"}, "tex", "also a folder"),
+    ({"scene/scene.usda": ROOT, "scene/tex": "x", "scene/tex/a.png": "y"}, "tex", "also a folder"),
+    ({"scene.usda": ROOT, "a/..": "x"}, "a/..", "names the folder itself"),
+    ({"scene.usda": ROOT, "a" * 300 + ".png": "x"}, "a" * 300 + ".png", "cannot be unpacked"),
+])
+def test_a_zip_whose_entries_collide_is_refused_naming_the_entry(entries, shown, why):
+    with pytest.raises(SceneError) as e:
+        zip_to_usdz(zip_bytes({k: v.encode() for k, v in entries.items()}), "scene.zip")
+    assert e.value.code == "unsafe_archive" and f"zip entry {shown!r}" in e.value.message and why in e.value.message
+    assert "/tmp" not in e.value.message and "shadowopt-zip" not in e.value.message
+
+
+def test_an_entry_named_like_the_package_being_written_is_just_a_file():
+    usdz, name = zip_to_usdz(zip_bytes({"scene.usda": ROOT.encode(), ".package.usdz": b"junk", "out.usdz": b"j2"}),
+                             "scene.zip")
+    with zipfile.ZipFile(io.BytesIO(usdz)) as z:
+        assert z.namelist() == ["scene.usda", ".package.usdz", "out.usdz"] and z.read(".package.usdz") == b"junk"
+    assert name == "scene.usdz"
+
+
+def test_server_answers_a_colliding_zip_with_422_naming_the_entry(server):
+    for entries in ({"scene.usda": ROOT.encode(), "tex": b"x", "tex/a.png": b"y"},
+                    {"scene.usda": ROOT.encode(), "tex/a.png": b"y", "tex": b"x"},
+                    {"scene.usda": ROOT.encode(), "b" * 300: b"x"}):
+        r = httpx.post(f"{server.base}/v1/scenes", params={"filename": "scene.zip"}, content=zip_bytes(entries),
+                       headers={**auth("alice"), "Content-Type": "application/octet-stream"}, timeout=60)
+        assert r.status_code == 422, r.text
+        err = r.json()["error"]
+        assert err["code"] == "unsafe_archive" and "zip entry" in err["message"]
+        assert str(server.data_dir) not in r.text and "/tmp" not in r.text
+
+
+# -- the entry count is checked from the end record, before zipfile reads the central directory ------
+
+def many_entries(n: int) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        z.writestr("scene.usda", ROOT)
+        for i in range(n - 1):
+            z.writestr(f"e{i}", b"")
+    return buf.getvalue()
+
+
+def as_zip64(data: bytes, declared: int | None = None) -> bytes:
+    """The same zip ended by a ZIP64 end record and locator (APPNOTE 4.3.14-4.3.16), the classic end record's
+    counts and offsets set to 0xFFFF / 0xFFFFFFFF as ZIP64 writers do; `declared` overrides the count."""
+    at = data.rindex(b"PK\x05\x06")
+    _, _, _, n, total, size_cd, off_cd, _ = struct.unpack("<4s4H2LH", data[at:at + 22])
+    total = total if declared is None else declared
+    z64 = struct.pack("<4sQ2H2L4Q", b"PK\x06\x06", 44, 45, 45, 0, 0, total, total, size_cd, off_cd)
+    loc = struct.pack("<4sLQL", b"PK\x06\x07", 0, at, 1)
+    end = struct.pack("<4s4H2LH", b"PK\x05\x06", 0, 0, 0xFFFF, 0xFFFF, 0xFFFFFFFF, 0xFFFFFFFF, 0)
+    return data[:at] + z64 + loc + end
+
+
+def with_declared_count(data: bytes, count: int) -> bytes:
+    at = data.rindex(b"PK\x05\x06")
+    return data[:at + 8] + struct.pack("<2H", count, count) + data[at + 12:]
+
+
+def test_too_many_entries_are_refused_before_zipfile_reads_the_central_directory(monkeypatch):
+    """A zip over MAX_ZIP_ENTRIES is refused from its end record (classic or ZIP64, or a count that lies and
+    the central directory's records counted), without zipfile parsing the records; a ZIP64 zip within the
+    limit is read as any other."""
+    small = many_entries(3)
+    assert len(zipfile.ZipFile(io.BytesIO(as_zip64(small))).namelist()) == 3  # the ZIP64 ending is valid
+    assert zip_to_usdz(as_zip64(small), "scene.zip")[1] == "scene.usdz"
+    big = many_entries(MAX_ZIP_ENTRIES + 1)
+    assert len(zipfile.ZipFile(io.BytesIO(as_zip64(big))).namelist()) == MAX_ZIP_ENTRIES + 1
+
+    def no_parse(*a, **k):
+        raise AssertionError("zipfile.ZipFile parsed a zip over the entry limit")
+
+    monkeypatch.setattr(packing.zipfile, "ZipFile", no_parse)
+    for data in (big, as_zip64(big), with_declared_count(big, 7), as_zip64(big, declared=7)):
+        with pytest.raises(SceneError) as e:
+            zip_to_usdz(data, "scene.zip")
+        assert e.value.code == "sandbox_limit" and f"limit of {MAX_ZIP_ENTRIES}" in e.value.message
+
+
+# -- the bare client install zips a folder --------------------------------------------------------------
+
+def test_the_bare_client_uploads_a_folder_without_numpy_or_usd_core(tmp_path):
+    """With numpy and usd-core unimportable (the client install: httpx and pydantic), the client zips a
+    folder and sends a stage that would need packing as it is; nothing of the rendering stack is imported."""
+    multi_file_stage(tmp_path / "site")
+    code = textwrap.dedent(f"""
+        import sys
+        for m in ("numpy", "pxr", "mitsuba", "drjit", "scipy"):
+            sys.modules[m] = None  # import numpy -> ImportError
+        import io, zipfile
+        from pathlib import Path
+        from shadowopt.api.client import scene_bytes
+        data, name = scene_bytes(Path({str(tmp_path / 'site')!r}))
+        print(name, sorted(zipfile.ZipFile(io.BytesIO(data)).namelist()))
+        data, name = scene_bytes(Path({str(tmp_path / 'site' / 'scene.usda')!r}))
+        print(name, len(data))
+        print(sorted(m for m in sys.modules if m.startswith(("shadowopt.renderers.", "shadowopt.service."))))
+    """)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=60)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert lines[0] == "site.zip ['parts/part.usda', 'scene.usda']"
+    assert lines[1] == f"scene.usda {len(ROOT)}" and lines[2] == "[]"
+
+
+def test_a_folder_with_an_empty_file_and_a_link_out_uploads_without_them(tmp_path):
+    """An empty file (a .gitkeep) is left out of the package (usd-core cannot map it; before, the whole zip was
+    refused), an empty root layer is refused saying so, and the client's folder zip leaves out symbolic links
+    to files and folders outside it."""
+    multi_file_stage(tmp_path / "site")
+    (tmp_path / "site" / "parts" / ".gitkeep").write_bytes(b"")
+    (tmp_path / "away").mkdir()
+    (tmp_path / "away" / "secret.txt").write_text("PRIVATE")
+    os.symlink(tmp_path / "away", tmp_path / "site" / "linked")
+    os.symlink(tmp_path / "away" / "secret.txt", tmp_path / "site" / "secret.txt")
+    data, name = zip_folder_bytes(tmp_path / "site")
+    with zipfile.ZipFile(io.BytesIO(data)) as z:
+        assert sorted(z.namelist()) == ["parts/.gitkeep", "parts/part.usda", "scene.usda"]
+    usdz, pkg = zip_to_usdz(data, name)
+    with zipfile.ZipFile(io.BytesIO(usdz)) as z:
+        assert z.namelist() == ["scene.usda", "parts/part.usda"] and pkg == "scene.usdz"
+    with pytest.raises(SceneError) as e:
+        zip_to_usdz(zip_bytes({"scene.usda": b"", "parts/part.usda": PART.encode()}), "scene.zip")
+    assert e.value.code == "empty_stage" and "'scene.usda' is empty" in e.value.message
