@@ -329,7 +329,7 @@ def cmd_pack(args) -> int:
     """A local stage with its references, sublayers and payloads as one .usdz to upload."""
     from ..service.packing import pack_stage
 
-    res = pack_stage(args.scene, args.out)
+    res = pack_stage(args.scene, args.out, allow_outside=args.allow_outside)
     if args.json:
         print(json.dumps(res, indent=2))
     else:
@@ -482,6 +482,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("pack", help="package a stage and the files it references as one .usdz to upload")
     sp.add_argument("scene", help="a .usd, .usda or .usdc stage")
     sp.add_argument("--out", required=True, metavar="FILE.usdz", help="the package to write")
+    sp.add_argument("--allow-outside", action="store_true", help="also pack files outside the stage's folder "
+                    "(absolute paths, '..', links leading out; refused by default: they would be uploaded)")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_pack)
 
