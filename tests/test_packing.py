@@ -419,3 +419,12 @@ def test_a_folder_with_an_empty_file_and_a_link_out_uploads_without_them(tmp_pat
     with pytest.raises(SceneError) as e:
         zip_to_usdz(zip_bytes({"scene.usda": b"", "parts/part.usda": PART.encode()}), "scene.zip")
     assert e.value.code == "empty_stage" and "'scene.usda' is empty" in e.value.message
+
+
+def test_server_refuses_a_zip_over_the_entry_limit_with_413(server):
+    data = with_declared_count(many_entries(MAX_ZIP_ENTRIES + 1), 7)  # the count lies; the records are counted
+    r = httpx.post(f"{server.base}/v1/scenes", params={"filename": "scene.zip"}, content=data,
+                   headers={**auth("alice"), "Content-Type": "application/octet-stream"}, timeout=60)
+    assert r.status_code == 413, r.text
+    err = r.json()["error"]
+    assert err["code"] == "sandbox_limit" and f"limit of {MAX_ZIP_ENTRIES}" in err["message"] and err["field"] == "file"
