@@ -102,13 +102,13 @@ def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds=Non
 
 def cell_frusta(camera, buffers: CoarseBuffers, fine, fine_receivers: np.ndarray,
                 continuity: float = DEPTH_CONTINUITY) -> tuple[np.ndarray, np.ndarray]:
-    """(8 C, 3) points and their view-depth slack: for each coarse cell the edge pass traced that has a
+    """(2 K, 3) points and their view-depth slack: for each coarse cell the edge pass traced that has a
     receiver among its fine hits and a discontinuity there (a traced corner that missed or is not a
     receiver, or hits whose view depths span more than `continuity`), the corners of the cell's view
     frustum (its four corner rays) at the smallest and the largest view depth of its fine hits. A sliver
     thinner than a fine step between those rays (never traced) lies in that frustum when its depth is
     within the hits' range; the frustum is convex and every fit is projective, so containing the eight
-    corners contains it. Slack: the depth range (every cascade meeting it fits the corners)."""
+    corners contains it (a corner ray shared by such cells: once, over the union of their ranges). Slack: the depth range (every cascade meeting it fits the corners)."""
     from ..renderers.coarse import edge_cells
 
     f = fine.factor
@@ -150,16 +150,22 @@ def cell_frusta(camera, buffers: CoarseBuffers, fine, fine_receivers: np.ndarray
     if not len(sel):
         return np.zeros((0, 3)), np.zeros(0)
     cj, ci = np.divmod(sel, w)
+    # each corner ray once (neighbouring cells share corners), over the union of its cells' depth ranges
+    corner = ((cj[:, None] + np.array([0, 0, 1, 1])) * (w + 1) + ci[:, None] + np.array([0, 1, 0, 1])).ravel()
+    lo_d, hi_d = np.repeat(dmin[sel], 4), np.repeat(dmax[sel], 4)
+    ids, inv = np.unique(corner, return_inverse=True)
+    near = np.full(len(ids), np.inf)
+    far = np.full(len(ids), -np.inf)
+    np.minimum.at(near, inv, lo_d)
+    np.maximum.at(far, inv, hi_d)
+    v, u = np.divmod(ids, w + 1)  # corner positions, coarse-pixel units
     th = camera.tan_half_fov_y
     tw = th * camera.aspect
-    u = ci[:, None] + np.array([0, 1, 0, 1])  # the cell's corners, coarse-pixel units
-    v = cj[:, None] + np.array([0, 0, 1, 1])
     x = (u * (2.0 / w) - 1.0) * tw  # Camera.ray_directions' convention; forward component 1
     y = (1.0 - v * (2.0 / h)) * th
-    d = camera.forward + x[..., None] * camera.right + y[..., None] * camera.up  # (C, 4, 3)
-    pts = np.concatenate([camera.position + dmin[sel, None, None] * d,
-                          camera.position + dmax[sel, None, None] * d], axis=1).reshape(-1, 3)
-    return pts, np.repeat(dmax[sel] - dmin[sel], 8)
+    d = camera.forward + x[:, None] * camera.right + y[:, None] * camera.up
+    pts = np.concatenate([camera.position + near[:, None] * d, camera.position + far[:, None] * d])
+    return pts, np.tile(far - near, 2)
 
 
 def tangent_reach(camera, buffers: CoarseBuffers, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np.ndarray,
