@@ -51,12 +51,16 @@ def heldout_scenes(names=None, folder=None) -> dict:
 
 
 def _commit() -> str:
+    """The code's commit (git at the repository root), or SHADOWOPT_CODE_COMMIT for a run from an
+    exported tree that is not a git checkout."""
+    if os.environ.get("SHADOWOPT_CODE_COMMIT"):
+        return os.environ["SHADOWOPT_CODE_COMMIT"]
     try:
         head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True,
                               timeout=10).stdout.strip()
         dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
                                capture_output=True, text=True, timeout=10).stdout.strip()
-        return head + (" (+ uncommitted changes)" if dirty else "")
+        return (head + (" (+ uncommitted changes)" if dirty else "")) if head else "unknown (not a git checkout)"
     except (OSError, subprocess.SubprocessError):
         return "unknown"
 
