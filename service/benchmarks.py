@@ -490,7 +490,7 @@ def _tables_corpus(stats: dict, skipped: dict, spec: dict, corpus_ratio, corpus_
             ("speed_one_map", f"setup 1 map <= {t['setup_ms_one_map']:g} ms"),
             ("speed_cascades_practical", f"4 cascades practical <= {t['setup_ms_cascades_practical']:g} ms"),
             ("speed_cascades_optimized_splits", f"optimized splits <= {t['setup_ms_cascades_optimized_splits']:g} ms")]
-    lines += ["", "**Verdicts per target** (issue 10; `yes` = met on this scene).", "",
+    lines += ["", "**Verdicts per target** (the quality targets of the corpus benchmark; `yes` = met on this scene).", "",
               "| scene | " + " | ".join(c for _, c in cols) + " |", "|---|" + "---|" * len(cols)]
     for k, s in stats.items():
         lines.append(f"| {k} | " + " | ".join(_mark(s["verdicts"][key]) for key, _ in cols) + " |")
@@ -866,7 +866,7 @@ def bench_solvers_corpus(validate_rig, lights: int = 3, scenes: str | None = Non
     lines = [f"Corpus configs/corpus.json, screen {screen[0]}x{screen[1]}, one {res_map[0]}x{res_map[1]} map, "
              f"{lights} suns per scene (seed {spec['seed']}, above {spec['min_elevation_deg']} deg): each solver's objective "
              f"over the lowest any solver reached on the same sun, **worst over the suns** (median in brackets); "
-             f"`n/N`: suns within {100 * tolerance:g}% of the best (issue 10's convergence target). Solvers: "
+             f"`n/N`: suns within {100 * tolerance:g}% of the best (the convergence target). Solvers: "
              "solvers.optimize.METHODS, the same starts (each solver's first call, which compiles its kernels, "
              "is not timed); the default is in bold.", "",
              "| scene | " + " | ".join(f"**{m}**" if m == DEFAULT_METHOD else m for m in METHODS) + " |",

@@ -4,7 +4,7 @@ corpus does not have, which nobody tunes on, with suns from a seed other than th
 
 Per scene rig it prints, one map: misclassified pixels per method (summed over suns), optimized over
 the best baseline (the best of focused, LiSPSM, LogPSM by total), the suns where optimized is worse
-than 1.25x that sun's best baseline + 50 pixels (issue 10's per-sun bound), the suns where it is not
+than 1.25x that sun's best baseline + 50 pixels (the per-sun bound of the quality targets), the suns where it is not
 the lowest of all methods, and outside pixels per method; with cascades (on `cascade_scenes`): the
 totals of configs/benchmarks.json's cascade configurations (4 x 400^2 texels: practical splits +
 LiSPSM, optimized with practical splits, optimized splits/allocation) and their ratios to the reference.
