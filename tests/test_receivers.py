@@ -125,7 +125,7 @@ def test_focused_fit_on_a_close_up_is_the_visible_receivers_area():
         _, rlo, rhi = min_area_rectangle(xy)
         truth = float(np.prod(rhi - rlo))
         fitted = (2.0 / smap.projection[0, 0]) * (2.0 / smap.projection[1, 1])
-        print("AREA", sun, fitted / truth); assert truth <= fitted <= 1.08 * truth, (sun, fitted / truth)
+        assert truth <= fitted <= 1.08 * truth, (sun, fitted / truth)
 
 
 def test_sliver_between_fine_rays_inside_every_map():
