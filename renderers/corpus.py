@@ -133,7 +133,9 @@ class MeshAccumulator:
         return mesh
 
 
-def _stage(doc: str):
+def new_stage(documentation: str):
+    """An in-memory stage for a generated scene: +Y up, metres, a /World default prim, `documentation`
+    in the root layer (renderers.heldout's scenes are made the same way)."""
     from pxr import Usd, UsdGeom
 
     stage = Usd.Stage.CreateInMemory()
@@ -141,8 +143,12 @@ def _stage(doc: str):
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     world = UsdGeom.Xform.Define(stage, "/World")
     stage.SetDefaultPrim(world.GetPrim())
-    stage.GetRootLayer().documentation = f"shadowopt quality corpus v{CORPUS_VERSION}: {doc} (shadowopt.renderers.corpus)"
+    stage.GetRootLayer().documentation = documentation
     return stage
+
+
+def _stage(doc: str):
+    return new_stage(f"shadowopt quality corpus v{CORPUS_VERSION}: {doc} (shadowopt.renderers.corpus)")
 
 
 def _ground(stage, x0, x1, z0, z1, y: float = 0.0, path: str = "/World/Ground") -> None:
@@ -416,8 +422,11 @@ def ensure_scene(builder: str, cache_dir: str | Path | None = None) -> Path:
     """Write `builder`'s scene into the cache folder unless an identical file is already there."""
     folder = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     folder.mkdir(parents=True, exist_ok=True)
-    path = folder / f"{builder}.usda"
-    text = scene_text(builder)
+    return write_if_changed(folder / f"{builder}.usda", scene_text(builder))
+
+
+def write_if_changed(path: Path, text: str) -> Path:
+    """Write `text` to `path` (atomically, by a rename) unless the file already holds it."""
     if not path.exists() or path.read_text() != text:
         tmp = path.with_suffix(f".tmp{os.getpid()}")
         tmp.write_text(text)

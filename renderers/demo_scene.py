@@ -26,8 +26,9 @@ CASTERS = [
 
 
 def define_camera(stage, path: str, *, focal_mm: float, aperture_mm: tuple[float, float],
-                  clipping: tuple[float, float], position, rotate_deg) -> None:
-    """A UsdGeom.Camera at `position` turned by `rotate_deg` (XformCommonAPI, rotation order YXZ)."""
+                  clipping: tuple[float, float], position, rotate_deg, rotation_order: str = "YXZ"):
+    """A UsdGeom.Camera at `position` turned by `rotate_deg` (XformCommonAPI, rotation order
+    `rotation_order`: "YXZ" by default, "XYZ" applies X first)."""
     from pxr import Gf, UsdGeom
 
     cam = UsdGeom.Camera.Define(stage, path)
@@ -37,7 +38,8 @@ def define_camera(stage, path: str, *, focal_mm: float, aperture_mm: tuple[float
     cam.CreateClippingRangeAttr(Gf.Vec2f(*clipping))
     xf = UsdGeom.XformCommonAPI(cam)
     xf.SetTranslate(Gf.Vec3d(*position))
-    xf.SetRotate(Gf.Vec3f(*rotate_deg), UsdGeom.XformCommonAPI.RotationOrderYXZ)
+    xf.SetRotate(Gf.Vec3f(*rotate_deg), getattr(UsdGeom.XformCommonAPI, f"RotationOrder{rotation_order}"))
+    return cam
 
 
 def write_demo_scene(path: str) -> None:

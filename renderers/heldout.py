@@ -33,6 +33,9 @@ import random
 import sys
 from pathlib import Path
 
+from .corpus import new_stage, write_if_changed
+from .demo_scene import define_camera
+
 HELDOUT_VERSION = 1  # bump when a builder changes on purpose
 
 
@@ -188,31 +191,14 @@ class Mesh:
 
 
 def _stage(doc: str):
-    from pxr import Usd, UsdGeom
-
-    stage = Usd.Stage.CreateInMemory()
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    world = UsdGeom.Xform.Define(stage, "/World")
-    stage.SetDefaultPrim(world.GetPrim())
-    stage.GetRootLayer().documentation = f"shadowopt held-out scene v{HELDOUT_VERSION}: {doc} (shadowopt.renderers.heldout)"
-    return stage
+    return new_stage(f"shadowopt held-out scene v{HELDOUT_VERSION}: {doc} (shadowopt.renderers.heldout)")
 
 
 def _camera(stage, path: str, *, focal_mm: float, aperture_mm, clipping, position, pitch_deg: float, yaw_deg: float):
     """A UsdGeom.Camera at `position` looking along its local -Z pitched up by `pitch_deg` (about its own
-    X) and then turned by `yaw_deg` about +Y (XformCommonAPI, rotation order XYZ: X applied first)."""
-    from pxr import Gf, UsdGeom
-
-    cam = UsdGeom.Camera.Define(stage, path)
-    cam.CreateFocalLengthAttr(focal_mm)
-    cam.CreateHorizontalApertureAttr(aperture_mm[0])
-    cam.CreateVerticalApertureAttr(aperture_mm[1])
-    cam.CreateClippingRangeAttr(Gf.Vec2f(*clipping))
-    xf = UsdGeom.XformCommonAPI(cam)
-    xf.SetTranslate(Gf.Vec3d(*position))
-    xf.SetRotate(Gf.Vec3f(pitch_deg, yaw_deg, 0.0), UsdGeom.XformCommonAPI.RotationOrderXYZ)
-    return cam
+    X) and then turned by `yaw_deg` about +Y (rotation order XYZ: X applied first)."""
+    return define_camera(stage, path, focal_mm=focal_mm, aperture_mm=aperture_mm, clipping=clipping,
+                         position=position, rotate_deg=(pitch_deg, yaw_deg, 0.0), rotation_order="XYZ")
 
 
 def _plane(stage, path, x0, x1, z0, z1, y=0.0):
@@ -528,13 +514,7 @@ def ensure_scene(builder: str, folder: str | Path | None = None) -> Path:
     """Write `builder`'s scene into `folder` (default out/heldout/) unless an identical file is there."""
     folder = Path(folder) if folder is not None else default_dir()
     folder.mkdir(parents=True, exist_ok=True)
-    path = folder / f"{builder}.usda"
-    text = scene_text(builder)
-    if not path.exists() or path.read_text() != text:
-        tmp = path.with_suffix(f".tmp{os.getpid()}")
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    return path
+    return write_if_changed(folder / f"{builder}.usda", scene_text(builder))
 
 
 def main(argv=None) -> int:
