@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .baselines import PAD, _with_bias, baseline, directional_view
+from .baselines import PAD, _padded_log, _with_bias, baseline, directional_view
 from .cameras import Camera
 from .fitting import (box_corners, convex_hull_2d, extent_floor, light_plane_hull, min_area_rectangle, ortho,
                       padded, padded_range, rotation_z, to_view)
@@ -172,18 +172,20 @@ def _affine_from_choice(q: np.ndarray, hn, choice, is_hull: bool):
     return C, r.min(0), r.max(0)
 
 
-def _padded_box(lo: list, hi: list, resolution) -> tuple[tuple[float, float], tuple[float, float]]:
+def _padded_box(lo: list, hi: list, resolution, pad_t: bool = True) -> tuple[tuple[float, float], tuple[float, float]]:
     """The fitted 2D box (warped, after the affine part) grown so that PAD_TEXELS texels of the map
     lie outside it on each side (padding in map space, after the warp: a world-space pad before the
     warp would be magnified at the dense end and would keep the warp centre away from the receivers),
-    each side at least the extent floor."""
+    each side at least the extent floor. pad_t=False leaves t unpadded (the log family pads t after
+    its log step, baselines._padded_log, as the LogPSM baseline does)."""
     floor = extent_floor(max(abs(v) for v in lo + hi))
     out = []
     for k in (0, 1):
         a, b = lo[k], hi[k]
         size = max(b - a, floor)
         n = float(resolution[k])
-        pad = size * PAD_TEXELS / max(n - 2.0 * PAD_TEXELS, 1.0) + max(floor - (b - a), 0.0) / 2 + 1e-12 * size
+        margin = size * PAD_TEXELS / max(n - 2.0 * PAD_TEXELS, 1.0) if (k == 0 or pad_t) else 0.0
+        pad = margin + max(floor - (b - a), 0.0) / 2 + 1e-12 * size
         out.append((a - pad, b + pad))
     return out[0], out[1]
 
@@ -371,7 +373,7 @@ class Problem:
             self.last_choice = choice
         else:
             C, lo, hi = _affine_fit(q, self.affine, self.resolution, self.n_hull > 0)
-        (s0, s1), (t0, t1) = _padded_box(lo.tolist(), hi.tolist(), self.resolution)
+        (s0, s1), (t0, t1) = _padded_box(lo.tolist(), hi.tolist(), self.resolution, pad_t=not self.log)
         span = max(far - near, 1e-9 * max(abs(near), abs(far), 1.0))
         proj = ortho(s0, s1, t0, t1, near - 0.01 * span, far + 0.01 * span) @ C @ W
         return view, proj, v, dv
@@ -415,12 +417,13 @@ class Problem:
 
     def log_warp_for(self, x):
         """LogPSM's log step for the perspective part with parameters x (Lloyd et al. 2007 eq. 78,
-        solvers.warp.log_warp): a = n', W = D, the receivers' depth along the warp axis. The map's t
-        box is padded slightly beyond [y0, y1] (PAD_TEXELS, in map space), so t_p = 0 is a hair before
-        y0: the warp is Lloyd's up to that padding, and every receiver stays inside (c1 t + c2 > 0 on the box)."""
+        solvers.warp.log_warp): a = n', W = D, the receivers' depth along the warp axis. The perspective
+        part's t spans the receivers exactly (t_p = 0 at y0), and the PAD_TEXELS margin is added after the
+        log step (baselines._padded_log), so the strong warps' dense end keeps its rows (padding before
+        the log left up to 18% of them unused)."""
         u = float(self.clip(x)[1])
         n_prime = self.fit(x)[3]
-        return log_warp(n_prime * math.expm1(u), n_prime)
+        return _padded_log(log_warp(n_prime * math.expm1(u), n_prime), self.resolution[1])
 
     # -------------------------------------------------------------- objective and gradient
     def _check(self):
