@@ -251,6 +251,8 @@ class ShadowMapSolution(_Open):
                                                    "cascade blends into the next; null for the last or only map")
     face: str | None = None
     texel_snapped: bool = False
+    texel_snap_note: str | None = Field(None, description="with shadow.snap_to_texels: why this map was not "
+                                        "snapped (warped and perspective maps have no world-fixed texel grid)")
     predicted_error: dict | None = None
 
 

@@ -281,6 +281,8 @@ def light_json(light, maps: list[ShadowMap], total: dict, per_map: list[dict], o
                                  output.get("layout", "column_major"), output.get("frame", "world"),
                                  stage_to_world))
         d["predicted_error"] = err
+        if getattr(smap, "snap_note", None):
+            d["texel_snap_note"] = smap.snap_note
         lo_z, hi_z = smap.split
         if smap.face is None and len(maps) > 1 and smap is not maps[-1]:
             # Blend into the next cascade over the last 10% of this one's depth range (engines:
@@ -387,19 +389,35 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
 
 def snap_maps(maps: list[ShadowMap], prob: LightProblem) -> None:
     """`shadow.snap_to_texels`: unwarped directional maps get a world-fixed texel grid
-    (solvers.fitting.snap_to_texels); warped and perspective maps are left as they are."""
+    (solvers.fitting.snap_to_texels); warped and perspective maps are left as they are, each with the
+    reason in `snap_note` (the solution's `texel_snap_note`), so a request for snapping is never
+    ignored silently."""
     from ..solvers.baselines import _with_bias
     from ..solvers.fitting import snap_to_texels
 
     for smap in maps:
-        if prob.light.kind != "directional" or smap.face is not None or smap.log_warp is not None:
+        note = _snap_refusal(smap, prob.light)
+        P = None if note else snap_to_texels(smap.view, smap.projection, smap.resolution)
+        if P is None:
+            smap.snap_note = note or ("not snapped: the map is perspective-warped (its texels move with the "
+                                      "camera's view of the receivers; only unwarped directional maps have a "
+                                      "world-fixed texel grid)")
             continue
-        P = snap_to_texels(smap.view, smap.projection, smap.resolution)
-        if P is not None:
-            smap.projection = P
-            smap.snapped = True
-            if len(prob.receivers):
-                _with_bias(smap, prob.receivers, prob.light)
+        smap.projection = P
+        smap.snapped = True
+        if len(prob.receivers):
+            _with_bias(smap, prob.receivers, prob.light)
+
+
+def _snap_refusal(smap: ShadowMap, light) -> str | None:
+    """Why a map cannot get a world-fixed texel grid, or None when snap_to_texels may try."""
+    if light.kind != "directional":
+        return "not snapped: a spot or point light's perspective map has no world-fixed texel grid"
+    if smap.face is not None:
+        return "not snapped: a cube-map face has no world-fixed texel grid"
+    if smap.log_warp is not None:
+        return "not snapped: the map is log-warped (its texels move with the camera)"
+    return None
 
 
 def _previous_x(previous: dict | None, light_index: int):

@@ -204,6 +204,25 @@ def test_optimized_with_log_warps_allowed_says_which_warp_it_chose():
     assert evaluate_solution(entry, r, sol, screen=(320, 180))["outside_pixels"] == 0
 
 
+def test_snap_to_texels_says_why_a_map_is_not_snapped():
+    """snap_to_texels is never ignored silently: each map is snapped (unwarped directional maps: focused)
+    or names why not (LiSPSM's and optimized's perspective-warped maps, a spot light's map)."""
+    entry = scene()
+    sun = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}
+    spot = {"type": "spot", "position": (0, 10, 10), "direction": (0, -1, 0.2), "cone_deg": 40}
+    for light, method in ((sun, "focused"), (sun, "lispsm"), (sun, "optimized"), (spot, "focused")):
+        sol = solve(entry, rig(CAM, light, cascades=2 if light is sun else 1, snap_to_texels=True), method)
+        for c in sol["lights"][0]["cascades"]:
+            note = c.get("texel_snap_note")
+            assert c["texel_snapped"] != bool(note), (method, c["texel_snapped"], note)
+            if c["warp"]["kind"] != "none" or light is spot:
+                assert not c["texel_snapped"] and note.startswith("not snapped: "), (method, note)
+            if light is spot:
+                assert "spot or point light" in note
+        if method == "focused" and light is sun:
+            assert all(c["texel_snapped"] for c in sol["lights"][0]["cascades"])
+
+
 def test_texel_snapping_fixes_the_grid_in_the_world_and_keeps_every_receiver():
     """Two frames, the camera moved sideways without turning: with snap_to_texels the focused maps'
     texel grids coincide in the world (a world point has the same fractional texel position in both),
