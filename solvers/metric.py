@@ -113,18 +113,12 @@ def footprint(P, resolution, log_warp, ds: DeviceSamples):
     ad = llvm_ad()
     import drjit as dr
 
-    X = ds.X
     if not isinstance(resolution[0], ad.Float64):  # opaque: a new map size does not recompile
         resolution = (dr.opaque(ad.Float64, float(resolution[0])), dr.opaque(ad.Float64, float(resolution[1])))
-    rows = [ad.Array3f64(P[4 * i], P[4 * i + 1], P[4 * i + 2]) for i in range(4)]
-    c = [dr.dot(rows[i], X) + P[4 * i + 3] for i in range(4)]
-    cw = c[3]
-    valid = cw > W_FLOOR
-    cw = dr.select(valid, cw, W_FLOOR)
-    inv_w2 = 1.0 / (cw * cw)
-    # d(c_i / c_w)/dX = (row_i c_w - c_i row_w) / c_w^2; s = (x_ndc + 1)/2 -> u = s * width.
-    gs = (rows[0] * cw - c[0] * rows[3]) * (inv_w2 * 0.5 * resolution[0])
-    gt = (rows[1] * cw - c[1] * rows[3]) * (inv_w2 * 0.5 * resolution[1])
+    c, cw, valid, inv_w2, ns, nt = _clip_gradients(P, ds.X)
+    # s = (x_ndc + 1)/2 -> u = s * width.
+    gs = ns * (inv_w2 * 0.5 * resolution[0])
+    gt = nt * (inv_w2 * 0.5 * resolution[1])
     if log_warp is not None:
         c0, c1, c2 = log_warp
         t = (c[1] / cw + 1.0) * 0.5
@@ -144,6 +138,22 @@ def footprint(P, resolution, log_warp, ds: DeviceSamples):
     return h, dr.maximum(a, b), valid
 
 
+def _clip_gradients(P, X):
+    """The one projective gradient both kernels use: clip coordinates c_i = row_i . X + P_i3 of the
+    points X, c_w kept above W_FLOOR (`valid` where it was), 1 / c_w^2, and the numerators of
+    d(c_i / c_w)/dX = (row_i c_w - c_i row_w) / c_w^2 for i = 0 (s) and 1 (t)."""
+    import drjit as dr
+
+    ad = llvm_ad()
+    rows = [ad.Array3f64(P[4 * i], P[4 * i + 1], P[4 * i + 2]) for i in range(4)]
+    c = [dr.dot(rows[i], X) + P[4 * i + 3] for i in range(4)]
+    cw = c[3]
+    valid = cw > W_FLOOR
+    cw = dr.select(valid, cw, W_FLOOR)
+    inv_w2 = 1.0 / (cw * cw)
+    return c, cw, valid, inv_w2, rows[0] * cw - c[0] * rows[3], rows[1] * cw - c[1] * rows[3]
+
+
 def warped_moments_kernel(P, ds: DeviceSamples):
     """(Σ w G00, Σ w G01, Σ w G11, Σ w, lost weight) for the 2D map q = (c0/cw, c1/cw) of P (acting on
     re-centred points): G = (J_q J_q^T)^-1, J_q = dq/dx per full-resolution pixel. For any affine map
@@ -151,16 +161,9 @@ def warped_moments_kernel(P, ds: DeviceSamples):
     mean h of every affine part follows from these three sums (solvers.optimize's "objective" fit)."""
     import drjit as dr
 
-    ad = llvm_ad()
-    X = ds.X
-    rows = [ad.Array3f64(P[4 * i], P[4 * i + 1], P[4 * i + 2]) for i in range(4)]
-    c = [dr.dot(rows[i], X) + P[4 * i + 3] for i in range(4)]
-    cw = c[3]
-    valid = cw > W_FLOOR
-    cw = dr.select(valid, cw, W_FLOOR)
-    inv_w2 = 1.0 / (cw * cw)
-    gs = (rows[0] * cw - c[0] * rows[3]) * inv_w2
-    gt = (rows[1] * cw - c[1] * rows[3]) * inv_w2
+    _, _, valid, inv_w2, ns, nt = _clip_gradients(P, ds.X)
+    gs = ns * inv_w2
+    gt = nt * inv_w2
     a, b = dr.dot(gs, ds.dx), dr.dot(gs, ds.dy)
     cc, d = dr.dot(gt, ds.dx), dr.dot(gt, ds.dy)
     det = a * d - b * cc
