@@ -163,6 +163,19 @@ def _clipped_hits(mi, dr, pi, ray, fwd, camera: Camera):
     return pi.is_valid() & (depth >= near) & (depth <= far)
 
 
+def _surface_hits(mi, dr, rs: RayScene, ray, fwd, camera: Camera):
+    """The camera rays' first hits within [near, far] (`_clipped_hits`): (preliminary intersection,
+    hit mask, ray distance t (0 where no hit), hit points, geometric normals turned towards the camera).
+    One implementation for the coarse pass, its edge pass and the full-resolution evaluator."""
+    pi = rs.scene.ray_intersect_preliminary(ray, coherent=False)  # measured: faster than coherent here
+    hit = _clipped_hits(mi, dr, pi, ray, fwd, camera)
+    t = dr.select(hit, pi.t, 0.0)
+    p = ray.o + t * ray.d
+    n = _geometric_normal(mi, dr, rs, pi.prim_index, hit)
+    n = dr.select(dr.dot(n, ray.d) > 0, -n, n)  # turned towards the camera
+    return pi, hit, t, p, n
+
+
 def _geometric_normal(mi, dr, rs: RayScene, prim, active):
     f = mi.Vector3u(*(dr.gather(mi.UInt32, rs.faces, prim * 3 + k, active) for k in range(3)))
     p = [mi.Point3f(*(dr.gather(mi.Float, rs.vertices, f[v] * 3 + k, active) for k in range(3)))
@@ -246,12 +259,7 @@ def render_coarse(rs: RayScene, camera: Camera, lights: list[Light], long_side: 
     t0 = time.perf_counter()
     width, height = camera.coarse_resolution(long_side)
     ray, fwd = _camera_rays(mi, dr, camera, width, height, rs.origin)
-    pi = rs.scene.ray_intersect_preliminary(ray, coherent=False)  # measured: faster than coherent here
-    hit = _clipped_hits(mi, dr, pi, ray, fwd, camera)
-    t = dr.select(hit, pi.t, 0.0)
-    p = ray.o + t * ray.d
-    n = _geometric_normal(mi, dr, rs, pi.prim_index, hit)
-    n = dr.select(dr.dot(n, ray.d) > 0, -n, n)  # turned towards the camera
+    pi, hit, t, p, n = _surface_hits(mi, dr, rs, ray, fwd, camera)
     depth = dr.select(hit, t * dr.dot(ray.d, fwd), dr.inf)
     prim = dr.gather(mi.UInt32, rs.face_prim, pi.prim_index, hit)
     masks = [_light_test(mi, dr, rs, light, p, n, hit) for light in lights]
@@ -352,12 +360,7 @@ def fine_points(rs: RayScene, camera: Camera, lights: list[Light], hit: np.ndarr
     fwd = _opaque3(mi, dr, mi.Vector3f, camera.forward)
     d = mi.Vector3f(*(mi.Float(np.ascontiguousarray(dirs[:, k], dtype=np.float32)) for k in range(3)))
     ray = mi.Ray3f(o, d)
-    pi = rs.scene.ray_intersect_preliminary(ray, coherent=False)
-    ok = _clipped_hits(mi, dr, pi, ray, fwd, camera)
-    t = dr.select(ok, pi.t, 0.0)
-    p = ray.o + t * ray.d
-    nrm = _geometric_normal(mi, dr, rs, pi.prim_index, ok)
-    nrm = dr.select(dr.dot(nrm, ray.d) > 0, -nrm, nrm)
+    pi, ok, t, p, nrm = _surface_hits(mi, dr, rs, ray, fwd, camera)
     tests = [_light_test(mi, dr, rs, light, p, nrm, ok, shadow_rays=False) for light in lights]
     dr.eval(ok, p, nrm, *[m for ms in tests for m in ms[1:]])
     keep = ok.numpy().astype(bool)[:n]  # .numpy(): np.array() of a Dr.Jit array is ~20x slower

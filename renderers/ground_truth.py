@@ -66,7 +66,7 @@ from ..solvers.lights import DirectionalLight, Light
 from ..solvers.jit import aligned
 from ..solvers.metric import DET_FLOOR, error_stats
 from ..solvers.shadow_map import ShadowMap, map_for_depth
-from .coarse import DEPTH_CONTINUITY, _camera_rays, _clipped_hits, _geometric_normal, _light_test, boundary_mask
+from .coarse import DEPTH_CONTINUITY, _camera_rays, _light_test, _surface_hits, boundary_mask
 from .mitsuba_setup import mitsuba
 from .ray_scene import RayScene
 
@@ -155,12 +155,7 @@ def render_screen(rs: RayScene, camera: Camera, light: Light, shadow_rays: bool 
 
     width, height = camera.resolution
     ray, fwd = _camera_rays(mi, dr, camera, width, height, rs.origin)
-    pi = rs.scene.ray_intersect_preliminary(ray, coherent=False)
-    hit = _clipped_hits(mi, dr, pi, ray, fwd, camera)
-    t = dr.select(hit, pi.t, 0.0)
-    p = ray.o + t * ray.d
-    n = _geometric_normal(mi, dr, rs, pi.prim_index, hit)
-    n = dr.select(dr.dot(n, ray.d) > 0, -n, n)
+    pi, hit, t, p, n = _surface_hits(mi, dr, rs, ray, fwd, camera)
     vis, fac, inl = _light_test(mi, dr, rs, light, p, n, hit, shadow_rays)
     tri = pi.prim_index
     dr.eval(hit, tri, vis, fac, inl)
