@@ -411,18 +411,41 @@ def default_cache_dir() -> Path:
 
 def scene_text(builder: str) -> str:
     """The .usda text of a generated scene (deterministic)."""
-    if builder not in BUILDERS:
-        raise ValueError(f"unknown corpus builder {builder!r} (known: {', '.join(BUILDERS)})")
-    stage = _stage(builder.replace("_", " "))
-    BUILDERS[builder](stage)
-    return stage.GetRootLayer().ExportToString()
+    return build_text(BUILDERS, builder, _stage, "corpus")
 
 
 def ensure_scene(builder: str, cache_dir: str | Path | None = None) -> Path:
     """Write `builder`'s scene into the cache folder unless an identical file is already there."""
-    folder = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    return ensure_file(scene_text, builder, cache_dir, default_cache_dir)
+
+
+def main(argv=None) -> int:
+    return write_all(BUILDERS, ensure_scene, default_cache_dir, argv)
+
+
+def build_text(builders: dict, builder: str, make_stage, what: str) -> str:
+    """The .usda text of `builders[builder]` on a stage from make_stage (corpus and held-out scenes)."""
+    if builder not in builders:
+        raise ValueError(f"unknown {what} builder {builder!r} (known: {', '.join(builders)})")
+    stage = make_stage(builder.replace("_", " "))
+    builders[builder](stage)
+    return stage.GetRootLayer().ExportToString()
+
+
+def ensure_file(text_of, builder: str, folder, default_folder) -> Path:
+    """Write text_of(builder) to <folder>/<builder>.usda (default_folder() when None) unless it is there."""
+    folder = Path(folder) if folder is not None else default_folder()
     folder.mkdir(parents=True, exist_ok=True)
-    return write_if_changed(folder / f"{builder}.usda", scene_text(builder))
+    return write_if_changed(folder / f"{builder}.usda", text_of(builder))
+
+
+def write_all(builders: dict, ensure, default_folder, argv=None) -> int:
+    """The command line of a scene generator: every builder's file into argv[0] (or the default folder)."""
+    argv = sys.argv[1:] if argv is None else argv
+    folder = Path(argv[0]) if argv else default_folder()
+    for name in builders:
+        print(ensure(name, folder))
+    return 0
 
 
 def write_if_changed(path: Path, text: str) -> Path:
@@ -432,14 +455,6 @@ def write_if_changed(path: Path, text: str) -> Path:
         tmp.write_text(text)
         os.replace(tmp, path)
     return path
-
-
-def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    folder = Path(argv[0]) if argv else default_cache_dir()
-    for name in BUILDERS:
-        print(ensure_scene(name, folder))
-    return 0
 
 
 if __name__ == "__main__":

@@ -30,10 +30,9 @@ from __future__ import annotations
 import math
 import os
 import random
-import sys
 from pathlib import Path
 
-from .corpus import new_stage, write_if_changed
+from .corpus import build_text, ensure_file, new_stage, write_all
 from .demo_scene import define_camera
 
 HELDOUT_VERSION = 1  # bump when a builder changes on purpose
@@ -503,26 +502,16 @@ def default_dir() -> Path:
 
 
 def scene_text(builder: str) -> str:
-    if builder not in BUILDERS:
-        raise ValueError(f"unknown held-out builder {builder!r} (known: {', '.join(BUILDERS)})")
-    stage = _stage(builder.replace("_", " "))
-    BUILDERS[builder](stage)
-    return stage.GetRootLayer().ExportToString()
+    return build_text(BUILDERS, builder, _stage, "held-out")
 
 
 def ensure_scene(builder: str, folder: str | Path | None = None) -> Path:
     """Write `builder`'s scene into `folder` (default out/heldout/) unless an identical file is there."""
-    folder = Path(folder) if folder is not None else default_dir()
-    folder.mkdir(parents=True, exist_ok=True)
-    return write_if_changed(folder / f"{builder}.usda", scene_text(builder))
+    return ensure_file(scene_text, builder, folder, default_dir)
 
 
 def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    folder = Path(argv[0]) if argv else default_dir()
-    for name in BUILDERS:
-        print(ensure_scene(name, folder))
-    return 0
+    return write_all(BUILDERS, ensure_scene, default_dir, argv)
 
 
 if __name__ == "__main__":
