@@ -127,7 +127,7 @@ def cmd_coarse(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from ..service import benchmarks
+    from ..service.bench import suite as benchmarks
 
     if args.bench == "coarse":
         result = benchmarks.bench_coarse(validate_rig, runs=args.runs, scenes=args.scenes, write=not args.no_write)
@@ -149,15 +149,15 @@ def cmd_bench(args) -> int:
         else:
             result = benchmarks.bench_quality(validate_rig, lights=args.lights, write=not args.no_write, parts=parts)
     elif args.bench == "batch":
-        from ..service.batch_benchmark import bench_batch
+        from ..service.bench.batches import bench_batch
 
         result = bench_batch(validate_rig, configurations=args.lights or 20, write=not args.no_write)
     elif args.bench == "security":
-        from ..service.security_benchmark import bench_security
+        from ..service.bench.security import bench_security
 
         result = bench_security(write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "load":
-        from ..service.load_benchmark import bench_load
+        from ..service.bench.load import bench_load
 
         result = bench_load(seconds=args.seconds, write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     else:  # argparse restricts choices

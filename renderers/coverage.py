@@ -58,11 +58,11 @@ def coverage_sweep(scenes=None, suns: int = 4, methods=("uniform", "focused", "l
                    cascades=(1, 4), screens=((750, 750), (1920, 1080)), seed: int = 2, min_elevation_deg: float = 5.0,
                    log=print) -> list[dict]:
     """Outside pixels on the corpus (configs/corpus.json): per scene rig, screen (the rig's resolution:
-    each solve sees that camera), sun (service.benchmarks.hemisphere_directions, the corpus benchmark's
+    each solve sees that camera), sun (service.bench.suite.hemisphere_directions, the corpus benchmark's
     seed), method and cascade count, one row {scene, screen, sun, method, cascades, outside_pixels,
     receiver_pixels}. `log` gets one line per (scene, screen) with the totals per method."""
     from ..api.cli import validate_rig
-    from ..service.benchmarks import corpus_scenes, hemisphere_directions
+    from ..service.bench.suite import corpus_scenes, hemisphere_directions
     from ..service.rigs import resolve_rig
     from ..service.scenes import SceneCache
     from ..service.solve import maps_from_solution, solve

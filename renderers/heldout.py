@@ -3,7 +3,7 @@
 on scenes nobody tuned on. Deterministic (fixed seeds, fixed operation order); metres, Y up.
 
 `configs/heldout.json` lists the scenes (`"build": NAME`, one of `BUILDERS`) with their rigs in the
-corpus format; `service/heldout_check.py` runs the corpus protocol on them. The files are written to
+corpus format; `service/bench/heldout.py` runs the corpus protocol on them. The files are written to
 `out/heldout/` (`SHADOWOPT_HELDOUT_DIR` overrides it) and rewritten only when their text changes.
 
 Regenerate by hand: .venv/bin/python -m shadowopt.renderers.heldout [DIR]

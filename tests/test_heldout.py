@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from shadowopt.renderers import corpus, heldout
-from shadowopt.service import heldout_check
-from shadowopt.service.benchmarks import ROOT, corpus_definitions, definitions
+from shadowopt.service.bench import heldout as heldout_check
+from shadowopt.service.bench.suite import ROOT, corpus_definitions, definitions
 
 SPEC = heldout_check.heldout_definitions()
 SCENES = SPEC["scenes"]

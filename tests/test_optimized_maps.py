@@ -156,7 +156,7 @@ def test_four_cascades_on_the_interior_rig_against_ray_traced_visibility():
     # The corpus interior with 4 cascades broke (issue 10: 16x practical+LiSPSM); on two suns optimized (practical splits and optimized splits under
     # the budget) stays within 1.25x practical+LiSPSM + 50 pixels per sun.
     from shadowopt.api.cli import validate_rig
-    from shadowopt.service import benchmarks as B
+    from shadowopt.service.bench import suite as B
     from shadowopt.service.scenes import SceneCache
 
     configs = B.quality_configs(B.definitions()["quality"], ("cascades",))

@@ -1,4 +1,4 @@
-"""The corpus benchmark's report (service.quality_report, service.benchmarks._scene_stats) on tiny
+"""The corpus benchmark's report (service.bench.quality_report, service.bench.suite._scene_stats) on tiny
 synthetic records: the numbers it prints against independent computations (scipy's Spearman, a
 hand-computed geometric mean and median), records stored before a key existed show "-", and the
 speed-against-error plot is a real image."""
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from scipy.stats import spearmanr
 
-from shadowopt.service import quality_report as qr
-from shadowopt.service.benchmarks import _scene_stats, _tables_corpus, definitions
+from shadowopt.service.bench import quality_report as qr
+from shadowopt.service.bench.suite import _scene_stats, _tables_corpus, definitions
 
 METHODS = ("uniform", "focused", "lispsm", "logpsm", "optimized")
 
@@ -159,7 +159,7 @@ def test_predicted_pixels_column_against_scipy_and_old_records_show_dashes():
 
 def test_fingerprint_changes_with_the_record_keys(tmp_path, monkeypatch):
     # a record stored without predicted_misclassified is measured again by --reuse
-    from shadowopt.service import benchmarks as b
+    from shadowopt.service.bench import suite as b
 
     f = tmp_path / "s.usda"
     f.write_text("#usda 1.0\n")

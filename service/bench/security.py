@@ -22,8 +22,8 @@ from pathlib import Path
 
 import httpx
 
-from . import hostile_corpus as H
-from .load_benchmark import DEMO_RIG, DEMO_SCENE, free_port, git_commit, light_direction, percentile, \
+from .. import hostile_corpus as H
+from .load import DEMO_RIG, DEMO_SCENE, free_port, git_commit, light_direction, percentile, \
     start_server, stop_server, wait_healthy
 
 QUEUED = 48  # heavy requests in flight while /healthz is probed (issue 9)
@@ -266,7 +266,7 @@ def bench_security(write: bool = True, log=print) -> dict:
     commit = git_commit()
     table += f"\n\nCode: the working tree at commit {commit}." if commit else ""
     if write:
-        from .benchmarks import write_section
+        from .suite import write_section
 
         write_section("security", table, "shadowopt bench security")
     out["table"] = table

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import httpx
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DEMO_SCENE = ROOT / "configs" / "demo_scene.usda"
 DEMO_RIG = ROOT / "configs" / "demo_rig.json"
 TARGET_P50_MS, TARGET_P99_MS = 30.0, 250.0  # optimize, from issue 5
@@ -274,7 +274,7 @@ def bench_load(seconds: float = 60.0, clients: int = 4, sequential_requests: int
     table += f" Code: the working tree at commit {git_commit()}." if git_commit() else ""
     command = "shadowopt bench load" + (f" --seconds {seconds:g}" if seconds != 60 else "")
     if write:
-        from .benchmarks import write_section
+        from .suite import write_section
 
         write_section("load", table, command)
     return {"workloads": results, "table": table, "ready_s": round(ready_s, 2)}

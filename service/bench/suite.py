@@ -17,7 +17,7 @@ from pathlib import Path
 from . import quality_report
 from .quality_report import spearman  # noqa: F401  (bench_trust and the corpus tables use it)
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 BENCH_FILE = ROOT / "BENCHMARKS.md"
 
 
@@ -42,9 +42,9 @@ def bench_coarse(validate_rig, runs: int | None = None, scenes: str | None = Non
 
     `validate_rig(dict) -> dict` is the API's rig validation (benchmark rigs are ordinary rigs).
     """
-    from ..renderers.coarse import render_coarse
-    from ..service.rigs import resolve_rig
-    from ..service.scenes import SceneCache
+    from ...renderers.coarse import render_coarse
+    from ..rigs import resolve_rig
+    from ..scenes import SceneCache
 
     spec = definitions()["coarse"]
     runs = runs or spec["runs"]
@@ -178,7 +178,7 @@ def _coverage():
     """renderers.coverage.outside_pixels (the full-resolution outside-pixel count without shadow
     rays), or None where that module is absent."""
     try:
-        from ..renderers.coverage import outside_pixels
+        from ...renderers.coverage import outside_pixels
     except ImportError:
         return None
     return outside_pixels
@@ -202,9 +202,9 @@ def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict
     again for a rig of that resolution and its receivers left outside every map counted at full
     resolution by renderers.coverage.outside_pixels (no shadow rays): `outside_hd`, `receivers_hd`,
     `setup_ms_hd`. Skipped when renderers.coverage is absent."""
-    from ..renderers.ground_truth import evaluate_buffers, render_screen
-    from ..service.rigs import resolve_rig
-    from ..service.solve import maps_from_solution, solve
+    from ...renderers.ground_truth import evaluate_buffers, render_screen
+    from ..rigs import resolve_rig
+    from ..solve import maps_from_solution, solve
 
     keys = RECORD_KEYS
     outside_pixels = _coverage() if hd and hd.get("lights") else None
@@ -260,7 +260,7 @@ def bench_quality(validate_rig, lights: int | None = None, write: bool = True, p
     (configs/benchmarks.json). `bench_quality_corpus` runs the same per-scene loop on the corpus."""
     import numpy as np
 
-    from ..service.scenes import SceneCache
+    from ..scenes import SceneCache
 
     spec = definitions()["quality"]
     n = lights or spec["lights"]
@@ -304,7 +304,7 @@ def corpus_scenes(names=None, cache_dir=None) -> tuple[dict, dict]:
     """The corpus's scenes (configs/corpus.json) as {name: (path, scene spec)}, generated ones built
     into the cache folder (renderers.corpus.ensure_scene), plus {name: why} for those that are absent
     (../shared/usd-assets not mounted). `names` picks some, in the given order."""
-    from ..renderers.corpus import ensure_scene
+    from ...renderers.corpus import ensure_scene
 
     spec = corpus_definitions()["scenes"]
     wanted = list(names) if names else list(spec)
@@ -602,7 +602,7 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
     them whatever code measured them, and the section names those measured with other code.
 
     Beside the verdicts: every method's objective as a ratio to the texel limit, the calibration of
-    the prediction per scene and on the whole corpus (service.quality_report), outside pixels for a
+    the prediction per scene and on the whole corpus (service.bench.quality_report), outside pixels for a
     rig at `hd_screen` (default 1920x1080) on the first `hd_lights` suns (renderers.coverage; 0 turns
     it off), and speed against error per scene with a plot (`plot`; default docs/bench/ when writing,
     the store folder otherwise).
@@ -610,7 +610,7 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
     Parallel runs: processes with disjoint `scenes` (and write=False) each store their scenes' files
     (written atomically); a last run over all scenes with reuse=True measures nothing that is stored
     and writes the merged section."""
-    from ..service.scenes import SceneCache
+    from ..scenes import SceneCache
 
     qspec, spec = definitions()["quality"], definitions()["quality_corpus"]
     n = lights or spec["lights"]
@@ -743,11 +743,11 @@ def bench_solvers(validate_rig, lights: int = 5, write: bool = True) -> dict:
     sample selection excluded) for one map and for 4 cascades."""
     import numpy as np
 
-    from ..service.pipeline import coarse_pass
-    from ..service.scenes import SceneCache
-    from ..service.solve import light_problems
-    from ..solvers.optimize import DEFAULT_METHOD, METHODS, minimize
-    from ..solvers.optimized_maps import optimized_maps
+    from ..pipeline import coarse_pass
+    from ..scenes import SceneCache
+    from ..solve import light_problems
+    from ...solvers.optimize import DEFAULT_METHOD, METHODS, minimize
+    from ...solvers.optimized_maps import optimized_maps
 
     spec = definitions()["coarse"]["scenes"]
     results, lines = {}, []
@@ -816,10 +816,10 @@ def bench_solvers_corpus(validate_rig, lights: int = 3, scenes: str | None = Non
     of them reached on that sun, worst over the suns, and its median time."""
     import numpy as np
 
-    from ..service.pipeline import coarse_pass
-    from ..service.scenes import SceneCache
-    from ..service.solve import light_problems
-    from ..solvers.optimize import DEFAULT_METHOD, METHODS, minimize
+    from ..pipeline import coarse_pass
+    from ..scenes import SceneCache
+    from ..solve import light_problems
+    from ...solvers.optimize import DEFAULT_METHOD, METHODS, minimize
 
     spec = definitions()["quality_corpus"]
     res_map = tuple(spec["map"])
@@ -955,10 +955,10 @@ def bench_trust(validate_rig, rigs: int | None = None, write: bool = True) -> di
     within-rig Spearman correlation, its mean, and the pooled (across-rig) correlation."""
     import numpy as np
 
-    from ..renderers.ground_truth import evaluate_buffers
-    from ..service.rigs import resolve_rig
-    from ..service.scenes import SceneCache
-    from ..service.solve import maps_from_solution, solve
+    from ...renderers.ground_truth import evaluate_buffers
+    from ..rigs import resolve_rig
+    from ..scenes import SceneCache
+    from ..solve import maps_from_solution, solve
 
     spec = definitions()["trust"]
     n = rigs or spec["rigs"]

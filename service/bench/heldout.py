@@ -1,4 +1,4 @@
-"""The corpus protocol (Chong & Gortler 2007 §3, as `service.benchmarks.quality_scene` runs it) on the
+"""The corpus protocol (Chong & Gortler 2007 §3, as `service.bench.suite.quality_scene` runs it) on the
 HELD-OUT scenes (configs/heldout.json, built by renderers.heldout): scenes of kinds the development
 corpus does not have, which nobody tunes on, with suns from a seed other than the corpus's.
 
@@ -14,7 +14,7 @@ commit), the table to out/heldout/results.md. `reuse` takes a stored scene rig m
 settings instead of measuring again (so disjoint scene lists may run in separate processes and be
 merged by a last run).
 
-  .venv/bin/python -m shadowopt.service.heldout_check --scenes colonnade --lights 2 --screen 300x300 --no-cascades
+  .venv/bin/python -m shadowopt.service.bench.heldout --scenes colonnade --lights 2 --screen 300x300 --no-cascades
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "configs" / "heldout.json"
 OUT = ROOT / "out" / "heldout"
 
@@ -40,7 +40,7 @@ def heldout_definitions() -> dict:
 def heldout_scenes(names=None, folder=None) -> dict:
     """{name: (path, scene spec)} for the held-out scenes (all, or `names` in that order), built into
     `folder` (default out/heldout/)."""
-    from ..renderers.heldout import ensure_scene
+    from ...renderers.heldout import ensure_scene
 
     spec = heldout_definitions()["scenes"]
     wanted = list(names) if names else list(spec)
@@ -66,9 +66,9 @@ def _commit() -> str:
 
 
 def configurations(map_res, parts) -> dict:
-    """The corpus's configurations (service.benchmarks.quality_configs on configs/benchmarks.json's
+    """The corpus's configurations (service.bench.suite.quality_configs on configs/benchmarks.json's
     `quality`), one map at `map_res`."""
-    from .benchmarks import definitions, quality_configs
+    from .suite import definitions, quality_configs
 
     q = definitions()["quality"]
     return quality_configs({**q, "map": list(map_res)}, parts)
@@ -133,9 +133,9 @@ def run(scenes=None, lights: int | None = None, seed: int | None = None, screen=
         store: Path | None = None, results_md: Path | None = None, log=print) -> dict:
     """The corpus protocol on the held-out rigs; prints a block per scene rig as it finishes and returns
     {"scenes": {key: summary}, "table": markdown, ...}; writes the table to `results_md` when given."""
-    from ..api.schemas import validate_rig
-    from .benchmarks import hemisphere_directions, quality_scene
-    from .scenes import SceneCache
+    from ...api.schemas import validate_rig
+    from .suite import hemisphere_directions, quality_scene
+    from ..scenes import SceneCache
 
     d = heldout_definitions()
     proto = d["protocol"]
@@ -217,7 +217,7 @@ def tables(summaries: dict, proto: dict, settings: dict) -> str:
                 methods.append(m)
     out = [f"# Held-out check (configs/heldout.json, renderers/heldout.py)\n",
            f"Code: {settings['commit']}. Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. "
-           f"Protocol: service.benchmarks.quality_scene; {settings['lights']} suns uniform on the hemisphere above "
+           f"Protocol: service.bench.suite.quality_scene; {settings['lights']} suns uniform on the hemisphere above "
            f"{proto['min_elevation_deg']} deg (seed {settings['seed']}; the corpus uses 2), screen "
            f"{settings['screen'][0]}x{settings['screen'][1]}, one {settings['map'][0]}x{settings['map'][1]} map; "
            "misclassified pixels against exact ray-traced visibility. Best baseline: the best of "
@@ -290,7 +290,7 @@ def _wxh(s: str):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m shadowopt.service.heldout_check", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m shadowopt.service.bench.heldout", description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", help="comma-separated held-out scenes (default: all)")
     ap.add_argument("--lights", type=int, help="suns per scene (default: configs/heldout.json)")
     ap.add_argument("--seed", type=int)

@@ -11,8 +11,8 @@ import sys
 import tempfile
 import time
 
-from .batches import BatchRunner, expand_configurations
-from .benchmarks import ROOT, machine, write_section
+from ..batches import BatchRunner, expand_configurations
+from .suite import ROOT, machine, write_section
 
 SCENE = ROOT / "configs" / "demo_scene.usda"
 
@@ -33,7 +33,7 @@ def _timed_batch(runner: BatchRunner, store, scene_id: str, configs: list[dict],
 
 
 def measure(backend: str, workers: int, configs: list[dict], method: str, repeats: int = 3) -> dict:
-    from .store import Store
+    from ..store import Store
 
     with tempfile.TemporaryDirectory(prefix="shadowopt-bench-batch-") as tmp:
         store = Store(tmp)
