@@ -9,7 +9,8 @@ import pytest
 
 from shadowopt.api.cli import validate_rig
 from shadowopt.renderers.coarse import render_coarse
-from shadowopt.renderers.coverage import CASCADE_CONFIGS, outside_mask, outside_pixels
+from shadowopt.renderers.coverage import outside_mask, outside_pixels
+from shadowopt.service.bench.coverage import CASCADE_CONFIGS
 from shadowopt.renderers.ground_truth import evaluate_buffers, render_screen
 from shadowopt.renderers.ray_scene import build_ray_scene
 from shadowopt.renderers.scene_data import LoadedScene
@@ -96,9 +97,10 @@ def test_corpus_rigs_leave_no_receiver_outside(scene):
     """closeup: the camera outside the scene's bounds; harbour: a 100 km far plane (receivers once
     landed there); demo: a box edge inside the first coarse column at 750 px (a sliver at the screen's
     border). Every method, 1 map and 4 cascades, 2 suns, 750 x 750."""
-    from shadowopt.renderers.coverage import coverage_sweep
+    from shadowopt.api.schemas import validate_rig
+    from shadowopt.service.bench.coverage import coverage_sweep
 
-    rows = coverage_sweep([scene], suns=2, screens=((750, 750),), log=None)
+    rows = coverage_sweep(validate_rig, [scene], suns=2, screens=((750, 750),), log=None)
     assert len(rows) == 2 * 2 * len(METHODS)
     bad = [(r["sun"], r["method"], r["cascades"], r["outside_pixels"]) for r in rows if r["outside_pixels"]]
     assert not bad, bad
