@@ -92,10 +92,39 @@ class ShadowSpec(_Strict):
 
 
 class OutputSpec(_Strict):
+    """How the matrices are expressed. `engine` is a preset that sets convention, layout, reversed_z, the
+    frame (handedness, up axis) and the length unit for that engine (docs/engines.md); giving it with a
+    field it sets to a different value is refused, naming both."""
+
     convention: Literal["opengl", "d3d", "vulkan"] = "opengl"
     layout: Literal["row_major", "column_major"] = "column_major"
     frame: Literal["world", "stage"] = "world"
+    reversed_z: bool = Field(False, description="reversed depth: the light's near plane at depth 1 and its far "
+                             "plane at 0 (clear to 0, compare greater), in the projection and texture matrices")
+    engine: Literal["opengl", "d3d", "vulkan", "unity", "unreal", "godot", "three", "bevy", "filament"] | None = Field(
+        None, description="an engine preset: the matrices take points in that engine's world frame and units, "
+        "and every length of the solution is in those units (docs/engines.md)")
     allow_log_warp: bool = False
+
+    @model_validator(mode="after")
+    def _preset(self):
+        """Fill convention, layout and reversed_z from the engine preset (solvers.conventions.ENGINE_PRESETS);
+        an explicit contradicting field is an error naming both. Without the server's stack (the bare
+        client) the server checks."""
+        if self.engine is None:
+            return self
+        try:
+            from ..solvers.conventions import ENGINE_PRESETS, preset_conflicts
+        except ImportError:
+            return self
+        given = {k: getattr(self, k) for k in ("convention", "layout", "reversed_z", "frame")
+                 if k in self.model_fields_set}
+        bad = preset_conflicts(self.engine, given)
+        if bad:
+            raise ValueError("; ".join(bad))
+        p = ENGINE_PRESETS[self.engine]
+        self.convention, self.layout, self.reversed_z = p["convention"], p["layout"], p["reversed_z"]
+        return self
 
 
 class Rig(_Strict):

@@ -262,7 +262,7 @@ def solution_json(entry: SceneEntry, resolved: ResolvedRig, method: str, per_lig
         "schema_version": SCHEMA_VERSION,
         "method": method,
         "convention": {"api": out.get("convention", "opengl"), "layout": out.get("layout", "column_major"),
-                       "frame": out.get("frame", "world"),
+                       "frame": out.get("frame", "world"), "reversed_z": bool(out.get("reversed_z", False)),
                        "world_frame": "right-handed, +Y up, meters; matrices act on column vectors"},
         "lights": per_light,
         "resolved": resolved_echo(resolved),
@@ -279,7 +279,7 @@ def light_json(light, maps: list[ShadowMap], total: dict, per_map: list[dict], o
         d = smap.to_json()
         d.update(export_matrices(smap.view, smap.projection, output.get("convention", "opengl"),
                                  output.get("layout", "column_major"), output.get("frame", "world"),
-                                 stage_to_world))
+                                 stage_to_world, reversed_z=bool(output.get("reversed_z", False))))
         d["predicted_error"] = err
         if getattr(smap, "snap_note", None):
             d["texel_snap_note"] = smap.snap_note

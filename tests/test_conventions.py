@@ -256,3 +256,29 @@ def test_layout_round_trip_random(layout):
     assert np.array_equal(from_layout(flat, layout), m)
     other = "column_major" if layout == "row_major" else "row_major"
     assert np.array_equal(from_layout(flat, other), m.T)  # reading in the wrong order transposes
+
+
+@pytest.mark.parametrize("P", [ortho(-3, 2, -1, 2, 0.5, 30), frustum(-0.7, 0.4, -0.5, 0.6, 0.2, 80)])
+def test_reversed_z_near_is_one_far_is_zero(P):
+    # reversed Z (Reed 2015, "Depth Precision Visualized"): window depth 1 at the light's near plane, 0 at
+    # the far plane; x, y, w and the texture s, t are those of the unreversed convention
+    near, far = (0.5, 30) if P[3, 3] == 1 else (0.2, 80)
+    for conv in CONVENTIONS:
+        R = projection_for(P, conv, reversed_z=True)
+        F = projection_for(P, conv)
+        assert np.allclose(R[[0, 1, 3]], F[[0, 1, 3]])
+        for d, want in ((near, 1.0), (far, 0.0)):
+            z_ndc = project(R, np.array([0.1, -0.2, -d]))[2]
+            window = (z_ndc + 1) / 2 if conv == "opengl" else z_ndc  # glDepthRange(0, 1) / D3D viewport
+            assert np.isclose(window, want), (conv, d)
+            tex = project(texture_matrix(np.eye(4), P, conv, reversed_z=True), np.array([0.1, -0.2, -d]))
+            assert np.isclose(tex[2], want)
+        # in between: the texture depth is 1 - the unreversed one, for every point
+        p = np.array([0.3, 0.1, -0.5 * (near + far)])
+        a = project(texture_matrix(np.eye(4), P, conv, reversed_z=True), p)
+        b = project(texture_matrix(np.eye(4), P, conv), p)
+        assert np.allclose(a[:2], b[:2]) and np.isclose(a[2], 1 - b[2])
+    assert np.array_equal(clip_from_canonical("d3d", True), [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, -.5, .5], [0, 0, 0, 1]])
+    assert np.array_equal(clip_from_canonical("opengl", True), np.diag([1.0, 1.0, -1.0, 1.0]))
+    out = export_matrices(np.eye(4), P, "vulkan", "row_major", reversed_z=True)
+    assert np.allclose(from_layout(out["projection_matrix"], "row_major"), clip_from_canonical("vulkan", True) @ P)
