@@ -81,6 +81,51 @@ BIAS_RULE = ("shadowed iff d_receiver > d_occluder + depth_bias.constant + depth
              "light ray from its near-plane point, psi = angle between the surface normal and the direction "
              "to the light; nearest texel, no filtering; receivers outside their map are lit")
 
+DEPTH_CHOICES = ("ideal", "solution", "hardware", "linear")
+DEPTH_RULE_IDEAL = "ideal: " + BIAS_RULE
+DEPTH_RULE_ENGINE = (
+    "{which}: what an engine does with each map's depth block: X' = X + normal_offset * N (N the receiver's "
+    "geometric normal on its light-facing side), the nearest texel of X', D_rec = D(X') with D the mode's stored "
+    "depth (hardware: window z (z_ndc + 1) / 2 of projection * view; linear: (-z_view - near) / (far - near)), "
+    "stored D = D at the texel-centre ray's first hit rounded to float32 (the near value for pancaked casters, "
+    f"1 where nothing is hit); shadowed iff D_rec - (constant + slope * min(tan(psi), {TAN_PSI_MAX:g})) > stored D; "
+    "receivers with s, t or D_rec outside [0, 1] are lit; cascades switch at the midpoint of each blend band")
+
+
+def engine_depth(smap: ShadowMap, depth: str) -> dict | None:
+    """The numbers an engine applies for `smap` under `depth` (DEPTH_CHOICES): None for "ideal", else
+    {mode, constant, slope, normal_offset, near, far} from the map's depth block ("solution": the block's
+    own mode). A map without a block is a ValueError."""
+    if depth not in DEPTH_CHOICES:
+        raise ValueError(f"depth must be one of {', '.join(DEPTH_CHOICES)}, got {depth!r}")
+    if depth == "ideal":
+        return None
+    block = smap.depth
+    if not isinstance(block, dict):
+        raise ValueError("this map has no depth block (solve it again, or evaluate with depth 'ideal')")
+    mode = block.get("mode") if depth == "solution" else depth
+    if mode not in ("hardware", "linear") or not isinstance(block.get(mode), dict):
+        raise ValueError(f"depth.{mode}: expected the block of a mode hardware or linear")
+    b = block[mode]
+    out = {"mode": mode, "constant": float(b.get("constant", 0.0)), "slope": float(b.get("slope", 0.0)),
+           "normal_offset": float(b.get("normal_offset", 0.0) or 0.0), "near": 0.0, "far": 1.0}
+    if mode == "linear":
+        out["near"], out["far"] = float(b["near"]), float(b["far"])
+    return out
+
+
+def engine_splits(maps: list[ShadowMap]) -> list[ShadowMap]:
+    """The maps with their splits moved to the midpoints of their blend bands (an engine that blends
+    cascade k into k + 1 linearly over [start, end] and thresholds the blend at 0.5 switches there)."""
+    out = [dataclasses.replace(m) for m in maps]
+    for k in range(len(out) - 1):
+        band = out[k].blend_band
+        if band is not None and out[k].face is None:
+            mid = 0.5 * (float(band[0]) + float(band[1]))
+            out[k].split = (out[k].split[0], mid)
+            out[k + 1].split = (mid, out[k + 1].split[1])
+    return out
+
 
 @dataclass
 class ScreenBuffers:
@@ -330,12 +375,17 @@ def _device_map_coords(mi, dr, smap: ShadowMap, origin: np.ndarray, X):
     return s, t, z, c[3]
 
 
-def _device_lookup(rs: RayScene, light: Light, smap: ShadowMap, d_occ, X, N, tolerance: float):
+def _device_lookup(rs: RayScene, light: Light, smap: ShadowMap, d_occ, X, N, tolerance: float,
+                   engine: dict | None = None):
     """The engine's shadow test (module doc, step 4) in Dr.Jit for re-centred points X with unit
     normals N (lists of three Float64). Returns NumPy (shadowed, inside, u, v): u, v the texel
-    coordinates s * width, t * height (NaN where clip w <= 0)."""
+    coordinates s * width, t * height (NaN where clip w <= 0). `engine` (engine_depth): the
+    engine-faithful test of DEPTH_RULE_ENGINE instead of the idealized rule."""
     mi = mitsuba()
     import drjit as dr
+
+    if engine is not None:
+        return _device_engine_lookup(mi, dr, rs, light, smap, d_occ, X, N, engine)
 
     F64 = mi.Float64
     w, h = smap.resolution
@@ -385,6 +435,63 @@ def _device_lookup(rs: RayScene, light: Light, smap: ShadowMap, d_occ, X, N, tol
     return shadowed.numpy().astype(bool), inside.numpy().astype(bool), u.numpy(), vv.numpy()
 
 
+def _device_stored_depth(mi, dr, smap: ShadowMap, origin: np.ndarray, engine: dict, P):
+    """D(P) of the engine's mode for re-centred points P (solvers.depth_modes: hardware window z,
+    linear (-z_view - near) / (far - near))."""
+    F64 = mi.Float64
+    if engine["mode"] == "hardware":
+        M = _opaque_matrix(mi, dr, smap.matrix @ _recentre(origin))
+        cz = M[2][0] * P[0] + M[2][1] * P[1] + M[2][2] * P[2] + M[2][3]
+        cw = M[3][0] * P[0] + M[3][1] * P[1] + M[3][2] * P[2] + M[3][3]
+        return 0.5 * (cz / cw + 1.0)
+    V = _opaque_matrix(mi, dr, smap.view @ _recentre(origin))
+    zv = V[2][0] * P[0] + V[2][1] * P[1] + V[2][2] * P[2] + V[2][3]
+    near = dr.opaque(F64, engine["near"])
+    return (-zv - near) / dr.opaque(F64, engine["far"] - engine["near"])
+
+
+def _device_engine_lookup(mi, dr, rs: RayScene, light: Light, smap: ShadowMap, d_occ, X, N, engine: dict):
+    """DEPTH_RULE_ENGINE in Dr.Jit (`shadow_test(..., engine=...)` is its NumPy reference)."""
+    F64 = mi.Float64
+    w, h = smap.resolution
+    wf, hf = dr.opaque(F64, float(w)), dr.opaque(F64, float(h))
+    one = dr.opaque(F64, 1.0)
+    zero = dr.opaque(F64, 0.0)
+    off = dr.opaque(F64, engine["normal_offset"])
+    Xp = [X[r] + off * N[r] for r in range(3)]
+    s, t, z, cw = _device_map_coords(mi, dr, smap, rs.origin, Xp)
+    d_rec = _device_stored_depth(mi, dr, smap, rs.origin, engine, Xp)
+    inside = (cw > zero) & (s >= zero) & (s <= one) & (t >= zero) & (t <= one) & (d_rec >= zero) & (d_rec <= one)
+    fi = dr.select(inside, dr.clip(dr.floor(s * wf), zero, wf - 1.0), zero)
+    fj = dr.select(inside, dr.clip(dr.floor(t * hf), zero, hf - 1.0), zero)
+    A = _opaque_matrix(mi, dr, _inverse_matrix(smap, rs.origin))
+    near, dirn, _ = _device_rays_through(mi, dr, smap, A, (fi + 0.5) / wf, (fj + 0.5) / hf)
+    idx = mi.UInt32(fj) * dr.opaque(mi.UInt32, int(w)) + mi.UInt32(fi)
+    occ = dr.gather(F64, d_occ, idx, inside)
+    hit = dr.isfinite(occ)
+    occ0 = dr.select(hit, occ, zero)
+    stored = _device_stored_depth(mi, dr, smap, rs.origin, engine, [near[r] + occ0 * dirn[r] for r in range(3)])
+    stored = F64(mi.Float(dr.select(hit, dr.clip(stored, zero, one), one)))  # a D32F depth buffer, cleared to 1
+    if isinstance(light, DirectionalLight):
+        to_l = [dr.opaque(F64, float(-light.direction[r])) for r in range(3)]
+    else:
+        lp = np.asarray(light.position, dtype=np.float64) - rs.origin
+        v = [dr.opaque(F64, float(lp[r])) - Xp[r] for r in range(3)]
+        inv = 1.0 / dr.maximum(dr.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), 1e-300)
+        to_l = [v[r] * inv for r in range(3)]
+    c = dr.clip(N[0] * to_l[0] + N[1] * to_l[1] + N[2] * to_l[2], zero, one)
+    tmax = dr.opaque(F64, TAN_PSI_MAX)
+    tan_psi = dr.sqrt(dr.maximum(one - c * c, zero)) / c
+    tan_psi = dr.select(dr.isfinite(tan_psi), dr.minimum(tan_psi, tmax), tmax)
+    bias = dr.opaque(F64, engine["constant"]) + dr.opaque(F64, engine["slope"]) * tan_psi
+    shadowed = inside & (d_rec - bias > stored)
+    s0, t0, _, cw0 = _device_map_coords(mi, dr, smap, rs.origin, X)  # the metric's coordinates: X itself
+    u = dr.select(cw0 > zero, s0 * wf, dr.nan)
+    vv = dr.select(cw0 > zero, t0 * hf, dr.nan)
+    dr.eval(shadowed, inside, u, vv)
+    return shadowed.numpy().astype(bool), inside.numpy().astype(bool), u.numpy(), vv.numpy()
+
+
 def _serving_maps(maps: list[ShadowMap], positions: np.ndarray, depth: np.ndarray) -> np.ndarray:
     if not maps:
         return np.full(len(depth), -1, dtype=np.int64)
@@ -406,8 +513,11 @@ def _to_light(light: Light, positions: np.ndarray) -> np.ndarray:
 
 
 def shadow_test(smap: ShadowMap, d_occ: np.ndarray, positions: np.ndarray, normals: np.ndarray,
-                light: Light, tolerance: float):
-    """Engine-style lookup for points served by `smap`. Returns (shadowed, outside)."""
+                light: Light, tolerance: float, engine: dict | None = None):
+    """Engine-style lookup for points served by `smap`. Returns (shadowed, outside). `engine`
+    (engine_depth): DEPTH_RULE_ENGINE instead of the idealized rule."""
+    if engine is not None:
+        return _engine_shadow_test(smap, d_occ, positions, normals, light, engine)
     w, h = smap.resolution
     s, t, z, cw = smap.map_coords(positions)
     with np.errstate(invalid="ignore"):
@@ -432,6 +542,39 @@ def shadow_test(smap: ShadowMap, d_occ: np.ndarray, positions: np.ndarray, norma
         if kc or ks:
             bias = bias + (kc + ks * tan_psi) * texel_world_size_at(smap, i, j, X, near + d_rec[:, None] * dirn)
         shadowed[inside] = d_rec > d_occ[j, i] + bias + tolerance
+    return shadowed, ~inside
+
+
+def _engine_shadow_test(smap: ShadowMap, d_occ: np.ndarray, positions: np.ndarray, normals: np.ndarray,
+                        light: Light, engine: dict):
+    """DEPTH_RULE_ENGINE in NumPy (the reference of _device_engine_lookup)."""
+    from ..solvers.depth_modes import stored_depth
+
+    w, h = smap.resolution
+    mode, near_d, far_d = engine["mode"], engine["near"], engine["far"]
+    Xp = np.asarray(positions, float) + engine["normal_offset"] * np.asarray(normals, float)
+    s, t, z, cw = smap.map_coords(Xp)
+    with np.errstate(invalid="ignore"):
+        d_rec = stored_depth(smap, mode, Xp, near_d, far_d)
+        inside = (cw > 0) & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (d_rec >= 0) & (d_rec <= 1)
+    inside &= np.isfinite(s) & np.isfinite(t) & np.isfinite(d_rec)
+    shadowed = np.zeros(len(Xp), dtype=bool)
+    if inside.any():
+        i = np.clip(np.floor(s[inside] * w).astype(np.int64), 0, w - 1)
+        j = np.clip(np.floor(t[inside] * h).astype(np.int64), 0, h - 1)
+        near, far = smap.texel_rays((i + 0.5) / w, (j + 0.5) / h)
+        dirn = (far - near) / np.maximum(np.linalg.norm(far - near, axis=-1, keepdims=True), 1e-300)
+        occ = d_occ[j, i]
+        hit = np.isfinite(occ)
+        with np.errstate(invalid="ignore"):
+            stored = stored_depth(smap, mode, near + np.where(hit, occ, 0.0)[:, None] * dirn, near_d, far_d)
+        stored = np.where(hit, np.clip(stored, 0.0, 1.0), 1.0).astype(np.float32).astype(np.float64)
+        X = Xp[inside]
+        c = np.clip(np.sum(np.asarray(normals, float)[inside] * _to_light(light, X), axis=-1), 0.0, 1.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tan_psi = np.sqrt(np.maximum(1.0 - c * c, 0.0)) / c
+        tan_psi = np.where(np.isfinite(tan_psi), np.minimum(tan_psi, TAN_PSI_MAX), TAN_PSI_MAX)
+        shadowed[inside] = d_rec[inside] - (engine["constant"] + engine["slope"] * tan_psi) > stored
     return shadowed, ~inside
 
 
@@ -537,8 +680,11 @@ def measure_m(sb: ScreenBuffers, maps: list[ShadowMap], map_index: np.ndarray,
 
 
 def evaluate_buffers(rs: RayScene, camera: Camera, light: Light, maps: list[ShadowMap],
-                     screen: tuple[int, int] | None = None, pancake: bool = True) -> GroundTruth:
-    """Everything `evaluate` computes, with the per-pixel buffers (for heatmaps and reports)."""
+                     screen: tuple[int, int] | None = None, pancake: bool = True, depth: str = "ideal") -> GroundTruth:
+    """Everything `evaluate` computes, with the per-pixel buffers (for heatmaps and reports).
+    depth: "ideal" (the idealized texel-unit rule, BIAS_RULE), "solution" (each map's depth block in its
+    own mode), "hardware" or "linear" (that block of every map): DEPTH_RULE_ENGINE."""
+    engines = [engine_depth(m, depth) for m in maps]
     t0 = time.perf_counter()
     cam = screen_camera(camera, screen)
     sb = render_screen(rs, cam, light)
@@ -562,13 +708,13 @@ def evaluate_buffers(rs: RayScene, camera: Camera, light: Light, maps: list[Shad
         mi = mitsuba()
         X = _device_points(mi, sb.position[hit] - rs.origin)
         N = _device_points(mi, sb.normal[hit])
-        looked = [_device_lookup(rs, light, smap, d_occ[k], X, N, tol) for k, smap in enumerate(maps)]
+        looked = [_device_lookup(rs, light, smap, d_occ[k], X, N, tol, engines[k]) for k, smap in enumerate(maps)]
     # Serving map of every hit pixel: the cascade for its view depth, or the first cube face whose
     # map contains it.
     hit_idx = np.full(n_hit, -1, dtype=np.int64)
     if maps and n_hit:
         if maps[0].face is None:
-            hit_idx = map_for_depth(maps, sb.depth[hit])
+            hit_idx = map_for_depth(maps if depth == "ideal" else engine_splits(maps), sb.depth[hit])
         else:
             for k in range(len(maps) - 1, -1, -1):
                 hit_idx[looked[k][1]] = k
@@ -615,19 +761,24 @@ def evaluate_buffers(rs: RayScene, camera: Camera, light: Light, maps: list[Shad
         "measured_error": stats,
         "screen": [sb.width, sb.height],
         "bias_rule": BIAS_RULE,
+        "depth": depth,
+        "depth_rule": DEPTH_RULE_IDEAL if depth == "ideal" else DEPTH_RULE_ENGINE.format(which=depth),
         "timings_ms": {"screen": (t1 - t0) * 1e3, "maps": (t2 - t1) * 1e3, "shadow_test": (t3 - t2) * 1e3,
                        "measure": (t4 - t3) * 1e3, "total": (t4 - t0) * 1e3,
                        "map_rays": int(sum(mp.resolution[0] * mp.resolution[1] for mp in maps))},
     }
+    if depth != "ideal":
+        result["depth_modes"] = [e["mode"] for e in engines]
     return GroundTruth(sb, receivers, exact_shadowed, map_shadowed, misclassified, boundary, outside,
                        map_index, uv, m, hh, sample_mask, kind, result)
 
 
 def evaluate(rs: RayScene, camera: Camera, light: Light, maps: list[ShadowMap],
              screen: tuple[int, int] | None = None, heatmap_path: str | None = None,
-             grid_every: int | None = None, pancake: bool = True) -> dict:
-    """Score `maps` (one light's cascades or cube faces) against ray-traced shadows. See the module doc."""
-    gt = evaluate_buffers(rs, camera, light, maps, screen, pancake)
+             grid_every: int | None = None, pancake: bool = True, depth: str = "ideal") -> dict:
+    """Score `maps` (one light's cascades or cube faces) against ray-traced shadows. See the module doc
+    (depth: evaluate_buffers)."""
+    gt = evaluate_buffers(rs, camera, light, maps, screen, pancake, depth)
     if heatmap_path is not None:
         from .heatmap import ground_truth_heatmap
 

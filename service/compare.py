@@ -10,7 +10,7 @@ from pathlib import Path
 
 from ..renderers.ground_truth import evaluate_buffers, screen_camera
 from ..renderers.heatmap import errors_image, errors_legend, ground_truth_heatmap, side_by_side
-from .evaluation import pixel_units
+from .evaluation import check_depth, pixel_units
 from .request_cost import WorkLimit, check_eval_work, check_solve_work, flush_if_large, light_faces, map_texels
 from .rigs import RigError, SolutionError, resolve_rig
 from .scenes import SceneEntry
@@ -18,9 +18,11 @@ from .solve import maps_from_solution, solve
 
 
 def compare(entry: SceneEntry, rig: dict, methods: list[str], screen=None, report_dir=None, grid_every=None,
-            solve_options: dict | None = None) -> dict:
-    """{"methods": {NAME: {"solution", "predicted_error", "evaluation", "setup_ms"}}, "screen", "rig_resolution"}
-    (first light). `report_dir`: heatmaps.png (m), errors.png (what went wrong) and compare.md."""
+            solve_options: dict | None = None, depth: str = "solution") -> dict:
+    """{"methods": {NAME: {"solution", "predicted_error", "evaluation", "setup_ms"}}, "screen", "rig_resolution",
+    "depth"} (first light). `report_dir`: heatmaps.png (m), errors.png (what went wrong) and compare.md.
+    depth: the evaluations' depth test (service.evaluation, default the solution's engine depth modes)."""
+    check_depth(depth)
     resolved = resolve_rig(rig, entry.loaded)
     try:  # the API's CompareRequest checks this too (before the scene is loaded)
         check_solve_work(rig, solves=len(methods) + 1, kinds=[l.kind for l in resolved.lights], prefix="")
@@ -34,12 +36,12 @@ def compare(entry: SceneEntry, rig: dict, methods: list[str], screen=None, repor
     except WorkLimit as e:
         raise SolutionError(e.field, e.message, code="too_costly") from None
     try:
-        return _compare(entry, rig, resolved, methods, screen, report_dir, grid_every, solve_options)
+        return _compare(entry, rig, resolved, methods, screen, report_dir, grid_every, solve_options, depth)
     finally:
         flush_if_large(work)
 
 
-def _compare(entry, rig, resolved, methods, screen, report_dir, grid_every, solve_options) -> dict:
+def _compare(entry, rig, resolved, methods, screen, report_dir, grid_every, solve_options, depth="solution") -> dict:
     out, images, errors, titles = {}, [], [], []
     solve(entry, rig, method=methods[0], **(solve_options or {}))  # warm-up: kernels compile once, not in a method's time
     for name in methods:
@@ -47,7 +49,7 @@ def _compare(entry, rig, resolved, methods, screen, report_dir, grid_every, solv
         sol = solve(entry, rig, method=name, **(solve_options or {}))  # the rig's resolution, as optimize
         setup_ms = (time.perf_counter() - t0) * 1e3
         maps = maps_from_solution(sol)[0]
-        gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps, screen=screen)
+        gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps, screen=screen, depth=depth)
         evaluation = {**gt.result, **pixel_units(gt, resolved.camera.resolution)}
         out[name] = {"solution": sol, "predicted_error": sol["lights"][0]["predicted_error"],
                      "evaluation": evaluation, "setup_ms": round(setup_ms, 3)}
@@ -58,7 +60,8 @@ def _compare(entry, rig, resolved, methods, screen, report_dir, grid_every, solv
                           f"{evaluation['wrongly_shadowed_pixels']} wrongly shadowed + "
                           f"{evaluation['wrongly_lit_pixels']} wrongly lit")
     sw, sh = gt.result["screen"]
-    result = {"methods": out, "screen": [sw, sh], "rig_resolution": [int(v) for v in resolved.camera.resolution]}
+    result = {"methods": out, "screen": [sw, sh], "rig_resolution": [int(v) for v in resolved.camera.resolution],
+              "depth": depth}
     if report_dir:
         d = Path(report_dir)
         d.mkdir(parents=True, exist_ok=True)
@@ -78,8 +81,10 @@ def markdown_table(result: dict) -> str:
     rw, rh = result.get("rig_resolution") or ["?", "?"]
     at, rig = f"{sw}x{sh}", f"{rw}x{rh}"
     converted = "" if at == rig else ", measured m also converted to the rig's pixels"
+    depth = result.get("depth")
+    depth_note = f" Depth test: {depth}." if depth else ""
     lines = [f"Predicted error in the rig's {rig} pixels; measured at a {at} screen (pixel counts and measured m "
-             f"in its pixels{converted}).", "",
+             f"in its pixels{converted}).{depth_note}", "",
              f"| method | setup (ms) | predicted objective ({rig}) | predicted p95 m ({rig}) | "
              f"measured p95 m ({at}) |" + ("" if at == rig else f" measured p95 m ({rig}) |")
              + f" misclassified ({at}) | wrongly shadowed | wrongly lit | outside | receivers |",

@@ -6,13 +6,17 @@ resolution), so its pixel counts and its `measured_error` are in that screen's p
 says so (`screen`, `rig_resolution`) and, when the two differ, adds `measured_error_rig_pixels`: the
 same measurement with every footprint converted to the rig's pixels (m times s, h times s²,
 s = sqrt(W H / (w h)), the rig's pixels per screen pixel along a side; screens keep the camera's aspect).
+
+Depth (renderers.ground_truth.DEPTH_CHOICES): "solution" (default) emulates what an engine does with each
+map's `depth` block in the mode the solution chose; "hardware" / "linear" force that block; "ideal" is the
+idealized per-texel rule of `depth_bias`. Each evaluation says which (`depth`, `depth_rule`).
 """
 from __future__ import annotations
 
 import math
 import time
 
-from ..renderers.ground_truth import evaluate_buffers
+from ..renderers.ground_truth import DEPTH_CHOICES, evaluate_buffers
 from ..renderers.heatmap import HEATMAP_MODES, heatmap_with_legend, misclassified_split
 from ..solvers.metric import error_stats
 from .request_cost import WorkLimit, check_eval_work, flush_if_large
@@ -48,14 +52,46 @@ def check_heatmap_mode(mode) -> str:
     return mode
 
 
+def check_depth(depth) -> str:
+    if depth not in DEPTH_CHOICES:
+        raise SolutionError("depth", f"must be one of {', '.join(DEPTH_CHOICES)}, got {depth!r}", code="invalid_input")
+    return depth
+
+
+def check_depth_blocks(solution: dict, depth: str) -> None:
+    """Engine depth modes read each map's `depth` block: a missing or malformed one is a SolutionError
+    naming it."""
+    if depth == "ideal":
+        return
+    for i, light in enumerate(solution.get("lights") or []):
+        for j, c in enumerate(light.get("cascades") or []):
+            field = f"solution.lights[{i}].cascades[{j}].depth"
+            b = c.get("depth")
+            if b is None:
+                raise SolutionError(field, "missing: this solution has no engine depth block (solve it again, or "
+                                    "evaluate with depth 'ideal')", code="invalid_input")
+            mode = b.get("mode") if isinstance(b, dict) and depth == "solution" else depth
+            if not isinstance(b, dict) or mode not in ("hardware", "linear") or not isinstance(b.get(mode), dict):
+                raise SolutionError(field, "expected an object with mode (hardware or linear) and the blocks "
+                                    "hardware and linear", code="invalid_input")
+            keys = ("constant", "slope", "normal_offset") + (("near", "far") if mode == "linear" else ())
+            for key in keys:
+                v = b[mode].get(key, 0.0 if key == "normal_offset" else None)
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                    raise SolutionError(f"{field}.{mode}.{key}", f"expected a finite number, got {v!r:.40}",
+                                        code="invalid_input")
+
+
 def evaluate_solution(entry: SceneEntry, rig: dict, solution: dict, screen=None, heatmap_path=None,
-                      grid_every=None, heatmap_mode: str = "m") -> dict:
+                      grid_every=None, heatmap_mode: str = "m", depth: str = "solution") -> dict:
     t0 = time.perf_counter()
     check_heatmap_mode(heatmap_mode)
+    check_depth(depth)
     resolved = resolve_rig(rig, entry.loaded)
     # Every field read below is checked first: a malformed one is a SolutionError naming it (422, exit 2).
     solution = validate_solution(solution, "solution", light_kinds=[l.kind for l in resolved.lights],
                                  scene_hash=entry.loaded.scene_hash)
+    check_depth_blocks(solution, depth)
     per_light_maps = maps_from_solution(solution)
     w, h = screen or resolved.camera.resolution
     screen_field = "screen" if screen else "rig.camera.resolution"
@@ -66,19 +102,20 @@ def evaluate_solution(entry: SceneEntry, rig: dict, solution: dict, screen=None,
         raise SolutionError(e.field, e.message, code="too_costly") from None
     try:
         return _evaluate(entry, resolved, solution, per_light_maps, screen, heatmap_path, grid_every,
-                         heatmap_mode, t0)
+                         heatmap_mode, t0, depth)
     finally:
         flush_if_large(work)
 
 
-def _evaluate(entry, resolved, solution, per_light_maps, screen, heatmap_path, grid_every, heatmap_mode, t0) -> dict:
+def _evaluate(entry, resolved, solution, per_light_maps, screen, heatmap_path, grid_every, heatmap_mode, t0,
+              depth: str = "solution") -> dict:
     results = []
     for k, (light, maps) in enumerate(zip(resolved.lights, per_light_maps)):
         path = heatmap_path
         if heatmap_path and len(resolved.lights) > 1:
             stem, dot, ext = heatmap_path.rpartition(".")
             path = f"{stem}.light{k}.{ext}" if dot else f"{heatmap_path}.light{k}"
-        gt = evaluate_buffers(entry.rays, resolved.camera, light, maps, screen=screen)
+        gt = evaluate_buffers(entry.rays, resolved.camera, light, maps, screen=screen, depth=depth)
         res = gt.result
         res.update(pixel_units(gt, resolved.camera.resolution))
         if path is not None:
@@ -90,5 +127,6 @@ def _evaluate(entry, resolved, solution, per_light_maps, screen, heatmap_path, g
         results.append(res)
     out = dict(results[0]) if len(results) == 1 else {"lights": results}
     out["method"] = solution.get("method")
+    out["depth"] = depth
     out.setdefault("timings_ms", {})["total"] = round((time.perf_counter() - t0) * 1e3, 3)
     return out

@@ -166,7 +166,12 @@ def recommended_bias(texel_world_size: float) -> dict:
 
 
 def _with_bias(smap: ShadowMap, receivers: np.ndarray, light) -> ShadowMap:
+    """The idealized texel-unit bias (depth_bias) and the engine's depth block (solvers.depth_modes:
+    hardware or linear stored depth, with a constant and slope bias in stored units)."""
+    from .depth_modes import depth_block
+
     smap.depth_bias = recommended_bias(_texel_world_size(smap, receivers, light))
+    smap.depth = depth_block(smap, receivers, light)
     return smap
 
 

@@ -57,6 +57,11 @@ class ShadowMap:
     depth_bias: dict = field(default_factory=lambda: {"constant": 0.0, "slope": 0.0})
     face: str | None = None  # cube-map face (+x, -x, ...) for point lights
     snapped: bool = False  # texel grid fixed in the world (solvers.fitting.snap_to_texels)
+    # What an engine stores and compares, with its bias (solvers.depth_modes.depth_block; None: not computed)
+    depth: dict | None = None
+    # [start, end] camera depth where this cascade blends into the next (read from a solution; the
+    # engine-faithful evaluation switches cascades at its midpoint). Written by the service, not to_json.
+    blend_band: tuple[float, float] | None = None
 
     @property
     def matrix(self) -> np.ndarray:
@@ -103,6 +108,8 @@ class ShadowMap:
         if self.face is not None:
             d["face"] = self.face
         d["texel_snapped"] = self.snapped
+        if self.depth is not None:
+            d["depth"] = _plain(self.depth)
         return d
 
     @staticmethod
@@ -115,12 +122,35 @@ class ShadowMap:
         lw = w.get("log")
         if lw is not None and not isinstance(lw, dict):
             raise ValueError(f"warp.log: expected an object {{c0, c1, c2}}, got {lw!r:.60}")
-        return ShadowMap(np.asarray(d["view_matrix"], float), np.asarray(d["projection_matrix"], float),
+        depth = d.get("depth")
+        if depth is not None and not isinstance(depth, dict):
+            raise ValueError(f"depth: expected an object {{mode, reason, hardware, linear}}, got {depth!r:.60}")
+        band = d.get("blend_band")
+        if band is not None:
+            try:
+                band = (float(band[0]), float(band[1]))
+            except (TypeError, ValueError, IndexError, KeyError):
+                raise ValueError(f"blend_band: expected [start, end], got {band!r:.60}") from None
+        smap = ShadowMap(np.asarray(d["view_matrix"], float), np.asarray(d["projection_matrix"], float),
                          tuple(d["resolution"]), tuple(d["split"]), tuple(d["light_depth"]),
                          w.get("kind", "none"), w.get("eta"), w.get("n"),
                          LogWarp(lw["c0"], lw["c1"], lw["c2"]) if lw else None,
                          dict(d.get("depth_bias") or {"constant": 0.0, "slope": 0.0}), d.get("face"),
                          bool(d.get("texel_snapped", False)))
+        smap.depth = dict(depth) if depth is not None else None
+        smap.blend_band = band
+        return smap
+
+
+def _plain(x):
+    """JSON-ready copy (NumPy scalars -> float)."""
+    if isinstance(x, dict):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
 
 
 def map_for_depth(maps: list[ShadowMap], view_depth: np.ndarray) -> np.ndarray:
