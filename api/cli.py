@@ -206,6 +206,12 @@ def _read_json(path: str, flag: str) -> dict:
         raise CliError(f"{flag}: {path} is not valid JSON: {e.msg} at line {e.lineno}") from e
 
 
+DEPTH_FLAG_CHOICES = ("solution", "hardware", "linear", "ideal")
+DEPTH_FLAG_HELP = ("the depth test emulated: solution (default: what an engine does with each map's depth block, in "
+                   "the mode it names), hardware (window z of the projection) or linear (light-space distance) for every "
+                   "map, or ideal (the idealized per-texel bias rule of depth_bias)")
+
+
 def cmd_evaluate(args) -> int:
     from ..service.evaluation import evaluate_solution
     from ..service.pipeline import scene_entry
@@ -214,10 +220,12 @@ def cmd_evaluate(args) -> int:
     solution = _read_json(args.solution, "--solution")
     entry = scene_entry(args.scene, **_scene_options(args))
     res = evaluate_solution(entry, rig, solution, screen=args.screen, heatmap_path=args.heatmap,
-                            grid_every=args.grid, heatmap_mode=args.heatmap_mode)
+                            grid_every=args.grid, heatmap_mode=args.heatmap_mode, depth=args.depth)
     if args.json:
         print(json.dumps(res, indent=2))
     else:
+        print(f"depth test: {args.depth}" + (" (each map's depth block, in the mode it names)"
+                                            if args.depth == "solution" else ""))
         for k, r in enumerate(res["lights"] if "lights" in res else [res]):
             print(_evaluation_summary(r, f"light {k}: " if "lights" in res else ""))
         if args.heatmap:
@@ -270,7 +278,8 @@ def cmd_compare(args) -> int:
         raise CliError(f"--methods: unknown {', '.join(bad) or '(none given)'} (known: {', '.join(known)})")
     rig = load_rig(args.rig, args)
     entry = scene_entry(args.scene, **_scene_options(args))
-    res = compare(entry, rig, methods, screen=args.screen, report_dir=args.report, grid_every=args.grid)
+    res = compare(entry, rig, methods, screen=args.screen, report_dir=args.report, grid_every=args.grid,
+                  depth=args.depth)
     if args.json:
         print(json.dumps(res, indent=2))
     else:
@@ -416,6 +425,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "Lloyd et al. (2007); errors: wrongly shadowed and wrongly lit pixels in two colours over the exact "
                     "shading (default m)")
     sp.add_argument("--grid", type=int, default=None, metavar="N", help="overlay the texel grid every N texels")
+    sp.add_argument("--depth", choices=DEPTH_FLAG_CHOICES, default="solution", help=DEPTH_FLAG_HELP)
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_evaluate)
 
@@ -428,6 +438,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--report", default=None, metavar="DIR", help="write the m heatmaps and the misclassified "
                     "pixels per method side by side (PNG) and the table (Markdown)")
     sp.add_argument("--grid", type=int, default=None, metavar="N", help="overlay the texel grid every N texels")
+    sp.add_argument("--depth", choices=DEPTH_FLAG_CHOICES, default="solution", help=DEPTH_FLAG_HELP)
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_compare)
 
