@@ -276,6 +276,13 @@ class ShadowMapSolution(_Open):
                                                                   "far depth")
     warp: Warp = Warp()
     depth_bias: dict = Field(default_factory=dict)
+    depth: dict | None = Field(None, description=(
+        "what the engine stores and compares for this map: {mode: hardware | linear, reason, hardware: {constant, "
+        "slope, normal_offset}, linear: {constant, slope, normal_offset, near, far}}. hardware: the window z "
+        "(z_ndc + 1) / 2 of projection * view a depth-only pass writes; linear: (-z_view - near) / (far - near) "
+        "written by a custom light pass. Shadowed iff D(X') - (constant + slope * min(tan psi, 10)) > stored D, "
+        "X' = X + normal_offset * N (metres along the receiver's light-facing normal); constant and slope are in "
+        "stored-depth units"))
     blend_band: tuple[float, float] | None = Field(None, description="[start, end] camera depth where this "
                                                    "cascade blends into the next; null for the last or only map")
     face: str | None = None
@@ -353,6 +360,13 @@ class BatchResultLine(_ReadAsDict, _Open):
         return Solution.model_validate(data)
 
 
+DepthTest = Literal["solution", "hardware", "linear", "ideal"]
+DEPTH_TEST_DESCRIPTION = (
+    "the depth test emulated: solution (what an engine does with each map's `depth` block, in the mode it names), "
+    "hardware (window z of the returned projection) or linear (light-space distance) for every map, or ideal (the "
+    "idealized per-texel bias rule of `depth_bias`); the evaluation states it as `depth` and `depth_rule`")
+
+
 class EvaluateRequest(_SceneRequest):
     """Measure a solution against exact ray-traced shadows on the scene."""
 
@@ -364,6 +378,7 @@ class EvaluateRequest(_SceneRequest):
         "pixels in two colours over the exact shading, with their counts in the legend. The screen-sized "
         "picture is the PNG's top-left region, the legend the strip below it")
     grid_every: Annotated[int, Field(ge=1, le=4096)] | None = Field(None, description="texel grid overlay, texels")
+    depth: DepthTest = Field("solution", description=DEPTH_TEST_DESCRIPTION)
 
 
 class Evaluation(_Open):
@@ -380,6 +395,7 @@ class CompareRequest(_SceneRequest):
     methods: list[Method] = Field(["uniform", "focused", "lispsm", "logpsm"], min_length=1, max_length=5)
     screen: Resolution | None = Field(None, description="where the ground truth is measured (default: the rig "
                                       "camera's resolution); every method is solved at the rig's resolution")
+    depth: DepthTest = Field("solution", description=DEPTH_TEST_DESCRIPTION)
 
     @field_validator("methods")
     @classmethod

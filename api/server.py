@@ -1063,7 +1063,7 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
             with tempfile.TemporaryDirectory(prefix="shadowopt-heatmap-") as tmp:
                 path = str(Path(tmp) / "heatmap.png") if req.heatmap else None
                 res = evaluate_solution(entry, rig, req.solution, screen=req.screen, heatmap_path=path,
-                                        grid_every=req.grid_every, heatmap_mode=req.heatmap_mode)
+                                        grid_every=req.grid_every, heatmap_mode=req.heatmap_mode, depth=req.depth)
                 if path:
                     res["heatmap_png_base64"] = [base64.b64encode(p.read_bytes()).decode()
                                                  for p in sorted(Path(tmp).glob("heatmap*.png"))]
@@ -1089,7 +1089,8 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
             entry = await scene_entry_for(svc, ticket, req.scene_id)
             with solver_errors():
                 res = await svc.in_slot(svc.admission.solve, ticket, compare_methods, entry, rig, methods,
-                                        screen=req.screen, solve_options={"time_budget_ms": svc.time_budget(None)})
+                                        screen=req.screen, solve_options={"time_budget_ms": svc.time_budget(None)},
+                                        depth=req.depth)
         return json_response(res)
 
     @app.post("/v1/analyze", summary="Lloyd's scene-independent critical resolution and storage factors",
