@@ -44,7 +44,8 @@ def resolved_echo(resolved: ResolvedRig, rig_frame: str | None = None) -> dict:
     echo = {"camera": camera_echo(resolved.camera), "lights": [light_echo(l) for l in resolved.lights],
             "frame": "world", "units": "metres", "up_axis": "+Y",
             "output": {"convention": out.get("convention", "opengl"), "layout": out.get("layout", "column_major"),
-                       "frame": out.get("frame", "world"), "reversed_z": bool(out.get("reversed_z", False))}}
+                       "frame": out.get("frame", "world"), "reversed_z": bool(out.get("reversed_z", False)),
+                       "engine": out.get("engine")}}
     if rig_frame is not None:
         echo["rig_frame"] = rig_frame
     return echo

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..renderers.coarse import DEPTH_CONTINUITY, CoarseBuffers
 from ..solvers.baselines import baseline
-from ..solvers.conventions import export_matrices
+from ..solvers.conventions import convention_info, export_matrices, output_frame
 from ..solvers.metric import error_stats, map_texels, per_sample_maps, sample_pixels, with_limit
 from ..solvers.optimize import DEFAULT_METHOD as DEFAULT_SOLVER
 from ..solvers.optimized_maps import optimized_maps
@@ -257,13 +257,12 @@ def software_version() -> str:
 def solution_json(entry: SceneEntry, resolved: ResolvedRig, method: str, per_light: list[dict],
                   timings: dict, settings: dict) -> dict:
     ver = software_version()
-    out = resolved.output
+    convention = convention_info(resolved.output or {}, entry.loaded.stage_to_world)
+    convention["world_frame"] = "right-handed, +Y up, meters; matrices act on column vectors"
     return {
         "schema_version": SCHEMA_VERSION,
         "method": method,
-        "convention": {"api": out.get("convention", "opengl"), "layout": out.get("layout", "column_major"),
-                       "frame": out.get("frame", "world"), "reversed_z": bool(out.get("reversed_z", False)),
-                       "world_frame": "right-handed, +Y up, meters; matrices act on column vectors"},
+        "convention": convention,
         "lights": per_light,
         "resolved": resolved_echo(resolved),
         "timings_ms": {k: round(v, 3) for k, v in timings.items()},
@@ -272,14 +271,50 @@ def solution_json(entry: SceneEntry, resolved: ResolvedRig, method: str, per_lig
     }
 
 
+# The lengths of a map's JSON an engine uses, expressed in the output's length unit (convention
+# .length_unit: the engine preset's, the stage's with frame "stage", else metres). depth_bias (the
+# idealized texel rule, keys in metres) and predicted_error (metres, its keys say so) stay in metres.
+LENGTH_PAIRS = ("split", "light_depth", "blend_band")
+DEPTH_LENGTHS = {"hardware": ("normal_offset",), "linear": ("normal_offset", "near", "far")}
+
+
+def _in_units(x, metres_per_unit: float):
+    return x / metres_per_unit if isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) else x
+
+
+def scale_lengths(d: dict, metres_per_unit: float) -> dict | None:
+    """Express the map JSON `d`'s lengths (LENGTH_PAIRS, warp.n, DEPTH_LENGTHS) in units of
+    `metres_per_unit` metres, in place; returns the fields as they were (world metres) for `internal`,
+    or None when the unit is the metre (nothing changes)."""
+    if metres_per_unit == 1.0:
+        return None
+    import copy
+
+    metres = {k: copy.deepcopy(d[k]) for k in (*LENGTH_PAIRS, "warp", "depth") if d.get(k) is not None}
+    for k in LENGTH_PAIRS:
+        if d.get(k) is not None:
+            d[k] = [_in_units(x, metres_per_unit) for x in d[k]]
+    if isinstance(d.get("warp"), dict) and d["warp"].get("n") is not None:
+        d["warp"]["n"] = _in_units(d["warp"]["n"], metres_per_unit)
+    for mode, keys in DEPTH_LENGTHS.items():
+        block = (d.get("depth") or {}).get(mode)
+        if isinstance(block, dict):
+            for k in keys:
+                if k in block:
+                    block[k] = _in_units(block[k], metres_per_unit)
+    return metres
+
+
 def light_json(light, maps: list[ShadowMap], total: dict, per_map: list[dict], output: dict,
                stage_to_world: np.ndarray, samples: Samples) -> dict:
+    _, metres_per_unit = output_frame(output, stage_to_world)
     cascades = []
     for smap, err in zip(maps, per_map):
         d = smap.to_json()
         d.update(export_matrices(smap.view, smap.projection, output.get("convention", "opengl"),
                                  output.get("layout", "column_major"), output.get("frame", "world"),
-                                 stage_to_world, reversed_z=bool(output.get("reversed_z", False))))
+                                 stage_to_world, reversed_z=bool(output.get("reversed_z", False)),
+                                 engine=output.get("engine")))
         d["predicted_error"] = err
         if getattr(smap, "snap_note", None):
             d["texel_snap_note"] = smap.snap_note
@@ -290,8 +325,12 @@ def light_json(light, maps: list[ShadowMap], total: dict, per_map: list[dict], o
             d["blend_band"] = [float(hi_z - 0.1 * (hi_z - lo_z)), float(hi_z)]
         else:
             d["blend_band"] = None
-        # Exact (world, column-vector, canonical OpenGL) matrices so `evaluate` reads back what was chosen.
+        # Exact (world, column-vector, canonical OpenGL) matrices so `evaluate` reads back what was chosen,
+        # and the lengths in world metres when the output's unit is another (maps_from_solution).
         d["internal"] = {"view": smap.view.tolist(), "projection": smap.projection.tolist()}
+        metres = scale_lengths(d, metres_per_unit)
+        if metres is not None:
+            d["internal"]["metres"] = metres
         cascades.append(d)
     return {"type": light.kind, "usd_path": light.usd_path, "samples_kind": samples.kind,
             "cascades": cascades, "predicted_error": total}
@@ -461,12 +500,17 @@ def _jsonable(d):
 
 
 def maps_from_solution(solution: dict) -> list[list[ShadowMap]]:
-    """Per light, the maps of a solution JSON (reads the exact internal matrices)."""
+    """Per light, the maps of a solution JSON in the world frame and metres, whatever its output
+    convention, frame or engine preset: the exact internal matrices and, when the solution's lengths
+    are in another unit, the internal copy of them in metres."""
     out = []
     for light in solution["lights"]:
         maps = []
         for c in light["cascades"]:
             d = dict(c)
+            d.update(c["internal"].get("metres") or {})
+            if d.get("split") is not None and d["split"][1] is None:  # an unbounded split's hi (JSON null)
+                d["split"] = [d["split"][0], float("inf")]
             d["view_matrix"] = c["internal"]["view"]
             d["projection_matrix"] = c["internal"]["projection"]
             maps.append(ShadowMap.from_json(d))

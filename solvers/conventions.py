@@ -35,6 +35,8 @@ from __future__ import annotations
 import numpy as np
 
 CONVENTIONS = ("opengl", "d3d", "vulkan")
+TEXTURE_ORIGINS = ("bottom-left", "top-left")
+DEFAULT_TEXTURE_ORIGIN = {"opengl": "bottom-left", "d3d": "top-left", "vulkan": "top-left"}
 LAYOUTS = ("row_major", "column_major")
 FRAMES = ("world", "stage")
 
@@ -75,20 +77,25 @@ def clip_from_canonical(convention: str, reversed_z: bool = False) -> np.ndarray
     return c
 
 
-def texture_from_clip(convention: str) -> np.ndarray:
+def texture_from_clip(convention: str, texture_origin: str | None = None) -> np.ndarray:
     """The bias matrix S: that convention's clip space -> texture (s, t, depth) in [0, 1] after the divide.
 
     opengl: S = [[.5,0,0,.5],[0,.5,0,.5],[0,0,.5,.5],[0,0,0,1]] (Everitt et al. 2001, "Hardware Shadow Mapping");
             t = 0 at the bottom of the map, depth = (z + 1)/2.
     d3d:    t = 0.5 - 0.5 y (texture origin top-left, v flipped); depth z passes through ([0, 1]).
     vulkan: NDC y already points down, so t = 0.5 + 0.5 y (origin top-left); depth passes through.
+    texture_origin ("bottom-left" / "top-left") overrides the convention's own origin (an engine that
+    renders its maps upside down on a top-left API, as Unity and Filament do, samples them bottom-left):
+    t = 0 on the map's row at NDC y = -1 (bottom-left) or y = +1 (top-left), in the convention's NDC.
     """
     _check(convention)
-    if convention == "opengl":
-        return np.array([[0.5, 0, 0, 0.5], [0, 0.5, 0, 0.5], [0, 0, 0.5, 0.5], [0, 0, 0, 1.0]])
-    if convention == "d3d":
-        return np.array([[0.5, 0, 0, 0.5], [0, -0.5, 0, 0.5], [0, 0, 1.0, 0], [0, 0, 0, 1.0]])
-    return np.array([[0.5, 0, 0, 0.5], [0, 0.5, 0, 0.5], [0, 0, 1.0, 0], [0, 0, 0, 1.0]])
+    origin = texture_origin or DEFAULT_TEXTURE_ORIGIN[convention]
+    if origin not in TEXTURE_ORIGINS:
+        raise ValueError(f"texture_origin must be one of {', '.join(TEXTURE_ORIGINS)}, got {origin!r}")
+    y_up = convention != "vulkan"  # NDC y points up (Vulkan's points down)
+    sy = 0.5 if (origin == "bottom-left") == y_up else -0.5
+    z_row = [0, 0, 0.5, 0.5] if convention == "opengl" else [0, 0, 1.0, 0]
+    return np.array([[0.5, 0, 0, 0.5], [0, sy, 0, 0.5], z_row, [0, 0, 0, 1.0]], dtype=np.float64)
 
 
 def projection_for(proj_canonical: np.ndarray, convention: str, reversed_z: bool = False) -> np.ndarray:
@@ -97,11 +104,11 @@ def projection_for(proj_canonical: np.ndarray, convention: str, reversed_z: bool
 
 
 def texture_matrix(view: np.ndarray, proj_canonical: np.ndarray, convention: str,
-                   reversed_z: bool = False) -> np.ndarray:
+                   reversed_z: bool = False, texture_origin: str | None = None) -> np.ndarray:
     """S · C · P · V (Everitt et al. 2001 "Hardware Shadow Mapping": S · P_light · V_light, P in the given
     convention): world -> texture. Divide the result by its w to get (s, t, depth) in [0, 1]
     (textureProj / tex2Dproj does this); with reversed_z the depth is 1 at the near plane, 0 at the far."""
-    return (texture_from_clip(convention) @ projection_for(proj_canonical, convention, reversed_z)
+    return (texture_from_clip(convention, texture_origin) @ projection_for(proj_canonical, convention, reversed_z)
             @ _mat4(view, "view"))
 
 
@@ -149,12 +156,17 @@ def stage_from(m_world: np.ndarray, stage_to_world: np.ndarray) -> np.ndarray:
 
 def export_matrices(view: np.ndarray, proj_canonical: np.ndarray, convention: str = "opengl",
                     layout: str = "column_major", frame: str = "world",
-                    stage_to_world: np.ndarray | None = None, reversed_z: bool = False) -> dict:
+                    stage_to_world: np.ndarray | None = None, reversed_z: bool = False,
+                    engine: str | None = None) -> dict:
     """The matrices an engine receives, each a flat 16-list in `layout`:
-    view_matrix (world or stage -> light view), projection_matrix (light view -> the convention's clip),
-    texture_matrix (world or stage -> texture, S · C · P · V). frame "stage" applies to_stage_frame to
-    the view and texture matrices; stage_to_world None there means the stage is already the world
-    frame (Y up, meters)."""
+    view_matrix (world, stage or engine frame -> light view), projection_matrix (light view -> the
+    convention's clip), texture_matrix (the same input frame -> texture, S · C · P · V). frame "stage"
+    applies to_stage_frame to the view and texture matrices; stage_to_world None there means the stage is
+    already the world frame (Y up, meters). `engine` (ENGINE_PRESETS) sets convention, layout,
+    reversed_z and the texture origin from its row (the arguments for them are ignored), and the
+    matrices take points in that engine's world frame and units: see engine_matrices."""
+    if engine is not None:
+        return engine_matrices(view, proj_canonical, engine)
     _check(convention)
     _check_layout(layout)
     if frame not in FRAMES:
@@ -170,30 +182,162 @@ def export_matrices(view: np.ndarray, proj_canonical: np.ndarray, convention: st
 
 
 # ---------------------------------------------------------------------------------------------------
-# Engine presets (output.engine). One row per engine; each names the documentation it follows.
-#   convention  clip-space rule of the returned projection (clip_from_canonical) and the texture origin
-#               (texture_from_clip): opengl bottom-left, d3d / vulkan top-left
-#   reversed_z  near plane at depth 1, far at 0
-#   layout      memory order of the 16 numbers (the matrices act on column vectors, M @ v)
-#   axes        the engine's world axes in shadowopt's world frame (right-handed, +Y up, metres):
-#               engine coordinate i = sign * world coordinate, e.g. ("x", "y", "-z"): x_e = x, y_e = y, z_e = -z
-#   metres_per_unit  the engine's length unit in metres
-#   view        the light view space the view matrix maps to: "-z" (right-handed, the light looks down -Z,
-#               as OpenGL) or "+z" (left-handed, looks down +Z, as Direct3D's and Unreal's view space)
+# Engine presets (output.engine): one row per engine, each naming the documentation it follows.
+#   convention      the clip rule of the light pass on the GPU (clip_from_canonical) and of the texture
+#                   chain (texture_from_clip)
+#   reversed_z      the stored depth is 1 at the light's near plane and 0 at its far plane
+#   texture_origin  where t = 0 is in the map as the engine samples it
+#   projection      what projection_matrix holds: "clip" = C · P, the GPU's clip matrix, consistent with
+#                   the texture matrix; "opengl" = the OpenGL-convention projection (clip z in [-w, w],
+#                   not reversed) that the engine's own API takes and converts to its GPU clip itself
+#                   (Unity's Camera/CommandBuffer matrices, Filament's Camera::setCustomProjection)
+#   layout          memory order of the 16 numbers (the matrices act on column vectors, M @ v)
+#   axes            the engine's world axes in shadowopt's world frame (right-handed, +Y up, metres):
+#                   engine coordinate i = sign * world coordinate, e.g. ("x", "y", "-z"): x_e = x,
+#                   y_e = y, z_e = -z (solvers.frames.engine_from_world)
+#   metres_per_unit the engine's length unit
+#   view            the light view space the view matrix maps to: "-z" (right-handed, the light looks
+#                   down -Z, OpenGL's eye space) or "+z" (left-handed, it looks down +Z: Direct3D-style
+#                   eye space, as Unreal's view matrices)
+# A point X_e in the engine's frame maps to the same texel and depth as the world point it is:
+#   view_e = F · V · E^-1, projection_e = C · P · F (or P · F), texture_e = S · C · P · V · E^-1,
+# E = engine_from_world, F = diag(1, 1, -1, 1) for view "+z" (else identity).
 # ---------------------------------------------------------------------------------------------------
 ENGINES = ("opengl", "d3d", "vulkan", "unity", "unreal", "godot", "three", "bevy", "filament")
-_RH_Y_UP_M = {"axes": ("x", "y", "z"), "metres_per_unit": 1.0, "view": "-z"}
+_RH_Y_UP_M = {"axes": ("x", "y", "z"), "metres_per_unit": 1.0, "view": "-z", "layout": "column_major"}
 ENGINE_PRESETS: dict[str, dict] = {
-    "opengl": {"convention": "opengl", "reversed_z": False, "layout": "column_major", **_RH_Y_UP_M,
-               "docs": "OpenGL 4.6 core profile specification, 13.8 (clip z in [-w, w]); glOrtho / glFrustum "
-                       "reference pages; glUniformMatrix4fv (column-major with transpose GL_FALSE)"},
-    "d3d": {"convention": "d3d", "reversed_z": False, "layout": "column_major", **_RH_Y_UP_M,
-            "docs": "Direct3D 11 rasterization rules and viewports (NDC z in [0, 1], texture origin top-left); "
-                    "HLSL matrix packing (column_major by default)"},
-    "vulkan": {"convention": "vulkan", "reversed_z": False, "layout": "column_major", **_RH_Y_UP_M,
-               "docs": "Vulkan 1.3 specification, coordinate transformations (NDC y down, z in [0, 1]); "
-                       "GLSL mat4 column-major"},
+    "opengl": {**_RH_Y_UP_M, "convention": "opengl", "reversed_z": False, "texture_origin": "bottom-left",
+               "projection": "clip",
+               "docs": "OpenGL 4.6 core specification 13.8 (clip z in [-w, w], window z = (z_ndc + 1)/2 with "
+                       "glDepthRange(0, 1)); glUniformMatrix4fv (column-major with transpose GL_FALSE)"},
+    "d3d": {**_RH_Y_UP_M, "convention": "d3d", "reversed_z": False, "texture_origin": "top-left",
+            "projection": "clip",
+            "docs": "Direct3D 11 rasterizer and viewport (NDC z in [0, 1], texture origin top-left); HLSL "
+                    "constant buffers pack float4x4 column_major by default (mul(M, v))"},
+    "vulkan": {**_RH_Y_UP_M, "convention": "vulkan", "reversed_z": False, "texture_origin": "top-left",
+               "projection": "clip",
+               "docs": "Vulkan 1.3 specification, Coordinate Transformations (NDC y down, z in [0, 1]); "
+                       "GLSL mat4 is column-major"},
+    "unity": {"convention": "opengl", "reversed_z": True, "texture_origin": "bottom-left",
+              "projection": "opengl", "layout": "column_major", "axes": ("x", "y", "-z"),
+              "metres_per_unit": 1.0, "view": "-z",
+              "docs": "Unity Manual, Platform-specific rendering differences (reversed Z on Direct3D 11/12, "
+                      "Vulkan, Metal and consoles; Unity flips the projection when rendering into a render "
+                      "texture on UNITY_UV_STARTS_AT_TOP platforms, so maps sample with v = 0 at the bottom); "
+                      "Scripting API Camera.worldToCameraMatrix (camera space is OpenGL's, forward -Z) and "
+                      "GL.GetGPUProjectionMatrix (projections follow OpenGL and are converted per platform); "
+                      "URP ShadowUtils.GetShadowTransform (negates the projection's z row for "
+                      "SystemInfo.usesReversedZBuffer, then the [-1, 1] -> [0, 1] scale and bias); Unity's USD "
+                      "package converts right-handed stages by z -> -z (UnityTypeConverter.ChangeBasis); "
+                      "Matrix4x4 stores its elements column-major (m00, m10, m20, m30, m01, ...)"},
+    "unreal": {"convention": "d3d", "reversed_z": True, "texture_origin": "top-left", "projection": "clip",
+               "layout": "column_major", "axes": ("x", "z", "y"), "metres_per_unit": 0.01, "view": "+z",
+               "docs": "Unreal Engine coordinate system (left-handed, +Z up, 1 unit = 1 cm); reversed-Z "
+                       "projections (FReversedZOrthoMatrix, FReversedZPerspectiveMatrix: near 1, far 0 in "
+                       "NDC [0, 1]); FMatrix multiplies row vectors (v' = v * M, M.M[row][col]), so the "
+                       "column-major list of this column-vector matrix is FMatrix's memory order; the USD "
+                       "importer maps a Y-up stage by swapping Y and Z and scaling metres to centimetres "
+                       "(UsdToUnreal::ConvertVector)"},
+    "godot": {**_RH_Y_UP_M, "convention": "vulkan", "reversed_z": True, "texture_origin": "top-left",
+              "projection": "clip",
+              "docs": "Godot 4 docs: Projection (OpenGL-convention 4x4, columns x, y, z, w) and "
+                      "create_depth_correction (the renderer maps it to [0, 1] depth with y flipped); Godot 4.3 "
+                      "\"Introducing Reverse Z\" (depth 1 near, 0 far); Advanced post-processing (shader NDC "
+                      "= SCREEN_UV * 2 - 1 with that depth): right-handed, +Y up, metres"},
+    "three": {**_RH_Y_UP_M, "convention": "opengl", "reversed_z": False, "texture_origin": "bottom-left",
+              "projection": "clip",
+              "docs": "three.js docs: Matrix4 (elements are column-major), LightShadow.updateMatrices "
+                      "(shadow.matrix = [0.5 scale and bias] · camera.projectionMatrix · "
+                      "camera.matrixWorldInverse), WebGL clip z in [-1, 1]; right-handed, +Y up, metres"},
+    "bevy": {**_RH_Y_UP_M, "convention": "d3d", "reversed_z": True, "texture_origin": "top-left",
+             "projection": "clip",
+             "docs": "Bevy bevy_pbr: Cascade {world_from_cascade, clip_from_cascade, clip_from_world} from "
+                     "calculate_cascade (right-handed orthographic with reverse Z: near 1, far 0), shadow "
+                     "pipeline depth compare GreaterEqual, shadows.wgsl (uv = ndc.xy * (0.5, -0.5) + 0.5: "
+                     "origin top-left); wgpu NDC z in [0, 1], y up; glam Mat4 is column-major"},
+    "filament": {**_RH_Y_UP_M, "convention": "opengl", "reversed_z": True, "texture_origin": "bottom-left",
+                 "projection": "opengl",
+                 "docs": "Filament Camera::setCustomProjection (OpenGL-convention projection; the renderer "
+                         "converts clip z to its inverted [1, 0] range); ShadowMap::getTextureCoordsMapping "
+                         "(NDC [-1, 1] -> texture [0, 1], depth mapped to [1, 0], v = 0.5 y + 0.5); "
+                         "filament::math::mat4f is column-major; right-handed, +Y up, metres"},
 }
+_FLIP_Z = np.diag([1.0, 1.0, -1.0, 1.0])
+
+
+def _preset(engine: str) -> dict:
+    if engine not in ENGINE_PRESETS:
+        raise ValueError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
+    return ENGINE_PRESETS[engine]
+
+
+def engine_matrices(view: np.ndarray, proj_canonical: np.ndarray, engine: str) -> dict:
+    """The matrices for an engine preset, acting on points in the engine's world frame and units:
+    view_e = F · V · E^-1, projection_e = C · P · F ("clip") or P · F ("opengl"), texture_e =
+    S · C · P · V · E^-1 (E = solvers.frames.engine_from_world, F the view-space mirror of a left-handed
+    view; the table's comment above)."""
+    from .frames import world_from_engine
+
+    p = _preset(engine)
+    conv, rev, layout = p["convention"], p["reversed_z"], p["layout"]
+    w_from_e = world_from_engine(p["axes"], p["metres_per_unit"])
+    f = _FLIP_Z if p["view"] == "+z" else np.eye(4)
+    P = _mat4(proj_canonical, "projection")
+    V = _mat4(view, "view")
+    proj = (projection_for(P, conv, rev) if p["projection"] == "clip" else P) @ f
+    tex = texture_matrix(V, P, conv, rev, p["texture_origin"]) @ w_from_e
+    return {"view_matrix": to_layout(f @ V @ w_from_e, layout), "projection_matrix": to_layout(proj, layout),
+            "texture_matrix": to_layout(tex, layout)}
+
+
+def _axis_name(v: np.ndarray) -> str:
+    k = int(np.argmax(np.abs(v)))
+    return ("+" if v[k] > 0 else "-") + "XYZ"[k]
+
+
+def _unit_name(metres_per_unit: float) -> str:
+    return {1.0: "metres", 0.01: "centimetres"}.get(float(metres_per_unit), f"{metres_per_unit:g} metres")
+
+
+def output_frame(output: dict, stage_to_world: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """(world -> output-frame points 4x4, metres per output length unit) for an output spec: the world
+    frame (identity, 1), the stage's own frame (output.frame "stage": inv(stage_to_world) and the stage's
+    metersPerUnit) or an engine preset's frame (solvers.frames.engine_from_world)."""
+    from .frames import engine_from_world
+
+    if output.get("engine"):
+        p = _preset(output["engine"])
+        return engine_from_world(p["axes"], p["metres_per_unit"]), float(p["metres_per_unit"])
+    if output.get("frame", "world") == "stage" and stage_to_world is not None:
+        s2w = _mat4(stage_to_world, "stage_to_world")
+        mpu = float(np.cbrt(abs(np.linalg.det(s2w[:3, :3]))))
+        return np.linalg.inv(s2w), mpu
+    return np.eye(4), 1.0
+
+
+def convention_info(output: dict, stage_to_world: np.ndarray | None = None) -> dict:
+    """What the matrices and lengths of a solution are expressed in (the solution's `convention`): api
+    (clip convention), layout, frame (world, stage or engine), engine, reversed_z, texture_origin,
+    projection (what projection_matrix holds, see ENGINE_PRESETS), handedness, up_axis, view_forward
+    (the light view axis the light looks along), length_unit and metres_per_unit (every length of the
+    solution an engine uses is in length_unit: split, blend_band, light_depth, warp.n and the depth
+    block's normal_offset, near and far)."""
+    engine = output.get("engine")
+    E, mpu = output_frame(output, stage_to_world)
+    if engine:
+        p = _preset(engine)
+        conv, layout, rev, origin = p["convention"], p["layout"], p["reversed_z"], p["texture_origin"]
+        frame, projection, forward = "engine", p["projection"], p["view"].upper()
+    else:
+        conv = output.get("convention", "opengl")
+        layout, rev = output.get("layout", "column_major"), bool(output.get("reversed_z", False))
+        origin, projection, forward = DEFAULT_TEXTURE_ORIGIN[conv], "clip", "-Z"
+        frame = output.get("frame", "world")
+    R = E[:3, :3]
+    return {"api": conv, "layout": layout, "frame": frame, "engine": engine, "reversed_z": rev,
+            "texture_origin": origin, "projection": projection,
+            "handedness": "right" if np.linalg.det(R) > 0 else "left", "up_axis": _axis_name(R @ [0.0, 1.0, 0.0]),
+            "view_forward": forward, "length_unit": _unit_name(mpu), "metres_per_unit": mpu}
 
 
 def preset_conflicts(engine: str, given: dict) -> list[str]:
@@ -207,14 +351,8 @@ def preset_conflicts(engine: str, given: dict) -> list[str]:
         if key in given and given[key] != p[key]:
             out.append(f"output.engine {engine!r} sets output.{key} to {p[key]!r} but output.{key} is "
                        f"{given[key]!r}: give one of them")
-    if given.get("frame") == "stage":
+    world_like = tuple(p["axes"]) == ("x", "y", "z") and p["metres_per_unit"] == 1.0 and p["view"] == "-z"
+    if given.get("frame") == "stage" or (given.get("frame") == "world" and not world_like):
         out.append(f"output.engine {engine!r} sets the frame (the engine's world frame and units) but "
-                   "output.frame is 'stage': give one of them")
-    elif given.get("frame") == "world" and not _is_world_frame(p):
-        out.append(f"output.engine {engine!r} sets the frame (the engine's world frame and units) but "
-                   "output.frame is 'world': give one of them")
+                   f"output.frame is {given['frame']!r}: give one of them")
     return out
-
-
-def _is_world_frame(p: dict) -> bool:
-    return tuple(p["axes"]) == ("x", "y", "z") and p["metres_per_unit"] == 1.0 and p["view"] == "-z"

@@ -34,6 +34,33 @@ def world_to_stage(up_axis: str, meters_per_unit: float) -> np.ndarray:
     return np.linalg.inv(stage_to_world(up_axis, meters_per_unit))
 
 
+def _axis_matrix(axes) -> np.ndarray:
+    """3x3 signed permutation R with engine = R @ world, from axes like ("x", "z", "y") or ("x", "y", "-z")."""
+    r = np.zeros((3, 3))
+    for i, a in enumerate(axes):
+        sign, name = (-1.0, a[1:]) if a.startswith("-") else (1.0, a.lstrip("+"))
+        r[i, "xyz".index(name)] = sign
+    if sorted(np.nonzero(r)[1].tolist()) != [0, 1, 2]:
+        raise ValueError(f"axes must name x, y and z once each, got {axes!r}")
+    return r
+
+
+def engine_from_world(axes, metres_per_unit: float) -> np.ndarray:
+    """4x4 taking world points (right-handed, +Y up, metres) to an engine's frame: its axes (each engine
+    coordinate a signed world coordinate, solvers.conventions.ENGINE_PRESETS) and its length unit.
+    A signed permutation with an odd number of swaps or sign flips is a mirror (a left-handed engine)."""
+    m = np.eye(4)
+    m[:3, :3] = _axis_matrix(axes) / float(metres_per_unit)
+    return m
+
+
+def world_from_engine(axes, metres_per_unit: float) -> np.ndarray:
+    """The inverse of engine_from_world, built exactly (transpose of the permutation, times the unit)."""
+    m = np.eye(4)
+    m[:3, :3] = _axis_matrix(axes).T * float(metres_per_unit)
+    return m
+
+
 def transform_points(m: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Apply a 4x4 affine matrix (column-vector convention) to (..., 3) points."""
     pts = np.asarray(pts, dtype=np.float64)

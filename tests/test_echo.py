@@ -46,4 +46,5 @@ def test_a_stage_frame_rig_is_echoed_in_world_metres(tmp_path):
                     "cone_deg": 30.0}
     assert sun["type"] == "directional" and sun["direction"] == pytest.approx([0.0, -np.sqrt(0.5), -np.sqrt(0.5)])
     assert (echo["frame"], echo["units"], echo["up_axis"], echo["rig_frame"]) == ("world", "metres", "+Y", "stage")
-    assert echo["output"] == {"convention": "opengl", "layout": "column_major", "frame": "world"}
+    assert echo["output"] == {"convention": "opengl", "layout": "column_major", "frame": "world", "reversed_z": False,
+                              "engine": None}
