@@ -25,6 +25,7 @@ DOC = ROOT / "docs" / "engine-integration.md"
 MCUSD = ROOT.parent / "shared" / "usd-assets" / "full_assets" / "McUsd" / "McUsd.usda"
 CONVENTIONS = {"opengl": ("opengl", False), "d3d": ("d3d", False), "reversed_z": ("d3d", True)}
 LANGUAGES = ("glsl", "hlsl")
+ENGINE_MODES = ("solution", "hardware", "linear")  # evaluate --depth choices an engine can follow
 # Corpus scenes with a sun of their own here (the corpus rigs give only a camera).
 CORPUS_SUNS = {"street_canyon": [-0.45, -0.8, 0.4], "terrain": [0.55, -0.6, 0.35]}
 
@@ -118,9 +119,12 @@ def camera_matrices(camera, rs, vertices: np.ndarray) -> dict:
             "resolution": list(camera.resolution)}
 
 
-def listing_jobs(solved: dict, origin: np.ndarray, to_light, conventions=CONVENTIONS, languages=LANGUAGES) -> list:
+def listing_jobs(solved: dict, origin: np.ndarray, to_light, conventions=CONVENTIONS, languages=LANGUAGES,
+                 mode: str = "solution") -> list:
     """The harness jobs: per convention and language, each map's matrices (re-centred on `origin` in
-    float64, as an engine re-centres before its float32 upload) and its depth block."""
+    float64, as an engine re-centres before its float32 upload) and its depth block: `mode` "solution" the
+    map's own depth.mode, "hardware" / "linear" that block for every map (evaluate --depth likewise).
+    Job names: <language>_<convention>_<mode>."""
     T = np.eye(4)
     T[:3, 3] = origin
     jobs = []
@@ -130,15 +134,16 @@ def listing_jobs(solved: dict, origin: np.ndarray, to_light, conventions=CONVENT
         for c in cascades:
             view, proj, tex = _m(c["view_matrix"]), _m(c["projection_matrix"]), _m(c["texture_matrix"])
             d = c["depth"]
-            block = d[d["mode"]]
+            m = d["mode"] if mode == "solution" else mode
+            block = d[m]
             maps.append({"view_matrix": (view @ T).ravel().tolist(), "view_projection": (proj @ view @ T).ravel().tolist(),
                          "texture_matrix": (tex @ T).ravel().tolist(), "resolution": c["resolution"],
                          "split": c["split"], "blend_band": c.get("blend_band"),
-                         "depth": {"mode": d["mode"], "constant": block["constant"], "slope": block["slope"],
+                         "depth": {"mode": m, "constant": block["constant"], "slope": block["slope"],
                                    "normal_offset": block.get("normal_offset") or 0.0,
                                    "near": block.get("near", 0.0), "far": block.get("far", 1.0)}})
         for lang in languages:
-            jobs.append({"name": f"{lang}_{conv}", "language": lang, "clip": conv, "maps": maps,
+            jobs.append({"name": f"{lang}_{conv}_{mode}", "language": lang, "clip": conv, "maps": maps,
                          "to_light": [float(x) for x in to_light]})
     return jobs
 
@@ -178,9 +183,11 @@ def listing_wrong_pixels(gt, gl: dict, rs, name: str) -> dict:
 
 
 def measure(validate_rig, name: str, path, rig: dict, cascades: int, map_res: int, screen=None,
-            languages=LANGUAGES, depths=("solution",), log=None) -> dict:
-    """One scene and cascade count: evaluate --depth for each of `depths` and the listing's wrong pixels per
-    convention and language (the listing against the `solution` evaluation's ground truth)."""
+            languages=LANGUAGES, modes=("solution",), ideal: bool = False, log=None, sources=None,
+            conventions=CONVENTIONS) -> dict:
+    """One scene and cascade count: per depth mode of `modes`, `evaluate --depth <mode>` and the listing's wrong
+    pixels per convention and language (all against the exact visibility of one screen), and with `ideal`
+    the idealized `--depth ideal` too. `sources`: the shader pieces (default: the document's listings)."""
     from ...renderers.ground_truth import evaluate_buffers, screen_camera
     from ..pipeline import scene_entry
     from ..rigs import resolve_rig
@@ -193,29 +200,26 @@ def measure(validate_rig, name: str, path, rig: dict, cascades: int, map_res: in
     rs = entry.rays
     camera = screen_camera(resolved.camera, screen)
     evals, gt = {}, None
-    for depth in depths:
+    for depth in (*modes, "ideal") if ideal else modes:
         g = evaluate_buffers(rs, camera, light, solved["maps"], None, depth=depth)
         evals[depth] = g.result["misclassified_pixels"]
-        if depth == "solution":
-            gt = g
-    if gt is None:
-        gt = evaluate_buffers(rs, camera, light, solved["maps"], None, depth="solution")
-        evals["solution"] = gt.result["misclassified_pixels"]
+        gt = gt or g
     t1 = time.perf_counter()
     verts = np.array(rs.vertices, dtype=np.float32).reshape(-1, 3)
     faces = np.array(rs.faces, dtype=np.uint32).reshape(-1, 3)
-    jobs = listing_jobs(solved, rs.origin, -np.asarray(light.direction, float), languages=languages)
+    to_light = -np.asarray(light.direction, float)
+    jobs = [j for mode in modes for j in listing_jobs(solved, rs.origin, to_light, conventions, languages, mode)]
     gl = run_listing(verts, faces, camera_matrices(camera, rs, verts.astype(np.float64)), jobs,
-                     listings())
+                     listings() if sources is None else sources)
     t2 = time.perf_counter()
     listing = {j["name"]: listing_wrong_pixels(gt, gl, rs, j["name"]) for j in jobs}
-    modes = [c["depth"]["mode"] for c in solved["solutions"]["opengl"]["lights"][0]["cascades"]]
+    sol_modes = [c["depth"]["mode"] for c in solved["solutions"]["opengl"]["lights"][0]["cascades"]]
     if log:
         log(f"{name} K={cascades}: evaluate {evals}, listing {({k: v['wrong'] for k, v in listing.items()})} "
             f"({t1 - t0:.1f} s solve+evaluate, {t2 - t1:.1f} s OpenGL)")
     return {"scene": name, "cascades": cascades, "screen": list(camera.resolution), "map": map_res,
-            "modes": modes, "evaluate": evals, "listing": listing, "renderer": str(gl["renderer"]),
-            "receivers": int(gt.receivers.sum())}
+            "modes": sol_modes, "evaluate": evals, "listing": listing, "renderer": str(gl["renderer"]),
+            "receivers": int(gt.receivers.sum()), "seconds": t2 - t0}
 
 
 def bench_engine(validate_rig, scenes=None, write=True, map_res=2048, screen=None, log=None) -> dict:
@@ -229,25 +233,26 @@ def bench_engine(validate_rig, scenes=None, write=True, map_res=2048, screen=Non
     rows = []
     for name, path, rig in pairs:
         for k in (1, 4):
-            rows.append(measure(validate_rig, name, path, rig, k, map_res, None, languages,
-                                ("solution", "hardware", "linear", "ideal"), log))
-    lines = ["| scene | cascades | screen | modes | receivers | evaluate ideal | evaluate hardware | "
-             "evaluate linear | **evaluate solution** | " + " | ".join(f"listing {j}" for j in
-                                                                          _job_names(languages)) + " |",
-             "|---|---:|---|---|---:|---:|---:|---:|---:|" + "---:|" * len(_job_names(languages))]
+            rows.append(measure(validate_rig, name, path, rig, k, map_res, None, languages, ENGINE_MODES, True, log))
+    names = [f"{lang} {conv}" for lang in languages for conv in CONVENTIONS]
+    lines = ["| scene | cascades | screen | receivers | solution's modes | depth | evaluate ideal | **evaluate --depth** | "
+             + " | ".join(f"listing {n}" for n in names) + " |",
+             "|---|---:|---|---:|---|---|---:|---:|" + "---:|" * len(names)]
     for r in rows:
         e = r["evaluate"]
-        lines.append(f"| {r['scene']} | {r['cascades']} | {r['screen'][0]}x{r['screen'][1]} | "
-                     f"{','.join(sorted(set(r['modes'])))} | {r['receivers']:,} | {e['ideal']:,} | {e['hardware']:,} | "
-                     f"{e['linear']:,} | **{e['solution']:,}** | "
-                     + " | ".join(f"{r['listing'][j]['wrong']:,}" for j in _job_names(languages)) + " |")
+        for mode in ENGINE_MODES:
+            cells = [f"{r['listing'][f'{lang}_{conv}_{mode}']['wrong']:,}" for lang in languages for conv in CONVENTIONS]
+            lines.append(f"| {r['scene']} | {r['cascades']} | {r['screen'][0]}x{r['screen'][1]} | {r['receivers']:,} | "
+                         f"{','.join(sorted(set(r['modes'])))} | {mode} | {e['ideal']:,} | **{e[mode]:,}** | "
+                         + " | ".join(cells) + " |")
     for name, why in skipped.items():
         lines.append(f"| {name} | skipped: {why} |")
     table = "\n".join(lines)
     note = ("Wrong pixels (shadow state different from exact ray-traced visibility, over the sun-facing pixels) of "
-            "one optimized solution per row: `evaluate --depth ideal | hardware | linear | solution` in the "
-            f"ray tracer, and docs/engine-integration.md's listings rendered in Mesa OpenGL ({rows[0]['renderer'] if rows else 'n/a'}) "
-            "with the solution's depth modes: `opengl`, `d3d` (glClipControl upper-left, depth [0, 1]) and "
+            "one optimized solution per scene and cascade count. Per depth mode (`solution`: each map's own "
+            "`depth.mode`; `hardware` / `linear`: that block for every map): `evaluate --depth <mode>` in the ray "
+            "tracer, and docs/engine-integration.md's listings with that mode rendered in Mesa OpenGL "
+            f"({rows[0]['renderer'] if rows else 'n/a'}) in the conventions `opengl`, `d3d` (glClipControl upper-left, depth [0, 1]) and "
             "`reversed_z` (d3d with output.reversed_z), GLSL as printed and HLSL through glslang and SPIRV-Cross. "
             f"Maps {map_res}x{map_res}; suns: McUsd's own, street_canyon {CORPUS_SUNS['street_canyon']}, "
             f"terrain {CORPUS_SUNS['terrain']}. The listing is compared where the rasterized surface is the "
@@ -259,6 +264,3 @@ def bench_engine(validate_rig, scenes=None, write=True, map_res=2048, screen=Non
         write_section("engine", out["table"], "shadowopt bench engine")
     return out
 
-
-def _job_names(languages):
-    return [f"{lang}_{conv}" for conv in CONVENTIONS for lang in languages]

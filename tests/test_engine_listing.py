@@ -1,0 +1,83 @@
+"""docs/engine-integration.md's shader listings, extracted verbatim, rendered in real OpenGL (Mesa llvmpipe
+through EGL, in a subprocess: renderers.gl_listing) in the opengl, d3d (glClipControl) and reversed-Z
+conventions, GLSL as printed and HLSL through glslang and SPIRV-Cross; their shadow against exact ray-traced
+visibility at the same pixels must be within 1.25x of what `evaluate --depth` predicts for the same solution."""
+from __future__ import annotations
+
+import pytest
+
+from shadowopt.api.schemas import validate_rig
+from shadowopt.service.bench import engine as E
+
+SCREEN = (480, 270)
+MAP = 1024
+SCENES = ["mcusd", "street_canyon", "terrain"]
+MODES = ("solution", "linear")  # the solutions' maps are all hardware here: linear forced tests its pieces
+LANGUAGES = E.LANGUAGES if E.hlsl_tools() is None else ("glsl",)
+
+
+def _scene(name):
+    pairs, skipped = E.scene_rigs([name], SCREEN)
+    if not pairs:
+        pytest.skip(f"{name}: {skipped.get(name, 'absent')}")
+    return pairs[0]
+
+
+def _measure(name, cascades, **kw):
+    n, path, rig = _scene(name)
+    try:
+        return E.measure(validate_rig, n, path, rig, cascades, MAP, SCREEN, kw.pop("languages", LANGUAGES),
+                         kw.pop("modes", MODES), **kw)
+    except RuntimeError as e:
+        if str(e).startswith("no OpenGL"):
+            pytest.skip(str(e).splitlines()[0])
+        raise
+
+
+def test_the_document_has_every_listing_piece_once():
+    got = {lang: sorted(p) for lang, p in E.listings().items()}
+    assert got == {"glsl": ["light-pass-hardware", "light-pass-linear", "light-pass-vertex", "shadow-lookup"],
+                   "hlsl": ["light-pass-linear", "light-pass-vertex", "shadow-lookup"]}
+    assert "allow_log_warp" in E.DOC.read_text()  # the one sentence saying the log warp is not covered
+
+
+@pytest.mark.parametrize("cascades", [1, 4])
+@pytest.mark.parametrize("scene", SCENES)
+def test_pasted_listing_matches_evaluate_depth(scene, cascades):
+    r = _measure(scene, cascades)
+    assert r["receivers"] > 10_000
+    bad = []
+    for name, v in r["listing"].items():
+        mode = name.rsplit("_", 1)[1]
+        ev = r["evaluate"][mode]
+        # Silhouette pixels where the rasterizer sees another surface than the ray tracer are left out: few.
+        assert v["compared"] >= 0.99 * v["receivers"], (name, v)
+        if v["wrong"] > 1.25 * ev:
+            bad.append(f"{name}: listing {v['wrong']} wrong pixels vs evaluate --depth {mode} {ev}")
+    assert not bad, f"{scene}, {cascades} cascade(s), {r['receivers']} receivers: " + "; ".join(bad)
+    # The sizes are what the test claims: every map at MAP^2, the cascades asked for.
+    assert r["cascades"] == cascades and r["screen"] == list(SCREEN)
+
+
+def test_a_wrong_listing_fails_the_check():
+    """The check can fail: the lookup without reversed-Z's flipped comparison, or without its bias, is far
+    outside 1.25x of evaluate."""
+    src = E.listings()
+    lookup = src["glsl"]["shadow-lookup"]
+    flip = "bool shadowed = uParams.y > 0.5 ? d + bias < stored : d - bias > stored;"
+    assert flip in lookup
+    broken = {"glsl": dict(src["glsl"], **{"shadow-lookup": lookup.replace(flip, "bool shadowed = d - bias > stored;")})}
+    r = _measure("street_canyon", 1, languages=("glsl",), modes=("solution",), sources=broken,
+                 conventions=("reversed_z",))
+    ev, got = r["evaluate"]["solution"], r["listing"]["glsl_reversed_z_solution"]["wrong"]
+    assert got > 10 * max(ev, 1), (got, ev)
+    no_bias = {"glsl": dict(src["glsl"], **{"shadow-lookup": lookup.replace(
+        "float bias = uDepth[k].x + uDepth[k].y * tanPsi;", "float bias = 0.0;")})}
+    r = _measure("terrain", 1, languages=("glsl",), modes=("solution",), sources=no_bias, conventions=("opengl",))
+    ev, got = r["evaluate"]["solution"], r["listing"]["glsl_opengl_solution"]["wrong"]
+    assert got > 1.25 * ev, (got, ev)
+
+
+@pytest.mark.skipif(E.hlsl_tools() is None, reason="glslangValidator and spirv-cross present: HLSL is rendered above")
+def test_hlsl_tools_missing():
+    pytest.skip(f"the HLSL listings were not rendered: {E.hlsl_tools()}")
