@@ -59,27 +59,43 @@ def check_depth(depth) -> str:
 
 
 def check_depth_blocks(solution: dict, depth: str) -> None:
-    """Engine depth modes read each map's `depth` block: a missing or malformed one is a SolutionError
-    naming it."""
+    """Engine depth modes read each map's `depth` block and `blend_band`: a missing or malformed one is a
+    SolutionError naming it (service.solution_check's field paths)."""
     if depth == "ideal":
         return
     for i, light in enumerate(solution.get("lights") or []):
         for j, c in enumerate(light.get("cascades") or []):
-            field = f"solution.lights[{i}].cascades[{j}].depth"
+            at = f"solution.lights.{i}.cascades.{j}"
+            band = c.get("blend_band")
+            if band is not None and not (isinstance(band, (list, tuple)) and len(band) == 2
+                                         and all(_finite(v) for v in band) and band[0] <= band[1]):
+                raise SolutionError(f"{at}.blend_band", f"expected null or [start, end] with start <= end, got "
+                                    f"{band!r:.40}")
             b = c.get("depth")
             if b is None:
-                raise SolutionError(field, "missing: this solution has no engine depth block (solve it again, or "
-                                    "evaluate with depth 'ideal')", code="invalid_input")
-            mode = b.get("mode") if isinstance(b, dict) and depth == "solution" else depth
-            if not isinstance(b, dict) or mode not in ("hardware", "linear") or not isinstance(b.get(mode), dict):
-                raise SolutionError(field, "expected an object with mode (hardware or linear) and the blocks "
-                                    "hardware and linear", code="invalid_input")
-            keys = ("constant", "slope", "normal_offset") + (("near", "far") if mode == "linear" else ())
-            for key in keys:
+                raise SolutionError(at, f"has no engine depth block `depth` (solve it again, or evaluate with depth "
+                                    f"'ideal'); depth {depth!r} reads it")
+            if not isinstance(b, dict):
+                raise SolutionError(f"{at}.depth", f"expected an object {{mode, hardware, linear}}, got {b!r:.40}")
+            mode = b.get("mode") if depth == "solution" else depth
+            if mode not in ("hardware", "linear"):
+                raise SolutionError(f"{at}.depth" + (".mode" if "mode" in b and depth == "solution" else ""),
+                                    f"mode: expected hardware or linear, got {mode!r:.40}")
+            if not isinstance(b.get(mode), dict):
+                raise SolutionError(f"{at}.depth" + (f".{mode}" if mode in b else ""),
+                                    f"needs the block {mode} {{constant, slope, normal_offset"
+                                    + (", near, far}" if mode == "linear" else "}"))
+            for key in ("constant", "slope", "normal_offset") + (("near", "far") if mode == "linear" else ()):
                 v = b[mode].get(key, 0.0 if key == "normal_offset" else None)
-                if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                    raise SolutionError(f"{field}.{mode}.{key}", f"expected a finite number, got {v!r:.40}",
-                                        code="invalid_input")
+                if not _finite(v):
+                    raise SolutionError(f"{at}.depth.{mode}" + (f".{key}" if key in b[mode] else ""),
+                                        f"{key}: expected a finite number, got {v!r:.40}")
+            if mode == "linear" and not b[mode]["far"] > b[mode]["near"]:
+                raise SolutionError(f"{at}.depth.linear", "expected far > near")
+
+
+def _finite(v) -> bool:
+    return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
 
 
 def evaluate_solution(entry: SceneEntry, rig: dict, solution: dict, screen=None, heatmap_path=None,
