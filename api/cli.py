@@ -160,6 +160,11 @@ def cmd_bench(args) -> int:
         from ..service.bench.load import bench_load
 
         result = bench_load(seconds=args.seconds, write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
+    elif args.bench == "engine":  # docs/engine-integration.md's listings in Mesa OpenGL vs evaluate --depth
+        from ..service.bench.engine import bench_engine
+
+        result = bench_engine(validate_rig, scenes=args.scenes.split(",") if args.scenes else None,
+                              write=not args.no_write, screen=args.screen, log=lambda m: print(m, file=sys.stderr))
     else:  # argparse restricts choices
         raise CliError(f"unknown benchmark {args.bench!r}")
     if args.json:
@@ -452,7 +457,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_analyze)
 
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
-    sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch", "security"])
+    sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch", "security", "engine"])
     sp.add_argument("--seconds", type=float, default=60.0, help="load: seconds of concurrent load per workload")
     sp.add_argument("--lights", type=int, default=None, help="quality, solvers, trust: number of light directions (rigs)")
     sp.add_argument("--part", choices=["single", "cascades", "all"], default="all",
