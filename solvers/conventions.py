@@ -200,8 +200,9 @@ def export_matrices(view: np.ndarray, proj_canonical: np.ndarray, convention: st
 #                   down -Z, OpenGL's eye space) or "+z" (left-handed, it looks down +Z: Direct3D-style
 #                   eye space, as Unreal's view matrices)
 # A point X_e in the engine's frame maps to the same texel and depth as the world point it is:
-#   view_e = F · V · E^-1, projection_e = C · P · F (or P · F), texture_e = S · C · P · V · E^-1,
-# E = engine_from_world, F = diag(1, 1, -1, 1) for view "+z" (else identity).
+#   view_e = U · F · V · E^-1, projection_e = C · P · F · U^-1 (or P · F · U^-1), texture_e = S · C · P · V · E^-1,
+# E = engine_from_world, F = diag(1, 1, -1, 1) for view "+z" (else identity), U = diag(1/m, 1/m, 1/m, 1) with
+# m = metres_per_unit (the light view space in engine units, so the view matrix is rigid there).
 # ---------------------------------------------------------------------------------------------------
 ENGINES = ("opengl", "d3d", "vulkan", "unity", "unreal", "godot", "three", "bevy", "filament")
 _RH_Y_UP_M = {"axes": ("x", "y", "z"), "metres_per_unit": 1.0, "view": "-z", "layout": "column_major"}
@@ -273,20 +274,24 @@ def _preset(engine: str) -> dict:
 
 def engine_matrices(view: np.ndarray, proj_canonical: np.ndarray, engine: str) -> dict:
     """The matrices for an engine preset, acting on points in the engine's world frame and units:
-    view_e = F · V · E^-1, projection_e = C · P · F ("clip") or P · F ("opengl"), texture_e =
-    S · C · P · V · E^-1 (E = solvers.frames.engine_from_world, F the view-space mirror of a left-handed
-    view; the table's comment above)."""
+    view_e = U · F · V · E^-1, projection_e = C · P · F · U^-1 ("clip") or P · F · U^-1 ("opengl"),
+    texture_e = S · C · P · V · E^-1 (E = solvers.frames.engine_from_world, F the view-space mirror of a
+    left-handed view, U the unit scale of view space; the table's comment above)."""
     from .frames import world_from_engine
 
     p = _preset(engine)
     conv, rev, layout = p["convention"], p["reversed_z"], p["layout"]
-    w_from_e = world_from_engine(p["axes"], p["metres_per_unit"])
+    mpu = float(p["metres_per_unit"])
+    w_from_e = world_from_engine(p["axes"], mpu)
     f = _FLIP_Z if p["view"] == "+z" else np.eye(4)
+    # the light view in engine units too (a rigid view matrix, as engines build them; its depth in the
+    # same unit as the solution's light_depth and depth.linear near/far): U = diag(1/mpu) on view space
+    u, u_inv = np.diag([1 / mpu, 1 / mpu, 1 / mpu, 1.0]), np.diag([mpu, mpu, mpu, 1.0])
     P = _mat4(proj_canonical, "projection")
     V = _mat4(view, "view")
-    proj = (projection_for(P, conv, rev) if p["projection"] == "clip" else P) @ f
+    proj = (projection_for(P, conv, rev) if p["projection"] == "clip" else P) @ f @ u_inv
     tex = texture_matrix(V, P, conv, rev, p["texture_origin"]) @ w_from_e
-    return {"view_matrix": to_layout(f @ V @ w_from_e, layout), "projection_matrix": to_layout(proj, layout),
+    return {"view_matrix": to_layout(u @ f @ V @ w_from_e, layout), "projection_matrix": to_layout(proj, layout),
             "texture_matrix": to_layout(tex, layout)}
 
 
@@ -300,18 +305,18 @@ def _unit_name(metres_per_unit: float) -> str:
 
 
 def output_frame(output: dict, stage_to_world: np.ndarray | None = None) -> tuple[np.ndarray, float]:
-    """(world -> output-frame points 4x4, metres per output length unit) for an output spec: the world
-    frame (identity, 1), the stage's own frame (output.frame "stage": inv(stage_to_world) and the stage's
-    metersPerUnit) or an engine preset's frame (solvers.frames.engine_from_world)."""
+    """(world -> output-frame points 4x4, metres per unit of the solution's lengths) for an output spec:
+    the world frame (identity, 1), the stage's own frame (output.frame "stage": inv(stage_to_world), and
+    lengths still in metres, 1) or an engine preset's frame and unit (solvers.frames.engine_from_world)."""
     from .frames import engine_from_world
 
     if output.get("engine"):
         p = _preset(output["engine"])
         return engine_from_world(p["axes"], p["metres_per_unit"]), float(p["metres_per_unit"])
     if output.get("frame", "world") == "stage" and stage_to_world is not None:
-        s2w = _mat4(stage_to_world, "stage_to_world")
-        mpu = float(np.cbrt(abs(np.linalg.det(s2w[:3, :3]))))
-        return np.linalg.inv(s2w), mpu
+        # the view and texture matrices take stage points; the lengths stay in metres and the light view
+        # space too (docs/engine-integration.md)
+        return np.linalg.inv(_mat4(stage_to_world, "stage_to_world")), 1.0
     return np.eye(4), 1.0
 
 
@@ -319,9 +324,10 @@ def convention_info(output: dict, stage_to_world: np.ndarray | None = None) -> d
     """What the matrices and lengths of a solution are expressed in (the solution's `convention`): api
     (clip convention), layout, frame (world, stage or engine), engine, reversed_z, texture_origin,
     projection (what projection_matrix holds, see ENGINE_PRESETS), handedness, up_axis, view_forward
-    (the light view axis the light looks along), length_unit and metres_per_unit (every length of the
-    solution an engine uses is in length_unit: split, blend_band, light_depth, warp.n and the depth
-    block's normal_offset, near and far)."""
+    (the light view axis the light looks along), length_unit and metres_per_unit (the unit of the light
+    view space and of every length of the solution an engine uses: split, blend_band, light_depth, warp.n
+    and the depth block's normal_offset, near and far; with frame "stage" the matrices take stage points
+    and these stay in metres)."""
     engine = output.get("engine")
     E, mpu = output_frame(output, stage_to_world)
     if engine:

@@ -1,0 +1,268 @@
+"""Engine presets (output.engine): known world points, written in each engine's own frame and units, land on
+the texture coordinates and depths the engine's documented conventions give; every preset's solution reads
+back exactly; a preset with a contradicting explicit field is refused naming both.
+
+The expected values are written from the engines' documentation, not from solvers.conventions:
+- where a world point is in the engine (its axes and unit),
+- how the engine reads the 16 numbers (memory order, column or row vectors),
+- which texture row is t = 0 and which depth the map stores at the light's near and far planes.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shadowopt.solvers.conventions import ENGINES, export_matrices
+
+REPO = Path(__file__).resolve().parents[1]
+
+# Where shadowopt's world point (x, y, z) (right-handed, +Y up, metres) is in each engine.
+TO_ENGINE = {
+    "opengl": lambda x, y, z: (x, y, z),
+    "d3d": lambda x, y, z: (x, y, z),
+    "vulkan": lambda x, y, z: (x, y, z),
+    # Unity: left-handed, +Y up, metres; Unity's USD package converts a right-handed stage by z -> -z
+    # (UnityTypeConverter.ChangeBasis: diag(1, 1, -1))
+    "unity": lambda x, y, z: (x, y, -z),
+    # Unreal: left-handed, +Z up, centimetres; its USD importer maps a Y-up stage by swapping Y and Z and
+    # scaling metres to centimetres (UsdToUnreal::ConvertVector)
+    "unreal": lambda x, y, z: (100 * x, 100 * z, 100 * y),
+    "godot": lambda x, y, z: (x, y, z),  # right-handed, +Y up, metres
+    "three": lambda x, y, z: (x, y, z),  # right-handed, +Y up, metres
+    "bevy": lambda x, y, z: (x, y, z),  # right-handed, +Y up, metres
+    "filament": lambda x, y, z: (x, y, z),  # right-handed, +Y up, metres
+}
+UNIT = {e: (100.0 if e == "unreal" else 1.0) for e in ENGINES}  # engine units per metre
+
+# (texture t, stored depth) from the canonical t_gl (0 at the map's bottom, NDC y = -1) and the linear-
+# or window-depth D (0 at the light's near plane, 1 at its far plane), as each engine documents them.
+TEXTURE = {
+    "opengl": lambda t, d: (t, d),  # glDepthRange(0, 1): (z_ndc + 1)/2; textures start bottom-left
+    "d3d": lambda t, d: (1 - t, d),  # NDC z in [0, 1]; texture origin top-left (v = 0.5 - 0.5 y)
+    "vulkan": lambda t, d: (1 - t, d),  # NDC y down, z in [0, 1]; origin top-left
+    # URP ShadowUtils.GetShadowTransform: the projection's z row negated when usesReversedZBuffer
+    # (Direct3D 11/12, Vulkan, Metal), then scale and bias 0.5: v = 0.5 y + 0.5, depth 1 near, 0 far
+    "unity": lambda t, d: (t, 1 - d),
+    # Unreal: reversed Z (near 1, far 0), D3D texture origin top-left
+    "unreal": lambda t, d: (1 - t, 1 - d),
+    # Godot 4.3+: reverse Z, Vulkan clip (y flipped by the depth correction), uv = ndc * 0.5 + 0.5
+    "godot": lambda t, d: (1 - t, 1 - d),
+    # three.js: shadow.matrix = scale-and-bias 0.5 · projection · view, WebGL depth [-1, 1] -> [0, 1]
+    "three": lambda t, d: (t, d),
+    # Bevy: reverse Z (near 1, far 0), shadows.wgsl uv = ndc.xy * (0.5, -0.5) + 0.5
+    "bevy": lambda t, d: (1 - t, 1 - d),
+    # Filament ShadowMap::getTextureCoordsMapping: v = 0.5 y + 0.5, depth mapped to [1, 0]
+    "filament": lambda t, d: (t, 1 - d),
+}
+# Which engines take the OpenGL-convention projection in their API and convert it to their GPU clip
+# themselves (Unity: Camera.projectionMatrix / CommandBuffer.SetViewProjectionMatrices and
+# GL.GetGPUProjectionMatrix; Filament: Camera::setCustomProjection), so projection · view of a point gives
+# OpenGL's NDC; every other preset's projection is the GPU's clip matrix of the map it samples.
+OPENGL_PROJECTION = {"unity", "filament"}
+# The light view space each engine's view matrices map to: OpenGL's eye space looks down -Z (three.js,
+# Godot, Bevy, Filament, Unity's worldToCameraMatrix); Unreal's view space is left-handed, looking down +Z.
+LOOKS_DOWN_PLUS_Z = {"unreal"}
+
+
+def decode(flat, engine: str):
+    """The 16 numbers as the engine reads them, applied to a point: every preset here documents a
+    column-major array of a matrix acting on column vectors (GLSL mat4, HLSL column_major packing, glam,
+    three.js Matrix4.elements, Unity Matrix4x4, Godot Projection columns, filament mat4f), except Unreal,
+    whose FMatrix M[row][col] (memory row-major) multiplies row vectors: v' = v * M."""
+    a = np.asarray(flat, dtype=np.float64)
+    if engine == "unreal":
+        fm = a.reshape(4, 4)  # FMatrix.M[r][c] = flat[4 r + c]
+        return lambda p: np.append(p, 1.0) @ fm
+    m = a.reshape(4, 4).T  # column-major: flat[i + 4 j] = M[i][j]
+    return lambda p: m @ np.append(p, 1.0)
+
+
+# A light above the origin looking straight down (-Y): light-view x = world x, y = -world z, the light
+# 10 m up; its ortho box [-5, 5] x [-4, 4], depths 1..21 m; its frustum for the perspective case.
+LIGHT_VIEW = np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, -10], [0, 0, 0, 1]])
+L, R, B, T, N, F = -5.0, 5.0, -4.0, 4.0, 1.0, 21.0
+
+
+def gl_ortho(l, r, b, t, n, f):  # glOrtho reference page
+    return np.array([[2 / (r - l), 0, 0, -(r + l) / (r - l)], [0, 2 / (t - b), 0, -(t + b) / (t - b)],
+                     [0, 0, -2 / (f - n), -(f + n) / (f - n)], [0, 0, 0, 1.0]])
+
+
+def gl_frustum(l, r, b, t, n, f):  # glFrustum reference page
+    return np.array([[2 * n / (r - l), 0, (r + l) / (r - l), 0], [0, 2 * n / (t - b), (t + b) / (t - b), 0],
+                     [0, 0, -(f + n) / (f - n), -2 * f * n / (f - n)], [0, 0, -1.0, 0]])
+
+
+POINTS = np.array([[0.0, 0.0, 0.0], [2.0, -3.0, 1.5], [-4.0, 5.0, -3.0], [4.5, 8.5, 3.9], [-1.0, -10.5, 0.2]])
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+@pytest.mark.parametrize("kind", ["ortho", "frustum"])
+def test_engine_frame_points_land_on_documented_texels_and_depths(engine, kind):
+    P = gl_ortho(L, R, B, T, N, F) if kind == "ortho" else gl_frustum(L / 10, R / 10, B / 10, T / 10, N, F)
+    l, r, b, t = (L, R, B, T) if kind == "ortho" else (L / 10, R / 10, B / 10, T / 10)
+    out = export_matrices(LIGHT_VIEW, P, engine=engine)
+    view, proj, tex = (decode(out[k], engine) for k in ("view_matrix", "projection_matrix", "texture_matrix"))
+    fm_proj = np.asarray(out["projection_matrix"], float)
+    for p in POINTS:
+        x, y, z = p
+        if kind == "ortho":
+            s, t_gl, D = (x - l) / (r - l), (-z - b) / (t - b), ((10 - y) - N) / (F - N)
+        else:
+            d = 10 - y
+            s, t_gl, D = (x * N / d - l) / (r - l), (-z * N / d - b) / (t - b), (1 / N - 1 / d) / (1 / N - 1 / F)
+        pe = np.array(TO_ENGINE[engine](x, y, z), dtype=np.float64)
+        want_t, want_depth = TEXTURE[engine](t_gl, D)
+        h = tex(pe)
+        assert h[:3] / h[3] == pytest.approx([s, want_t, want_depth], abs=1e-9), (engine, p)
+        # the light view: the light 10 m up looks down; its depth axis per the engine's view space
+        v = view(pe)
+        depth_axis = v[2] if engine in LOOKS_DOWN_PLUS_Z else -v[2]
+        assert depth_axis == pytest.approx((10 - y) * UNIT[engine], rel=1e-12, abs=1e-9)
+        # projection · view: what the light pass rasterizes
+        if engine == "unreal":
+            c = v @ fm_proj.reshape(4, 4)
+        else:
+            c = np.asarray(fm_proj).reshape(4, 4).T @ v
+        ndc = c[:3] / c[3]
+        if engine in OPENGL_PROJECTION:  # OpenGL NDC; the engine reverses depth itself
+            assert ndc == pytest.approx([2 * s - 1, 2 * t_gl - 1, 2 * D - 1], abs=1e-9)
+        elif engine in ("opengl", "three"):  # window z = (z_ndc + 1)/2
+            assert ndc == pytest.approx([2 * s - 1, 2 * t_gl - 1, 2 * want_depth - 1], abs=1e-9)
+        else:  # NDC z in [0, 1] is the stored depth; Vulkan-style clip (Vulkan, Godot) has y down
+            y_ndc = -(2 * t_gl - 1) if engine in ("vulkan", "godot") else 2 * t_gl - 1
+            assert ndc == pytest.approx([2 * s - 1, y_ndc, want_depth], abs=1e-9)
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_view_matrix_is_the_engine_kind_of_view(engine):
+    """A rigid light view in the engine's units (Unreal's in centimetres): Unreal's (left-handed view of a left-handed world) and the
+    right-handed engines' are proper rotations; Unity's worldToCameraMatrix maps its left-handed world to
+    OpenGL's right-handed camera space, a mirror (determinant < 0), as Unity documents."""
+    out = export_matrices(LIGHT_VIEW, gl_ortho(L, R, B, T, N, F), engine=engine)
+    a = np.asarray(out["view_matrix"], float).reshape(4, 4)
+    m = a if engine == "unreal" else a.T  # both: the 3x3 block's determinant is the same
+    assert np.allclose(m[:3, :3] @ m[:3, :3].T, np.eye(3), atol=1e-12)  # rigid in the engine's own units
+    assert np.linalg.det(m[:3, :3]) == pytest.approx(-1.0 if engine == "unity" else 1.0, abs=1e-12)
+
+
+@pytest.fixture(scope="module")
+def demo():
+    from shadowopt.service.pipeline import scene_entry
+
+    return scene_entry(REPO / "configs" / "demo_scene.usda")
+
+
+def _rig(output: dict, cascades: int = 2) -> dict:
+    from shadowopt.api.schemas import validate_rig
+
+    rig = json.loads((REPO / "configs" / "demo_rig.json").read_text())
+    rig["shadow"] = {"resolution": [512, 512], "cascades": cascades}
+    rig["coarse_long_side"] = 96
+    rig["output"] = output
+    return validate_rig(rig)
+
+
+@pytest.fixture(scope="module")
+def world_solution(demo):
+    from shadowopt.service.solve import solve
+
+    return solve(demo, _rig({}), "focused")
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_every_preset_reads_back_exactly_and_states_its_convention(demo, world_solution, engine):
+    from shadowopt.service.solve import maps_from_solution, solve
+
+    sol = json.loads(json.dumps(solve(demo, _rig({"engine": engine}), "focused")))  # through JSON, as served
+    conv = sol["convention"]
+    assert conv["engine"] == engine and conv["frame"] == "engine"
+    assert (conv["handedness"], conv["up_axis"]) == {"unity": ("left", "+Y"), "unreal": ("left", "+Z")}.get(
+        engine, ("right", "+Y"))
+    assert conv["length_unit"] == ("centimetres" if engine == "unreal" else "metres")
+    assert conv["reversed_z"] == (TEXTURE[engine](0.0, 0.0)[1] == 1.0)
+    assert conv["texture_origin"] == ("bottom-left" if TEXTURE[engine](0.0, 0.0)[0] == 0.0 else "top-left")
+    ref = maps_from_solution(world_solution)[0]
+    got = maps_from_solution(sol)[0]
+    assert len(got) == len(ref) == 2
+    for a, b, c, c0 in zip(ref, got, sol["lights"][0]["cascades"], world_solution["lights"][0]["cascades"]):
+        assert np.array_equal(a.view, b.view) and np.array_equal(a.projection, b.projection)
+        assert (a.split, a.light_depth, a.blend_band, a.n_prime, a.eta) == (b.split, b.light_depth, b.blend_band,
+                                                                           b.n_prime, b.eta)
+        assert a.depth == b.depth and a.depth_bias == b.depth_bias
+        # the solution's own lengths are in the engine's unit
+        k = UNIT[engine]
+        assert c["split"] == pytest.approx([v * k for v in c0["split"]], rel=1e-12)
+        assert c["light_depth"] == pytest.approx([v * k for v in c0["light_depth"]], rel=1e-12)
+        if c0["blend_band"] is not None:
+            assert c["blend_band"] == pytest.approx([v * k for v in c0["blend_band"]], rel=1e-12)
+        for mode, keys in (("hardware", ("constant", "slope", "normal_offset")),
+                           ("linear", ("constant", "slope", "normal_offset", "near", "far"))):
+            for key in keys:
+                scale = k if key in ("normal_offset", "near", "far") else 1.0
+                assert c["depth"][mode][key] == pytest.approx(c0["depth"][mode][key] * scale, rel=1e-12)
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_a_scene_point_through_a_real_solution(demo, world_solution, engine):
+    """A point on a texel's light ray of the demo's first cascade (a quarter of the way from its near plane,
+    an orthographic map: D = 0.25), given in the engine's frame, through the returned texture matrix."""
+    from shadowopt.service.solve import maps_from_solution, solve
+
+    sol = solve(demo, _rig({"engine": engine}, cascades=1), "focused")
+    smap = maps_from_solution(sol)[0][0]
+    assert smap.warp_kind == "none" and abs(smap.projection[3, 2]) == 0.0  # orthographic
+    s, t = 0.3125, 0.6875
+    near, far = smap.texel_rays(np.array([s]), np.array([t]))
+    p = 0.75 * near[0] + 0.25 * far[0]
+    pe = np.array(TO_ENGINE[engine](*p), dtype=np.float64)
+    h = decode(sol["lights"][0]["cascades"][0]["texture_matrix"], engine)(pe)
+    want_t, want_depth = TEXTURE[engine](t, 0.25)
+    assert h[:3] / h[3] == pytest.approx([s, want_t, want_depth], abs=1e-7)
+
+
+@pytest.mark.parametrize("output, fields", [
+    ({"engine": "unity", "convention": "d3d"}, ("output.engine", "output.convention")),
+    ({"engine": "bevy", "reversed_z": False}, ("output.engine", "output.reversed_z")),
+    ({"engine": "unreal", "layout": "row_major"}, ("output.engine", "output.layout")),
+    ({"engine": "unreal", "frame": "world"}, ("output.engine", "output.frame")),
+    ({"engine": "three", "frame": "stage"}, ("output.engine", "output.frame")),
+])
+def test_a_contradicting_field_is_refused_naming_both(output, fields):
+    from pydantic import ValidationError
+
+    from shadowopt.api.schemas import OutputSpec, format_validation_error
+
+    with pytest.raises(ValidationError) as e:
+        OutputSpec.model_validate(output)
+    msg = format_validation_error(e.value)
+    assert all(f in msg for f in fields), msg
+
+
+def test_agreeing_fields_are_accepted_and_filled():
+    from shadowopt.api.schemas import OutputSpec
+
+    o = OutputSpec.model_validate({"engine": "bevy", "convention": "d3d", "reversed_z": True, "frame": "world"})
+    assert (o.convention, o.reversed_z, o.layout) == ("d3d", True, "column_major")
+    o = OutputSpec.model_validate({"engine": "godot"})
+    assert (o.convention, o.reversed_z) == ("vulkan", True)
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # starlette's TestClient on httpx
+def test_the_rest_api_answers_422_naming_the_fields(tmp_path):
+    from starlette.testclient import TestClient
+
+    from shadowopt.api.server import create_app
+    from shadowopt.api.settings import Settings
+
+    rig = json.loads((REPO / "configs" / "demo_rig.json").read_text())
+    rig["output"] = {"engine": "unity", "reversed_z": False}
+    client = TestClient(create_app(Settings(data_dir=str(tmp_path / "data"))))
+    r = client.post("/v1/optimize", json={"scene_id": "0" * 16, "rig": rig})
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert "output.engine" in err["message"] and "output.reversed_z" in err["message"]
+    assert err["field"].startswith("rig.output")
