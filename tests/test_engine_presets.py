@@ -266,3 +266,23 @@ def test_the_rest_api_answers_422_naming_the_fields(tmp_path):
     err = r.json()["error"]
     assert "output.engine" in err["message"] and "output.reversed_z" in err["message"]
     assert err["field"].startswith("rig.output")
+
+
+def test_the_engines_page_table_says_what_each_preset_sets():
+    """docs/engines.md's summary table against the preset table: handedness, up axis, unit, reversed
+    depth, texture origin and what projection_matrix holds, per engine."""
+    from shadowopt.solvers.conventions import ENGINE_PRESETS, convention_info
+
+    rows = {}
+    for line in (REPO / "docs" / "engines.md").read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 7 and cells[0].strip("`") in ENGINES:
+            rows[cells[0].strip("`")] = cells
+    assert set(rows) == set(ENGINES)
+    for engine, (_, frame, _, rev, origin, proj, _) in rows.items():
+        info = convention_info({"engine": engine})
+        unit = {"metres": "m", "centimetres": "cm"}[info["length_unit"]]
+        assert frame == f"{info['handedness']}, {info['up_axis']}, {unit}", engine
+        assert rev == ("yes" if info["reversed_z"] else "no"), engine
+        assert origin == info["texture_origin"], engine
+        assert proj.split()[0] == {"clip": "clip", "opengl": "OpenGL"}[ENGINE_PRESETS[engine]["projection"]], engine
