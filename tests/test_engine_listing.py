@@ -41,13 +41,28 @@ def test_the_document_has_every_listing_piece_once():
     assert "allow_log_warp" in E.DOC.read_text()  # the one sentence saying the log warp is not covered
 
 
+_RESULTS: dict = {}
+
+
+def _listing_result(scene, cascades):
+    """One solution, ground truth and OpenGL run per (scene, cascades), shared by both languages' tests."""
+    if (scene, cascades) not in _RESULTS:
+        _RESULTS[(scene, cascades)] = _measure(scene, cascades)
+    return _RESULTS[(scene, cascades)]
+
+
+@pytest.mark.parametrize("language", E.LANGUAGES)
 @pytest.mark.parametrize("cascades", [1, 4])
 @pytest.mark.parametrize("scene", SCENES)
-def test_pasted_listing_matches_evaluate_depth(scene, cascades):
-    r = _measure(scene, cascades)
+def test_pasted_listing_matches_evaluate_depth(scene, cascades, language):
+    if language not in LANGUAGES:
+        pytest.skip(f"the HLSL listings were not rendered: {E.hlsl_tools()}")
+    r = _listing_result(scene, cascades)
     assert r["receivers"] > 10_000
     bad = []
-    for name, v in r["listing"].items():
+    jobs = {k: v for k, v in r["listing"].items() if k.startswith(language + "_")}
+    assert len(jobs) == len(E.CONVENTIONS) * len(MODES)
+    for name, v in jobs.items():
         mode = name.rsplit("_", 1)[1]
         ev = r["evaluate"][mode]
         # Silhouette pixels where the rasterizer sees another surface than the ray tracer are left out: few.
@@ -55,8 +70,12 @@ def test_pasted_listing_matches_evaluate_depth(scene, cascades):
         if v["wrong"] > 1.25 * ev:
             bad.append(f"{name}: listing {v['wrong']} wrong pixels vs evaluate --depth {mode} {ev}")
     assert not bad, f"{scene}, {cascades} cascade(s), {r['receivers']} receivers: " + "; ".join(bad)
-    # The sizes are what the test claims: every map at MAP^2, the cascades asked for.
     assert r["cascades"] == cascades and r["screen"] == list(SCREEN)
+    # What the document says a solution echoes: the light and camera it was solved for (world frame).
+    for conv, echo in r["resolved"].items():
+        assert echo["lights"][0]["direction"] == pytest.approx(r["light"]["direction"], abs=1e-9), conv
+        for key in ("position", "forward", "fov_y_deg"):
+            assert echo["camera"][key] == pytest.approx(r["camera"][key], abs=1e-9), (conv, key)
 
 
 def test_a_wrong_listing_fails_the_check():
@@ -67,17 +86,18 @@ def test_a_wrong_listing_fails_the_check():
     flip = "bool shadowed = uParams.y > 0.5 ? d + bias < stored : d - bias > stored;"
     assert flip in lookup
     broken = {"glsl": dict(src["glsl"], **{"shadow-lookup": lookup.replace(flip, "bool shadowed = d - bias > stored;")})}
-    r = _measure("street_canyon", 1, languages=("glsl",), modes=("solution",), sources=broken,
+    hlsl_flip = "bool shadowed = gParams.y > 0.5 ? d + bias < stored : d - bias > stored;"
+    assert hlsl_flip in src["hlsl"]["shadow-lookup"]
+    broken["hlsl"] = dict(src["hlsl"], **{"shadow-lookup": src["hlsl"]["shadow-lookup"].replace(
+        hlsl_flip, "bool shadowed = d - bias > stored;")})
+    r = _measure("street_canyon", 1, languages=LANGUAGES, modes=("solution",), sources=broken,
                  conventions=("reversed_z",))
-    ev, got = r["evaluate"]["solution"], r["listing"]["glsl_reversed_z_solution"]["wrong"]
-    assert got > 10 * max(ev, 1), (got, ev)
+    ev = r["evaluate"]["solution"]
+    for lang in LANGUAGES:
+        got = r["listing"][f"{lang}_reversed_z_solution"]["wrong"]
+        assert got > 10 * max(ev, 1), (lang, got, ev)
     no_bias = {"glsl": dict(src["glsl"], **{"shadow-lookup": lookup.replace(
         "float bias = uDepth[k].x + uDepth[k].y * tanPsi;", "float bias = 0.0;")})}
     r = _measure("terrain", 1, languages=("glsl",), modes=("solution",), sources=no_bias, conventions=("opengl",))
     ev, got = r["evaluate"]["solution"], r["listing"]["glsl_opengl_solution"]["wrong"]
     assert got > 1.25 * ev, (got, ev)
-
-
-@pytest.mark.skipif(E.hlsl_tools() is None, reason="glslangValidator and spirv-cross present: HLSL is rendered above")
-def test_hlsl_tools_missing():
-    pytest.skip(f"the HLSL listings were not rendered: {E.hlsl_tools()}")

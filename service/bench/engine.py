@@ -219,7 +219,11 @@ def measure(validate_rig, name: str, path, rig: dict, cascades: int, map_res: in
             f"({t1 - t0:.1f} s solve+evaluate, {t2 - t1:.1f} s OpenGL)")
     return {"scene": name, "cascades": cascades, "screen": list(camera.resolution), "map": map_res,
             "modes": sol_modes, "evaluate": evals, "listing": listing, "renderer": str(gl["renderer"]),
-            "receivers": int(gt.receivers.sum()), "seconds": t2 - t0}
+            "receivers": int(gt.receivers.sum()), "seconds": t2 - t0,
+            "resolved": {c: solved["solutions"][c]["resolved"] for c in conventions},
+            "light": {"direction": [float(x) for x in light.direction]},
+            "camera": {"position": [float(x) for x in camera.position], "forward": [float(x) for x in camera.forward],
+                       "fov_y_deg": float(camera.fov_y_deg)}}
 
 
 def bench_engine(validate_rig, scenes=None, write=True, map_res=2048, screen=None, log=None) -> dict:
