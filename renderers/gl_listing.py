@@ -14,7 +14,7 @@ IN.npz: `vertices` (V, 3) float32 (already re-centred: every matrix below acts o
     {"camera": {"view": M, "projection": M, "resolution": [w, h]},      # OpenGL clip space, row 0 = top
      "sources": {"glsl": {piece: text}, "hlsl": {piece: text}},          # the document's listings by tag
      "jobs": [{"name": str, "language": "glsl" | "hlsl",
-               "clip": "opengl" | "d3d" | "reversed_z",                  # how the light pass is rasterized
+               "clip": "opengl" | "d3d" | "vulkan" | "reversed_z",       # how the light pass is rasterized
                "to_light": [x, y, z],                                    # unit vector towards the sun
                "maps": [{"view_matrix": M, "view_projection": M, "texture_matrix": M,
                          "resolution": [w, h], "split": [a, b], "blend_band": [a, b] | null,
@@ -23,7 +23,9 @@ IN.npz: `vertices` (V, 3) float32 (already re-centred: every matrix below acts o
 
 M: 16 numbers, row-major, acting on column vectors. `clip`: opengl = the default clip control (z in
 [-w, w], window depth (z_ndc + 1)/2), d3d = glClipControl(GL_UPPER_LEFT, GL_ZERO_TO_ONE) (Direct3D's
-clip space and texture origin), reversed_z = that, with the depth test GREATER and the map cleared to 0.
+clip space and texture origin), vulkan = glClipControl(GL_LOWER_LEFT, GL_ZERO_TO_ONE) (Vulkan's NDC y
+points down and its framebuffer row 0 is at NDC y = -1, which is OpenGL's lower-left row order), reversed_z =
+d3d with the depth test GREATER and the map cleared to 0.
 OUT.npz: `hit` (h, w) bool, `position` (h, w, 3) float32 (re-centred), `view_depth` (h, w) float32, and per
 job `shadow_<name>` (h, w) float32 visibility in [0, 1] (1 lit), row 0 at the top as the camera sees it;
 `renderer` the GL_RENDERER string.
@@ -47,6 +49,10 @@ GL_FLOAT = 0x1406
 GL_LOWER_LEFT, GL_UPPER_LEFT = 0x8CA1, 0x8CA2
 GL_NEGATIVE_ONE_TO_ONE, GL_ZERO_TO_ONE = 0x935E, 0x935F
 MAX_CASCADES = 4  # the listing's array size
+# glClipControl(origin, depth) per convention (OpenGL 4.5 §13.7): Direct3D's clip z in [0, w] and row 0 at
+# NDC y = +1 (upper left); Vulkan's z in [0, w] with its y already pointing down (lower-left row order).
+CLIP_CONTROL = {"opengl": (GL_LOWER_LEFT, GL_NEGATIVE_ONE_TO_ONE), "d3d": (GL_UPPER_LEFT, GL_ZERO_TO_ONE),
+                "vulkan": (GL_LOWER_LEFT, GL_ZERO_TO_ONE), "reversed_z": (GL_UPPER_LEFT, GL_ZERO_TO_ONE)}
 
 # The harness around the document's pieces (not part of the document): the camera pass.
 CAMERA_VERTEX = """#version 330 core
@@ -252,10 +258,9 @@ class Harness:
         fbo.viewport = (0, 0, w, h)
         ctx.enable(self.mgl.DEPTH_TEST)
         ctx.enable_direct(GL_DEPTH_CLAMP)  # casters in front of the near plane are pancaked onto it
-        if clip == "opengl":
-            self.gl.clip_control(GL_LOWER_LEFT, GL_NEGATIVE_ONE_TO_ONE)
-        else:  # Direct3D's clip space and texture origin
-            self.gl.clip_control(GL_UPPER_LEFT, GL_ZERO_TO_ONE)
+        if clip not in CLIP_CONTROL:
+            raise ValueError(f"clip must be one of {', '.join(CLIP_CONTROL)}, got {clip!r}")
+        self.gl.clip_control(*CLIP_CONTROL[clip])
         ctx.depth_func = ">" if reversed_z else "<"
         fbo.clear(depth=0.0 if reversed_z else 1.0)
         vao.render(self.mgl.TRIANGLES)

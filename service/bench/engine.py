@@ -23,7 +23,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 DOC = ROOT / "docs" / "engine-integration.md"
 MCUSD = ROOT.parent / "shared" / "usd-assets" / "full_assets" / "McUsd" / "McUsd.usda"
-CONVENTIONS = {"opengl": ("opengl", False), "d3d": ("d3d", False), "reversed_z": ("d3d", True)}
+CONVENTIONS = {"opengl": ("opengl", False), "d3d": ("d3d", False), "vulkan": ("vulkan", False),
+               "reversed_z": ("d3d", True)}
 LANGUAGES = ("glsl", "hlsl")
 ENGINE_MODES = ("solution", "hardware", "linear")  # evaluate --depth choices an engine can follow
 # Corpus scenes with a sun of their own here (the corpus rigs give only a camera).
