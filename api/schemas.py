@@ -266,12 +266,15 @@ class ShadowMapSolution(_Open):
     """One shadow map (a cascade, or a cube face of a point light): matrices in the requested convention,
     layout and frame, and what they cover."""
 
-    view_matrix: Matrix16 = Field(description="world (or stage) -> light view, 16 numbers in `layout` order")
+    view_matrix: Matrix16 = Field(description="world (or stage, or the engine preset's frame) -> light view, 16 "
+                                  "numbers in `layout` order")
     projection_matrix: Matrix16 = Field(description="light view -> clip space of the convention")
-    texture_matrix: Matrix16 | None = Field(None, description="world (or stage) -> shadow-map texture coordinates")
+    texture_matrix: Matrix16 | None = Field(None, description="world (or stage, or the engine preset's frame) -> "
+                                            "shadow-map texture coordinates and depth")
     resolution: tuple[int, int]
-    split: tuple[float | None, float | None] = Field(description="the camera view-depth range this map serves, "
-                                                     "metres (null: unbounded, e.g. a point light's faces)")
+    split: tuple[float | None, float | None] = Field(description="the camera view-depth range this map serves, in "
+                                                     "the solution's convention.length_unit (metres unless an engine "
+                                                     "preset says otherwise; null: unbounded, e.g. a point light's faces)")
     light_depth: tuple[float | None, float | None] | None = Field(None, description="the light view's near and "
                                                                   "far depth")
     warp: Warp = Warp()
