@@ -282,3 +282,21 @@ def test_reversed_z_near_is_one_far_is_zero(P):
     assert np.array_equal(clip_from_canonical("opengl", True), np.diag([1.0, 1.0, -1.0, 1.0]))
     out = export_matrices(np.eye(4), P, "vulkan", "row_major", reversed_z=True)
     assert np.allclose(from_layout(out["projection_matrix"], "row_major"), clip_from_canonical("vulkan", True) @ P)
+
+
+def test_texture_origin_override_and_convention_info():
+    from shadowopt.solvers.conventions import convention_info
+
+    # an engine that samples a d3d-clip map bottom-left: t = 0.5 + 0.5 y; depth passes through
+    assert np.array_equal(texture_from_clip("d3d", "bottom-left"), [[.5, 0, 0, .5], [0, .5, 0, .5], [0, 0, 1, 0], [0, 0, 0, 1]])
+    # Vulkan's NDC y points down: bottom-left is t = 0.5 - 0.5 y_vk
+    assert np.array_equal(texture_from_clip("vulkan", "bottom-left")[1], [0, -.5, 0, .5])
+    assert np.array_equal(texture_from_clip("opengl", "top-left")[1], [0, -.5, 0, .5])
+    with pytest.raises(ValueError, match="texture_origin"):
+        texture_from_clip("opengl", "centre")
+    # the plain conventions in the world frame; a Z-up centimetre stage: +Z up, right-handed, lengths in metres
+    info = convention_info({"convention": "vulkan", "reversed_z": True})
+    assert (info["frame"], info["handedness"], info["up_axis"], info["length_unit"], info["texture_origin"],
+            info["reversed_z"], info["engine"]) == ("world", "right", "+Y", "metres", "top-left", True, None)
+    info = convention_info({"frame": "stage"}, stage_to_world("Z", 0.01))
+    assert (info["frame"], info["handedness"], info["up_axis"], info["length_unit"]) == ("stage", "right", "+Z", "metres")
