@@ -8,7 +8,8 @@ nothing but NumPy and moderngl for that reason.
 IN.npz: vertices (V, 3) float32 (already re-centred), faces (F, 3) uint32, matrix (4, 4) float64
 world->clip acting on those vertices (column vectors), resolution (2,), depth_clamp (bool), and
 clip_z ("neg_one_to_one" for OpenGL's clip space, or "zero_to_one" for Direct3D/Vulkan ones,
-emulated by remapping z in the vertex shader). OUT.npz: depth (height, width) float32 window depth
+emulated by remapping z in the vertex shader), optionally reversed_z (bool: the projection puts the near
+plane at depth 1: depth test GREATER, cleared to 0). OUT.npz: depth (height, width) float32 window depth
 in [0, 1], row 0 at the bottom (t = 0), as the framebuffer stores it.
 """
 from __future__ import annotations
@@ -37,7 +38,8 @@ void main() { }
 """
 
 
-def rasterize_depth(vertices, faces, matrix, resolution, depth_clamp=True, clip_z="neg_one_to_one"):
+def rasterize_depth(vertices, faces, matrix, resolution, depth_clamp=True, clip_z="neg_one_to_one",
+                    reversed_z=False):
     import moderngl
 
     ctx = moderngl.create_standalone_context(backend="egl")
@@ -57,7 +59,9 @@ def rasterize_depth(vertices, faces, matrix, resolution, depth_clamp=True, clip_
         ctx.enable(moderngl.DEPTH_TEST)
         if depth_clamp:
             ctx.enable_direct(GL_DEPTH_CLAMP)  # "pancaking": casters in front of the near plane clamp to it
-        fbo.clear(depth=1.0)
+        if reversed_z:  # near at 1, far at 0 (Reed 2015, "Depth Precision Visualized")
+            ctx.depth_func = ">"
+        fbo.clear(depth=0.0 if reversed_z else 1.0)
         vao.render(moderngl.TRIANGLES)
         ctx.finish()
         data = np.frombuffer(depth.read(alignment=1), dtype=np.float32).reshape(h, w)
@@ -73,7 +77,8 @@ def main(argv=None) -> int:
         return 2
     d = np.load(argv[0])
     depth, renderer = rasterize_depth(d["vertices"], d["faces"], d["matrix"], d["resolution"],
-                                      bool(d["depth_clamp"]), str(d["clip_z"]))
+                                      bool(d["depth_clamp"]), str(d["clip_z"]),
+                                      bool(d["reversed_z"]) if "reversed_z" in d.files else False)
     np.savez(argv[1], depth=depth, renderer=renderer)
     return 0
 

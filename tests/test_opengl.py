@@ -19,10 +19,10 @@ from shadowopt.solvers.conventions import from_layout
 REPO = Path(__file__).resolve().parents[1]
 
 
-def gl_depth(tmp_path, vertices, faces, matrix, resolution, clip_z):
+def gl_depth(tmp_path, vertices, faces, matrix, resolution, clip_z, reversed_z=False):
     src, out = tmp_path / "in.npz", tmp_path / "out.npz"
     np.savez(src, vertices=vertices.astype(np.float32), faces=faces.astype(np.uint32), matrix=matrix,
-             resolution=np.array(resolution), depth_clamp=True, clip_z=clip_z)
+             resolution=np.array(resolution), depth_clamp=True, clip_z=clip_z, reversed_z=reversed_z)
     p = subprocess.run([sys.executable, "-m", "shadowopt.renderers.gl_check", str(src), str(out)],
                        capture_output=True, text=True, timeout=300)
     if p.returncode != 0 and ("EGL" in p.stderr or "moderngl" in p.stderr):
@@ -33,12 +33,13 @@ def gl_depth(tmp_path, vertices, faces, matrix, resolution, clip_z):
     return d["depth"]
 
 
-@pytest.mark.parametrize("convention", ["opengl", "d3d", "vulkan"])
-def test_gl_rasterized_depths_match_the_ray_cast_map(tmp_path, convention):
+@pytest.mark.parametrize("convention,reversed_z", [("opengl", False), ("d3d", False), ("vulkan", False),
+                                                   ("d3d", True)])
+def test_gl_rasterized_depths_match_the_ray_cast_map(tmp_path, convention, reversed_z):
     rig = json.loads((REPO / "configs" / "demo_rig.json").read_text())
     from shadowopt.api.cli import validate_rig
 
-    rig["output"] = {"convention": convention, "layout": "column_major"}
+    rig["output"] = {"convention": convention, "layout": "column_major", "reversed_z": reversed_z}
     rig = validate_rig(rig)
     entry = scene_entry(REPO / "configs" / "demo_scene.usda")
     sol = solve(entry, rig, "focused")
@@ -55,7 +56,7 @@ def test_gl_rasterized_depths_match_the_ray_cast_map(tmp_path, convention):
     t[:3, 3] = rs.origin
     verts = entry.loaded.geometry.vertices - rs.origin
     depth = gl_depth(tmp_path, verts, entry.loaded.geometry.faces, proj @ view @ t, res,
-                     "neg_one_to_one" if convention == "opengl" else "zero_to_one")
+                     "neg_one_to_one" if convention == "opengl" else "zero_to_one", reversed_z)
     if convention == "vulkan":
         # Vulkan's NDC y points down: its framebuffer row 0 is the map's top (t = 1). OpenGL stores
         # rows bottom-up, so the Vulkan image arrives upside down here; flip it back.
@@ -67,6 +68,8 @@ def test_gl_rasterized_depths_match_the_ray_cast_map(tmp_path, convention):
     h, w = res
     jj, ii = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
     s, tt = (ii + 0.5) / w, (jj + 0.5) / h
+    if reversed_z:  # near plane at 1, far at 0, cleared to 0: back to the usual order
+        depth = 1.0 - depth
     covered = depth < 1.0
     z_ndc = 2.0 * depth - 1.0 if convention == "opengl" else depth  # engine NDC z
     if convention != "opengl":
