@@ -19,10 +19,17 @@ derivative of D along the light ray at X_i. An engine has one constant and one s
 so c = kc Q, s = ks Q with Q the PERCENTILE-th percentile of q_i over the map's receivers: every
 receiver with q_i <= Q gets at least its requirement, whatever its psi. normal_offset is 0.
 
-Mode: hardware, unless the map is log-warped (t' = c0 log(c1 t + c2) is not a projective map, so
-its light pass is a custom one anyway: linear), or hardware's spread of q (its P95 / P5 over the
-receivers: how far a single constant is from each receiver's need) exceeds SPREAD_MAX and is more
-than SPREAD_RATIO times linear's (perspective spot and cube maps, strong warps where tau follows t).
+Mode: hardware, unless
+- the map is log-warped (t' = c0 log(c1 t + c2) is not a projective map, so its light pass is a
+  custom one anyway): linear;
+- a D32F depth buffer cannot hold window z finely enough: the bias kc q_i at the receivers' 5th
+  percentile is below MIN_ULPS float32 steps at their stored depth (a perspective spot or cube map
+  with its near plane close to the light crowds window z against 1): linear;
+- hardware's spread of q (P95 / P5 over the receivers: how far one constant is from each receiver's
+  need) exceeds SPREAD_MAX and is more than SPREAD_RATIO times linear's. For the perspective warp
+  (Z = z / (y - y_c), dD/dd ~ 1 / (y - y_c)) and texel sides ~ (y - y_c) along s, ~ (y - y_c)^2 along t,
+  q_hardware varies as 1 or (y - y_c) and q_linear as (y - y_c) or (y - y_c)^2, so hardware's spread is
+  never the larger there: the rule is a guard for maps built otherwise.
 """
 from __future__ import annotations
 
@@ -37,6 +44,7 @@ SPREAD_PERCENTILES = (5.0, 95.0)  # spread = P95(q) / P5(q)
 SPREAD_MAX = 4.0  # hardware is kept while its spread is at most this ...
 SPREAD_RATIO = 1.5  # ... or at most this times linear's
 SAMPLE = 2048  # receivers measured per map (a seeded random subset of more)
+MIN_ULPS = 8.0  # hardware needs its constant bias at the 5th-percentile receiver >= this many float32 steps
 
 
 def hardware_depth(smap: ShadowMap, pts: np.ndarray) -> np.ndarray:
@@ -123,17 +131,20 @@ def _spread(q: np.ndarray) -> float:
     return float(hi / lo) if lo > 0 else float("inf")
 
 
-def depth_block(smap: ShadowMap, receivers: np.ndarray, light, percentile: float = PERCENTILE) -> dict:
+def depth_block(smap: ShadowMap, receivers: np.ndarray, light, percentile: float | None = None) -> dict:
     """The map's `depth` block: {mode, reason, hardware: {constant, slope, normal_offset},
-    linear: {constant, slope, normal_offset, near, far}} (module doc)."""
+    linear: {constant, slope, normal_offset, near, far}, spread, percentile} (module doc; percentile
+    default PERCENTILE)."""
     from .baselines import BIAS_CONSTANT_TEXELS as KC, BIAS_SLOPE_TEXELS as KS
+
+    percentile = PERCENTILE if percentile is None else float(percentile)
 
     pts = np.asarray(receivers, float).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     if len(pts) > SAMPLE:
         pts = pts[seeded_rows(len(pts), SAMPLE)]
     near, far = linear_range(smap)
-    blocks, spreads = {}, {}
+    blocks, spreads, ulps = {}, {}, float("inf")
     for mode in MODES:
         q = requirement_scale(smap, mode, pts, light, near, far) if len(pts) else np.zeros(0)
         q = q[np.isfinite(q) & (q > 0)]
@@ -142,6 +153,14 @@ def depth_block(smap: ShadowMap, receivers: np.ndarray, light, percentile: float
                 a, b = smap.texel_rays(np.array([0.5]), np.array([0.5]))
                 q = requirement_scale(smap, mode, 0.999 * b + 0.001 * a, light, near, far)
             q = q[np.isfinite(q) & (q > 0)]
+        if mode == "hardware" and len(pts):
+            with np.errstate(all="ignore"):
+                qi = requirement_scale(smap, mode, pts, light, near, far)
+                D = np.clip(hardware_depth(smap, pts), 0.0, 1.0)
+                steps = KC * qi / np.spacing(D.astype(np.float32)).astype(np.float64)
+            steps = steps[np.isfinite(steps) & (steps > 0)]
+            if len(steps):
+                ulps = float(np.percentile(steps, SPREAD_PERCENTILES[0]))
         Q = float(np.percentile(q, percentile)) if len(q) else 0.0
         spreads[mode] = _spread(q) if len(q) else 1.0
         blocks[mode] = {"constant": KC * Q, "slope": KS * Q, "normal_offset": 0.0}
@@ -151,6 +170,10 @@ def depth_block(smap: ShadowMap, receivers: np.ndarray, light, percentile: float
         mode = "linear"
         reason = ("linear: a log-warped map needs a custom light pass (t' = c0 log(c1 t + c2) is not a projective "
                   "transform), which writes light-space distance")
+    elif ulps < MIN_ULPS:
+        mode = "linear"
+        reason = (f"linear: window z is crowded against 1 at this map's receivers (the bias they need is {ulps:.3g} "
+                  "float32 steps at the 5th percentile), too coarse for a 32-bit depth buffer")
     elif hw > SPREAD_MAX and hw > SPREAD_RATIO * lin:
         mode = "linear"
         reason = (f"linear: the bias a window-z map needs varies {hw:.3g}x over this map's receivers "
@@ -160,4 +183,5 @@ def depth_block(smap: ShadowMap, receivers: np.ndarray, light, percentile: float
         reason = (f"hardware: one window-z bias fits this map's receivers (their need varies {hw:.3g}x, 95th/5th "
                   f"percentile; {lin:.3g}x for light-space distance)")
     return {"mode": mode, "reason": reason, **blocks,
-            "spread": {"hardware": hw, "linear": lin}, "percentile": float(percentile)}
+            "spread": {"hardware": hw, "linear": lin}, "percentile": float(percentile),
+            "hardware_float32_steps": ulps if np.isfinite(ulps) else None}

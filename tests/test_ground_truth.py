@@ -352,6 +352,34 @@ def test_device_rays_and_lookup_match_the_numpy_reference(box_scene):
         assert np.nanmax(np.abs(np.stack([u, v], -1) - ref_uv)) < 1e-6
 
 
+def test_engine_depth_lookup_matches_the_numpy_reference(box_scene):
+    """The Dr.Jit engine-faithful test (hardware and linear stored depth, float32 storage, cleared texels
+    at 1, a normal offset) is shadow_test(..., engine=...) on the same texels."""
+    from shadowopt.renderers import ground_truth as G
+    from shadowopt.renderers.mitsuba_setup import mitsuba
+    from shadowopt.solvers.depth_modes import depth_block
+
+    mi = mitsuba()
+    cam = Camera.look_at([-3.0, 6.0, 5.0], [-1.0, 0.0, 12.0], resolution=SCREEN)
+    light = DirectionalLight.make([-0.3, -0.8, 0.5])
+    sb = G.render_screen(box_scene, cam, light)
+    pts = np.vstack([sb.position[sb.receivers], box(BOX_LO, BOX_HI)[0]])
+    X_np, N_np = sb.position[sb.hit], sb.normal[sb.hit]
+    X, N = G._device_points(mi, X_np - box_scene.origin), G._device_points(mi, N_np)
+    for smap in _test_maps(light.direction, pts):
+        smap.depth = depth_block(smap, sb.position[sb.receivers], light)
+        d_occ_np = G.render_map(box_scene, light, smap)
+        d_occ = G._device_map(box_scene, light, smap)
+        for mode in ("hardware", "linear"):
+            for offset in (0.0, 0.02):
+                eng = {**G.engine_depth(smap, mode), "normal_offset": offset}
+                sh, inside, u, v = G._device_lookup(box_scene, light, smap, d_occ, X, N, 0.0, eng)
+                ref_sh, ref_out = G.shadow_test(smap, d_occ_np, X_np, N_np, light, 0.0, engine=eng)
+                assert np.count_nonzero(inside != ~ref_out) <= 1e-4 * len(sh) and 0.2 < inside.mean()
+                assert np.count_nonzero(sh != ref_sh) <= 1e-4 * len(sh) and sh.sum() > 100, (mode, offset)
+                assert np.nanmax(np.abs(np.stack([u, v], -1) - G.texel_coords(smap, X_np))) < 1e-6
+
+
 def test_a_camera_that_sees_nothing_gives_zero_counts(box_scene):
     cam = Camera.look_at([0.0, 7.0, -3.0], [0.0, 20.0, -30.0], resolution=SCREEN)  # looking at the sky
     light = DirectionalLight.make([-0.3, -0.8, 0.5])
