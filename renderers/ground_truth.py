@@ -42,6 +42,14 @@
    lit, as an engine's clamp-to-border sampler with border depth 1 would: where they are exactly
    shadowed they are also misclassified. A receiver lost by its cascade counts as outside even if
    another cascade happens to cover it (the engine would not look there).
+   Engine depth (`depth` = "solution" | "hardware" | "linear"; "ideal" is the rule above): what an
+   engine does with each map's `depth` block (solvers.depth_modes), DEPTH_RULE_ENGINE: the lookup
+   point X' = X + normal_offset N, the mode's stored depth D (hardware: window z of P V; linear:
+   (-z_view - near) / (far - near)) at X' against the texel's stored D (D at the texel ray's first hit,
+   float32-rounded and clamped to [0, 1]; the near value for pancaked casters; 1 where nothing is hit),
+   shadowed iff D(X') - (constant + slope min(tan psi, 10)) > stored D, no tolerance term; receivers
+   with s, t or D(X') outside [0, 1] are lit; cascades switch at the midpoint of each map's
+   blend_band (engine_splits). `_device_engine_lookup` and `shadow_test(..., engine=...)` implement it.
 5. misclassified = map result != exact visibility over receivers; boundary_pixels = receivers on
    the boundaries of exact visibility (`coarse.boundary_mask` at full resolution, radius 0).
 6. measured_error: per pixel, the serving map's texel coordinates u = (s * width, t * height)

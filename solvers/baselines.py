@@ -56,6 +56,9 @@ For engines that can only set a bias in metres, fixed_constant_m and fixed_slope
 times the 95th percentile of the texel size (the longer side of a texel in the plane perpendicular
 to the light, from the map's own Jacobian) over the map's receivers (`texel_world_size`).
 A map with no receiver inside (an empty cube face) uses the size at the far end of its central ray.
+What an engine applies instead (no per-texel τ): each map's `depth` block (solvers.depth_modes.depth_block,
+set with depth_bias by _with_bias): hardware or linear stored depth with a constant and slope bias in
+stored units covering this rule's requirement at the 95th percentile of the map's receivers.
 
 Fallbacks (documented, never an exception): no receivers -> fit to the scene bounds (for any
 method; no bounds either -> a 2 m box around the camera); casters_bounds None -> the receivers'
