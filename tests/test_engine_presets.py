@@ -207,7 +207,7 @@ def test_every_preset_reads_back_exactly_and_states_its_convention(demo, world_s
 
 
 @pytest.mark.parametrize("engine", ENGINES)
-def test_a_scene_point_through_a_real_solution(demo, world_solution, engine):
+def test_a_scene_point_through_a_real_solution(demo, engine):
     """A point on a texel's light ray of the demo's first cascade (a quarter of the way from its near plane,
     an orthographic map: D = 0.25), given in the engine's frame, through the returned texture matrix."""
     from shadowopt.service.solve import maps_from_solution, solve
@@ -222,6 +222,16 @@ def test_a_scene_point_through_a_real_solution(demo, world_solution, engine):
     h = decode(sol["lights"][0]["cascades"][0]["texture_matrix"], engine)(pe)
     want_t, want_depth = TEXTURE[engine](t, 0.25)
     assert h[:3] / h[3] == pytest.approx([s, want_t, want_depth], abs=1e-7)
+    # the linear light-space depth from the engine's own view matrix and the returned near/far (both in
+    # the engine's unit) is the world map's: (distance along the view axis - near) / (far - near)
+    c = sol["lights"][0]["cascades"][0]
+    lin = c["depth"]["linear"]
+    v = decode(c["view_matrix"], engine)(pe)
+    dist = v[2] if engine in LOOKS_DOWN_PLUS_Z else -v[2]
+    lin0 = smap.depth["linear"]  # the same map in world metres (read back from internal)
+    dist0 = -(smap.view @ np.append(p, 1.0))[2]
+    assert (dist - lin["near"]) / (lin["far"] - lin["near"]) == pytest.approx(
+        (dist0 - lin0["near"]) / (lin0["far"] - lin0["near"]), abs=1e-9)
 
 
 @pytest.mark.parametrize("output, fields", [
@@ -251,7 +261,7 @@ def test_agreeing_fields_are_accepted_and_filled():
     assert (o.convention, o.reversed_z) == ("vulkan", True)
 
 
-@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # starlette's TestClient on httpx
+X
 def test_the_rest_api_answers_422_naming_the_fields(tmp_path):
     from starlette.testclient import TestClient
 
