@@ -261,7 +261,7 @@ def test_agreeing_fields_are_accepted_and_filled():
     assert (o.convention, o.reversed_z) == ("vulkan", True)
 
 
-X
+@pytest.mark.filterwarnings("ignore:Using `httpx` with `starlette.testclient`")
 def test_the_rest_api_answers_422_naming_the_fields(tmp_path):
     from starlette.testclient import TestClient
 
