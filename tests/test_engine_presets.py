@@ -296,3 +296,61 @@ def test_the_engines_page_table_says_what_each_preset_sets():
         assert rev == ("yes" if info["reversed_z"] else "no"), engine
         assert origin == info["texture_origin"], engine
         assert proj.split()[0] == {"clip": "clip", "opengl": "OpenGL"}[ENGINE_PRESETS[engine]["projection"]], engine
+
+
+def _gl_depth(tmp_path, vertices, faces, matrix, resolution, clip_z, reversed_z):
+    """Window depth rasterized by real OpenGL (Mesa through EGL) in a subprocess (renderers.gl_check)."""
+    import subprocess
+    import sys
+
+    src, out = tmp_path / "in.npz", tmp_path / "out.npz"
+    np.savez(src, vertices=vertices.astype(np.float32), faces=faces.astype(np.uint32), matrix=matrix,
+             resolution=np.array(resolution), depth_clamp=True, clip_z=clip_z, reversed_z=reversed_z)
+    p = subprocess.run([sys.executable, "-m", "shadowopt.renderers.gl_check", str(src), str(out)],
+                       capture_output=True, text=True, timeout=300)
+    if p.returncode != 0 and ("EGL" in p.stderr or "moderngl" in p.stderr):
+        pytest.skip(f"no EGL/OpenGL here: {p.stderr.strip().splitlines()[-1]}")
+    assert p.returncode == 0, p.stderr
+    return np.load(out)["depth"]
+
+
+@pytest.mark.parametrize("engine", ["unreal", "godot"])
+def test_engine_frame_geometry_rasterized_by_opengl_matches_the_ray_cast_map(demo, tmp_path, engine):
+    """The demo's geometry moved into the engine's frame and units by hand (TO_ENGINE), drawn with the
+    preset's projection · view in real OpenGL with that preset's clip rules (z in [0, 1], reversed: depth
+    test GREATER, cleared to 0; Godot's Vulkan clip has y down): the stored depth is 1 - D of the ray-cast
+    map's first hits on every texel. Unreal: left-handed, Z up, centimetres, a +Z-looking view and FMatrix
+    row vectors; Godot: right-handed, Vulkan clip."""
+    from shadowopt.renderers.ground_truth import render_map
+    from shadowopt.service.rigs import resolve_rig
+    from shadowopt.service.solve import maps_from_solution, solve
+
+    rig = _rig({"engine": engine}, cascades=1)
+    sol = solve(demo, rig, "focused")
+    c = sol["lights"][0]["cascades"][0]
+    a_v, a_p = (np.asarray(c[k], float).reshape(4, 4) for k in ("view_matrix", "projection_matrix"))
+    clip = (a_v @ a_p).T if engine == "unreal" else a_p.T @ a_v.T  # as column vectors: (v M)^T = M^T v^T
+    smap = maps_from_solution(sol)[0][0]
+    res = (192, 192)
+    smap.resolution = res
+    rs = demo.rays
+    to_e = np.array([TO_ENGINE[engine](*e) for e in np.eye(3)]).T  # columns: the world axes in the engine
+    verts_e = (demo.loaded.geometry.vertices - rs.origin) @ to_e.T  # re-centred in float64 first, as an engine would
+    shift = np.eye(4)
+    shift[:3, 3] = to_e @ rs.origin
+    depth = _gl_depth(tmp_path, verts_e, demo.loaded.geometry.faces, clip @ shift, res, "zero_to_one", True)
+    if engine == "godot":
+        depth = depth[::-1]  # Vulkan-style NDC y down: framebuffer row 0 is the map's top
+    covered = depth > 0.0
+    D = 1.0 - depth  # reversed: 1 at the light's near plane
+    d_ray = render_map(rs, resolve_rig(rig, demo.loaded).lights[0], smap)
+    h, w = res
+    jj, ii = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    s, t = (ii + 0.5) / w, (jj + 0.5) / h
+    near, far = smap.texel_rays(s.ravel(), t.ravel())  # orthographic: distance along the ray = D x length
+    d_gl = (D.ravel() * np.linalg.norm(far - near, axis=1)).reshape(h, w)
+    both = covered & np.isfinite(d_ray)
+    assert both.mean() > 0.5 and np.mean(covered != np.isfinite(d_ray)) < 0.01
+    err = np.abs(d_gl - d_ray)[both]
+    span = smap.light_depth[1] - smap.light_depth[0]
+    assert np.median(err) < 1e-4 * span and np.mean(err < 1e-3 * span) > 0.97, (np.median(err), span)
