@@ -15,6 +15,9 @@ with t = 0 at the bottom. Each step an engine needs is one small function:
     stage_from(M, s2w)         (M · stage_to_world)⁻¹: the inverse for points, X (light view, clip or
                                texture coordinates, homogeneous) -> stage coordinates
     export_matrices(...)       all of the above, as the service returns them
+    engine_matrices(V, P, e)   an engine preset (ENGINE_PRESETS, output.engine): the matrices on points in
+                               that engine's world frame and units
+    output_frame / convention_info   the output's frame and length unit, and the solution's `convention`
 
 Conventions:
     opengl  clip z in [-w, w] (NDC z in [-1, 1]), NDC y up, texture origin bottom-left (t = 0 at the bottom)
