@@ -46,6 +46,7 @@ GL_TEXTURE_2D = 0x0DE1
 GL_DEPTH_COMPONENT = 0x1902
 GL_DEPTH_COMPONENT32F = 0x8CAC
 GL_FLOAT = 0x1406
+GL_TEXTURE_DEPTH_SIZE = 0x884A
 GL_LOWER_LEFT, GL_UPPER_LEFT = 0x8CA1, 0x8CA2
 GL_NEGATIVE_ONE_TO_ONE, GL_ZERO_TO_ONE = 0x935E, 0x935F
 MAX_CASCADES = 4  # the listing's array size
@@ -117,6 +118,8 @@ class _GL:
         self.bind_texture = _gl_function("glBindTexture", None, u, u)
         self.tex_image_2d = _gl_function("glTexImage2D", None, u, ctypes.c_int, ctypes.c_int, ctypes.c_int,
                                          ctypes.c_int, ctypes.c_int, u, u, ctypes.c_void_p)
+        self.tex_level_parameter = _gl_function("glGetTexLevelParameteriv", None, u, ctypes.c_int, u,
+                                                ctypes.POINTER(ctypes.c_int))
 
 
 def hlsl_to_glsl(source: str, stage: str, entry: str, inputs=(), outputs=()) -> str:
@@ -207,7 +210,11 @@ class Harness:
         tex = self.ctx.depth_texture((w, h))
         self.gl.bind_texture(GL_TEXTURE_2D, tex.glo)
         self.gl.tex_image_2d(GL_TEXTURE_2D, 0, GL_DEPTH_COMPONENT32F, w, h, 0, GL_DEPTH_COMPONENT, GL_FLOAT, None)
+        bits = ctypes.c_int(0)
+        self.gl.tex_level_parameter(GL_TEXTURE_2D, 0, GL_TEXTURE_DEPTH_SIZE, ctypes.byref(bits))
         self.gl.bind_texture(GL_TEXTURE_2D, 0)
+        if bits.value != 32:
+            raise RuntimeError(f"the depth texture has {bits.value} bits, not a D32F one")
         return tex
 
     def program(self, key, vertex: str, fragment: str | None):

@@ -52,7 +52,7 @@ def hlsl_tools() -> str | None:
                                                           "spirv-cross)")
 
 
-def scene_rigs(names=None, screen=None, map_res=1024):
+def scene_rigs(names=None, screen=None):
     """[(name, scene path, rig without shadow/output)]: McUsd with its own camera and sun (if present), and
     the corpus scenes of CORPUS_SUNS with their rigs' cameras."""
     from .suite import corpus_scenes
@@ -240,14 +240,16 @@ def bench_engine(validate_rig, scenes=None, write=True, map_res=2048, screen=Non
         for k in (1, 4):
             rows.append(measure(validate_rig, name, path, rig, k, map_res, None, languages, ENGINE_MODES, True, log))
     names = [f"{lang} {conv}" for lang in languages for conv in CONVENTIONS]
-    lines = ["| scene | cascades | screen | receivers | solution's modes | depth | evaluate ideal | **evaluate --depth** | "
-             + " | ".join(f"listing {n}" for n in names) + " |",
-             "|---|---:|---|---:|---|---|---:|---:|" + "---:|" * len(names)]
+    lines = ["| scene | cascades | screen | receivers | left out | solution's modes | depth | evaluate ideal | "
+             "**evaluate --depth** | " + " | ".join(f"listing {n}" for n in names) + " |",
+             "|---|---:|---|---:|---:|---|---|---:|---:|" + "---:|" * len(names)]
     for r in rows:
         e = r["evaluate"]
         for mode in ENGINE_MODES:
             cells = [f"{r['listing'][f'{lang}_{conv}_{mode}']['wrong']:,}" for lang in languages for conv in CONVENTIONS]
+            left_out = max(v["other_surface"] for v in r["listing"].values())
             lines.append(f"| {r['scene']} | {r['cascades']} | {r['screen'][0]}x{r['screen'][1]} | {r['receivers']:,} | "
+                         f"{left_out:,} | "
                          f"{','.join(sorted(set(r['modes'])))} | {mode} | {e['ideal']:,} | **{e[mode]:,}** | "
                          + " | ".join(cells) + " |")
     for name, why in skipped.items():
@@ -257,11 +259,12 @@ def bench_engine(validate_rig, scenes=None, write=True, map_res=2048, screen=Non
             "one optimized solution per scene and cascade count. Per depth mode (`solution`: each map's own "
             "`depth.mode`; `hardware` / `linear`: that block for every map): `evaluate --depth <mode>` in the ray "
             "tracer, and docs/engine-integration.md's listings with that mode rendered in Mesa OpenGL "
-            f"({rows[0]['renderer'] if rows else 'n/a'}) in the conventions `opengl`, `d3d` (glClipControl upper-left, depth [0, 1]) and "
-            "`reversed_z` (d3d with output.reversed_z), GLSL as printed and HLSL through glslang and SPIRV-Cross. "
+            f"({rows[0]['renderer'] if rows else 'n/a'}) in the conventions `opengl`, `d3d` (glClipControl upper-left, "
+            "depth [0, 1]), `vulkan` (glClipControl lower-left, depth [0, 1]) and `reversed_z` (d3d with "
+            "output.reversed_z), GLSL as printed and HLSL through glslang and SPIRV-Cross. "
             f"Maps {map_res}x{map_res}; suns: McUsd's own, street_canyon {CORPUS_SUNS['street_canyon']}, "
             f"terrain {CORPUS_SUNS['terrain']}. The listing is compared where the rasterized surface is the "
-            "ray-traced one (all but silhouette pixels).")
+            "ray-traced one; `left out`: the receivers where it is not (silhouettes).")
     if missing:
         note += f" HLSL not run: {missing}."
     out = {"rows": rows, "skipped": skipped, "table": note + "\n\n" + table}
