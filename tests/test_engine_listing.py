@@ -1,6 +1,6 @@
 """docs/engine-integration.md's shader listings, extracted verbatim, rendered in real OpenGL (Mesa llvmpipe
-through EGL, in a subprocess: renderers.gl_listing) in the opengl, d3d (glClipControl) and reversed-Z
-conventions, GLSL as printed and HLSL through glslang and SPIRV-Cross; their shadow against exact ray-traced
+through EGL, in a subprocess: renderers.gl_listing) in the opengl, d3d and vulkan (glClipControl) and
+reversed-Z conventions, GLSL as printed and HLSL through glslang and SPIRV-Cross; their shadow against exact ray-traced
 visibility at the same pixels must be within 1.25x of what `evaluate --depth` predicts for the same solution."""
 from __future__ import annotations
 
@@ -85,11 +85,12 @@ def test_a_wrong_listing_fails_the_check():
     lookup = src["glsl"]["shadow-lookup"]
     flip = "bool shadowed = uParams.y > 0.5 ? d + bias < stored : d - bias > stored;"
     assert flip in lookup
-    broken = {"glsl": dict(src["glsl"], **{"shadow-lookup": lookup.replace(flip, "bool shadowed = d - bias > stored;")})}
+    unflipped = "bool shadowed = d - bias > stored;"
+    broken = {"glsl": dict(src["glsl"], **{"shadow-lookup": lookup.replace(flip, unflipped)})}
     hlsl_flip = "bool shadowed = gParams.y > 0.5 ? d + bias < stored : d - bias > stored;"
     assert hlsl_flip in src["hlsl"]["shadow-lookup"]
     broken["hlsl"] = dict(src["hlsl"], **{"shadow-lookup": src["hlsl"]["shadow-lookup"].replace(
-        hlsl_flip, "bool shadowed = d - bias > stored;")})
+        hlsl_flip, unflipped)})
     r = _measure("street_canyon", 1, languages=LANGUAGES, modes=("solution",), sources=broken,
                  conventions=("reversed_z",))
     ev = r["evaluate"]["solution"]

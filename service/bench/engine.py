@@ -137,7 +137,8 @@ def listing_jobs(solved: dict, origin: np.ndarray, to_light, conventions=CONVENT
             d = c["depth"]
             m = d["mode"] if mode == "solution" else mode
             block = d[m]
-            maps.append({"view_matrix": (view @ T).ravel().tolist(), "view_projection": (proj @ view @ T).ravel().tolist(),
+            maps.append({"view_matrix": (view @ T).ravel().tolist(),
+                         "view_projection": (proj @ view @ T).ravel().tolist(),
                          "texture_matrix": (tex @ T).ravel().tolist(), "resolution": c["resolution"],
                          "split": c["split"], "blend_band": c.get("blend_band"),
                          "depth": {"mode": m, "constant": block["constant"], "slope": block["slope"],
@@ -161,7 +162,8 @@ def run_listing(vertices, faces, camera: dict, jobs: list, sources: dict, timeou
                            capture_output=True, text=True, timeout=timeout)
         if p.returncode != 0:
             tail = p.stderr.strip().splitlines()[-1] if p.stderr.strip() else ""
-            kind = "no OpenGL here: " if ("EGL" in p.stderr or "moderngl" in p.stderr) and "glslang" not in p.stderr else ""
+            no_gl = ("EGL" in p.stderr or "moderngl" in p.stderr) and "glslang" not in p.stderr
+            kind = "no OpenGL here: " if no_gl else ""
             raise RuntimeError(f"{kind}the OpenGL listing harness failed: {tail}\n{p.stderr[-4000:]}")
         with np.load(out) as d:
             return {k: d[k] for k in d.files}
@@ -246,7 +248,8 @@ def bench_engine(validate_rig, scenes=None, write=True, map_res=2048, screen=Non
     for r in rows:
         e = r["evaluate"]
         for mode in ENGINE_MODES:
-            cells = [f"{r['listing'][f'{lang}_{conv}_{mode}']['wrong']:,}" for lang in languages for conv in CONVENTIONS]
+            cells = [f"{r['listing'][f'{lang}_{conv}_{mode}']['wrong']:,}"
+                     for lang in languages for conv in CONVENTIONS]
             left_out = max(v["other_surface"] for v in r["listing"].values())
             lines.append(f"| {r['scene']} | {r['cascades']} | {r['screen'][0]}x{r['screen'][1]} | {r['receivers']:,} | "
                          f"{left_out:,} | "
