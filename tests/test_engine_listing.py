@@ -102,3 +102,14 @@ def test_a_wrong_listing_fails_the_check():
     r = _measure("terrain", 1, languages=("glsl",), modes=("solution",), sources=no_bias, conventions=("opengl",))
     ev, got = r["evaluate"]["solution"], r["listing"]["glsl_opengl_solution"]["wrong"]
     assert got > 1.25 * ev, (got, ev)
+
+
+def test_normal_offset_follows_the_rule():
+    """The solutions' normal_offset is 0: set one (and a smaller constant) in every block, in the solution the
+    listing reads and in the maps evaluate reads, and the listing still agrees with evaluate."""
+    r = _measure("street_canyon", 4, conventions=("opengl", "reversed_z"),
+                 depth_override={"normal_offset": 0.3, "slope": 0.0})
+    for name, v in r["listing"].items():
+        ev = r["evaluate"][name.rsplit("_", 1)[1]]
+        assert v["wrong"] <= 1.25 * ev, f"{name}: listing {v['wrong']} wrong pixels vs evaluate {ev}"
+

@@ -79,8 +79,11 @@ def scene_rigs(names=None, screen=None):
     return out, skipped
 
 
-def solve_for_listing(validate_rig, entry, rig: dict, cascades: int, map_res: int = 1024) -> dict:
-    """One optimized solution per convention of CONVENTIONS (the same maps: asserted), and its maps."""
+def solve_for_listing(validate_rig, entry, rig: dict, cascades: int, map_res: int = 1024,
+                      depth_override: dict | None = None) -> dict:
+    """One optimized solution per convention of CONVENTIONS (the same maps: asserted), and its maps.
+    `depth_override`: {key: value} set in both blocks of every map's `depth` (e.g. a normal offset), in the
+    solutions and so in the maps evaluate reads."""
     from ..solve import maps_from_solution, solve
 
     sols = {}
@@ -88,6 +91,9 @@ def solve_for_listing(validate_rig, entry, rig: dict, cascades: int, map_res: in
         r = dict(rig, shadow={"resolution": [map_res, map_res], "cascades": cascades},
                  output={"convention": api, "layout": "column_major", "reversed_z": rz})
         sols[conv] = solve(entry, validate_rig(r), "optimized")
+        for c in sols[conv]["lights"][0]["cascades"]:
+            for mode in ("hardware", "linear"):
+                c["depth"][mode].update(depth_override or {})
     ref = [c["internal"] for c in sols["opengl"]["lights"][0]["cascades"]]
     for conv, s in sols.items():
         got = [c["internal"] for c in s["lights"][0]["cascades"]]
@@ -187,17 +193,18 @@ def listing_wrong_pixels(gt, gl: dict, rs, name: str) -> dict:
 
 def measure(validate_rig, name: str, path, rig: dict, cascades: int, map_res: int, screen=None,
             languages=LANGUAGES, modes=("solution",), ideal: bool = False, log=None, sources=None,
-            conventions=CONVENTIONS) -> dict:
+            conventions=CONVENTIONS, depth_override: dict | None = None) -> dict:
     """One scene and cascade count: per depth mode of `modes`, `evaluate --depth <mode>` and the listing's wrong
     pixels per convention and language (all against the exact visibility of one screen), and with `ideal`
-    the idealized `--depth ideal` too. `sources`: the shader pieces (default: the document's listings)."""
+    the idealized `--depth ideal` too. `sources`: the shader pieces (default: the document's listings);
+    `depth_override`: solve_for_listing's."""
     from ...renderers.ground_truth import evaluate_buffers, screen_camera
     from ..pipeline import scene_entry
     from ..rigs import resolve_rig
 
     t0 = time.perf_counter()
     entry = scene_entry(path)
-    solved = solve_for_listing(validate_rig, entry, rig, cascades, map_res)
+    solved = solve_for_listing(validate_rig, entry, rig, cascades, map_res, depth_override)
     resolved = resolve_rig(solved["rig"], entry.loaded)
     light = resolved.lights[0]
     rs = entry.rays
