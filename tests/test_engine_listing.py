@@ -105,7 +105,7 @@ def test_a_wrong_listing_fails_the_check():
 
 
 def test_normal_offset_follows_the_rule():
-    """The solutions' normal_offset is 0: set one (and a smaller constant) in every block, in the solution the
+    """The solutions' normal_offset is 0: set one (and no slope term) in every block, in the solution the
     listing reads and in the maps evaluate reads, and the listing still agrees with evaluate."""
     r = _measure("street_canyon", 4, conventions=("opengl", "reversed_z"),
                  depth_override={"normal_offset": 0.3, "slope": 0.0})
