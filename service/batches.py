@@ -299,10 +299,11 @@ SMOOTH_FIELDS = [
     "lights[].cascades[].texture_matrix", "lights[].cascades[].split", "lights[].cascades[].light_depth",
     "lights[].cascades[].blend_band", "lights[].cascades[].warp.eta", "lights[].cascades[].warp.n",
     "lights[].cascades[].warp.log.c0", "lights[].cascades[].warp.log.c1", "lights[].cascades[].warp.log.c2",
-    "lights[].cascades[].depth_bias", "lights[].cascades[].predicted_error", "lights[].predicted_error",
+    "lights[].cascades[].depth_bias", "lights[].cascades[].depth.hardware", "lights[].cascades[].depth.linear",
+    "lights[].cascades[].predicted_error", "lights[].predicted_error",
 ]
 SWITCH_FIELDS = ["lights[].cascades (count)", "lights[].cascades[].warp.kind", "lights[].cascades[].resolution",
-                 "lights[].cascades[].face", "lights[].type", "method"]
+                 "lights[].cascades[].face", "lights[].cascades[].depth.mode", "lights[].type", "method"]
 
 
 def _signature(result: dict) -> tuple:
@@ -310,7 +311,8 @@ def _signature(result: dict) -> tuple:
         (l.get("type"), len(l.get("cascades") or []),
          tuple((c.get("warp") or {}).get("kind") for c in l.get("cascades") or []),
          tuple(tuple(c.get("resolution") or ()) for c in l.get("cascades") or []),
-         tuple(c.get("face") for c in l.get("cascades") or []))
+         tuple(c.get("face") for c in l.get("cascades") or []),
+         tuple((c.get("depth") or {}).get("mode") for c in l.get("cascades") or []))
         for l in result.get("lights") or []))
 
 
@@ -330,6 +332,8 @@ def _switch_reasons(a: dict, b: dict) -> list[str]:
             reasons.append(f"light {k}: warp kind {'/'.join(map(str, la[2]))} -> {'/'.join(map(str, lb[2]))}")
         elif la[3] != lb[3] or la[4] != lb[4]:
             reasons.append(f"light {k}: cascade resolution or face changes")
+        elif la[5] != lb[5]:
+            reasons.append(f"light {k}: depth mode {'/'.join(map(str, la[5]))} -> {'/'.join(map(str, lb[5]))}")
     return reasons
 
 

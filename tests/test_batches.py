@@ -469,3 +469,17 @@ def test_cli_batch_on_a_file_that_is_not_usd_exits_2_with_the_loaders_reason(tmp
     p = _cli("batch", bad, "--configs", cfg, "--out", out, "--workers", "1", "--no-progress")
     assert p.returncode == 2 and "not_usd" in p.stderr and "Traceback" not in p.stderr
     assert json.loads(out.read_text())["error"]["code"] == "not_usd"  # the line is still written
+
+
+def test_hints_break_where_a_map_changes_its_depth_mode():
+    """An engine cannot blend a hardware-depth map into a linear-depth one: depth.mode is a switch."""
+    def with_mode(index, mode):
+        r = _fake(index, ["perspective"])
+        r["lights"][0]["cascades"][0]["depth"] = {"mode": mode}
+        return r
+
+    h = interpolation_hints([with_mode(0, "hardware"), with_mode(1, "hardware"), with_mode(2, "linear")])
+    assert [b["between"] for b in h["breaks"]] == [[1, 2]]
+    assert h["breaks"][0]["reasons"] == ["light 0: depth mode hardware -> linear"]
+    assert h["segments"] == [[0, 1], [2, 2]]
+    assert "lights[].cascades[].depth.mode" in h["switch_fields"]
