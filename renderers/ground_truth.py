@@ -45,11 +45,16 @@
    Engine depth (`depth` = "solution" | "hardware" | "linear"; "ideal" is the rule above): what an
    engine does with each map's `depth` block (solvers.depth_modes), DEPTH_RULE_ENGINE: the lookup
    point X' = X + normal_offset N, the mode's stored depth D (hardware: window z of P V; linear:
-   (-z_view - near) / (far - near)) at X' against the texel's stored D (D at the texel ray's first hit,
-   float32-rounded and clamped to [0, 1]; the near value for pancaked casters; 1 where nothing is hit),
+   (-z_view - near) / (far - near)) at X' against the texel's stored D, what the light pass leaves in a
+   D32F buffer with the caster-side slope-scaled bias (OpenGL 4.6 §14.6.5 polygon offset, max form;
+   D3D11 SlopeScaledDepthBias / DepthBiasClamp): P the texel ray's first hit, the hit triangle's plane
+   intersected with the rays of texels (i + 1, j) and (i, j + 1) at P_x, P_y, DZ = max(|D(P_x) - D(P)|,
+   |D(P_y) - D(P)|), stored = clamp(D(P) + min(slope_scaled DZ, slope_clamp), 0, 1) float32-rounded
+   (0 for pancaked casters; 1 where nothing is hit; `_device_engine_map`, NumPy `engine_stored_map`);
    shadowed iff D(X') - (constant + slope min(tan psi, 10)) > stored D, no tolerance term; receivers
-   with s, t or D(X') outside [0, 1] are lit; cascades switch at the midpoint of each map's
-   blend_band (engine_splits). `_device_engine_lookup` and `shadow_test(..., engine=...)` implement it.
+   with s, t or D(X') outside [0, 1] are lit; cascades switch at the midpoint of each map's blend_band
+   where the next cascade contains the point (`engine_cascades`). `_device_engine_lookup` and
+   `shadow_test(..., engine=...)` implement the lookup.
 5. misclassified = map result != exact visibility over receivers; boundary_pixels = receivers on
    the boundaries of exact visibility (`coarse.boundary_mask` at full resolution, radius 0).
 6. measured_error: per pixel, the serving map's texel coordinates u = (s * width, t * height)
@@ -95,15 +100,19 @@ DEPTH_RULE_ENGINE = (
     "{which}: what an engine does with each map's depth block: X' = X + normal_offset * N (N the receiver's "
     "geometric normal on its light-facing side), the nearest texel of X', D_rec = D(X') with D the mode's stored "
     "depth (hardware: window z (z_ndc + 1) / 2 of projection * view; linear: (-z_view - near) / (far - near)), "
-    "stored D = D at the texel-centre ray's first hit rounded to float32 (the near value for pancaked casters, "
-    f"1 where nothing is hit); shadowed iff D_rec - (constant + slope * min(tan(psi), {TAN_PSI_MAX:g})) > stored D; "
-    "receivers with s, t or D_rec outside [0, 1] are lit; cascades switch at the midpoint of each blend band")
+    "stored D = clamp(D(P) + min(slope_scaled * DZ, slope_clamp), 0, 1) rounded to float32, P the texel-centre "
+    "ray's first hit, DZ = max(|D(P_x) - D(P)|, |D(P_y) - D(P)|) with P_x, P_y the caster triangle's plane on the "
+    "rays of texels (i + 1, j) and (i, j + 1) (a caster-side slope-scaled bias: glPolygonOffsetClamp, D3D "
+    "SlopeScaledDepthBias), 0 for pancaked casters, 1 where nothing is hit; shadowed iff D_rec - (constant + slope "
+    f"* min(tan(psi), {TAN_PSI_MAX:g})) > stored D; receivers with s, t or D_rec outside [0, 1] are lit; cascades "
+    "switch at the midpoint of each blend band where the next cascade contains the point")
 
 
 def engine_depth(smap: ShadowMap, depth: str) -> dict | None:
     """The numbers an engine applies for `smap` under `depth` (DEPTH_CHOICES): None for "ideal", else
-    {mode, constant, slope, normal_offset, near, far} from the map's depth block ("solution": the block's
-    own mode). A map without a block is a ValueError."""
+    {mode, constant, slope, normal_offset, near, far, slope_scaled, slope_clamp} from the map's depth block
+    ("solution": the block's own mode; a block without slope_scaled has none, without slope_clamp no clamp).
+    A map without a block is a ValueError."""
     if depth not in DEPTH_CHOICES:
         raise ValueError(f"depth must be one of {', '.join(DEPTH_CHOICES)}, got {depth!r}")
     if depth == "ideal":
@@ -115,8 +124,11 @@ def engine_depth(smap: ShadowMap, depth: str) -> dict | None:
     if mode not in ("hardware", "linear") or not isinstance(block.get(mode), dict):
         raise ValueError(f"depth.{mode}: expected the block of a mode hardware or linear")
     b = block[mode]
+    clamp = b.get("slope_clamp")
     out = {"mode": mode, "constant": float(b.get("constant", 0.0)), "slope": float(b.get("slope", 0.0)),
-           "normal_offset": float(b.get("normal_offset", 0.0) or 0.0), "near": 0.0, "far": 1.0}
+           "normal_offset": float(b.get("normal_offset", 0.0) or 0.0), "near": 0.0, "far": 1.0,
+           "slope_scaled": float(b.get("slope_scaled", 0.0) or 0.0),
+           "slope_clamp": float(clamp) if clamp is not None else float("inf")}
     if mode == "linear":
         out["near"], out["far"] = float(b["near"]), float(b["far"])
     return out
@@ -133,6 +145,23 @@ def engine_splits(maps: list[ShadowMap]) -> list[ShadowMap]:
             out[k].split = (out[k].split[0], mid)
             out[k + 1].split = (mid, out[k + 1].split[1])
     return out
+
+
+def engine_cascades(maps: list[ShadowMap], view_depth: np.ndarray, contains: list[np.ndarray]) -> np.ndarray:
+    """The cascade an engine's lookup uses per point: map_for_depth with the splits at the blend bands'
+    midpoints (engine_splits), except that within cascade k's band, past its midpoint, a point that
+    cascade k + 1 does not contain (contains[k + 1] false: s, t or D_rec outside [0, 1]) stays in
+    cascade k (the lookup blends with k + 1 only where k + 1 contains the point)."""
+    depth = np.asarray(view_depth, float)
+    idx = map_for_depth(engine_splits(maps), depth)
+    for k in range(len(maps) - 1):
+        band = maps[k].blend_band
+        if band is None or maps[k].face is not None:
+            continue
+        mid = 0.5 * (float(band[0]) + float(band[1]))
+        back = (idx == k + 1) & (depth >= mid) & (depth <= float(band[1])) & ~np.asarray(contains[k + 1], bool)
+        idx[back] = k
+    return idx
 
 
 @dataclass
@@ -305,8 +334,12 @@ def _device_texel_rays(mi, dr, smap: ShadowMap, origin: np.ndarray, first, count
     return _device_rays_through(mi, dr, smap, A, s, t) + (idx,)
 
 
-def _device_map(rs: RayScene, light: Light, smap: ShadowMap, pancake: bool = True):
-    """d_occluder per texel as a Dr.Jit Float64 array (row-major, row j = t index).
+NO_PRIM = 0xFFFFFFFF  # prim index of a texel whose ray hits nothing or is pancaked
+
+
+def _device_map(rs: RayScene, light: Light, smap: ShadowMap, pancake: bool = True, prims: bool = False):
+    """d_occluder per texel as a Dr.Jit Float64 array (row-major, row j = t index); with `prims`, also
+    the hit triangle per texel (UInt32, NO_PRIM where nothing is hit or the caster is pancaked).
 
     One Dr.Jit launch per RAY_CHUNK texels: the texel-centre rays are generated on the device
     (float64, then the ray itself in float32), started where they enter the scene's bounding sphere,
@@ -324,6 +357,7 @@ def _device_map(rs: RayScene, light: Light, smap: ShadowMap, pancake: bool = Tru
     # Each chunk scatters into one buffer at opaque offsets (dr.concat would compile a kernel per
     # combination of chunk sizes).
     out = dr.full(F64, dr.inf, n_total)
+    prim_out = dr.full(mi.UInt32, NO_PRIM, n_total) if prims else None
     for first in range(0, n_total, chunk):
         count = min(chunk, n_total - first)
         near, dirn, length, idx = _device_texel_rays(mi, dr, smap, rs.origin, dr.opaque(mi.UInt32, first), count)
@@ -348,19 +382,85 @@ def _device_map(rs: RayScene, light: Light, smap: ShadowMap, pancake: bool = Tru
         pi = rs.scene.ray_intersect_preliminary(ray, coherent=False, active=active)
         valid = pi.is_valid() & active
         d_occ = dr.select(valid, F64(pi.t) + t0, dr.inf)
+        faced = valid
         if do_pancake:
             blocked = rs.scene.ray_test(mi.Ray3f(org, -d32), active & (t0 <= zero))
             d_occ = dr.select(blocked, zero, d_occ)
+            faced &= ~blocked
         d_occ = dr.select(ok, d_occ, dr.inf)
         dr.scatter(out, d_occ, idx)
-        dr.eval(out)
-    return out
+        if prims:
+            dr.scatter(prim_out, dr.select(faced & ok, pi.prim_index, dr.opaque(mi.UInt32, NO_PRIM)), idx)
+            dr.eval(out, prim_out)
+        else:
+            dr.eval(out)
+    return (out, prim_out) if prims else out
 
 
-def render_map(rs: RayScene, light: Light, smap: ShadowMap, pancake: bool = True) -> np.ndarray:
-    """d_occluder (m) per texel, (height, width) float64, row j = t index (t = 0 at the bottom)."""
+def render_map(rs: RayScene, light: Light, smap: ShadowMap, pancake: bool = True, prims: bool = False):
+    """d_occluder (m) per texel, (height, width) float64, row j = t index (t = 0 at the bottom); with
+    `prims`, (d_occluder, prim) with prim the hit triangle per texel (int64, -1: none or pancaked)."""
     w, h = smap.resolution
-    return np.asarray(_device_map(rs, light, smap, pancake).numpy(), dtype=np.float64).reshape(h, w)
+    got = _device_map(rs, light, smap, pancake, prims)
+    if not prims:
+        return np.asarray(got.numpy(), dtype=np.float64).reshape(h, w)
+    prim = np.asarray(got[1].numpy(), dtype=np.int64).reshape(h, w)
+    prim[prim == NO_PRIM] = -1
+    return np.asarray(got[0].numpy(), dtype=np.float64).reshape(h, w), prim
+
+
+def _face_normals(rs: RayScene) -> np.ndarray:
+    """(F, 3) float64 unit geometric normals of the RayScene's triangles (cached)."""
+    cached = getattr(rs, "_gt_face_normals", None)
+    if cached is None:
+        v, f = _host_geometry(rs)
+        n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        cached = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
+        try:
+            object.__setattr__(rs, "_gt_face_normals", cached)
+        except Exception:  # pragma: no cover
+            pass
+    return cached
+
+
+DZ_CAP = 1e30  # DZ of a caster seen edge-on (its plane parallel to a neighbour's ray): the clamp m applies
+
+
+def engine_stored_map(rs: RayScene, smap: ShadowMap, d_occ: np.ndarray, prim: np.ndarray, engine: dict) -> np.ndarray:
+    """What the engine's light pass leaves in the depth buffer, (height, width) float64 holding float32
+    values (NumPy reference of _device_engine_map): per texel, P = the texel-centre ray's first hit, D(P)
+    the mode's stored depth, the caster's plane (its triangle's geometric normal through P) intersected
+    with the rays of texels (i + 1, j) and (i, j + 1) at P_x, P_y (past the last column or row too: the
+    same projection continued), DZ = max(|D(P_x) - D(P)|, |D(P_y) - D(P)|), stored = clamp(D(P)
+    + min(k DZ, m), 0, 1) (k = slope_scaled, m = slope_clamp: OpenGL 4.6 §14.6.5 polygon offset,
+    D3D11 slope-scaled depth bias), 0 for a pancaked caster, 1 where nothing is hit."""
+    from ..solvers.depth_modes import stored_depth
+
+    w, h = smap.resolution
+    mode, near_d, far_d = engine["mode"], engine["near"], engine["far"]
+    k, m = float(engine.get("slope_scaled", 0.0)), float(engine.get("slope_clamp", np.inf))
+    jj, ii = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    ii, jj = ii.ravel(), jj.ravel()
+    occ = np.asarray(d_occ, float).ravel()
+    pr = np.asarray(prim).ravel()
+    hit = np.isfinite(occ)
+    faced = hit & (pr >= 0)
+    with np.errstate(all="ignore"):
+        near, far = smap.texel_rays((ii + 0.5) / w, (jj + 0.5) / h)
+        dirn = (far - near) / np.maximum(np.linalg.norm(far - near, axis=-1, keepdims=True), 1e-300)
+        P = near + np.where(hit, occ, 0.0)[:, None] * dirn
+        D = stored_depth(smap, mode, P, near_d, far_d)
+        nrm = _face_normals(rs)[np.where(faced, pr, 0)]
+        dz = np.zeros(len(occ))
+        for di, dj in ((1, 0), (0, 1)):
+            n1, f1 = smap.texel_rays((ii + di + 0.5) / w, (jj + dj + 0.5) / h)
+            d1 = f1 - n1
+            a = np.sum(nrm * (P - n1), axis=-1) / np.sum(nrm * d1, axis=-1)
+            step = np.abs(stored_depth(smap, mode, n1 + a[:, None] * d1, near_d, far_d) - D)
+            dz = np.maximum(dz, np.where(np.isfinite(step), step, np.inf))
+        off = np.minimum(k * np.minimum(dz, DZ_CAP), m) if k else np.zeros(len(occ))
+        stored = np.where(faced, np.clip(D + off, 0.0, 1.0), np.where(hit, 0.0, 1.0))
+    return stored.astype(np.float32).astype(np.float64).reshape(h, w)
 
 
 def _device_points(mi, a: np.ndarray):
@@ -388,7 +488,8 @@ def _device_lookup(rs: RayScene, light: Light, smap: ShadowMap, d_occ, X, N, tol
     """The engine's shadow test (module doc, step 4) in Dr.Jit for re-centred points X with unit
     normals N (lists of three Float64). Returns NumPy (shadowed, inside, u, v): u, v the texel
     coordinates s * width, t * height (NaN where clip w <= 0). `engine` (engine_depth): the
-    engine-faithful test of DEPTH_RULE_ENGINE instead of the idealized rule."""
+    engine-faithful test of DEPTH_RULE_ENGINE instead of the idealized rule, and then `d_occ` is the
+    engine's stored depth map (_device_engine_map), not d_occluder."""
     mi = mitsuba()
     import drjit as dr
 
@@ -458,7 +559,60 @@ def _device_stored_depth(mi, dr, smap: ShadowMap, origin: np.ndarray, engine: di
     return (-zv - near) / dr.opaque(F64, engine["far"] - engine["near"])
 
 
-def _device_engine_lookup(mi, dr, rs: RayScene, light: Light, smap: ShadowMap, d_occ, X, N, engine: dict):
+def _device_face_normals(mi, rs: RayScene):
+    """_face_normals as three Dr.Jit Float64 arrays (cached on the RayScene)."""
+    cached = getattr(rs, "_gt_device_face_normals", None)
+    if cached is None:
+        cached = _device_points(mi, _face_normals(rs))
+        try:
+            object.__setattr__(rs, "_gt_device_face_normals", cached)
+        except Exception:  # pragma: no cover
+            pass
+    return cached
+
+
+def _device_engine_map(rs: RayScene, smap: ShadowMap, d_occ, prim, engine: dict):
+    """engine_stored_map in Dr.Jit: the engine's stored depth per texel (Float64 holding float32 values,
+    row-major) from the map's d_occluder and hit triangles (_device_map(..., prims=True))."""
+    mi = mitsuba()
+    import drjit as dr
+
+    F64, U32 = mi.Float64, mi.UInt32
+    w, h = smap.resolution
+    wf, hf = dr.opaque(F64, float(w)), dr.opaque(F64, float(h))
+    zero, one = dr.opaque(F64, 0.0), dr.opaque(F64, 1.0)
+    k = float(engine.get("slope_scaled", 0.0))
+    m = float(engine.get("slope_clamp", np.inf))
+    idx = dr.arange(U32, int(w) * int(h))
+    j = idx // dr.opaque(U32, int(w))
+    i = idx - j * dr.opaque(U32, int(w))
+    fi, fj = F64(i), F64(j)
+    A = _opaque_matrix(mi, dr, _inverse_matrix(smap, rs.origin))
+    near, dirn, _ = _device_rays_through(mi, dr, smap, A, (fi + 0.5) / wf, (fj + 0.5) / hf)
+    hit = dr.isfinite(d_occ)
+    faced = hit & (prim != dr.opaque(U32, NO_PRIM))
+    occ0 = dr.select(hit, d_occ, zero)
+    P = [near[r] + occ0 * dirn[r] for r in range(3)]
+    D = _device_stored_depth(mi, dr, smap, rs.origin, engine, P)
+    if k:
+        fn = _device_face_normals(mi, rs)
+        nrm = [dr.gather(F64, fn[r], dr.select(faced, prim, dr.opaque(U32, 0)), faced) for r in range(3)]
+        dz = zero
+        for ds_, dt_ in ((1.0, 0.0), (0.0, 1.0)):  # texels (i + 1, j), (i, j + 1): the caster's plane there
+            n1, d1, _ = _device_rays_through(mi, dr, smap, A, (fi + ds_ + 0.5) / wf, (fj + dt_ + 0.5) / hf)
+            a = (sum(nrm[r] * (P[r] - n1[r]) for r in range(3)) / sum(nrm[r] * d1[r] for r in range(3)))
+            step = dr.abs(_device_stored_depth(mi, dr, smap, rs.origin, engine,
+                                               [n1[r] + a * d1[r] for r in range(3)]) - D)
+            dz = dr.maximum(dz, dr.select(dr.isfinite(step), step, dr.inf))
+        off = dr.minimum(dr.opaque(F64, k) * dr.minimum(dz, dr.opaque(F64, DZ_CAP)), dr.opaque(F64, m))
+        D = D + off
+    stored = dr.select(faced, dr.clip(D, zero, one), dr.select(hit, zero, one))
+    stored = F64(mi.Float(stored))  # a D32F depth buffer
+    dr.eval(stored)
+    return stored
+
+
+def _device_engine_lookup(mi, dr, rs: RayScene, light: Light, smap: ShadowMap, stored_map, X, N, engine: dict):
     """DEPTH_RULE_ENGINE in Dr.Jit (`shadow_test(..., engine=...)` is its NumPy reference)."""
     F64 = mi.Float64
     w, h = smap.resolution
@@ -472,14 +626,8 @@ def _device_engine_lookup(mi, dr, rs: RayScene, light: Light, smap: ShadowMap, d
     inside = (cw > zero) & (s >= zero) & (s <= one) & (t >= zero) & (t <= one) & (d_rec >= zero) & (d_rec <= one)
     fi = dr.select(inside, dr.clip(dr.floor(s * wf), zero, wf - 1.0), zero)
     fj = dr.select(inside, dr.clip(dr.floor(t * hf), zero, hf - 1.0), zero)
-    A = _opaque_matrix(mi, dr, _inverse_matrix(smap, rs.origin))
-    near, dirn, _ = _device_rays_through(mi, dr, smap, A, (fi + 0.5) / wf, (fj + 0.5) / hf)
     idx = mi.UInt32(fj) * dr.opaque(mi.UInt32, int(w)) + mi.UInt32(fi)
-    occ = dr.gather(F64, d_occ, idx, inside)
-    hit = dr.isfinite(occ)
-    occ0 = dr.select(hit, occ, zero)
-    stored = _device_stored_depth(mi, dr, smap, rs.origin, engine, [near[r] + occ0 * dirn[r] for r in range(3)])
-    stored = F64(mi.Float(dr.select(hit, dr.clip(stored, zero, one), one)))  # a D32F depth buffer, cleared to 1
+    stored = dr.gather(F64, stored_map, idx, inside)  # the light pass's depth buffer (_device_engine_map)
     if isinstance(light, DirectionalLight):
         to_l = [dr.opaque(F64, float(-light.direction[r])) for r in range(3)]
     else:
@@ -523,7 +671,8 @@ def _to_light(light: Light, positions: np.ndarray) -> np.ndarray:
 def shadow_test(smap: ShadowMap, d_occ: np.ndarray, positions: np.ndarray, normals: np.ndarray,
                 light: Light, tolerance: float, engine: dict | None = None):
     """Engine-style lookup for points served by `smap`. Returns (shadowed, outside). `engine`
-    (engine_depth): DEPTH_RULE_ENGINE instead of the idealized rule."""
+    (engine_depth): DEPTH_RULE_ENGINE instead of the idealized rule, and then `d_occ` is the engine's
+    stored depth map (engine_stored_map), not d_occluder."""
     if engine is not None:
         return _engine_shadow_test(smap, d_occ, positions, normals, light, engine)
     w, h = smap.resolution
@@ -553,7 +702,7 @@ def shadow_test(smap: ShadowMap, d_occ: np.ndarray, positions: np.ndarray, norma
     return shadowed, ~inside
 
 
-def _engine_shadow_test(smap: ShadowMap, d_occ: np.ndarray, positions: np.ndarray, normals: np.ndarray,
+def _engine_shadow_test(smap: ShadowMap, stored_map: np.ndarray, positions: np.ndarray, normals: np.ndarray,
                         light: Light, engine: dict):
     """DEPTH_RULE_ENGINE in NumPy (the reference of _device_engine_lookup)."""
     from ..solvers.depth_modes import stored_depth
@@ -570,13 +719,7 @@ def _engine_shadow_test(smap: ShadowMap, d_occ: np.ndarray, positions: np.ndarra
     if inside.any():
         i = np.clip(np.floor(s[inside] * w).astype(np.int64), 0, w - 1)
         j = np.clip(np.floor(t[inside] * h).astype(np.int64), 0, h - 1)
-        near, far = smap.texel_rays((i + 0.5) / w, (j + 0.5) / h)
-        dirn = (far - near) / np.maximum(np.linalg.norm(far - near, axis=-1, keepdims=True), 1e-300)
-        occ = d_occ[j, i]
-        hit = np.isfinite(occ)
-        with np.errstate(invalid="ignore"):
-            stored = stored_depth(smap, mode, near + np.where(hit, occ, 0.0)[:, None] * dirn, near_d, far_d)
-        stored = np.where(hit, np.clip(stored, 0.0, 1.0), 1.0).astype(np.float32).astype(np.float64)
+        stored = stored_map[j, i]
         X = Xp[inside]
         c = np.clip(np.sum(np.asarray(normals, float)[inside] * _to_light(light, X), axis=-1), 0.0, 1.0)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -697,7 +840,11 @@ def evaluate_buffers(rs: RayScene, camera: Camera, light: Light, maps: list[Shad
     cam = screen_camera(camera, screen)
     sb = render_screen(rs, cam, light)
     t1 = time.perf_counter()
-    d_occ = [_device_map(rs, light, smap, pancake) for smap in maps]
+    if depth == "ideal":
+        d_occ = [_device_map(rs, light, smap, pancake) for smap in maps]
+    else:  # the engine's light pass: stored depth with its caster-side slope-scaled bias
+        d_occ = [_device_engine_map(rs, smap, *_device_map(rs, light, smap, pancake, prims=True), engines[k])
+                 for k, smap in enumerate(maps)]
     if maps:
         import drjit as dr
 
@@ -722,7 +869,10 @@ def evaluate_buffers(rs: RayScene, camera: Camera, light: Light, maps: list[Shad
     hit_idx = np.full(n_hit, -1, dtype=np.int64)
     if maps and n_hit:
         if maps[0].face is None:
-            hit_idx = map_for_depth(maps if depth == "ideal" else engine_splits(maps), sb.depth[hit])
+            if depth == "ideal":
+                hit_idx = map_for_depth(maps, sb.depth[hit])
+            else:
+                hit_idx = engine_cascades(maps, sb.depth[hit], [lk[1] for lk in looked])
         else:
             for k in range(len(maps) - 1, -1, -1):
                 hit_idx[looked[k][1]] = k

@@ -15,9 +15,15 @@ Two stored-depth functions D(X) of a world point X, both in [0, 1] over the map'
 Bias: the idealized requirement of receiver i is tau_i (kc + ks tan psi) metres along the light ray
 (solvers.baselines: tau_i the texel's world size at X_i, kc, ks = BIAS_CONSTANT_TEXELS,
 BIAS_SLOPE_TEXELS). In stored units it is q_i (kc + ks tan psi), q_i = tau_i dD/dd_i, dD/dd_i the
-derivative of D along the light ray at X_i. An engine has one constant and one slope factor per map,
-so c = kc Q, s = ks Q with Q the PERCENTILE-th percentile of q_i over the map's receivers: every
-receiver with q_i <= Q gets at least its requirement, whatever its psi. normal_offset is 0.
+derivative of D along the light ray at X_i. The constant is receiver-side, one per map: c = kc Q with
+Q the PERCENTILE-th percentile of q_i over the map's receivers (every receiver with q_i <= Q gets at
+least kc texels). The slope term is caster-side and per texel, as engines' hardware slope-scaled bias
+is (OpenGL 4.6 §14.6.5 glPolygonOffsetClamp(factor, 0, clamp) with the max form of the slope; D3D11
+SlopeScaledDepthBias with MaxDepthSlope and DepthBiasClamp; Vulkan depthBiasSlopeFactor/Clamp):
+each light-pass fragment stores D + min(k DZ, m), DZ = max(|dD/dx|, |dD/dy|) the change of the
+caster's stored depth per texel step, which is tau tan(psi) dD/dd at the caster and so follows a
+warped map's texel size by itself. k = "slope_scaled" = BIAS_SLOPE_TEXELS (ks), m = "slope_clamp" =
+TAN_PSI_MAX k Q (in stored units). The receiver-side "slope" is 0; normal_offset is 0.
 
 Mode: hardware, unless
 - the map is log-warped (t' = c0 log(c1 t + c2) is not a projective map, so its light pass is a
@@ -35,6 +41,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .baselines import BIAS_SLOPE_TEXELS
 from .samples import seeded_rows
 from .shadow_map import ShadowMap
 
@@ -44,6 +51,8 @@ SPREAD_PERCENTILES = (5.0, 95.0)  # spread = P95(q) / P5(q)
 SPREAD_MAX = 4.0  # hardware is kept while its spread is at most this ...
 SPREAD_RATIO = 1.5  # ... or at most this times linear's
 SAMPLE = 2048  # receivers measured per map (a seeded random subset of more)
+SLOPE_SCALED = BIAS_SLOPE_TEXELS  # caster-side k: DZ (stored-depth change per texel step) times k
+TAN_PSI_MAX = 10.0  # slope clamp m = TAN_PSI_MAX k Q (the ideal rule's tan(psi) clamp, renderers.ground_truth)
 MIN_ULPS = 8.0  # hardware needs its constant bias at the 5th-percentile receiver >= this many float32 steps
 
 
@@ -132,10 +141,10 @@ def _spread(q: np.ndarray) -> float:
 
 
 def depth_block(smap: ShadowMap, receivers: np.ndarray, light, percentile: float | None = None) -> dict:
-    """The map's `depth` block: {mode, reason, hardware: {constant, slope, normal_offset},
-    linear: {constant, slope, normal_offset, near, far}, spread, percentile} (module doc; percentile
+    """The map's `depth` block: {mode, reason, hardware: {constant, slope, normal_offset, slope_scaled,
+    slope_clamp}, linear: {the same keys, near, far}, spread, percentile} (module doc; percentile
     default PERCENTILE)."""
-    from .baselines import BIAS_CONSTANT_TEXELS as KC, BIAS_SLOPE_TEXELS as KS
+    from .baselines import BIAS_CONSTANT_TEXELS as KC
 
     percentile = PERCENTILE if percentile is None else float(percentile)
 
@@ -163,7 +172,12 @@ def depth_block(smap: ShadowMap, receivers: np.ndarray, light, percentile: float
                 ulps = float(np.percentile(steps, SPREAD_PERCENTILES[0]))
         Q = float(np.percentile(q, percentile)) if len(q) else 0.0
         spreads[mode] = _spread(q) if len(q) else 1.0
-        blocks[mode] = {"constant": KC * Q, "slope": KS * Q, "normal_offset": 0.0}
+        # caster-side slope-scaled bias: stored = D + min(k DZ, m), DZ = max(|dD/dx|, |dD/dy|) per texel step
+        # (OpenGL 4.6 §14.6.5 glPolygonOffsetClamp, max form; D3D11 SlopeScaledDepthBias x MaxDepthSlope,
+        # DepthBiasClamp); k = ks: DZ is tau tan(psi) dD/dd, the ideal rule's slope term; m = the cap at
+        # tan(psi) = TAN_PSI_MAX for the PERCENTILE receiver. The receiver-side slope is 0.
+        blocks[mode] = {"constant": KC * Q, "slope": 0.0, "normal_offset": 0.0,
+                        "slope_scaled": SLOPE_SCALED, "slope_clamp": TAN_PSI_MAX * SLOPE_SCALED * Q}
     blocks["linear"].update(near=near, far=far)
     hw, lin = spreads["hardware"], spreads["linear"]
     if smap.log_warp is not None:

@@ -57,7 +57,9 @@ def test_orthographic_hardware_bias_is_kc_tau_over_the_depth_range():
     rng = 2.0 / abs(P[2, 2])
     hw, lin = smap.depth["hardware"], smap.depth["linear"]
     assert hw["constant"] == pytest.approx(KC * tau / rng, rel=1e-6)
-    assert hw["slope"] == pytest.approx(KS * tau / rng, rel=1e-6)
+    # the slope term is caster-side: k = ks, clamped at tan(psi) = 10 of the same texel; none at the receiver
+    assert hw["slope"] == 0.0 and hw["slope_scaled"] == KS
+    assert hw["slope_clamp"] == pytest.approx(10.0 * KS * tau / rng, rel=1e-6)
     # linear's near/far are the orthographic planes: the same function, the same numbers
     near, far = (P[2, 3] + 1) / P[2, 2], (P[2, 3] - 1) / P[2, 2]
     assert (lin["near"], lin["far"]) == pytest.approx((near, far), rel=1e-9)

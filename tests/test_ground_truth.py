@@ -368,13 +368,23 @@ def test_engine_depth_lookup_matches_the_numpy_reference(box_scene):
     X, N = G._device_points(mi, X_np - box_scene.origin), G._device_points(mi, N_np)
     for smap in _test_maps(light.direction, pts):
         smap.depth = depth_block(smap, sb.position[sb.receivers], light)
-        d_occ_np = G.render_map(box_scene, light, smap)
-        d_occ = G._device_map(box_scene, light, smap)
+        d_occ_np, prim_np = G.render_map(box_scene, light, smap, prims=True)
+        d_occ, prim = G._device_map(box_scene, light, smap, prims=True)
         for mode in ("hardware", "linear"):
             for offset in (0.0, 0.02):
                 eng = {**G.engine_depth(smap, mode), "normal_offset": offset}
-                sh, inside, u, v = G._device_lookup(box_scene, light, smap, d_occ, X, N, 0.0, eng)
-                ref_sh, ref_out = G.shadow_test(smap, d_occ_np, X_np, N_np, light, 0.0, engine=eng)
+                assert eng["slope_scaled"] > 0 and eng["slope"] == 0.0  # the caster-side slope bias is on
+                stored = G._device_engine_map(box_scene, smap, d_occ, prim, eng)
+                ref_stored = G.engine_stored_map(box_scene, smap, d_occ_np, prim_np, eng)
+                w, h = smap.resolution
+                dev_stored = stored.numpy().reshape(h, w)
+                # the light pass's depth buffer: float32 values, equal up to one float32 step on the
+                # texels where float64 rounding of D + min(k DZ, m) falls on the other side of a step
+                assert np.count_nonzero(np.abs(dev_stored - ref_stored) > 1.5 * np.spacing(np.float32(1))) \
+                    <= 1e-4 * w * h
+                assert (ref_stored < 1).mean() > 0.3
+                sh, inside, u, v = G._device_lookup(box_scene, light, smap, stored, X, N, 0.0, eng)
+                ref_sh, ref_out = G.shadow_test(smap, ref_stored, X_np, N_np, light, 0.0, engine=eng)
                 assert np.count_nonzero(inside != ~ref_out) <= 1e-4 * len(sh) and 0.2 < inside.mean()
                 assert np.count_nonzero(sh != ref_sh) <= 1e-4 * len(sh) and sh.sum() > 100, (mode, offset)
                 assert np.nanmax(np.abs(np.stack([u, v], -1) - G.texel_coords(smap, X_np))) < 1e-6
