@@ -238,3 +238,111 @@ def test_cli_depth_flag(tmp_path):
     p = run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol, "--screen", "160x90", check=2)
     assert "cascades.0" in p.stderr and "depth" in p.stderr
     run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol, "--screen", "160x90", "--depth", "ideal", check=0)
+
+
+# --- round 2: the caster-side slope-scaled bias and the blend-band rule -------------------------------
+
+def _tilted_plane_scene(psi_deg):
+    """A 16 x 16 m plane through the origin, tilted by psi about the x axis (y = tan(psi) z)."""
+    from shadowopt.renderers.ray_scene import build_ray_scene
+    from testkit import merge
+
+    a = np.radians(psi_deg)
+    v = np.array([[-8.0, 0.0, -8.0], [8.0, 0.0, -8.0], [8.0, 0.0, 8.0], [-8.0, 0.0, 8.0]])
+    v = np.column_stack([v[:, 0], np.tan(a) * v[:, 2], v[:, 2]])
+    return build_ray_scene(merge((v, np.array([[0, 2, 1], [0, 3, 2]]))))
+
+
+def _down_ortho(res):
+    """An orthographic light 20 m above the origin looking down -y: view x = world x, view y = -world z,
+    -z_view = 20 - y; an 8 x 8 m window, near 10, far 30."""
+    V = np.array([[1.0, 0, 0, 0], [0, 0, -1.0, 0], [0, 1.0, 0, -20.0], [0, 0, 0, 1.0]])
+    l, r, b, t, n, f = -4.0, 4.0, -4.0, 4.0, 10.0, 30.0
+    P = np.array([[2 / (r - l), 0, 0, -(r + l) / (r - l)], [0, 2 / (t - b), 0, -(t + b) / (t - b)],
+                  [0, 0, -2 / (f - n), -(f + n) / (f - n)], [0, 0, 0, 1.0]])
+    return ShadowMap(V, P, (res, res), light_depth=(n, f))
+
+
+@pytest.mark.parametrize("mode", ["hardware", "linear"])
+def test_slope_scaled_bias_of_a_tilted_plane_is_tan_psi_texel_over_range(mode):
+    """The light pass's stored depth on a plane tilted by psi under an orthographic map is the plane's
+    depth at the texel centre plus k DZ, DZ = tan(psi) * texel / range (the closed form of the depth change
+    per texel step along t; none along s), capped at m: in Dr.Jit and in the NumPy reference."""
+    from shadowopt.renderers import ground_truth as G
+
+    psi, res, k = 35.0, 128, 1.5
+    rs = _tilted_plane_scene(psi)
+    smap = _down_ortho(res)
+    light = DirectionalLight.make([0.0, -1.0, 0.0])
+    texel, rng = 8.0 / res, 20.0
+    dz = np.tan(np.radians(psi)) * texel / rng
+    # independent: the texel centre's world x, z; the plane's y = tan(psi) z there; D = (20 - y - 10) / 20
+    c = -4.0 + (np.arange(res) + 0.5) * texel
+    z = -c[:, None] * np.ones((1, res))  # row j = t index: view y = c[j] = -world z
+    D = (10.0 - np.tan(np.radians(psi)) * z) / rng
+    for m, expect in ((np.inf, D + k * dz), (0.5 * k * dz, D + 0.5 * k * dz)):
+        eng = {"mode": mode, "constant": 0.0, "slope": 0.0, "normal_offset": 0.0, "near": 10.0, "far": 30.0,
+               "slope_scaled": k, "slope_clamp": m}
+        d_occ, prim = G._device_map(rs, light, smap, prims=True)
+        dev = G._device_engine_map(rs, smap, d_occ, prim, eng).numpy().reshape(res, res)
+        d_np, p_np = G.render_map(rs, light, smap, prims=True)
+        ref = G.engine_stored_map(rs, smap, d_np, p_np, eng)
+        assert np.all(np.isfinite(d_np)) and np.all(p_np >= 0)
+        ulp = 2.0 * np.spacing(np.float32(1.0))
+        assert np.abs(dev - expect).max() < ulp and np.abs(ref - expect).max() < ulp, (mode, m)
+    # the bias matters at this scale: k DZ is thousands of float32 steps
+    assert k * dz > 1000 * ulp
+
+
+def test_blend_band_switches_only_where_the_next_cascade_contains_the_point():
+    """engine_cascades: past cascade k's band midpoint, k + 1 where it contains the point, else k."""
+    from shadowopt.renderers.ground_truth import engine_cascades
+
+    smap, _ = ortho_map(64)
+    a, b = (ShadowMap(smap.view, smap.projection, (64, 64)) for _ in range(2))
+    a.split, b.split, a.blend_band = (0.0, 10.0), (10.0, 30.0), (8.0, 10.0)
+    depth = np.array([5.0, 8.5, 9.5, 9.5, 10.0, 10.0, 12.0, 12.0])
+    inside_b = np.array([True, True, True, False, True, False, True, False])
+    got = engine_cascades([a, b], depth, [np.ones(8, bool), inside_b])
+    assert got.tolist() == [0, 0, 1, 0, 1, 0, 1, 1]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene,sun,method", [("mcusd", 1, "focused"), ("mcusd", 1, "optimized"),
+                                              ("street_canyon", 4, "optimized")])
+def test_engine_modes_leave_no_receiver_outside_that_ideal_serves(scene, sun, method):
+    """4 cascades with blend bands: the receivers counted outside their map in the engine modes are those
+    of the idealized rule (where the midpoint switch alone left hundreds outside), and the fallback to
+    cascade k really happened."""
+    from shadowopt.api.schemas import validate_rig
+    from shadowopt.service.bench.suite import corpus_scenes, hemisphere_directions
+    from shadowopt.service.rigs import resolve_rig
+    from shadowopt.service.scenes import SceneCache
+    from shadowopt.service.solve import maps_from_solution, solve
+    from shadowopt.renderers.ground_truth import evaluate_buffers
+
+    found, skipped = corpus_scenes([scene])
+    if scene not in found:
+        pytest.skip(f"{scene}: {skipped.get(scene, 'absent')}")
+    path, spec = found[scene]
+    entry = SceneCache().get(str(path))
+    camera = next(iter(spec["rigs"].values()))["camera"]
+    d = hemisphere_directions(5, 5, 2)[sun]
+    rig = validate_rig({"camera": {**camera, "resolution": [480, 480]},
+                        "lights": [{"type": "directional", "direction": [float(v) for v in d]}],
+                        "shadow": {"resolution": [1024, 1024], "cascades": 4, "splits": "practical", "lambda": 0.5}})
+    r = resolve_rig(rig, entry.loaded)
+    maps = maps_from_solution(solve(entry, rig, method=method))[0]
+    assert all(m.blend_band is not None for m in maps[:-1])
+    ideal = evaluate_buffers(entry.rays, r.camera, r.lights[0], maps, depth="ideal")
+    for depth in ("solution", "hardware"):
+        gt = evaluate_buffers(entry.rays, r.camera, r.lights[0], maps, depth=depth)
+        assert gt.result["outside_pixels"] == ideal.result["outside_pixels"], (depth, gt.result, ideal.result)
+    # receivers past a band's midpoint that stayed in cascade k (k + 1 does not contain them)
+    stayed = 0
+    for k, m in enumerate(maps[:-1]):
+        mid = 0.5 * sum(m.blend_band)
+        z = gt.screen.depth
+        stayed += int((gt.receivers & (gt.map_index == k) & (z >= mid) & (z <= m.blend_band[1])).sum())
+    hit = gt.screen.depth[gt.receivers]
+    assert stayed > 0 and len(hit) > 10000
