@@ -353,8 +353,9 @@ def test_device_rays_and_lookup_match_the_numpy_reference(box_scene):
 
 
 def test_engine_depth_lookup_matches_the_numpy_reference(box_scene):
-    """The Dr.Jit engine-faithful test (hardware and linear stored depth, float32 storage, cleared texels
-    at 1, a normal offset) is shadow_test(..., engine=...) on the same texels."""
+    """The Dr.Jit light pass (stored depth with the caster-side slope-scaled bias of the map's depth block,
+    float32, cleared texels at 1) is engine_stored_map, and the Dr.Jit engine-faithful test (hardware and
+    linear stored depth, a normal offset) is shadow_test(..., engine=...) on the same texels."""
     from shadowopt.renderers import ground_truth as G
     from shadowopt.renderers.mitsuba_setup import mitsuba
     from shadowopt.solvers.depth_modes import depth_block
