@@ -281,11 +281,13 @@ class ShadowMapSolution(_Open):
     depth_bias: dict = Field(default_factory=dict)
     depth: dict | None = Field(None, description=(
         "what the engine stores and compares for this map: {mode: hardware | linear, reason, hardware: {constant, "
-        "slope, normal_offset}, linear: {constant, slope, normal_offset, near, far}}. hardware: the window z "
+        "slope, normal_offset, slope_scaled, slope_clamp}, linear: {the same, near, far}}. hardware: the window z "
         "(z_ndc + 1) / 2 of projection * view a depth-only pass writes; linear: (-z_view - near) / (far - near) "
-        "written by a custom light pass. Shadowed iff D(X') - (constant + slope * min(tan psi, 10)) > stored D, "
-        "X' = X + normal_offset * N (metres along the receiver's light-facing normal); constant and slope are in "
-        "stored-depth units"))
+        "written by a custom light pass. The light pass stores clamp(D + min(slope_scaled * DZ, slope_clamp), 0, 1), "
+        "DZ = max(|dD/dx|, |dD/dy|) per texel of the caster (hardware: glPolygonOffsetClamp(slope_scaled, 0, "
+        "slope_clamp), D3D SlopeScaledDepthBias and DepthBiasClamp). Shadowed iff D(X') - (constant + slope * "
+        "min(tan psi, 10)) > stored D, X' = X + normal_offset * N (metres along the receiver's light-facing "
+        "normal); constant, slope and slope_clamp are in stored-depth units"))
     blend_band: tuple[float, float] | None = Field(None, description="[start, end] camera depth where this "
                                                    "cascade blends into the next; null for the last or only map")
     face: str | None = None
