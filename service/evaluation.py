@@ -90,6 +90,11 @@ def check_depth_blocks(solution: dict, depth: str) -> None:
                 if not _finite(v):
                     raise SolutionError(f"{at}.depth.{mode}" + (f".{key}" if key in b[mode] else ""),
                                         f"{key}: expected a finite number, got {v!r:.40}")
+            for key in ("slope_scaled", "slope_clamp"):  # the light pass's slope-scaled bias: optional
+                v = b[mode].get(key, 0.0)
+                if not (_finite(v) and v >= 0):
+                    raise SolutionError(f"{at}.depth.{mode}.{key}", f"{key}: expected a finite number >= 0, got "
+                                        f"{v!r:.40}")
             if mode == "linear" and not b[mode]["far"] > b[mode]["near"]:
                 raise SolutionError(f"{at}.depth.linear", "expected far > near")
 

@@ -346,3 +346,18 @@ def test_engine_modes_leave_no_receiver_outside_that_ideal_serves(scene, sun, me
         stayed += int((gt.receivers & (gt.map_index == k) & (z >= mid) & (z <= m.blend_band[1])).sum())
     hit = gt.screen.depth[gt.receivers]
     assert stayed > 0 and len(hit) > 10000
+
+
+def test_a_malformed_slope_scaled_bias_is_refused_naming_the_field():
+    from shadowopt.service.evaluation import check_depth_blocks
+    from shadowopt.service.rigs import SolutionError
+
+    smap, light = ortho_map(64)
+    block = smap.depth
+    sol = {"lights": [{"cascades": [{"blend_band": None, "depth": block}]}]}
+    check_depth_blocks(sol, "hardware")  # the solver's own block passes
+    for key, bad in (("slope_scaled", -1.0), ("slope_clamp", "x")):
+        hw = {**block["hardware"], key: bad}
+        with pytest.raises(SolutionError) as e:
+            check_depth_blocks({"lights": [{"cascades": [{"depth": {**block, "hardware": hw}}]}]}, "hardware")
+        assert e.value.field == f"solution.lights.0.cascades.0.depth.hardware.{key}"
