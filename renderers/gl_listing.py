@@ -12,20 +12,26 @@ IN.npz: `vertices` (V, 3) float32 (already re-centred: every matrix below acts o
 (F, 3) uint32, `spec` a JSON string:
 
     {"camera": {"view": M, "projection": M, "resolution": [w, h]},      # OpenGL clip space, row 0 = top
-     "sources": {"glsl": {piece: text}, "hlsl": {piece: text}},          # the document's listings by tag
+     "sources": {"glsl": {piece: text}, "hlsl": {piece: text},           # the document's listings by tag
+                 "c": {"light-pass-state-gl" | "-d3d11" | "-vulkan": text}},
      "jobs": [{"name": str, "language": "glsl" | "hlsl",
                "clip": "opengl" | "d3d" | "vulkan" | "reversed_z",       # how the light pass is rasterized
+               "state": "gl" | "d3d11" | "vulkan",                       # the light pass's rasterizer state block
                "to_light": [x, y, z],                                    # unit vector towards the sun
                "maps": [{"view_matrix": M, "view_projection": M, "texture_matrix": M,
                          "resolution": [w, h], "split": [a, b], "blend_band": [a, b] | null,
                          "depth": {"mode": "hardware" | "linear", "constant", "slope", "normal_offset",
-                                   "near", "far"}}]}]}
+                                   "near", "far", "slope_scaled", "slope_clamp"}}]}]}
 
 M: 16 numbers, row-major, acting on column vectors. `clip`: opengl = the default clip control (z in
 [-w, w], window depth (z_ndc + 1)/2), d3d = glClipControl(GL_UPPER_LEFT, GL_ZERO_TO_ONE) (Direct3D's
 clip space and texture origin), vulkan = glClipControl(GL_LOWER_LEFT, GL_ZERO_TO_ONE) (Vulkan's NDC y
 points down and its framebuffer row 0 is at NDC y = -1, which is OpenGL's lower-left row order), reversed_z =
-d3d with the depth test GREATER and the map cleared to 0.
+d3d with the depth test GREATER and the map cleared to 0. `state`: the document's rasterizer-state block
+for the light pass (light_pass_state): "gl" executed call by call, "d3d11" / "vulkan" read field by field
+and set as the OpenGL equivalent (the same slope-scaled bias: OpenGL 4.6 §14.6.5, D3D11 depth bias,
+Vulkan depthBias*), with k, m the map's slope_scaled, slope_clamp for hardware and 0 for linear (whose
+shader adds the offset itself).
 OUT.npz: `hit` (h, w) bool, `position` (h, w, 3) float32 (re-centred), `view_depth` (h, w) float32, and per
 job `shadow_<name>` (h, w) float32 visibility in [0, 1] (1 lit), row 0 at the top as the camera sees it;
 `renderer` the GL_RENDERER string.
@@ -35,6 +41,7 @@ from __future__ import annotations
 import ctypes
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -42,6 +49,9 @@ import tempfile
 import numpy as np
 
 GL_DEPTH_CLAMP = 0x864F
+GL_CULL_FACE = 0x0B44
+GL_POLYGON_OFFSET_FILL = 0x8037
+GL_LESS, GL_GREATER = 0x0201, 0x0204
 GL_TEXTURE_2D = 0x0DE1
 GL_DEPTH_COMPONENT = 0x1902
 GL_DEPTH_COMPONENT32F = 0x8CAC
@@ -112,14 +122,125 @@ def _gl_function(name: str, restype, *argtypes):
 
 
 class _GL:
-    def __init__(self):
+    def __init__(self, extensions=(), version_code: int = 0):
         u = ctypes.c_uint
+        f = ctypes.c_float
         self.clip_control = _gl_function("glClipControl", None, u, u)
+        self.enable = _gl_function("glEnable", None, u)
+        self.disable = _gl_function("glDisable", None, u)
+        self.depth_func = _gl_function("glDepthFunc", None, u)
+        if version_code < 460 and not {"GL_ARB_polygon_offset_clamp", "GL_EXT_polygon_offset_clamp"} & set(extensions):
+            raise RuntimeError("this OpenGL has no glPolygonOffsetClamp (OpenGL 4.6, ARB_polygon_offset_clamp or "
+                               "EXT_polygon_offset_clamp): the light pass's clamped slope-scaled bias needs it")
+        self.polygon_offset_clamp = _gl_function("glPolygonOffsetClamp", None, f, f, f)
+        # The calls the document's OpenGL state block may make, by name (light_pass_state).
+        self.calls = {"glEnable": self.enable, "glDisable": self.disable, "glDepthFunc": self.depth_func,
+                      "glPolygonOffsetClamp": self.polygon_offset_clamp}
         self.bind_texture = _gl_function("glBindTexture", None, u, u)
         self.tex_image_2d = _gl_function("glTexImage2D", None, u, ctypes.c_int, ctypes.c_int, ctypes.c_int,
                                          ctypes.c_int, ctypes.c_int, u, u, ctypes.c_void_p)
         self.tex_level_parameter = _gl_function("glGetTexLevelParameteriv", None, u, ctypes.c_int, u,
                                                 ctypes.POINTER(ctypes.c_int))
+
+
+GL_ENUMS = {"GL_DEPTH_CLAMP": GL_DEPTH_CLAMP, "GL_CULL_FACE": GL_CULL_FACE,
+            "GL_POLYGON_OFFSET_FILL": GL_POLYGON_OFFSET_FILL, "GL_LESS": GL_LESS, "GL_GREATER": GL_GREATER}
+C_BOOLS = {"TRUE": True, "FALSE": False, "VK_TRUE": True, "VK_FALSE": False}
+
+
+def _c_value(expr: str, env: dict):
+    """The value of one expression of a state block: a number (0.0f), k / m / reversedZ from `env`,
+    `-x`, `reversedZ ? a : b`, a GL enum (its number), TRUE / FALSE, or another enum name (as a string)."""
+    e = expr.strip()
+    tern = re.fullmatch(r"(\w+)\s*\?\s*([^:]+?)\s*:\s*(.+)", e)
+    if tern:
+        return _c_value(tern[2] if _c_value(tern[1], env) else tern[3], env)
+    if e.startswith("-"):
+        return -_c_value(e[1:], env)
+    if re.fullmatch(r"\d+(\.\d*)?([eE][-+]?\d+)?f?", e):
+        return float(e.rstrip("f")) if ("." in e or "e" in e.lower()) else int(e)
+    if e in env:
+        return env[e]
+    if e in GL_ENUMS:
+        return GL_ENUMS[e]
+    if e in C_BOOLS:
+        return C_BOOLS[e]
+    if re.fullmatch(r"[A-Z][A-Z0-9_]+", e):
+        return e
+    raise ValueError(f"the state block's expression {expr!r} is not one the harness reads")
+
+
+def parse_state(text: str, env: dict) -> tuple[list, dict]:
+    """A rasterizer-state block of the document as ([(gl function, [args])], {field: value}): statements
+    `glName(args);`, `TYPE rs = {...};` and `rs.Field = value;`, `//` comments dropped."""
+    calls, fields = [], {}
+    body = re.sub(r"//[^\n]*", "", text)
+    for stmt in (s.strip() for s in body.split(";")):
+        if not stmt:
+            continue
+        call = re.fullmatch(r"(gl\w+)\((.*)\)", stmt, re.S)
+        decl = re.fullmatch(r"(\w+)\s+(\w+)\s*=\s*\{(.*)\}", stmt, re.S)
+        field = re.fullmatch(r"(\w+)\.(\w+)\s*=\s*(.+)", stmt, re.S)
+        if call:
+            calls.append((call[1], [_c_value(a, env) for a in call[2].split(",")]))
+        elif decl:
+            fields["type"] = decl[1]
+        elif field:
+            fields[field[2]] = _c_value(field[3], env)
+        else:
+            raise ValueError(f"the state block's statement {stmt!r} is not one the harness reads")
+    return calls, fields
+
+
+def _require(fields: dict, key: str, allowed, api: str):
+    if key not in fields:
+        raise ValueError(f"the {api} state block sets no {key}")
+    if fields[key] not in allowed:
+        raise ValueError(f"the harness emulates {api} {key} = {' or '.join(map(str, allowed))} only, "
+                         f"the block sets {fields[key]!r}")
+    return fields.pop(key)
+
+
+def light_pass_state(api: str, text: str, k: float, m: float, reversed_z: bool) -> list:
+    """The OpenGL calls [(name, args)] that set the document's light-pass rasterizer state `text` of `api`
+    (gl: its own calls; d3d11: D3D11_RASTERIZER_DESC; vulkan: VkPipelineRasterizationStateCreateInfo),
+    with k, m, reversedZ bound. D3D11's Bias = DepthBias r + SlopeScaledDepthBias MaxDepthSlope, clamped by
+    DepthBiasClamp (0: none), and Vulkan's depthBias* are OpenGL 4.6 §14.6.5's polygon offset with
+    glPolygonOffsetClamp (clamp 0: none); the integer / constant bias is left unemulated (must be 0)."""
+    env = {"k": float(k), "m": float(m), "reversedZ": bool(reversed_z)}
+    calls, f = parse_state(text, env)
+    if api == "gl":
+        if f:
+            raise ValueError(f"the OpenGL state block assigns fields {sorted(f)}")
+        return calls
+    if calls:
+        raise ValueError(f"the {api} state block makes calls {[c for c, _ in calls]}")
+    out = []
+    if api == "d3d11":
+        _require(f, "type", ("D3D11_RASTERIZER_DESC",), api)
+        _require(f, "FillMode", ("D3D11_FILL_SOLID",), api)
+        _require(f, "CullMode", ("D3D11_CULL_NONE",), api)
+        clip = _require(f, "DepthClipEnable", (True, False), api)
+        _require(f, "DepthBias", (0,), api)
+        slope, clamp, bias = f.pop("SlopeScaledDepthBias", 0.0), f.pop("DepthBiasClamp", 0.0), True
+    elif api == "vulkan":
+        _require(f, "type", ("VkPipelineRasterizationStateCreateInfo",), api)
+        _require(f, "polygonMode", ("VK_POLYGON_MODE_FILL",), api)
+        _require(f, "cullMode", ("VK_CULL_MODE_NONE",), api)
+        clip = not _require(f, "depthClampEnable", (True, False), api)
+        bias = _require(f, "depthBiasEnable", (True, False), api)
+        _require(f, "depthBiasConstantFactor", (0, 0.0), api)
+        slope, clamp = f.pop("depthBiasSlopeFactor", 0.0), f.pop("depthBiasClamp", 0.0)
+        f.pop("lineWidth", None)
+    else:
+        raise ValueError(f"state must be gl, d3d11 or vulkan, got {api!r}")
+    if f:
+        raise ValueError(f"the {api} state block sets fields the harness does not emulate: {sorted(f)}")
+    out.append(("glDisable", [GL_CULL_FACE]))
+    out.append(("glDisable" if clip else "glEnable", [GL_DEPTH_CLAMP]))
+    if bias:
+        out += [("glEnable", [GL_POLYGON_OFFSET_FILL]), ("glPolygonOffsetClamp", [float(slope), 0.0, float(clamp)])]
+    return out
 
 
 def hlsl_to_glsl(source: str, stage: str, entry: str, inputs=(), outputs=()) -> str:
@@ -183,8 +304,11 @@ def pack_light_pass(m: dict, reversed_z: bool) -> dict:
     vp, view = _mat(m["view_projection"]), _mat(m["view_matrix"])
     d = m["depth"]
     linear = (float(d.get("near", 0.0)), float(d.get("far", 1.0)), 1.0 if reversed_z else 0.0)
-    block = _gl_mat(vp) + _gl_mat(view) + np.array([*linear, 0.0], dtype=np.float32).tobytes()
-    return {"uLightViewProj": _gl_mat(vp), "uLightView": _gl_mat(view), "uLinearDepth": linear, "block": block}
+    offset = (float(d["slope_scaled"]), float(d["slope_clamp"]))
+    block = (_gl_mat(vp) + _gl_mat(view) + np.array([*linear, 0.0], dtype=np.float32).tobytes()
+             + np.array([*offset, 0.0, 0.0], dtype=np.float32).tobytes())
+    return {"uLightViewProj": _gl_mat(vp), "uLightView": _gl_mat(view), "uLinearDepth": linear,
+            "uLinearOffset": offset, "block": block}
 
 
 class Harness:
@@ -193,7 +317,7 @@ class Harness:
 
         self.mgl = moderngl
         self.ctx = moderngl.create_standalone_context(backend="egl", require=450)
-        self.gl = _GL()
+        self.gl = _GL(self.ctx.extensions, self.ctx.version_code)
         v = np.asarray(vertices, dtype=np.float32)[np.asarray(faces, dtype=np.int64)]  # (F, 3, 3), unindexed
         n = np.cross(v[:, 1].astype(np.float64) - v[:, 0], v[:, 2].astype(np.float64) - v[:, 0])
         n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)  # geometric (face) normal
@@ -246,8 +370,9 @@ class Harness:
         prog[blocks[0]].binding = binding
         return ubo
 
-    def light_pass(self, prog, m: dict, clip: str) -> np.ndarray:
-        """One map's stored depth, (h, w) float32 as it lies in memory (row 0 = the first texel row)."""
+    def light_pass(self, prog, m: dict, clip: str, state: tuple[str, str]) -> np.ndarray:
+        """One map's stored depth, (h, w) float32 as it lies in memory (row 0 = the first texel row).
+        `state`: (api, text) of the document's rasterizer-state block (light_pass_state)."""
         w, h = (int(x) for x in m["resolution"])
         tex = self.depth_texture(w, h)
         fbo = self.ctx.framebuffer(depth_attachment=tex)
@@ -256,24 +381,33 @@ class Harness:
         for name in ("uLightViewProj", "uLightView"):
             if name in prog:
                 prog[name].write(u[name])
-        if "uLinearDepth" in prog:
-            prog["uLinearDepth"].value = u["uLinearDepth"]
+        for name in ("uLinearDepth", "uLinearOffset"):
+            if name in prog:
+                prog[name].value = u[name]
         ubo = self._bind_block(prog, u["block"], 1)
         vao = self._vao(prog, False)
         ctx = self.ctx
         fbo.use()
         fbo.viewport = (0, 0, w, h)
         ctx.enable(self.mgl.DEPTH_TEST)
-        ctx.enable_direct(GL_DEPTH_CLAMP)  # casters in front of the near plane are pancaked onto it
         if clip not in CLIP_CONTROL:
             raise ValueError(f"clip must be one of {', '.join(CLIP_CONTROL)}, got {clip!r}")
         self.gl.clip_control(*CLIP_CONTROL[clip])
-        ctx.depth_func = ">" if reversed_z else "<"
         fbo.clear(depth=0.0 if reversed_z else 1.0)
+        # The depth test as the document's prose says (the OpenGL block sets it again itself), then the block.
+        self.gl.depth_func(GL_GREATER if reversed_z else GL_LESS)
+        api, text = state
+        hardware = m["depth"]["mode"] == "hardware"
+        k, mm = (float(m["depth"]["slope_scaled"]), float(m["depth"]["slope_clamp"])) if hardware else (0.0, 0.0)
+        for name, args in light_pass_state(api, text, k, mm, reversed_z):
+            self.gl.calls[name](*args)
         vao.render(self.mgl.TRIANGLES)
         ctx.finish()
         self.gl.clip_control(GL_LOWER_LEFT, GL_NEGATIVE_ONE_TO_ONE)
-        ctx.depth_func = "<"
+        self.gl.disable(GL_POLYGON_OFFSET_FILL)
+        self.gl.polygon_offset_clamp(0.0, 0.0, 0.0)
+        self.gl.disable(GL_DEPTH_CLAMP)
+        self.gl.depth_func(GL_LESS)
         out = np.frombuffer(tex.read(alignment=1), dtype=np.float32).reshape(h, w).copy()
         for x in (vao, fbo, tex, ubo):
             if x is not None:
@@ -339,10 +473,11 @@ def run(vertices, faces, spec: dict) -> dict:
         for job in spec["jobs"]:
             lang, clip = job["language"], job["clip"]
             light_v, light_f, cam_f = _shaders(h, lang, spec["sources"][lang])
+            state = (job["state"], spec["sources"]["c"][f"light-pass-state-{job['state']}"])
             layers = []
             for m in job["maps"]:
                 mode = m["depth"]["mode"]
-                layers.append(h.light_pass(h.program((lang, "light", mode), light_v, light_f[mode]), m, clip))
+                layers.append(h.light_pass(h.program((lang, "light", mode), light_v, light_f[mode]), m, clip, state))
             shapes = {a.shape for a in layers}
             if len(shapes) != 1:
                 raise ValueError(f"the listing's texture array needs one resolution for all maps, got {shapes}")

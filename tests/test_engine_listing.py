@@ -1,12 +1,15 @@
-"""docs/engine-integration.md's shader listings, extracted verbatim, rendered in real OpenGL (Mesa llvmpipe
-through EGL, in a subprocess: renderers.gl_listing) in the opengl, d3d and vulkan (glClipControl) and
-reversed-Z conventions, GLSL as printed and HLSL through glslang and SPIRV-Cross; their shadow against exact ray-traced
-visibility at the same pixels must be within 1.25x of what `evaluate --depth` predicts for the same solution."""
+"""docs/engine-integration.md's shader listings and light-pass state blocks, extracted verbatim, rendered in real
+OpenGL (Mesa llvmpipe through EGL, in a subprocess: renderers.gl_listing) in the opengl, d3d and vulkan
+(glClipControl) and reversed-Z conventions, GLSL as printed and HLSL through glslang and SPIRV-Cross, the casters
+offset by the document's slope-scaled bias (its OpenGL calls executed, its Direct3D 11 and Vulkan fields set as
+their OpenGL equivalents); their shadow against exact ray-traced visibility at the same pixels must be within
+1.25x of what `evaluate --depth` predicts for the same solution."""
 from __future__ import annotations
 
 import pytest
 
 from shadowopt.api.schemas import validate_rig
+from shadowopt.renderers import gl_listing as G
 from shadowopt.service.bench import engine as E
 
 SCREEN = (480, 270)
@@ -37,8 +40,31 @@ def _measure(name, cascades, **kw):
 def test_the_document_has_every_listing_piece_once():
     got = {lang: sorted(p) for lang, p in E.listings().items()}
     assert got == {"glsl": ["light-pass-hardware", "light-pass-linear", "light-pass-vertex", "shadow-lookup"],
-                   "hlsl": ["light-pass-linear", "light-pass-vertex", "shadow-lookup"]}
+                   "hlsl": ["light-pass-linear", "light-pass-vertex", "shadow-lookup"],
+                   "c": ["light-pass-state-d3d11", "light-pass-state-gl", "light-pass-state-vulkan"]}
     assert "allow_log_warp" in E.DOC.read_text()  # the one sentence saying the log warp is not covered
+
+
+@pytest.mark.parametrize("reversed_z", [False, True])
+def test_the_three_state_blocks_set_one_light_pass_state(reversed_z):
+    """OpenGL's calls, Direct3D 11's and Vulkan's rasterizer fields, read as the harness reads them: depth
+    clamping on, no culling, the slope-scaled offset k with clamp m (both negated with reversed-Z: towards
+    the far plane, 0), no constant offset; OpenGL's depth test LESS (reversed-Z: GREATER)."""
+    src = E.listings()["c"]
+    k, m = 1.5, 0.002
+    sign = -1.0 if reversed_z else 1.0
+    want = {("glEnable", (G.GL_DEPTH_CLAMP,)), ("glDisable", (G.GL_CULL_FACE,)),
+            ("glEnable", (G.GL_POLYGON_OFFSET_FILL,)), ("glPolygonOffsetClamp", (sign * k, 0.0, sign * m))}
+    for api in ("gl", "d3d11", "vulkan"):
+        calls = {(name, tuple(args)) for name, args in G.light_pass_state(api, src[f"light-pass-state-{api}"], k, m,
+                                                                            reversed_z)}
+        if api == "gl":
+            assert ("glDepthFunc", (G.GL_GREATER if reversed_z else G.GL_LESS,)) in calls
+            calls = {c for c in calls if c[0] != "glDepthFunc"}
+        assert calls == want, api
+    with pytest.raises(ValueError, match="DepthBias"):  # a constant D3D bias is not what the document asks
+        G.light_pass_state("d3d11", src["light-pass-state-d3d11"].replace("DepthBias = 0", "DepthBias = 16"),
+                           k, m, reversed_z)
 
 
 _RESULTS: dict = {}
@@ -71,6 +97,10 @@ def test_pasted_listing_matches_evaluate_depth(scene, cascades, language):
             bad.append(f"{name}: listing {v['wrong']} wrong pixels vs evaluate --depth {mode} {ev}")
     assert not bad, f"{scene}, {cascades} cascade(s), {r['receivers']} receivers: " + "; ".join(bad)
     assert r["cascades"] == cascades and r["screen"] == list(SCREEN)
+    for block in r["depth"]:  # the caster-side slope-scaled bias is on, the receiver-side slope off
+        for mode in ("hardware", "linear"):
+            b = block[mode]
+            assert b["slope_scaled"] > 0 and b["slope_clamp"] > 0 and b["slope"] == 0, (mode, b)
     # What the document says a solution echoes: the light and camera it was solved for (world frame).
     for conv, echo in r["resolved"].items():
         assert echo["lights"][0]["direction"] == pytest.approx(r["light"]["direction"], abs=1e-9), conv
@@ -86,7 +116,7 @@ def test_a_wrong_listing_fails_the_check():
     flip = "bool shadowed = uParams.y > 0.5 ? d + bias < stored : d - bias > stored;"
     assert flip in lookup
     unflipped = "bool shadowed = d - bias > stored;"
-    broken = {"glsl": dict(src["glsl"], **{"shadow-lookup": lookup.replace(flip, unflipped)})}
+    broken = dict(src, glsl=dict(src["glsl"], **{"shadow-lookup": lookup.replace(flip, unflipped)}))
     hlsl_flip = "bool shadowed = gParams.y > 0.5 ? d + bias < stored : d - bias > stored;"
     assert hlsl_flip in src["hlsl"]["shadow-lookup"]
     broken["hlsl"] = dict(src["hlsl"], **{"shadow-lookup": src["hlsl"]["shadow-lookup"].replace(
@@ -97,19 +127,61 @@ def test_a_wrong_listing_fails_the_check():
     for lang in LANGUAGES:
         got = r["listing"][f"{lang}_reversed_z_solution"]["wrong"]
         assert got > 10 * max(ev, 1), (lang, got, ev)
-    no_bias = {"glsl": dict(src["glsl"], **{"shadow-lookup": lookup.replace(
-        "float bias = uDepth[k].x + uDepth[k].y * tanPsi;", "float bias = 0.0;")})}
+    no_bias = _without(src, "glsl:shadow-lookup", "float bias = uDepth[k].x + uDepth[k].y * tanPsi;",
+                       "float bias = 0.0;")
     r = _measure("terrain", 1, languages=("glsl",), modes=("solution",), sources=no_bias, conventions=("opengl",))
     ev, got = r["evaluate"]["solution"], r["listing"]["glsl_opengl_solution"]["wrong"]
     assert got > 1.25 * ev, (got, ev)
 
 
-def test_normal_offset_follows_the_rule():
-    """The solutions' normal_offset is 0: set one (and no slope term) in every block, in the solution the
-    listing reads and in the maps evaluate reads, and the listing still agrees with evaluate."""
-    r = _measure("street_canyon", 4, conventions=("opengl", "reversed_z"),
-                 depth_override={"normal_offset": 0.3, "slope": 0.0})
+def _without(src: dict, piece: str, line: str, instead: str = "") -> dict:
+    lang = "c" if piece.startswith("light-pass-state") else piece.split(":")[0]
+    piece = piece.split(":")[-1]
+    text = src[lang][piece]
+    assert line in text, (lang, piece, line)
+    return {**src, lang: dict(src[lang], **{piece: text.replace(line, instead)})}
+
+
+def test_the_caster_offset_is_needed():
+    """With a quarter of the solution's receiver constant (in evaluate's maps and the listing's alike) the
+    casters' slope-scaled offset carries the bias on sloped surfaces: the listing with it agrees with evaluate
+    in every convention (so with reversed-Z's negated offset too); without it (the offset call or field
+    dropped from each state block, the slope term from the linear light passes) the listing has acne that
+    evaluate does not predict."""
+    quarter = {"constant": lambda b: 0.25 * b["constant"]}
+    r = _measure("street_canyon", 1, depth_override=quarter)
     for name, v in r["listing"].items():
         ev = r["evaluate"][name.rsplit("_", 1)[1]]
         assert v["wrong"] <= 1.25 * ev, f"{name}: listing {v['wrong']} wrong pixels vs evaluate {ev}"
+    src = E.listings()
+    src = _without(src, "light-pass-state-gl", "glPolygonOffsetClamp(reversedZ ? -k : k, 0.0f, reversedZ ? -m : m);\n")
+    src = _without(src, "light-pass-state-d3d11", "rs.SlopeScaledDepthBias = reversedZ ? -k : k;\n")
+    src = _without(src, "light-pass-state-vulkan", "rs.depthBiasSlopeFactor = reversedZ ? -k : k;\n")
+    src = _without(src, "glsl:light-pass-linear", "d + min(uLinearOffset.x * dz, uLinearOffset.y)", "d")
+    src = _without(src, "hlsl:light-pass-linear", "d + min(gLinearOffset.x * dz, gLinearOffset.y)", "d")
+    r = _measure("street_canyon", 1, depth_override=quarter, sources=src, conventions=("opengl", "vulkan"))
+    for name, v in r["listing"].items():
+        ev = r["evaluate"][name.rsplit("_", 1)[1]]
+        assert v["wrong"] > 3 * max(ev, 10), f"{name}: without the offset {v['wrong']} wrong pixels, evaluate {ev}"
+
+
+def test_blend_only_where_the_next_cascade_holds_the_point_and_the_normal_offset():
+    """Blend bands widened to each cascade's whole split (in evaluate's maps and the listing's), so that past
+    a band's midpoint many receivers lie outside cascade k + 1, and a normal offset (0.3 m; the solutions
+    return 0) in every block: the listing agrees with evaluate; a lookup that blends with k + 1 everywhere in
+    the band does not."""
+    def whole_split(cascades):
+        for c in cascades[:-1]:
+            c["blend_band"] = [c["split"][0], c["split"][1]]
+
+    kw = dict(depth_override={"normal_offset": 0.3}, cascade_override=whole_split)
+    r = _measure("street_canyon", 4, conventions=("opengl", "reversed_z"), **kw)
+    for name, v in r["listing"].items():
+        ev = r["evaluate"][name.rsplit("_", 1)[1]]
+        assert v["wrong"] <= 1.25 * ev, f"{name}: listing {v['wrong']} wrong pixels vs evaluate {ev}"
+    src = _without(E.listings(), "glsl:shadow-lookup", "if (inside) v = mix(v, next, w);", "v = mix(v, next, w);")
+    r = _measure("street_canyon", 4, conventions=("opengl",), languages=("glsl",), modes=("solution",),
+                 sources=src, **kw)
+    ev, got = r["evaluate"]["solution"], r["listing"]["glsl_opengl_solution"]["wrong"]
+    assert got > 10 * max(ev, 10), (got, ev)
 

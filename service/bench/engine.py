@@ -33,10 +33,10 @@ CORPUS_SUNS = {"street_canyon": [-0.45, -0.8, 0.4], "terrain": [0.55, -0.6, 0.35
 
 def listings(text: str | None = None) -> dict:
     """{language: {piece: source}} from the document's fenced blocks tagged ```<language> <piece>```,
-    verbatim."""
+    verbatim (glsl, hlsl, and c for the light pass's rasterizer-state blocks)."""
     text = DOC.read_text() if text is None else text
     out: dict = {}
-    for lang, piece, body in re.findall(r"^```(glsl|hlsl) ([a-z-]+)\n(.*?)^```\s*$", text, re.M | re.S):
+    for lang, piece, body in re.findall(r"^```(glsl|hlsl|c) ([a-z0-9-]+)\n(.*?)^```\s*$", text, re.M | re.S):
         if piece in out.setdefault(lang, {}):
             raise ValueError(f"the document has two ```{lang} {piece}``` blocks")
         out[lang][piece] = body
@@ -80,10 +80,12 @@ def scene_rigs(names=None, screen=None):
 
 
 def solve_for_listing(validate_rig, entry, rig: dict, cascades: int, map_res: int = 1024,
-                      depth_override: dict | None = None) -> dict:
+                      depth_override: dict | None = None, cascade_override=None) -> dict:
     """One optimized solution per convention of CONVENTIONS (the same maps: asserted), and its maps.
     `depth_override`: {key: value} set in both blocks of every map's `depth` (e.g. a normal offset), in the
-    solutions and so in the maps evaluate reads."""
+    solutions and so in the maps evaluate reads; a callable value is called with the block (e.g. a scaled
+    constant). `cascade_override`: a function called with each solution's list of cascades (to change e.g.
+    their blend bands), before the maps are read back."""
     from ..solve import maps_from_solution, solve
 
     sols = {}
@@ -93,7 +95,10 @@ def solve_for_listing(validate_rig, entry, rig: dict, cascades: int, map_res: in
         sols[conv] = solve(entry, validate_rig(r), "optimized")
         for c in sols[conv]["lights"][0]["cascades"]:
             for mode in ("hardware", "linear"):
-                c["depth"][mode].update(depth_override or {})
+                blk = c["depth"][mode]
+                blk.update({k: v(blk) if callable(v) else v for k, v in (depth_override or {}).items()})
+        if cascade_override is not None:
+            cascade_override(sols[conv]["lights"][0]["cascades"])
     ref = [c["internal"] for c in sols["opengl"]["lights"][0]["cascades"]]
     for conv, s in sols.items():
         got = [c["internal"] for c in s["lights"][0]["cascades"]]
@@ -149,11 +154,18 @@ def listing_jobs(solved: dict, origin: np.ndarray, to_light, conventions=CONVENT
                          "split": c["split"], "blend_band": c.get("blend_band"),
                          "depth": {"mode": m, "constant": block["constant"], "slope": block["slope"],
                                    "normal_offset": block.get("normal_offset") or 0.0,
-                                   "near": block.get("near", 0.0), "far": block.get("far", 1.0)}})
+                                   "near": block.get("near", 0.0), "far": block.get("far", 1.0),
+                                   "slope_scaled": block["slope_scaled"], "slope_clamp": block["slope_clamp"]}})
         for lang in languages:
             jobs.append({"name": f"{lang}_{conv}_{mode}", "language": lang, "clip": conv, "maps": maps,
-                         "to_light": [float(x) for x in to_light]})
+                         "state": light_pass_api(lang, conv), "to_light": [float(x) for x in to_light]})
     return jobs
+
+
+def light_pass_api(language: str, convention: str) -> str:
+    """Which of the document's rasterizer-state blocks sets a job's light pass: Vulkan's for the vulkan
+    convention, Direct3D 11's for the HLSL, OpenGL's for the GLSL."""
+    return "vulkan" if convention == "vulkan" else ("d3d11" if language == "hlsl" else "gl")
 
 
 def run_listing(vertices, faces, camera: dict, jobs: list, sources: dict, timeout: float = 600) -> dict:
@@ -193,18 +205,18 @@ def listing_wrong_pixels(gt, gl: dict, rs, name: str) -> dict:
 
 def measure(validate_rig, name: str, path, rig: dict, cascades: int, map_res: int, screen=None,
             languages=LANGUAGES, modes=("solution",), ideal: bool = False, log=None, sources=None,
-            conventions=CONVENTIONS, depth_override: dict | None = None) -> dict:
+            conventions=CONVENTIONS, depth_override: dict | None = None, cascade_override=None) -> dict:
     """One scene and cascade count: per depth mode of `modes`, `evaluate --depth <mode>` and the listing's wrong
     pixels per convention and language (all against the exact visibility of one screen), and with `ideal`
     the idealized `--depth ideal` too. `sources`: the shader pieces (default: the document's listings);
-    `depth_override`: solve_for_listing's."""
+    `depth_override`, `cascade_override`: solve_for_listing's."""
     from ...renderers.ground_truth import evaluate_buffers, screen_camera
     from ..pipeline import scene_entry
     from ..rigs import resolve_rig
 
     t0 = time.perf_counter()
     entry = scene_entry(path)
-    solved = solve_for_listing(validate_rig, entry, rig, cascades, map_res, depth_override)
+    solved = solve_for_listing(validate_rig, entry, rig, cascades, map_res, depth_override, cascade_override)
     resolved = resolve_rig(solved["rig"], entry.loaded)
     light = resolved.lights[0]
     rs = entry.rays
@@ -228,7 +240,8 @@ def measure(validate_rig, name: str, path, rig: dict, cascades: int, map_res: in
         log(f"{name} K={cascades}: evaluate {evals}, listing {({k: v['wrong'] for k, v in listing.items()})} "
             f"({t1 - t0:.1f} s solve+evaluate, {t2 - t1:.1f} s OpenGL)")
     return {"scene": name, "cascades": cascades, "screen": list(camera.resolution), "map": map_res,
-            "modes": sol_modes, "evaluate": evals, "listing": listing, "renderer": str(gl["renderer"]),
+            "modes": sol_modes, "depth": [c["depth"] for c in solved["solutions"]["opengl"]["lights"][0]["cascades"]],
+            "evaluate": evals, "listing": listing, "renderer": str(gl["renderer"]),
             "receivers": int(gt.receivers.sum()), "seconds": t2 - t0,
             "resolved": {c: solved["solutions"][c]["resolved"] for c in conventions},
             "light": {"direction": [float(x) for x in light.direction]},
