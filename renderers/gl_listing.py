@@ -17,6 +17,7 @@ IN.npz: `vertices` (V, 3) float32 (already re-centred: every matrix below acts o
      "jobs": [{"name": str, "language": "glsl" | "hlsl",
                "clip": "opengl" | "d3d" | "vulkan" | "reversed_z",       # how the light pass is rasterized
                "state": "gl" | "d3d11" | "vulkan",                       # the light pass's rasterizer state block
+               "keep_maps": bool (optional),                             # also return the stored depth maps
                "to_light": [x, y, z],                                    # unit vector towards the sun
                "maps": [{"view_matrix": M, "view_projection": M, "texture_matrix": M,
                          "resolution": [w, h], "split": [a, b], "blend_band": [a, b] | null,
@@ -33,7 +34,8 @@ and set as the OpenGL equivalent (the same slope-scaled bias: OpenGL 4.6 §14.6.
 Vulkan depthBias*), with k, m the map's slope_scaled, slope_clamp for hardware and 0 for linear (whose
 shader adds the offset itself).
 OUT.npz: `hit` (h, w) bool, `position` (h, w, 3) float32 (re-centred), `view_depth` (h, w) float32, and per
-job `shadow_<name>` (h, w) float32 visibility in [0, 1] (1 lit), row 0 at the top as the camera sees it;
+job `shadow_<name>` (h, w) float32 visibility in [0, 1] (1 lit), row 0 at the top as the camera sees it, and
+with keep_maps `stored_<name>` (K, map h, map w) float32, the light passes' depth buffers as they lie in memory;
 `renderer` the GL_RENDERER string.
 """
 from __future__ import annotations
@@ -488,6 +490,8 @@ def run(vertices, faces, spec: dict) -> dict:
             c, p = h.camera_pass(prog, cam, arr, pack_uniforms(job["maps"], job["to_light"], clip == "reversed_z"))
             arr.release()
             out[f"shadow_{job['name']}"] = c[..., 0]
+            if job.get("keep_maps"):
+                out[f"stored_{job['name']}"] = np.stack(layers)
             out.setdefault("hit", c[..., 2] > 0.5)
             out.setdefault("view_depth", c[..., 1])
             out.setdefault("position", p[..., :3])

@@ -185,3 +185,57 @@ def test_blend_only_where_the_next_cascade_holds_the_point_and_the_normal_offset
     ev, got = r["evaluate"]["solution"], r["listing"]["glsl_opengl_solution"]["wrong"]
     assert got > 10 * max(ev, 10), (got, ev)
 
+
+
+def test_the_light_pass_stores_what_evaluate_emulates():
+    """Per texel, the depth Mesa's light pass stores with the document's state block (the OpenGL polygon offset
+    for hardware, the shader's dFdx/dFdy term for linear) against evaluate's emulation of the light pass
+    (ground_truth.engine_stored_map: the caster's plane on the neighbouring texel rays): the offsets agree, as
+    returned and with a clamp m small enough to cap most texels."""
+    import numpy as np
+
+    from shadowopt.renderers.ground_truth import engine_depth, engine_stored_map, render_map, screen_camera
+    from shadowopt.service.pipeline import scene_entry
+    from shadowopt.service.rigs import resolve_rig
+
+    n, path, rig = _scene("street_canyon")
+    entry = scene_entry(path)
+    solved = E.solve_for_listing(validate_rig, entry, rig, 1, 512)
+    rs, smap = entry.rays, solved["maps"][0]
+    resolved = resolve_rig(solved["rig"], entry.loaded)
+    light, camera = resolved.lights[0], screen_camera(resolved.camera, (64, 36))
+    # (slope_scaled factor, slope_clamp factor) per variant: as returned, no offset, clamp 1/50 of the returned
+    variants = {"on": (1.0, 1.0), "off": (0.0, 1.0), "clamped": (1.0, 0.02)}
+    jobs = []
+    for mode in ("hardware", "linear"):
+        for v, (fk, fm) in variants.items():
+            job = E.listing_jobs(solved, rs.origin, -np.asarray(light.direction), ("opengl",), ("glsl",), mode)[0]
+            maps = [dict(m, depth=dict(m["depth"], slope_scaled=m["depth"]["slope_scaled"] * fk,
+                                       slope_clamp=m["depth"]["slope_clamp"] * fm)) for m in job["maps"]]
+            jobs.append(dict(job, name=f"{mode}_{v}", keep_maps=True, maps=maps))
+    verts = np.array(rs.vertices, dtype=np.float32).reshape(-1, 3)
+    faces = np.array(rs.faces, dtype=np.uint32).reshape(-1, 3)
+    try:
+        gl = E.run_listing(verts, faces, E.camera_matrices(camera, rs, verts.astype(np.float64)), jobs, E.listings())
+    except RuntimeError as e:
+        if str(e).startswith("no OpenGL"):
+            pytest.skip(str(e).splitlines()[0])
+        raise
+    d_occ, prim = render_map(rs, light, smap, prims=True)
+    for mode in ("hardware", "linear"):
+        eng = engine_depth(smap, mode)
+        ev = {v: engine_stored_map(rs, smap, d_occ, prim, dict(eng, slope_scaled=eng["slope_scaled"] * fk,
+                                                                 slope_clamp=eng["slope_clamp"] * fm))
+              for v, (fk, fm) in variants.items()}
+        g = {v: gl[f"stored_{mode}_{v}"][0].astype(float) for v in variants}
+        # Texels whose caster is the same triangle in both (away from silhouettes: GL's and the ray's stored
+        # depth agree without the offset to float32 precision) and where the offset is not lost to clamping.
+        same = (prim >= 0) & (np.abs(g["off"] - ev["off"]) <= 1e-6) & (ev["on"] > ev["off"])
+        assert same.mean() > 0.5, (mode, same.mean())
+        for v in ("on", "clamped"):
+            off_gl, off_ev = (g[v] - g["off"])[same], (ev[v] - ev["off"])[same]
+            rel = np.abs(off_gl - off_ev) / off_ev
+            assert np.median(rel) < 0.01 and np.mean(rel < 0.05) > 0.95, (mode, v, np.median(rel))
+        m = eng["slope_clamp"] * variants["clamped"][1]
+        capped = (g["clamped"] - g["off"])[same]
+        assert np.mean(np.abs(capped - m) < 0.01 * m) > 0.5, (mode, "the clamp caps most texels")
