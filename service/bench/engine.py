@@ -4,7 +4,9 @@ Per scene and cascade count, one optimized solution; its maps rendered by the do
 Mesa's OpenGL (renderers.gl_listing, in a subprocess) in the opengl convention, the d3d convention
 (glClipControl) and d3d with reversed_z; every pixel's shadow compared with exact ray-traced visibility
 (renderers.ground_truth.render_screen's `visible` over its receivers). Beside it, `evaluate --depth`
-(solution, hardware, linear) and the idealized `--depth ideal` for the same solution.
+(solution, hardware, linear) and the idealized `--depth ideal` for the same solution. Each light pass sets
+the document's rasterizer-state block (light_pass_api: OpenGL's for the GLSL, Direct3D 11's for the HLSL,
+Vulkan's in the vulkan convention) with the map's caster-side slope-scaled bias.
 
 The same functions serve tests/test_engine_listing.py (`solve_for_listing`, `listing_wrong_pixels`).
 """
@@ -284,7 +286,10 @@ def bench_engine(validate_rig, scenes=None, write=True, map_res=2048, screen=Non
             "tracer, and docs/engine-integration.md's listings with that mode rendered in Mesa OpenGL "
             f"({rows[0]['renderer'] if rows else 'n/a'}) in the conventions `opengl`, `d3d` (glClipControl upper-left, "
             "depth [0, 1]), `vulkan` (glClipControl lower-left, depth [0, 1]) and `reversed_z` (d3d with "
-            "output.reversed_z), GLSL as printed and HLSL through glslang and SPIRV-Cross. "
+            "output.reversed_z), GLSL as printed and HLSL through glslang and SPIRV-Cross; each light pass with the "
+            "document's rasterizer-state block (its OpenGL calls for the GLSL, its Direct3D 11 fields for the HLSL, its "
+            "Vulkan fields in the vulkan convention: the caster-side slope-scaled bias `slope_scaled`, `slope_clamp` "
+            "of the map's `depth.hardware`; `linear` adds `depth.linear`'s in the shader). "
             f"Maps {map_res}x{map_res}; suns: McUsd's own, street_canyon {CORPUS_SUNS['street_canyon']}, "
             f"terrain {CORPUS_SUNS['terrain']}. The listing is compared where the rasterized surface is the "
             "ray-traced one; `left out`: the receivers where it is not (silhouettes).")
