@@ -127,7 +127,13 @@ def _drop_none(d: dict) -> dict:
 def rig_json(rig) -> dict:
     """A rig as JSON: a `Rig` model (dumped by alias, unset optionals left out) or a dict (as given)."""
     if isinstance(rig, BaseModel):
-        return rig.model_dump(mode="json", by_alias=True, exclude_none=True)
+        out = rig.model_dump(mode="json", by_alias=True, exclude_none=True)
+        spec = getattr(rig, "output", None)
+        if isinstance(out.get("output"), dict) and getattr(spec, "engine", None):
+            # an engine preset fills convention, layout and reversed_z on the server; a bare client (no
+            # rendering stack) cannot, and their defaults would contradict the preset: send what was set
+            out["output"] = spec.model_dump(mode="json", by_alias=True, exclude_none=True, exclude_unset=True)
+        return out
     if isinstance(rig, dict):
         return rig
     raise TypeError(f"rig: expected a dict or shadowopt.api.schemas.Rig, got {type(rig).__name__}")

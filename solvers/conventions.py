@@ -351,17 +351,20 @@ def convention_info(output: dict, stage_to_world: np.ndarray | None = None) -> d
 
 def preset_conflicts(engine: str, given: dict) -> list[str]:
     """The fields of an output spec that contradict the engine preset: `given` holds only the fields the
-    request set explicitly (convention, layout, reversed_z, frame). One message per field, naming both."""
+    request set explicitly (convention, layout, reversed_z, frame). One message per field, naming both.
+
+    frame "world" (the field's default, which every dumped-and-revalidated rig and the client's rig JSON
+    carry) is accepted with every preset: the preset's own frame replaces it. Only "stage" contradicts
+    a preset (the matrices cannot take both the stage's and the engine's coordinates)."""
     if engine not in ENGINE_PRESETS:
-        return [f"output.engine: unknown engine {engine!r} (known: {', '.join(ENGINES)})"]
+        return [f"unknown output.engine {engine!r} (known: {', '.join(ENGINES)})"]
     p = ENGINE_PRESETS[engine]
     out = []
     for key in ("convention", "layout", "reversed_z"):
         if key in given and given[key] != p[key]:
-            out.append(f"output.engine {engine!r} sets output.{key} to {p[key]!r} but output.{key} is "
-                       f"{given[key]!r}: give one of them")
-    world_like = tuple(p["axes"]) == ("x", "y", "z") and p["metres_per_unit"] == 1.0 and p["view"] == "-z"
-    if given.get("frame") == "stage" or (given.get("frame") == "world" and not world_like):
-        out.append(f"output.engine {engine!r} sets the frame (the engine's world frame and units) but "
-                   f"output.frame is {given['frame']!r}: give one of them")
+            out.append(f"the preset output.engine = {engine!r} sets output.{key} to {p[key]!r}, but it is "
+                       f"{given[key]!r}: remove output.{key} (the preset sets it)")
+    if given.get("frame") == "stage":
+        out.append(f"the preset output.engine = {engine!r} sets the frame (the engine's world frame and "
+                   f"units), but output.frame is 'stage': remove output.frame (the preset sets it)")
     return out

@@ -139,14 +139,20 @@ def test_engine_frame_points_land_on_documented_texels_and_depths(engine, kind):
 
 @pytest.mark.parametrize("engine", ENGINES)
 def test_view_matrix_is_the_engine_kind_of_view(engine):
-    """A rigid light view in the engine's units (Unreal's in centimetres): Unreal's (left-handed view of a left-handed world) and the
-    right-handed engines' are proper rotations; Unity's worldToCameraMatrix maps its left-handed world to
-    OpenGL's right-handed camera space, a mirror (determinant < 0), as Unity documents."""
+    """A rigid light view in the engine's units (Unreal's in centimetres), read as the engine reads the 16
+    numbers (decode): distances between engine-frame points are kept, and the handedness of the map
+    between the engine's world and the light view is a proper rotation for Unreal (a left-handed view of a
+    left-handed world) and the right-handed engines, a mirror for Unity (worldToCameraMatrix maps its
+    left-handed world to OpenGL's right-handed camera space, as Unity documents)."""
     out = export_matrices(LIGHT_VIEW, gl_ortho(L, R, B, T, N, F), engine=engine)
-    a = np.asarray(out["view_matrix"], float).reshape(4, 4)
-    m = a if engine == "unreal" else a.T  # both: the 3x3 block's determinant is the same
-    assert np.allclose(m[:3, :3] @ m[:3, :3].T, np.eye(3), atol=1e-12)  # rigid in the engine's own units
-    assert np.linalg.det(m[:3, :3]) == pytest.approx(-1.0 if engine == "unity" else 1.0, abs=1e-12)
+    view = decode(out["view_matrix"], engine)
+    o = view(np.zeros(3))[:3]
+    J = np.array([view(e)[:3] - o for e in np.eye(3)]).T  # columns: images of the engine's unit axes
+    assert np.allclose(J @ J.T, np.eye(3), atol=1e-12)  # rigid in the engine's own units
+    assert np.linalg.det(J) == pytest.approx(-1.0 if engine == "unity" else 1.0, abs=1e-12)
+    # the light 10 m up (engine units) sits at the view origin
+    up = np.array(TO_ENGINE[engine](0.0, 10.0, 0.0), float)
+    assert view(up)[:3] == pytest.approx([0.0, 0.0, 0.0], abs=1e-9)
 
 
 @pytest.fixture(scope="module")
@@ -188,8 +194,20 @@ def test_every_preset_reads_back_exactly_and_states_its_convention(demo, world_s
     ref = maps_from_solution(world_solution)[0]
     got = maps_from_solution(sol)[0]
     assert len(got) == len(ref) == 2
+    pts = np.array([[0.3, 0.2, -1.5], [-2.0, 0.0, 1.0], [1.0, 0.5, -4.0]])
     for a, b, c, c0 in zip(ref, got, sol["lights"][0]["cascades"], world_solution["lights"][0]["cascades"]):
-        assert np.array_equal(a.view, b.view) and np.array_equal(a.projection, b.projection)
+        # the read-back map is the one the world solution exported (its OpenGL column-major matrices)
+        v0 = np.asarray(c0["view_matrix"], float).reshape(4, 4).T
+        p0 = np.asarray(c0["projection_matrix"], float).reshape(4, 4).T
+        assert np.allclose(b.view, v0, atol=1e-12) and np.allclose(b.projection, p0, atol=1e-12)
+        # and the engine's texture matrix, on the same points in the engine's frame, lands where the
+        # read-back map does (its canonical t, its window depth), by the engine's documented rules
+        tex = decode(c["texture_matrix"], engine)
+        for X in pts:
+            s_, t_, z_ndc, _ = (float(v[0]) for v in b.map_coords(X[None]))
+            h = tex(np.array(TO_ENGINE[engine](*X), float))
+            want_t, want_d = TEXTURE[engine](t_, (z_ndc + 1) / 2)
+            assert h[:3] / h[3] == pytest.approx([s_, want_t, want_d], abs=1e-9), (engine, X)
         assert (a.split, a.light_depth, a.blend_band, a.n_prime, a.eta) == (b.split, b.light_depth, b.blend_band,
                                                                            b.n_prime, b.eta)
         assert a.depth == b.depth and a.depth_bias == b.depth_bias
@@ -238,7 +256,7 @@ def test_a_scene_point_through_a_real_solution(demo, engine):
     ({"engine": "unity", "convention": "d3d"}, ("output.engine", "output.convention")),
     ({"engine": "bevy", "reversed_z": False}, ("output.engine", "output.reversed_z")),
     ({"engine": "unreal", "layout": "row_major"}, ("output.engine", "output.layout")),
-    ({"engine": "unreal", "frame": "world"}, ("output.engine", "output.frame")),
+    ({"engine": "unreal", "frame": "stage"}, ("output.engine", "output.frame")),
     ({"engine": "three", "frame": "stage"}, ("output.engine", "output.frame")),
 ])
 def test_a_contradicting_field_is_refused_naming_both(output, fields):
@@ -250,15 +268,62 @@ def test_a_contradicting_field_is_refused_naming_both(output, fields):
         OutputSpec.model_validate(output)
     msg = format_validation_error(e.value)
     assert all(f in msg for f in fields), msg
+    field = fields[1].removeprefix("output.")
+    assert f"remove output.{field} (the preset sets it)" in msg and "output: output." not in msg, msg
 
 
-def test_agreeing_fields_are_accepted_and_filled():
+@pytest.mark.parametrize("engine", ENGINES)
+def test_agreeing_fields_and_frame_world_are_accepted_and_filled(engine):
+    """Fields equal to the preset's and frame "world" (the default, which a dumped rig carries) are accepted
+    with every preset; the preset fills convention, layout and reversed_z."""
     from shadowopt.api.schemas import OutputSpec
+    from shadowopt.solvers.conventions import ENGINE_PRESETS
 
-    o = OutputSpec.model_validate({"engine": "bevy", "convention": "d3d", "reversed_z": True, "frame": "world"})
-    assert (o.convention, o.reversed_z, o.layout) == ("d3d", True, "column_major")
-    o = OutputSpec.model_validate({"engine": "godot"})
-    assert (o.convention, o.reversed_z) == ("vulkan", True)
+    p = ENGINE_PRESETS[engine]
+    o = OutputSpec.model_validate({"engine": engine, "convention": p["convention"], "reversed_z": p["reversed_z"],
+                                   "layout": p["layout"], "frame": "world"})
+    assert (o.convention, o.reversed_z, o.layout) == (p["convention"], p["reversed_z"], p["layout"])
+    o = OutputSpec.model_validate({"engine": engine})
+    assert (o.convention, o.reversed_z, o.layout) == (p["convention"], p["reversed_z"], p["layout"])
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_a_preset_rig_validates_twice_unchanged(engine):
+    """validate_rig(validate_rig(rig)) == validate_rig(rig): the validated rig (frame "world" and the
+    preset's own convention, layout and reversed_z filled in) is itself a valid rig, as the batch queue
+    and the benchmarks re-validate dumped rigs."""
+    once = _rig({"engine": engine})
+    assert _rig_validate(once) == once
+    assert once["output"]["engine"] == engine and once["output"]["frame"] == "world"
+
+
+def _rig_validate(rig: dict) -> dict:
+    from shadowopt.api.schemas import validate_rig
+
+    return validate_rig(json.loads(json.dumps(rig)))
+
+
+@pytest.mark.parametrize("engine", ["unity", "unreal", "bevy"])
+def test_a_bare_client_rig_with_a_preset_is_accepted_by_the_server(engine, monkeypatch):
+    """The Python client installed without the server's stack cannot fill the preset's fields (its
+    OutputSpec keeps the defaults: reversed_z False, convention opengl); rig_json sends only the output
+    fields that were set, so the server accepts the rig and fills the preset."""
+    import sys
+
+    from shadowopt.api.client import rig_json
+    from shadowopt.api.schemas import Rig
+
+    raw = json.loads((REPO / "configs" / "demo_rig.json").read_text())
+    raw["output"] = {"engine": engine}
+    with monkeypatch.context() as m:
+        m.setitem(sys.modules, "shadowopt.solvers.conventions", None)  # import fails: the bare client
+        bare = Rig.model_validate(raw)
+        assert bare.output.reversed_z is False  # not filled without the stack
+        sent = rig_json(bare)
+    assert sent["output"] == {"engine": engine}
+    assert _rig_validate(sent)["output"] == _rig(raw["output"])["output"]
+    assert rig_json(Rig.model_validate(raw))["output"]["engine"] == engine  # with the stack: filled, agreeing
+    _rig_validate(rig_json(Rig.model_validate(raw)))
 
 
 @pytest.mark.filterwarnings("ignore:Using `httpx` with `starlette.testclient`")
@@ -354,3 +419,42 @@ def test_engine_frame_geometry_rasterized_by_opengl_matches_the_ray_cast_map(dem
     err = np.abs(d_gl - d_ray)[both]
     span = smap.light_depth[1] - smap.light_depth[0]
     assert np.median(err) < 1e-4 * span and np.mean(err < 1e-3 * span) > 0.97, (np.median(err), span)
+
+
+@pytest.mark.filterwarnings("ignore:Using `httpx` with `starlette.testclient`")
+def test_rest_camera_path_batch_and_client_rig_with_a_preset(tmp_path):
+    """On a real uvicorn server (tests/serverkit.py): a camera-path batch with an engine preset (the server
+    dumps each expanded configuration's rig and validates it again) runs, every result line in the
+    preset's convention and unit; the Python client's `Rig` model with a preset round-trips through
+    optimize."""
+    import time
+
+    import httpx
+    from serverkit import TINY_RIG, TOKENS, auth, running, upload
+
+    from shadowopt.api.client import Client
+    from shadowopt.api.schemas import Rig
+
+    with running(tmp_path / "data") as srv, httpx.Client(base_url=srv.base, headers=auth("alice"), timeout=120) as api:
+        scene = upload(srv.base, "alice").json()
+        rig = {**TINY_RIG, "output": {"engine": "unreal"}}
+        body = {"scene_id": scene["scene_id"], "rig": rig, "method": "focused",
+                "camera_path": {"keyframes": [{"position": [0, 3, 9], "target": [0, 0, 0]},
+                                              {"position": [4, 3, 8], "target": [0, 0, 0]}], "samples": 2}}
+        r = api.post("/v1/batches", json=body)
+        assert r.status_code == 202, r.text
+        bid = r.json()["batch_id"]
+        deadline = time.monotonic() + 120
+        while (st := api.get(f"/v1/batches/{bid}").json())["state"] in ("queued", "running"):
+            assert time.monotonic() < deadline, st
+            time.sleep(0.1)
+        assert st["state"] == "done" and st["done"] == 2, st
+        rows = [json.loads(x) for x in api.get(f"/v1/batches/{bid}/results").text.splitlines()]
+        assert len(rows) == 2
+        for row in rows:
+            assert (row["convention"]["engine"], row["convention"]["length_unit"]) == ("unreal", "centimetres")
+        with Client(srv.base, token=TOKENS["alice"]) as client:
+            sol = client.optimize(scene["scene_id"], Rig.model_validate({**TINY_RIG, "output": {"engine": "unity"}}),
+                                  method="focused")
+        conv = sol["convention"]
+        assert (conv["engine"], conv["handedness"], conv["reversed_z"]) == ("unity", "left", True)
