@@ -831,14 +831,20 @@ def measure_m(sb: ScreenBuffers, maps: list[ShadowMap], map_index: np.ndarray,
 
 
 def evaluate_buffers(rs: RayScene, camera: Camera, light: Light, maps: list[ShadowMap],
-                     screen: tuple[int, int] | None = None, pancake: bool = True, depth: str = "ideal") -> GroundTruth:
+                     screen: tuple[int, int] | None = None, pancake: bool = True, depth: str = "ideal",
+                     screen_buffers: ScreenBuffers | None = None) -> GroundTruth:
     """Everything `evaluate` computes, with the per-pixel buffers (for heatmaps and reports).
     depth: "ideal" (the idealized texel-unit rule, BIAS_RULE), "solution" (each map's depth block in its
-    own mode), "hardware" or "linear" (that block of every map): DEPTH_RULE_ENGINE."""
+    own mode), "hardware" or "linear" (that block of every map): DEPTH_RULE_ENGINE.
+    screen_buffers: a previous evaluation's `GroundTruth.screen` of the same camera, screen and light, to
+    score the same pixels again (e.g. under another depth test) without tracing them again."""
     engines = [engine_depth(m, depth) for m in maps]
     t0 = time.perf_counter()
     cam = screen_camera(camera, screen)
-    sb = render_screen(rs, cam, light)
+    if screen_buffers is not None and (screen_buffers.width, screen_buffers.height) != tuple(cam.resolution):
+        raise ValueError(f"screen_buffers are {screen_buffers.width}x{screen_buffers.height}, the screen is "
+                         f"{cam.resolution[0]}x{cam.resolution[1]}")
+    sb = render_screen(rs, cam, light) if screen_buffers is None else screen_buffers
     t1 = time.perf_counter()
     if depth == "ideal":
         d_occ = [_device_map(rs, light, smap, pancake) for smap in maps]

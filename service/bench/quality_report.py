@@ -266,3 +266,28 @@ def speed_error_plot(se: dict, path: Path, title: str = "setup ms (log) vs miscl
     img.save(tmp)
     os.replace(tmp, path)
     return path
+
+
+def table_engine(stats: dict, part: str, label: str) -> list[str]:
+    """Per scene and method: misclassified pixels summed over the suns under the idealized bias (a bias scaled by
+    each texel's own world size at the receiver) and under the depth test each map states for an engine
+    (`evaluate --depth solution`: hardware or linear depth, receiver constant, caster slope-scaled bias), on the
+    same pixels, and their ratio; `-` where the stored record has no engine numbers."""
+    rows = [(k, s[part]) for k, s in stats.items() if part in s]
+    if not rows:
+        return []
+    methods = list(rows[0][1]["totals"])
+    lines = [f"**{label}: what an engine gets** (misclassified pixels summed over the suns: idealized bias / each map's "
+             "stated engine depth test, `evaluate --depth solution`, on the same pixels; engine / ideal in brackets).", "",
+             "| scene | " + " | ".join(methods) + " |", "|---|" + "---:|" * len(methods)]
+    for k, p in rows:
+        eng = p.get("engine_totals")
+        cells = []
+        for m in methods:
+            ideal = p["totals"][m]
+            if not eng or m not in eng:
+                cells.append(f"{ideal:,} / -")
+            else:
+                cells.append(f"{ideal:,} / {eng[m]:,} ({eng[m] / ideal:.2f})" if ideal else f"{ideal:,} / {eng[m]:,}")
+        lines.append(f"| {k} | " + " | ".join(cells) + " |")
+    return lines

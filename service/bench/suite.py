@@ -187,14 +187,15 @@ def _coverage():
 # The keys of quality_scene's record (per part, method and sun); part of the corpus fingerprint, so a
 # record stored before a key existed is measured again by --reuse (--reuse any takes it, "-" in the tables).
 RECORD_KEYS = ("misclassified", "outside", "boundary", "receivers", "setup_ms", "objective", "limit", "ratio_to_limit",
-               "run_s", "predicted_misclassified")
+               "run_s", "predicted_misclassified", "misclassified_engine")
 
 
 def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict, bar=None, hd: dict | None = None) -> dict:
     """One scene and camera under Chong & Gortler 2007 §3's protocol: for every light direction and
     every configuration, the solution (`solve`) scored against exact ray-traced visibility
     (`evaluate_buffers` at the rig's resolution `screen`). Per part and configuration, one entry per
-    direction: misclassified, outside and boundary pixels, setup time (ms, coarse pass excluded),
+    direction: misclassified (idealized bias), misclassified_engine (each map's stated engine depth test,
+    `evaluate --depth solution`, on the same pixels), outside and boundary pixels, setup time (ms, coarse pass excluded),
     the predicted objective with its texel limit and ratio to it (None where the solution has none),
     and the wall time of the run (solve and evaluation, s). `dirs`: one array for every part, or {part: array}.
 
@@ -227,10 +228,16 @@ def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict
                 r = resolved[key]
                 t0 = time.perf_counter()
                 sol = solve(entry, rig, method=c["method"])
-                gt = evaluate_buffers(entry.rays, r.camera, r.lights[0], maps_from_solution(sol)[0]).result
+                maps = maps_from_solution(sol)[0]
+                ideal = evaluate_buffers(entry.rays, r.camera, r.lights[0], maps)
+                gt = ideal.result
                 rec["run_s"][part][name].append(time.perf_counter() - t0)
+                # What an engine gets: each map's stated depth test and biases (evaluate --depth solution), on the same pixels.
+                engine = evaluate_buffers(entry.rays, r.camera, r.lights[0], maps, depth="solution",
+                                          screen_buffers=ideal.screen).result
                 pe = sol["lights"][0]["predicted_error"]
                 for k, v in (("misclassified", gt["misclassified_pixels"]), ("outside", gt["outside_pixels"]),
+                             ("misclassified_engine", engine["misclassified_pixels"]),
                              ("boundary", gt["boundary_pixels"]), ("receivers", gt["receiver_pixels"]),
                              ("setup_ms", sol["timings_ms"]["optimize"]), ("objective", pe["objective"]),
                              ("limit", pe.get("limit")), ("ratio_to_limit", pe.get("ratio_to_limit")),
@@ -346,6 +353,9 @@ def _scene_stats(rec: dict, dirs, spec: dict) -> dict:
         p["calibration"] = quality_report.calibration(pred, meas)
         p["pixel_prediction"] = quality_report.pixel_prediction(rec, part)  # None: stored before misclassified_pixels
         p["ratio_to_limit"] = quality_report.ratio_to_limit(rec, part)
+        eng = rec.get("misclassified_engine", {}).get(part)
+        p["engine_totals"] = ({m: int(np.sum(v)) for m, v in eng.items()}
+                              if eng and all(len(v) == p["suns"] and None not in v for v in eng.values()) else None)
         hd = rec.get("outside_hd", {}).get(part)
         if hd and all(len(v) for v in hd.values()):
             p["outside_hd"] = {m: int(np.sum(v)) for m, v in hd.items()}
@@ -446,6 +456,7 @@ def _tables_corpus(stats: dict, skipped: dict, spec: dict, corpus_ratio, corpus_
             lines.append(f"| {k} | {stats[k]['triangles']:,} | " + " | ".join(f"{p['outside'][m]} ({p['outside_max'][m]})" for m in methods)
                          + " | " + " | ".join(f"{p['setup_ms_p50'][m]:.1f}" for m in methods)
                          + f" | {statistics.median(p['run_s_p50'].values()):.2f} |")
+        lines += ["", *quality_report.table_engine(stats, "single", "One map")]
         lines += ["", *_table_outside_hd(stats, "single", f"One map at {hd_name}", hd_name)]
         lines += ["", *quality_report.table_ratio_to_limit(stats, "single", "One map")]
         if calib.get("single"):
@@ -474,6 +485,7 @@ def _tables_corpus(stats: dict, skipped: dict, spec: dict, corpus_ratio, corpus_
                          + " | ".join(f"{c['outside'][m]}" for m in names) + " | "
                          + " | ".join(f"{c['setup_ms_p50'][m]:.1f}" for m in names) + f" | {c['spearman_pooled']:.2f} | "
                          + f"{quality_report._fmt((c.get('pixel_prediction') or {}).get('spearman'))} |")
+        lines += ["", *quality_report.table_engine(stats, "cascades", "Four cascades")]
         lines += ["", *_table_outside_hd(stats, "cascades", f"Four cascades at {hd_name}", hd_name)]
         lines += ["", *quality_report.table_ratio_to_limit(stats, "cascades", "Four cascades")]
         if calib.get("cascades"):
