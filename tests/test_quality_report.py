@@ -168,3 +168,13 @@ def test_fingerprint_changes_with_the_record_keys(tmp_path, monkeypatch):
     assert qr.PREDICTED_KEY in b.RECORD_KEYS
     monkeypatch.setattr(b, "RECORD_KEYS", tuple(k for k in b.RECORD_KEYS if k != qr.PREDICTED_KEY))
     assert b._corpus_fingerprint(*args) != new
+
+
+def test_engine_table_puts_the_engine_numbers_beside_the_ideal_ones():
+    stats = {"demo": {"single": {"totals": {"focused": 200, "optimized": 100},
+                                 "engine_totals": {"focused": 150, "optimized": 130}}},
+             "old": {"single": {"totals": {"focused": 10, "optimized": 0}, "engine_totals": None}}}
+    lines = qr.table_engine(stats, "single", "One map")
+    assert "| demo | 200 / 150 (0.75) | 100 / 130 (1.30) |" in lines
+    assert "| old | 10 / - | 0 / - |" in lines
+    assert qr.table_engine(stats, "cascades", "Four cascades") == []
