@@ -272,8 +272,9 @@ def solution_json(entry: SceneEntry, resolved: ResolvedRig, method: str, per_lig
 
 
 # The lengths of a map's JSON an engine uses, expressed in the output's length unit (convention
-# .length_unit: the engine preset's, the stage's with frame "stage", else metres). depth_bias (the
-# idealized texel rule, keys in metres) and predicted_error (metres, its keys say so) stay in metres.
+# .length_unit: the engine preset's, else metres; with frame "stage" too, only the matrices take stage
+# coordinates: solvers.conventions.output_frame). depth_bias (the idealized texel rule, keys in metres)
+# and predicted_error (metres, its keys say so) stay in metres.
 LENGTH_PAIRS = ("split", "light_depth", "blend_band")
 DEPTH_LENGTHS = {"hardware": ("normal_offset",), "linear": ("normal_offset", "near", "far")}
 

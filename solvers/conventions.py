@@ -88,8 +88,10 @@ def texture_from_clip(convention: str, texture_origin: str | None = None) -> np.
     d3d:    t = 0.5 - 0.5 y (texture origin top-left, v flipped); depth z passes through ([0, 1]).
     vulkan: NDC y already points down, so t = 0.5 + 0.5 y (origin top-left); depth passes through.
     texture_origin ("bottom-left" / "top-left") overrides the convention's own origin (an engine that
-    renders its maps upside down on a top-left API, as Unity and Filament do, samples them bottom-left):
-    t = 0 on the map's row at NDC y = -1 (bottom-left) or y = +1 (top-left), in the convention's NDC.
+    renders its maps upside down on a top-left API, as Unity does, samples them bottom-left; Filament's
+    shadow texture matrix is bottom-left too and its shaders flip v through uvToRenderTargetUV on Metal,
+    Vulkan and WebGPU, docs/engines.md): t = 0 on the map's row at NDC y = -1 (bottom-left) or y = +1
+    (top-left), in the convention's NDC.
     """
     _check(convention)
     origin = texture_origin or DEFAULT_TEXTURE_ORIGIN[convention]
@@ -226,7 +228,8 @@ ENGINE_PRESETS: dict[str, dict] = {
               "projection": "opengl", "layout": "column_major", "axes": ("x", "y", "-z"),
               "metres_per_unit": 1.0, "view": "-z",
               "docs": "Unity Manual, Platform-specific rendering differences (reversed Z on Direct3D 11/12, "
-                      "Vulkan, Metal and consoles; Unity flips the projection when rendering into a render "
+                      "Vulkan, Metal and consoles, the platforms this row describes; OpenGL and GLES keep "
+                      "[-1, 1] depth, not reversed; Unity flips the projection when rendering into a render "
                       "texture on UNITY_UV_STARTS_AT_TOP platforms, so maps sample with v = 0 at the bottom); "
                       "Scripting API Camera.worldToCameraMatrix (camera space is OpenGL's, forward -Z) and "
                       "GL.GetGPUProjectionMatrix (projections follow OpenGL and are converted per platform); "
@@ -244,7 +247,8 @@ ENGINE_PRESETS: dict[str, dict] = {
                        "(UsdToUnreal::ConvertVector)"},
     "godot": {**_RH_Y_UP_M, "convention": "vulkan", "reversed_z": True, "texture_origin": "top-left",
               "projection": "clip",
-              "docs": "Godot 4 docs: Projection (OpenGL-convention 4x4, columns x, y, z, w) and "
+              "docs": "Forward+ and Mobile renderers (not Compatibility). Godot 4 docs: Projection "
+                      "(OpenGL-convention 4x4, columns x, y, z, w) and "
                       "create_depth_correction (the renderer maps it to [0, 1] depth with y flipped); Godot 4.3 "
                       "\"Introducing Reverse Z\" (depth 1 near, 0 far); Advanced post-processing (shader NDC "
                       "= SCREEN_UV * 2 - 1 with that depth): right-handed, +Y up, metres"},
@@ -252,7 +256,9 @@ ENGINE_PRESETS: dict[str, dict] = {
               "projection": "clip",
               "docs": "three.js docs: Matrix4 (elements are column-major), LightShadow.updateMatrices "
                       "(shadow.matrix = [0.5 scale and bias] · camera.projectionMatrix · "
-                      "camera.matrixWorldInverse), WebGL clip z in [-1, 1]; right-handed, +Y up, metres"},
+                      "camera.matrixWorldInverse), WebGLRenderer without reversedDepthBuffer: clip z in "
+                      "[-1, 1]; right-handed, +Y up, metres (WebGPURenderer: the d3d convention, "
+                      "docs/engines.md)"},
     "bevy": {**_RH_Y_UP_M, "convention": "d3d", "reversed_z": True, "texture_origin": "top-left",
              "projection": "clip",
              "docs": "Bevy bevy_pbr: Cascade {world_from_cascade, clip_from_cascade, clip_from_world} from "
@@ -263,7 +269,9 @@ ENGINE_PRESETS: dict[str, dict] = {
                  "projection": "opengl",
                  "docs": "Filament Camera::setCustomProjection (OpenGL-convention projection; the renderer "
                          "converts clip z to its inverted [1, 0] range); ShadowMap::getTextureCoordsMapping "
-                         "(NDC [-1, 1] -> texture [0, 1], depth mapped to [1, 0], v = 0.5 y + 0.5); "
+                         "(NDC [-1, 1] -> texture [0, 1], depth mapped to [1, 0], v = 0.5 y + 0.5 on OpenGL; "
+                         "on Metal, Vulkan and WebGPU textureSpaceFlipped folds v -> 1 - v in, the shader's "
+                         "uvToRenderTargetUV); "
                          "filament::math::mat4f is column-major; right-handed, +Y up, metres"},
 }
 _FLIP_Z = np.diag([1.0, 1.0, -1.0, 1.0])

@@ -162,13 +162,15 @@ def demo():
     return scene_entry(REPO / "configs" / "demo_scene.usda")
 
 
-def _rig(output: dict, cascades: int = 2) -> dict:
+def _rig(output: dict, cascades: int = 2, lights: list | None = None) -> dict:
     from shadowopt.api.schemas import validate_rig
 
     rig = json.loads((REPO / "configs" / "demo_rig.json").read_text())
     rig["shadow"] = {"resolution": [512, 512], "cascades": cascades}
     rig["coarse_long_side"] = 96
     rig["output"] = output
+    if lights is not None:
+        rig["lights"] = lights
     return validate_rig(rig)
 
 
@@ -344,8 +346,8 @@ def test_the_rest_api_answers_422_naming_the_fields(tmp_path):
 
 
 def test_the_engines_page_table_says_what_each_preset_sets():
-    """docs/engines.md's summary table against the preset table: handedness, up axis, unit, reversed
-    depth, texture origin and what projection_matrix holds, per engine."""
+    """docs/engines.md's summary table against the preset table: handedness, up axis, unit, clip depth,
+    reversed depth, texture origin, what projection_matrix holds and the layout, per engine."""
     from shadowopt.solvers.conventions import ENGINE_PRESETS, convention_info
 
     rows = {}
@@ -354,13 +356,126 @@ def test_the_engines_page_table_says_what_each_preset_sets():
         if len(cells) == 7 and cells[0].strip("`") in ENGINES:
             rows[cells[0].strip("`")] = cells
     assert set(rows) == set(ENGINES)
-    for engine, (_, frame, _, rev, origin, proj, _) in rows.items():
+    clip_of = {"opengl": "[−1, 1]", "d3d": "[0, 1]", "vulkan": "[0, 1], NDC y down"}
+    for engine, (_, frame, clip, rev, origin, proj, layout) in rows.items():
         info = convention_info({"engine": engine})
+        p = ENGINE_PRESETS[engine]
         unit = {"metres": "m", "centimetres": "cm"}[info["length_unit"]]
         assert frame == f"{info['handedness']}, {info['up_axis']}, {unit}", engine
-        assert rev == ("yes" if info["reversed_z"] else "no"), engine
+        if p["projection"] == "opengl":  # the API takes OpenGL's clip; the GPU's range is the reversed one
+            assert clip.startswith("OpenGL in the API, ") and ("[0, 1] on the GPU" in clip or
+                                                               "[1, 0] on the GPU" in clip), engine
+        else:
+            assert clip == clip_of[p["convention"]], engine
+        assert rev.split()[0] == ("yes" if info["reversed_z"] else "no"), engine
         assert origin == info["texture_origin"], engine
-        assert proj.split()[0] == {"clip": "clip", "opengl": "OpenGL"}[ENGINE_PRESETS[engine]["projection"]], engine
+        assert proj.split()[0] == {"clip": "clip", "opengl": "OpenGL"}[p["projection"]], engine
+        assert layout.startswith({"column_major": "column-major", "row_major": "row-major"}[p["layout"]]), engine
+
+
+def test_three_webgpu_renderer_form_is_the_d3d_convention():
+    """docs/engines.md, three.js: with WebGPURenderer, three.js builds shadow.matrix as a 0.5 scale and
+    bias in x, y with z passed through, times projection (WebGPUCoordinateSystem: clip z in [0, 1]) times
+    view (LightShadow.updateMatrices), and ShadowNode samples it at (x, 1 - y): with the d3d convention's
+    projection that is the d3d texture matrix (top-left origin, window depth)."""
+    from shadowopt.solvers.conventions import export_matrices
+
+    for P in (gl_ortho(L, R, B, T, N, F), gl_frustum(L / 10, R / 10, B / 10, T / 10, N, F)):
+        out = export_matrices(LIGHT_VIEW, P, "d3d")
+        V = decode(out["view_matrix"], "d3d")
+        proj = np.asarray(out["projection_matrix"], float).reshape(4, 4).T
+        s_webgpu = np.array([[0.5, 0, 0, 0.5], [0, 0.5, 0, 0.5], [0, 0, 1.0, 0], [0, 0, 0, 1]])
+        tex = decode(out["texture_matrix"], "d3d")
+        for p in POINTS:
+            h = s_webgpu @ proj @ V(p)
+            x, y, z = h[:3] / h[3]
+            g = tex(p)
+            assert [x, 1 - y, z] == pytest.approx(list(g[:3] / g[3]), abs=1e-12)
+
+
+def test_filament_render_target_uv_flip_gives_the_top_left_rows():
+    """docs/engines.md, Filament: on Metal, Vulkan and WebGPU Filament folds v -> 1 - v into its shadow
+    texture matrix (ShadowMap::getTextureCoordsMapping's Mf when textureSpaceFlipped, the same as
+    uvToRenderTargetUV in the shader); applied to the preset's texture matrix it gives the rows of a
+    top-left-origin API (the d3d texture matrix's v), the depth staying 1 - D."""
+    from shadowopt.solvers.conventions import export_matrices
+
+    P = gl_frustum(L / 10, R / 10, B / 10, T / 10, N, F)
+    fil = decode(export_matrices(LIGHT_VIEW, P, engine="filament")["texture_matrix"], "filament")
+    top_left = decode(export_matrices(LIGHT_VIEW, P, "d3d")["texture_matrix"], "d3d")
+    mf = np.array([[1.0, 0, 0, 0], [0, -1.0, 0, 1.0], [0, 0, 1.0, 0], [0, 0, 0, 1]])
+    for p in POINTS:
+        a, b = mf @ fil(p), top_left(p)
+        assert a[:2] / a[3] == pytest.approx(b[:2] / b[3], abs=1e-12)
+        assert a[2] / a[3] == pytest.approx(1 - b[2] / b[3], abs=1e-12)
+
+
+def test_unreal_light_forward_is_the_z_column_of_the_fmatrix():
+    """docs/engines.md, Unreal: the light's forward in Unreal's coordinates (for WorldToLight's +X) is the
+    z column (M[0][2], M[1][2], M[2][2]) of the FMatrix filled from view_matrix. LIGHT_VIEW looks down
+    world -Y, which is Unreal's -Z (down)."""
+    from shadowopt.solvers.conventions import export_matrices
+
+    fm = np.asarray(export_matrices(LIGHT_VIEW, gl_ortho(L, R, B, T, N, F), engine="unreal")["view_matrix"],
+                    float).reshape(4, 4)
+    fwd = fm[:3, 2]
+    assert fwd / np.linalg.norm(fwd) == pytest.approx([0.0, 0.0, -1.0], abs=1e-12)
+    assert np.linalg.norm(fwd) == pytest.approx(1.0, abs=1e-12)  # rigid in centimetres
+
+
+def test_point_light_faces_keep_world_axis_names_under_a_preset(demo):
+    """docs/engines.md: a point light's faces are named by shadowopt's world axes whatever the preset;
+    under Unreal (Z up) the "+y" face looks along Unreal's +Z, "+z" along Unreal's +Y (TO_ENGINE of the
+    world axis), each face's view read as FMatrix row vectors looking down +Z."""
+    from shadowopt.service.solve import solve
+
+    lights = [{"type": "point", "position": [0.5, 3.0, 0.5]}]
+    world = solve(demo, _rig({}, lights=lights), "focused")["lights"][0]["cascades"]
+    sol = solve(demo, _rig({"engine": "unreal"}, lights=lights), "focused")["lights"][0]["cascades"]
+    assert [c["face"] for c in sol] == [c["face"] for c in world] == ["+x", "-x", "+y", "-y", "+z", "-z"]
+    for c in sol:
+        axis = {"x": 0, "y": 1, "z": 2}[c["face"][1]]
+        d = np.zeros(3)
+        d[axis] = 1.0 if c["face"][0] == "+" else -1.0
+        want = np.array(TO_ENGINE["unreal"](*d), float) / 100.0  # the world axis in Unreal's axes
+        fm = np.asarray(c["view_matrix"], float).reshape(4, 4)
+        fwd = fm[:3, 2] / np.linalg.norm(fm[:3, 2])
+        assert fwd == pytest.approx(want, abs=1e-9), c["face"]
+
+
+def test_log_warp_with_a_top_left_origin_applies_to_one_minus_v(demo):
+    """docs/engines.md: a log-warped map (LogPSM, output.allow_log_warp) under a top-left preset (Bevy):
+    t = 1 - v of the texture matrix, t' = c0 log(c1 t + c2) (warp.log), the texel at v = 1 - t', which is
+    where the read-back map (its own log warp, bottom-left t) puts the point."""
+    from shadowopt.service.solve import maps_from_solution, solve
+
+    sol = solve(demo, _rig({"engine": "bevy", "allow_log_warp": True}, cascades=1), "logpsm")
+    c = sol["lights"][0]["cascades"][0]
+    assert c["warp"]["kind"] == "log"
+    lw = c["warp"]["log"]
+    smap = maps_from_solution(sol)[0][0]
+    tex = decode(c["texture_matrix"], "bevy")
+    s0, t0 = np.array([0.2, 0.5, 0.8]), np.array([0.3, 0.6, 0.9])
+    near, far = smap.texel_rays(s0, t0)  # world points whose warped (s, t) are s0, t0
+    for X, s_want, t_want in zip(0.5 * (near + far), s0, t0):
+        h = tex(np.array(TO_ENGINE["bevy"](*X), float))
+        s, v = h[0] / h[3], h[1] / h[3]
+        t_warped = lw["c0"] * np.log(lw["c1"] * (1 - v) + lw["c2"])
+        assert (s, 1 - t_warped) == pytest.approx((s_want, 1 - t_want), abs=1e-9)
+
+
+def test_warp_n_is_in_the_preset_unit(demo):
+    """docs/engines.md: warp.n is a length and is returned in the preset's unit (Unreal: centimetres) for a
+    perspective-warped map (LiSPSM); the depth block's lengths likewise, read back in metres exactly."""
+    from shadowopt.service.solve import maps_from_solution, solve
+
+    world = solve(demo, _rig({}, cascades=1), "lispsm")["lights"][0]["cascades"][0]
+    sol = solve(demo, _rig({"engine": "unreal"}, cascades=1), "lispsm")
+    c = sol["lights"][0]["cascades"][0]
+    assert c["warp"]["kind"] == world["warp"]["kind"] == "perspective"
+    assert c["warp"]["n"] == pytest.approx(100.0 * world["warp"]["n"], rel=1e-12)
+    assert c["warp"]["eta"] == pytest.approx(world["warp"]["eta"], rel=1e-12)  # no unit
+    assert maps_from_solution(sol)[0][0].n_prime == pytest.approx(world["warp"]["n"], rel=1e-12)
 
 
 def _gl_depth(tmp_path, vertices, faces, matrix, resolution, clip_z, reversed_z):
