@@ -94,7 +94,8 @@ class ShadowSpec(_Strict):
 class OutputSpec(_Strict):
     """How the matrices are expressed. `engine` is a preset that sets convention, layout, reversed_z, the
     frame (handedness, up axis) and the length unit for that engine (docs/engines.md); giving it with a
-    field it sets to a different value is refused, naming both."""
+    field it sets to a different value, or with frame "stage", is refused, naming both (frame "world",
+    the default, is accepted with every preset)."""
 
     convention: Literal["opengl", "d3d", "vulkan"] = "opengl"
     layout: Literal["row_major", "column_major"] = "column_major"
