@@ -573,3 +573,28 @@ def test_rest_camera_path_batch_and_client_rig_with_a_preset(tmp_path):
                                   method="focused")
         conv = sol["convention"]
         assert (conv["engine"], conv["handedness"], conv["reversed_z"]) == ("unity", "left", True)
+
+
+@pytest.mark.parametrize("engine", ["unity", "filament"])
+def test_the_engine_side_conversion_of_the_opengl_projection_matches_the_texture_matrix(engine):
+    """docs/engines.md, Unity and Filament: the API takes the OpenGL-convention projection and the engine
+    converts it for its reversed-Z GPU: Filament's vertex shaders do z' = -0.5 z + 0.5 w ("GL convention
+    to inverted DX convention"), Unity's reversed-Z platforms the same (URP's GetShadowTransform negates
+    the z row, then the 0.5 scale and bias). Unity also flips y when rendering into a texture on a top-left
+    (UNITY_UV_STARTS_AT_TOP) platform, so row v = 0.5 - 0.5 y' of the stored map is at v = 0.5 + 0.5 y.
+    The depth the GPU stores and that row are what the returned texture matrix reads."""
+    from shadowopt.solvers.conventions import export_matrices
+
+    P = gl_frustum(L / 10, R / 10, B / 10, T / 10, N, F)
+    out = export_matrices(LIGHT_VIEW, P, engine=engine)
+    view, tex = decode(out["view_matrix"], engine), decode(out["texture_matrix"], engine)
+    proj = np.asarray(out["projection_matrix"], float).reshape(4, 4).T
+    to_gpu = np.array([[1.0, 0, 0, 0], [0, -1.0 if engine == "unity" else 1.0, 0, 0], [0, 0, -0.5, 0.5],
+                       [0, 0, 0, 1]])
+    for x, y, z in POINTS:
+        pe = np.array(TO_ENGINE[engine](x, y, z), float)
+        c = to_gpu @ proj @ view(pe)
+        ndc = c[:3] / c[3]
+        row_v = 0.5 - 0.5 * ndc[1] if engine == "unity" else 0.5 + 0.5 * ndc[1]  # the row the map holds
+        h = tex(pe)
+        assert [0.5 + 0.5 * ndc[0], row_v, ndc[2]] == pytest.approx(list(h[:3] / h[3]), abs=1e-12)
