@@ -1000,7 +1000,9 @@ def load_scene(path, *, time_code: float | None = None, asset_root: str | None =
     return scene
 
 
-def _load(path, time_code, asset_root, sandbox, max_triangles, max_prims=None) -> LoadedScene:
+def _load(path, time_code, asset_root, sandbox, max_triangles, max_prims=None, read=None) -> LoadedScene:
+    """The stage opened with the mode's checks, then _extract; or `read(stage, warnings)`'s value instead
+    (read_animation: the same opening, checks and error handling, no geometry)."""
     name = os.path.basename(path) or path
     _check_file(path)
     warnings: list[str] = []
@@ -1064,6 +1066,8 @@ def _load(path, time_code, asset_root, sandbox, max_triangles, max_prims=None) -
                     return walk.display(layer_) if (not layer_.anonymous or layer_.identifier in walk.copies) else None
                 return None if layer_.anonymous else layer_name(layer_.identifier)
 
+            if read is not None:
+                return read(stage, warnings)
             scene = _extract(stage, path, time_code, warnings, _Budget(max_triangles, max_prims), name, shown)
     except SceneError:
         raise
@@ -1409,6 +1413,64 @@ def _expand_instancer(prim, tc, xcache, add, geometry_of, triangles_of, skip_sub
         for (pts, tris), rel, ppath in proto_geo[pi]:
             sub = ppath[len(ipath):] if ppath.startswith(ipath) else ppath
             add(pts, tris, m @ rel, f"{ipath}[{k}]{sub}")
+
+
+def read_animation(path, camera_path: str | None, time_codes: list[float], *, light_paths: list[str] | None = None,
+                   asset_root: str | None = None, sandbox: bool = False, max_prims: int | None = None) -> dict:
+    """A camera and lights read at each of `time_codes` (their time samples, USD's interpolation), the stage
+    opened as load_scene opens it (same checks in the restricted modes), without reading geometry.
+
+    Returns {"camera": [UsdCamera per time] or None when `camera_path` is None, "camera_type": the prim's
+    type name ("" when there is no such prim), "lights": {usd_path: [UsdLight per time]} for `light_paths`
+    (default: every light of the stage), "moving": prim paths (up to 20) of geometry whose transform or
+    points have time samples, "time_range": [start, end] time codes of the stage or None, "warnings"}.
+    A time code is read as Usd.TimeCode(t): world transforms from UsdGeom.XformCache(t)."""
+    path = os.fspath(path)
+    scrub = PathRedactor([os.path.dirname(os.path.abspath(path)), asset_root]).text
+    times = [float(t) for t in time_codes]
+
+    def read(stage, warnings):
+        from pxr import Usd, UsdGeom, UsdLux
+
+        up, mpu = _stage_frame(stage, warnings)
+        s2w = _stage_to_world(up, mpu)
+        out = {"camera": None, "camera_type": "", "lights": {}, "moving": [], "time_range": None}
+        if stage.HasAuthoredTimeCodeRange():
+            out["time_range"] = [float(stage.GetStartTimeCode()), float(stage.GetEndTimeCode())]
+        caches = [UsdGeom.XformCache(Usd.TimeCode(t)) for t in times]
+        if camera_path is not None:
+            prim = stage.GetPrimAtPath(camera_path) if camera_path.startswith("/") else None
+            out["camera_type"] = str(prim.GetTypeName()) if prim else ""
+            if prim and prim.IsA(UsdGeom.Camera):
+                out["camera"] = [_camera(prim, Usd.TimeCode(t), xc, s2w, mpu, warnings) for t, xc in zip(times, caches)]
+        budget = _Budget(None, max_prims)
+        for prim in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)):
+            budget.prim(prim)
+            p = str(prim.GetPath())
+            if prim.HasAPI(UsdLux.LightAPI) or "Light" in prim.GetTypeName():
+                if light_paths is None or p in light_paths:
+                    ls = [_light(prim, Usd.TimeCode(t), xc, s2w) for t, xc in zip(times, caches)]
+                    if ls and ls[0] is not None:
+                        out["lights"][p] = ls
+            elif prim.IsA(UsdGeom.Gprim) and len(out["moving"]) < 20:
+                pts = UsdGeom.PointBased(prim).GetPointsAttr() if prim.IsA(UsdGeom.PointBased) else None
+                if UsdGeom.Xformable(prim).TransformMightBeTimeVarying() or (pts and pts.GetNumTimeSamples() > 1) \
+                        or any(UsdGeom.Xformable(a).TransformMightBeTimeVarying() for a in _ancestors(prim)):
+                    out["moving"].append(p)
+        out["warnings"] = [scrub(w) for w in _dedupe(warnings)][:MAX_WARNINGS]
+        return out
+
+    try:
+        return _load(path, None, asset_root, sandbox, None, max_prims, read=read)
+    except SceneError as e:
+        raise SceneError(e.code, scrub(e.message)) from e.__cause__
+
+
+def _ancestors(prim):
+    p = prim.GetParent()
+    while p and not p.IsPseudoRoot():
+        yield p
+        p = p.GetParent()
 
 
 def _camera(prim, tc, xcache, s2w, mpu, warnings) -> UsdCamera:

@@ -458,12 +458,16 @@ def _solve_with(get_entry, config: dict, settings: dict) -> dict:
         rig = config["rig"]
         entry = get_entry()
         sol = solve(entry, rig, method=config.get("method") or settings.get("method") or DEFAULT_METHOD,
-                    solver=settings.get("solver"), time_budget_ms=settings.get("time_budget_ms"))
+                    solver=settings.get("solver"), time_budget_ms=settings.get("time_budget_ms"),
+                    previous=config.get("previous"))  # a coherent path's previous frame (service.paths)
         if "resolved" not in sol:  # what this configuration was solved for (service.echo)
             from .echo import resolved_echo
             from .rigs import resolve_rig
 
             sol["resolved"] = resolved_echo(resolve_rig(rig, entry.loaded), rig.get("frame", "world"))
+        for k in ("frame", "time"):  # a path job's frame index and time code (service.paths)
+            if k in config:
+                sol[k] = config[k]
         return {"result": sol}
     except SceneError as e:
         return {"error": {"code": e.code, "message": e.message}}
@@ -867,7 +871,13 @@ class BatchRunner:
         """Run some of a batch's pending configurations, storing each outcome as it arrives."""
         self.stats["submitted"] += len(items)
         settings = {**(settings or {}), "max_triangles": self.max_triangles}  # this server's, not the stored one
-        outcomes = self._backend().run(job, items, settings, lambda: self._should_stop(batch_id))
+        if settings.get("coherent"):  # a coherent path: frames in order, each given the previous one's solution
+            from .paths import coherent_outcomes
+
+            outcomes = coherent_outcomes(self.store, self._backend(), batch_id, job, items, settings,
+                                         lambda: self._should_stop(batch_id))
+        else:
+            outcomes = self._backend().run(job, items, settings, lambda: self._should_stop(batch_id))
         for index, out in outcomes:
             if "result" in out:
                 self.store.put_result(batch_id, index, out["result"])
