@@ -28,7 +28,7 @@ from .scenes import SceneEntry
 from .solution_check import SCHEMA_VERSION, validate_solution
 
 BASELINE_METHODS = ("uniform", "focused", "lispsm", "logpsm")
-METHODS = BASELINE_METHODS + ("optimized",)
+METHODS = BASELINE_METHODS + ("optimized", "stable_csm")  # stable_csm: solvers.stable_csm (Valient 2008)
 
 
 @dataclass
@@ -398,6 +398,10 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
                         resolved.camera, prob.light, prob.samples, prob.receivers, (lo, hi), opts["resolution"],
                         opts["cascades"], texel_budget=opts["texel_budget"], receiver_slack=prob.receiver_slack,
                         method=method if method in ("focused", "lispsm") else "lispsm").split_at
+            if method == "stable_csm":  # the engines' bounding sphere per cascade, texel-snapped
+                from ..solvers.stable_csm import stable_csm_maps
+
+                return stable_csm_maps(resolved.camera, prob.light, prob.receivers, (lo, hi), **opts), None
             return baseline(method, resolved.camera, prob.light, prob.receivers, (lo, hi),
                             allow_log=allow_log or method == "logpsm", **opts), None
 
