@@ -937,6 +937,48 @@ def evaluate_buffers(rs: RayScene, camera: Camera, light: Light, maps: list[Shad
                        map_index, uv, m, hh, sample_mask, kind, result)
 
 
+def classify_points(rs: RayScene, light: Light, maps: list[ShadowMap], positions: np.ndarray, normals: np.ndarray,
+                    view_depth: np.ndarray, depth: str = "ideal", pancake: bool = True, device_maps: list | None = None) -> dict:
+    """The lookup evaluate_buffers applies to its hit pixels, for arbitrary world points (N, 3) with unit
+    normals (towards the camera's side) and their view depths in the camera the maps serve (cascade
+    selection): {"shadowed", "outside", "map_index", "texel_uv" (N, 2; the serving map's s * width,
+    t * height, NaN where none), "device_maps"}. `device_maps`: a previous call's, for the same maps, light
+    and depth (each map is rendered once). Used to classify one frame's world points with another frame's
+    maps (renderers.stability)."""
+    engines = [engine_depth(m, depth) for m in maps]
+    if device_maps is None:
+        if depth == "ideal":
+            device_maps = [_device_map(rs, light, smap, pancake) for smap in maps]
+        else:
+            device_maps = [_device_engine_map(rs, smap, *_device_map(rs, light, smap, pancake, prims=True), engines[k])
+                           for k, smap in enumerate(maps)]
+    P = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    n = len(P)
+    out = {"shadowed": np.zeros(n, bool), "outside": np.ones(n, bool), "map_index": np.full(n, -1, np.int64),
+           "texel_uv": np.full((n, 2), np.nan), "device_maps": device_maps}
+    if not maps or n == 0:
+        return out
+    mi = mitsuba()
+    X = _device_points(mi, P - rs.origin)
+    N = _device_points(mi, np.asarray(normals, dtype=np.float64).reshape(-1, 3))
+    tol = NUMERIC_TOLERANCE * max(rs.extent, 1e-3)
+    looked = [_device_lookup(rs, light, smap, device_maps[k], X, N, tol, engines[k]) for k, smap in enumerate(maps)]
+    if maps[0].face is None:
+        idx = (map_for_depth(maps, np.asarray(view_depth, float)) if depth == "ideal"
+               else engine_cascades(maps, np.asarray(view_depth, float), [lk[1] for lk in looked]))
+    else:
+        idx = np.full(n, -1, np.int64)
+        for k in range(len(maps) - 1, -1, -1):
+            idx[looked[k][1]] = k
+    for k, lk in enumerate(looked):
+        sel = idx == k
+        out["shadowed"][sel] = lk[0][sel] & lk[1][sel]
+        out["outside"][sel] = ~lk[1][sel]
+        out["texel_uv"][sel] = np.stack([lk[2][sel], lk[3][sel]], axis=-1)
+    out["map_index"] = np.asarray(idx, np.int64)
+    return out
+
+
 def evaluate(rs: RayScene, camera: Camera, light: Light, maps: list[ShadowMap],
              screen: tuple[int, int] | None = None, heatmap_path: str | None = None,
              grid_every: int | None = None, pancake: bool = True, depth: str = "ideal") -> dict:
