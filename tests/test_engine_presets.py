@@ -219,8 +219,9 @@ def test_every_preset_reads_back_exactly_and_states_its_convention(demo, world_s
         assert c["light_depth"] == pytest.approx([v * k for v in c0["light_depth"]], rel=1e-12)
         if c0["blend_band"] is not None:
             assert c["blend_band"] == pytest.approx([v * k for v in c0["blend_band"]], rel=1e-12)
-        for mode, keys in (("hardware", ("constant", "slope", "normal_offset")),
-                           ("linear", ("constant", "slope", "normal_offset", "near", "far"))):
+        unitless = ("constant", "slope", "slope_scaled", "slope_clamp")
+        for mode, keys in (("hardware", (*unitless, "normal_offset")),
+                           ("linear", (*unitless, "normal_offset", "near", "far"))):
             for key in keys:
                 scale = k if key in ("normal_offset", "near", "far") else 1.0
                 assert c["depth"][mode][key] == pytest.approx(c0["depth"][mode][key] * scale, rel=1e-12)
