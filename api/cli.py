@@ -339,6 +339,85 @@ def cmd_batch(args) -> int:
     return 0
 
 
+def cmd_path(args) -> int:
+    """Solve a camera path frame by frame (service.paths): poses/keyframes, or a USD camera at time codes."""
+    from ..service.paths import PathError, expand_path_with_notes, line_json, run_path
+    from ..service.solve import METHODS
+    from .schemas import ConfigurationError, validate_configurations
+
+    raw = _read_json(args.rig, "--rig")
+    if not isinstance(raw, dict):
+        raise CliError(f"--rig: {args.rig} must hold a JSON object")
+    if (args.path is None) == (args.camera is None):
+        raise CliError("--path: give exactly one of --path PATH.json and --camera /USD/Camera with --time")
+    if args.camera is not None:
+        if args.time is None:
+            raise CliError("--time: --camera needs --time START:END[:STEP] (time codes)")
+        raw.setdefault("camera", {"usd_path": args.camera})
+        request, source = {"rig": raw, "usd_camera": args.camera, "time": _parse_time(args.time)}, "--camera"
+    else:
+        path = _read_json(args.path, "--path")
+        if not isinstance(path, dict):
+            raise CliError(f"--path: {args.path} must hold a JSON object (the camera_path form)")
+        request = {"rig": raw, **path} if "camera_path" in path else {"rig": raw, "camera_path": path}
+        source = f"--path {args.path}"
+    try:
+        frames, notes = expand_path_with_notes(request, scene_path=args.scene)
+    except PathError as e:
+        raise CliError(f"{source}: {e.field}: {e.message}") from e
+    try:
+        rigs = validate_configurations([{"rig": f["rig"]} for f in frames])
+    except ConfigurationError as e:
+        raise CliError(f"{source}: {e.message.replace('configurations.', 'frames.')}") from e
+    frames = [{**f, "rig": r["rig"]} for f, r in zip(frames, rigs)]
+    method = args.method or "optimized"
+    if method not in METHODS:
+        raise CliError(f"--method: unknown {method!r} (known: {', '.join(METHODS)})")
+    if args.workers < 1:
+        raise CliError(f"--workers: must be at least 1, got {args.workers}")
+    for n in notes:
+        print(f"shadowopt: note: {n}", file=sys.stderr)
+    out = open(args.out, "w") if args.out else None
+
+    def on_line(line):
+        text = line_json(line)
+        if out is not None:
+            out.write(text + "\n")
+            out.flush()
+        if args.json:
+            print(text, flush=True)
+
+    try:
+        s = run_path(args.scene, frames, method=method, coherent=args.coherent, workers=args.workers,
+                     on_line=on_line, progress=not args.no_progress, solver=args.solver,
+                     time_budget_ms=args.time_budget_ms)
+    finally:
+        if out is not None:
+            out.close()
+    print(f"path: {s['total']} frames, {s['done']} done, {s['failed']} failed in {s['seconds']:.1f} s "
+          f"({s['total'] / max(s['seconds'], 1e-9):.2f} frames/s)" + (f"; results in {args.out}" if args.out else ""),
+          file=sys.stderr if args.json else sys.stdout)
+    if s["failed"]:
+        first = s["errors"][0]
+        print(f"shadowopt: error: {s['failed']} frame(s) failed; first: frame {first['index']}: "
+              f"{first['code']}: {first['message']}", file=sys.stderr)
+        internal = ("internal_error", "worker_crashed", "runner_error")
+        return EXIT_USAGE if s["done"] == 0 and first["code"] not in internal else 1
+    return 0
+
+
+def _parse_time(text: str) -> dict:
+    """--time START:END[:STEP] -> {"start", "end", "step"} (step 1 by default)."""
+    parts = text.split(":")
+    try:
+        if len(parts) not in (2, 3):
+            raise ValueError
+        vals = [float(p) for p in parts]
+    except ValueError:
+        raise CliError(f"--time: expected START:END[:STEP] in time codes, got {text!r}") from None
+    return {"start": vals[0], "end": vals[1], "step": vals[2] if len(vals) == 3 else 1.0}
+
+
 def cmd_pack(args) -> int:
     """A local stage with its references, sublayers and payloads as one .usdz to upload."""
     from ..service.packing import pack_stage
@@ -494,6 +573,25 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--time-budget-ms", type=float, default=None, help="per configuration")
     sp.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     sp.set_defaults(func=cmd_batch)
+
+    sp = sub.add_parser("path", help="solve a camera path frame by frame (poses, keyframes or a USD camera's "
+                        "time samples); results in frame order")
+    sp.add_argument("scene", help="a .usd, .usda, .usdc or .usdz file")
+    sp.add_argument("--rig", required=True, help="the base rig JSON (shadow, output, lights; the path sets the camera)")
+    sp.add_argument("--path", default=None, metavar="PATH.json", help='the camera path: {"poses": [...]} or '
+                    '{"keyframes": [...], "samples": N} (as a batch\'s camera_path)')
+    sp.add_argument("--camera", default=None, metavar="/USD/Camera", help="a camera animated by time samples")
+    sp.add_argument("--time", default=None, metavar="START:END[:STEP]", help="time codes for --camera")
+    sp.add_argument("--method", default=None, help="default optimized")
+    sp.add_argument("--coherent", action="store_true", help="solve frames in order, each given the previous "
+                    "frame's solution (as optimize --previous)")
+    sp.add_argument("--json", action="store_true", help="one JSON line per frame on stdout, in frame order")
+    sp.add_argument("--out", default=None, metavar="FILE", help="also write the JSON lines to FILE")
+    sp.add_argument("--workers", type=int, default=2, help="worker processes (a coherent path uses one)")
+    sp.add_argument("--solver", default=None, help="optimizer for --method optimized")
+    sp.add_argument("--time-budget-ms", type=float, default=None, help="per frame")
+    sp.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    sp.set_defaults(func=cmd_path)
 
     sp = sub.add_parser("pack", help="package a stage and the files it references as one .usdz to upload")
     sp.add_argument("scene", help="a .usd, .usda or .usdc stage")
