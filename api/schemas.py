@@ -531,3 +531,42 @@ class BatchRequest(_Strict):
     method: Method = "optimized"
     solver: Annotated[str, Field(max_length=64)] | None = None
     time_budget_ms: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+
+
+class TimeRange(_Strict):
+    """Time codes start, start + step, ... up to end (inclusive)."""
+
+    start: Finite
+    end: Finite
+    step: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 1.0
+
+
+class PathRequest(_Strict):
+    """A camera path solved frame by frame (a batch whose configurations are the frames in order): the base
+    `rig` with a `camera_path` (poses, or keyframes + samples; optionally one light direction per frame from
+    `light_directions` or `sun_arc`), or a USD camera animated by time samples (`usd_camera`, default
+    rig.camera.usd_path, read at each code of `time`: pose, field of view, clipping range; the rig's USD lights
+    read at the same codes). Results: `GET /v1/batches/{id}/results`, one line per frame with `frame` and `time`.
+    `coherent`: frames are solved in order, each given the previous frame's solution (as `previous`)."""
+
+    scene_id: ObjectId
+    rig: Rig
+    camera_path: CameraPath | None = None
+    usd_camera: Annotated[str, Field(min_length=1, max_length=1024)] | None = None
+    time: TimeRange | None = None
+    light_directions: list[Vec3] | None = Field(None, min_length=1, max_length=10_000,
+                                                description="one direction light travels per frame (or one), world frame")
+    sun_arc: SunArc | None = None
+    light_index: Annotated[int, Field(ge=0, le=15)] | None = None
+    method: Method = "optimized"
+    coherent: bool = Field(False, description="solve frames in order, each given the previous frame's solution")
+    solver: Annotated[str, Field(max_length=64)] | None = None
+    time_budget_ms: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+
+
+class PathFrame(BatchResultLine):
+    """One line of a path job's results: a `BatchResultLine` with the frame index and its time code (None for
+    a camera_path frame)."""
+
+    frame: int | None = None
+    time: float | None = None
