@@ -165,6 +165,13 @@ def cmd_bench(args) -> int:
 
         result = bench_engine(validate_rig, scenes=args.scenes.split(",") if args.scenes else None,
                               write=not args.no_write, screen=args.screen, log=lambda m: print(m, file=sys.stderr))
+    elif args.bench == "path":  # temporal stability along configs/paths.json (renderers.stability)
+        from ..service.bench.path import bench_path
+
+        result = bench_path(validate_rig, frames=args.frames, screen=args.screen or (320, 180), map_side=args.map,
+                            paths=args.paths.split(",") if args.paths else None,
+                            methods=args.methods.split(",") if args.methods else None,
+                            write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     else:  # argparse restricts choices
         raise CliError(f"unknown benchmark {args.bench!r}")
     if args.json:
@@ -536,7 +543,12 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_analyze)
 
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
-    sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch", "security", "engine"])
+    sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch", "security", "engine", "path"])
+    sp.add_argument("--frames", type=int, default=None, help="path: frames per path (default: configs/paths.json's samples)")
+    sp.add_argument("--paths", default=None, help="path: comma-separated path names from configs/paths.json")
+    sp.add_argument("--methods", default=None, help="path: comma-separated methods (default: stable_csm, focused, "
+                    "lispsm, optimized, optimized_hysteresis and path where available)")
+    sp.add_argument("--map", type=int, default=1024, help="path: texels per side of one map (4 cascades share its budget)")
     sp.add_argument("--seconds", type=float, default=60.0, help="load: seconds of concurrent load per workload")
     sp.add_argument("--lights", type=int, default=None, help="quality, solvers, trust: number of light directions (rigs)")
     sp.add_argument("--part", choices=["single", "cascades", "all"], default="all",
