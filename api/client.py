@@ -34,9 +34,10 @@ import httpx
 from pydantic import BaseModel
 
 from .progress import progress_bar
-from .schemas import BatchCreated, BatchResultLine, BatchStatus, Health, Rig, SceneInfo, Solution
+from .schemas import BatchCreated, BatchResultLine, BatchStatus, Health, PathFrame, Rig, SceneInfo, Solution
 
-__all__ = ["Client", "AsyncClient", "SceneInfo", "Solution", "BatchResultLine", "BatchCreated", "BatchStatus", "Health",
+__all__ = ["Client", "AsyncClient", "SceneInfo", "Solution", "BatchResultLine", "PathFrame", "BatchCreated", "BatchStatus",
+           "Health",
            "ShadowoptError", "ClientError", "AuthError",
            "NotFoundError", "ServerError", "ConnectionFailed", "TERMINAL_STATES"]
 
@@ -151,6 +152,16 @@ def configuration_json(item) -> dict:
     return {"rig": rig_json(item)}
 
 
+def time_json(time) -> dict | None:
+    """A path's time codes: {"start", "end", "step"}, (start, end[, step]) or "START:END[:STEP]"."""
+    if time is None or isinstance(time, dict):
+        return time
+    parts = [float(p) for p in time.split(":")] if isinstance(time, str) else [float(p) for p in time]
+    if len(parts) not in (2, 3):
+        raise ValueError(f"time: expected start, end[, step], got {time!r}")
+    return {"start": parts[0], "end": parts[1], "step": parts[2] if len(parts) == 3 else 1.0}
+
+
 def batch_id_of(batch) -> str:
     return batch if isinstance(batch, str) else batch.batch_id
 
@@ -259,6 +270,14 @@ class _Calls:
         confs = None if configurations is None else [configuration_json(c) for c in configurations]
         body = _drop_none({"scene_id": scene_id, "configurations": confs, "method": method, **options})
         return _Call("POST", "/v1/batches", json=body, parse=lambda r: BatchCreated.model_validate(r.json()),
+                     idempotent=False)
+
+    @staticmethod
+    def submit_path(scene_id, rig, camera_path, usd_camera, time, method, coherent, options):
+        body = _drop_none({"scene_id": scene_id, "rig": rig_json(rig), "camera_path": plain(camera_path),
+                           "usd_camera": usd_camera, "time": time_json(time), "method": method,
+                           "coherent": coherent, **options})
+        return _Call("POST", "/v1/paths", json=body, parse=lambda r: BatchCreated.model_validate(r.json()),
                      idempotent=False)
 
     @staticmethod
@@ -462,6 +481,27 @@ class Client(_Base):
         `{"rig": RIG, ...}` items; the camera-path form and other settings go in as keyword arguments.
         Not resent after a connection drops midway (it could create the batch twice)."""
         return self._call(_Calls.submit_batch(scene_id, configurations, method, options))
+
+    def submit_path(self, scene_id: str, rig: dict | Rig, *, camera_path: dict | None = None,
+                    usd_camera: str | None = None, time=None, method: str = "optimized", coherent: bool = False,
+                    **options) -> BatchCreated:
+        """`POST /v1/paths` -> 202 `{"batch_id", "total", "coherent", "notes"}`: a camera path (`camera_path`:
+        poses or keyframes + samples) or a USD camera animated by time samples (`usd_camera`, `time`:
+        {"start", "end", "step"}, (start, end, step) or "START:END:STEP"), solved frame by frame as a batch."""
+        return self._call(_Calls.submit_path(scene_id, rig, camera_path, usd_camera, time, method, coherent, options))
+
+    def optimize_path(self, scene_id: str, rig: dict | Rig, *, camera_path: dict | None = None,
+                      usd_camera: str | None = None, time=None, method: str = "optimized", coherent: bool = False,
+                      poll_s: float = 0.5, **options) -> Iterator[PathFrame]:
+        """Submit a path (as `submit_path`, at once) and iterate its frames in order as they finish: `PathFrame`
+        (`frame`, `time` and the solution's fields, or `error`; `frame.solution()` gives a `Solution`)."""
+        created = self.submit_path(scene_id, rig, camera_path=camera_path, usd_camera=usd_camera, time=time,
+                                   method=method, coherent=coherent, **options)
+
+        def frames():
+            for line in self.iter_results(created, follow=True, poll_s=poll_s):
+                yield PathFrame.model_validate(line.model_dump(mode="json", by_alias=True))
+        return frames()
 
     def batch(self, batch) -> BatchStatus:
         """`GET /v1/batches/{id}`: state, done, total, errors."""
