@@ -28,7 +28,7 @@ from .scenes import SceneEntry
 from .solution_check import SCHEMA_VERSION, validate_solution
 
 BASELINE_METHODS = ("uniform", "focused", "lispsm", "logpsm")
-METHODS = BASELINE_METHODS + ("optimized", "stable_csm")  # stable_csm: solvers.stable_csm (Valient 2008)
+METHODS = BASELINE_METHODS + ("optimized", "stable_csm", "path")  # stable_csm: solvers.stable_csm (Valient 2008); path: solvers.path_optimize (previous= the previous frame)
 
 
 @dataclass
@@ -389,6 +389,12 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
                                       allow_log=allow_log, solver=solver or DEFAULT_SOLVER,
                                       time_budget_ms=budget_left(), previous_x=_previous_x(previous, li),
                                       hysteresis=hysteresis, sample_rows=prob.sample_rows, **opts)
+            if method == "path":  # coherent with the previous frame: a held world-fixed texel grid per cascade
+                from ..solvers.path_optimize import path_maps, previous_state
+
+                return path_maps(resolved.camera, prob.light, prob.samples, prob.receivers, (lo, hi),
+                                 previous_state=previous_state(previous, li), solver=solver or DEFAULT_SOLVER,
+                                 time_budget_ms=budget_left(), sample_rows=prob.sample_rows, **opts)
             if opts["splits"] == "optimized":  # a baseline method with optimized splits: the search's splits
                 opts["splits"] = "practical"
                 if opts["cascades"] > 1 and prob.light.kind == "directional":
@@ -422,11 +428,11 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
             per_light[-1]["auto_cascades"] = auto
     t2 = time.perf_counter()
     timings = {"coarse": (t1 - t0) * 1e3, "optimize": (t2 - t1) * 1e3, "total": (t2 - t0) * 1e3}
-    settings = {"method": method, "solver": solver or (DEFAULT_SOLVER if method == "optimized" else None),
+    settings = {"method": method, "solver": solver or (DEFAULT_SOLVER if method in ("optimized", "path") else None),
                 "time_budget_ms": time_budget_ms, "coarse_long_side": resolved.coarse_long_side,
                 "shadow": _jsonable(shadow)}
     sol = solution_json(entry, resolved, method, per_light, timings, settings)
-    if method == "optimized":
+    if method in ("optimized", "path"):
         sol["solver"] = solvers_json[0] if len(solvers_json) == 1 else {"lights": solvers_json}
     return sol
 

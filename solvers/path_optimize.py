@@ -1,0 +1,349 @@
+"""`method: path`: shadow maps that stay still while the camera moves (interactive: the previous frame
+only; batch: a whole path, smoothed, with keyframes for engines that interpolate).
+
+Why texels swim. A directional map is a 2D projective map of the light plane, s = (g0 . p) / (g2 . p),
+t = (g1 . p) / (g2 . p) (Chong & Gortler 2007: rows 1, 2 and 4 of P annihilate the light direction). The
+per-frame optimizer (solvers.optimized_maps) refits all of it to each frame's receivers, so every
+receiver's texel coordinates move by a fraction of a texel per frame: the shadow edges shimmer.
+
+The world-fixed grid. Split the map into a *canonical* projective part G (the three rows g0, g1, g2
+expressed in a light view anchored at a fixed world point: it carries the warp's centre and strength, the
+warp axis and the skew of the affine fit) and an axis-aligned affine part per frame: s_ndc = a_s X + b_s,
+X = (g0 . p) / (g2 . p) (likewise t). While G is held, the canonical coordinates (X, Y) of a world point do
+not change, so the texel grid is fixed in the world when a is held on a ladder of levels and b is snapped
+so that X = 0 falls on a texel corner (the engines' texel snapping, Valient 2008, done in the warped space
+instead of light space; solvers.fitting.snap_to_texels is its unwarped case). Per frame only the box
+moves, by whole texels: swim 0 for every point served by the same cascade.
+
+Per frame (interactive, `path_maps`), per cascade:
+- fresh: the per-frame optimized map (optimized_maps, warm-started from the previous frame's x), refit on
+  its own canonical part and snapped;
+- held: the previous frame's canonical part and scale levels, refit to this frame's receivers;
+- the held grid is kept unless the fresh one's objective is below `hysteresis` x the held one's (or the
+  held grid no longer contains the receivers in front of its warp centre); when it changes, it moves
+  toward the fresh one by the smallest step of BLEND_STEPS whose objective is within BLEND_SLACK of the
+  fresh one's (a limited per-frame change of the warp: the smaller the step, the fewer texels pop).
+- scale levels: the ladder 2^(j / LADDER_STEPS) of NDC scales; the held level is kept while it still
+  covers the receivers and wastes at most LEVEL_SLACK steps.
+Coverage: the box is padded by PAD_TEXELS texels plus half a texel per side for the snap, and the level
+rounds the scale down (the map grows), so every fit point (receivers' light-plane hull and the samples)
+stays inside the map.
+
+Whole paths (`optimize_path`): the interactive pass, then a second pass that smooths the fresh canonical
+parts along the path (a moving median of their normalised entries) and cuts the path into segments that
+share one canonical part (a segment grows while its part keeps every frame within `hysteresis` of that
+frame's fresh objective), each frame refit on the segment's snapped grid; and `keyframes`: every K-th
+frame's maps, the rule (linear interpolation of the world-to-clip matrix entries, each keyframe's matrix
+scaled so its w row has unit norm) and the error interpolation adds at the skipped frames (objective ratio
+and receivers left outside), measured.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .baselines import PAD_TEXELS, _with_bias
+from .fitting import box_corners, extent_floor, light_plane_hull, to_view
+from .lights import DirectionalLight
+from .metric import predicted_objective
+from .samples import Samples
+from .shadow_map import ShadowMap
+
+LADDER_STEPS = 32  # scale levels per octave: a held level wastes at most 2^(1/32) - 1 = 2.2% of the texels per axis per step
+LEVEL_SLACK = 1  # steps a held level may exceed the tightest one before the level follows the receivers
+HYSTERESIS = 0.9  # the held grid is replaced when the fresh one's objective is below this x the held one's
+BLEND_STEPS = (0.25, 0.5)  # fractions of the way from the held canonical part to the fresh one, tried in order
+BLEND_SLACK = 1.05  # a partial step is taken when its objective is within this factor of the fresh one's
+MEDIAN_WINDOW = 5  # frames of the second pass's moving median
+
+
+# ------------------------------------------------------------------ the canonical part and its grid
+@dataclass
+class Grid:
+    """One cascade's held canonical part: `view` a world -> light view anchored at a fixed world point
+    (its rotation from the map it came from), `G` (3, 4) the rows s', t', w acting on that view's
+    homogeneous coordinates (no z coefficient), `levels` the scale levels (s, t) of the last fit (None:
+    not fitted yet), `resolution` the map's texels."""
+
+    view: np.ndarray
+    G: np.ndarray
+    resolution: tuple[int, int]
+    levels: tuple[int, int] | None = None
+    x: list | None = None  # the per-frame optimizer's (phi, u) it came from: the next frame's warm start
+
+    def to_json(self) -> dict:
+        return {"view": self.view.tolist(), "canonical": self.G.tolist(), "resolution": list(self.resolution),
+                "levels": None if self.levels is None else list(self.levels), "x": self.x}
+
+    @classmethod
+    def from_json(cls, d: dict) -> "Grid | None":
+        try:
+            view, G = np.asarray(d["view"], dtype=np.float64), np.asarray(d["canonical"], dtype=np.float64)
+            res = tuple(int(v) for v in d["resolution"])
+        except (KeyError, TypeError, ValueError):
+            return None
+        if view.shape != (4, 4) or G.shape != (3, 4) or not (np.isfinite(view).all() and np.isfinite(G).all()):
+            return None
+        lv = d.get("levels")
+        x = d.get("x")
+        return cls(view, G, (res[0], res[1]), None if lv is None else (int(lv[0]), int(lv[1])),
+                   [float(v) for v in x] if isinstance(x, list) and len(x) == 2 else None)
+
+    def world(self) -> np.ndarray:
+        """(3, 4): the canonical rows acting on world homogeneous coordinates."""
+        return self.G @ self.view
+
+    def in_view(self, view: np.ndarray) -> np.ndarray:
+        """G expressed on another light view's coordinates (same world rows)."""
+        return self.G @ self.view @ np.linalg.inv(view)
+
+
+def anchored_view(rotation: np.ndarray, light, casters_bounds) -> np.ndarray:
+    """World -> light view with the rotation of `rotation` (a view matrix; rows: right, up, -light) and the
+    eye at a world-fixed point: the scene bounds' centre moved back along the light beyond the bounds (every
+    scene point in front), so the same light and scene give the same frame whatever the camera."""
+    lo, hi = (np.asarray(b, dtype=np.float64) for b in casters_bounds)
+    d = np.asarray(light.direction, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    eye = 0.5 * (lo + hi) - d * (0.5 * float(np.linalg.norm(hi - lo)) + 1.0)
+    V = np.eye(4)
+    V[:3, :3] = np.asarray(rotation, dtype=np.float64)[:3, :3]
+    V[:3, 3] = -V[:3, :3] @ eye
+    return V
+
+
+def _normalised(G: np.ndarray) -> np.ndarray:
+    """G scaled to unit Frobenius norm (s', t', w keep their ratios: the same canonical coordinates)."""
+    return G / max(float(np.linalg.norm(G)), 1e-300)
+
+
+def grid_of(smap: ShadowMap, light, casters_bounds) -> Grid | None:
+    """The canonical part of a directional map (any of this service's: focused, LiSPSM, optimized), or None
+    for a map that is not a light-plane projective map (a log warp, a cube face, a z-dependent w row)."""
+    if smap.face is not None or smap.log_warp is not None:
+        return None
+    V = anchored_view(smap.view, light, casters_bounds)
+    M = smap.projection @ smap.view @ np.linalg.inv(V)
+    G = M[[0, 1, 3]]
+    scale = float(np.abs(G).max())
+    if not scale > 0 or float(np.abs(G[:, 2]).max()) > 1e-9 * scale:
+        return None
+    G = G.copy()
+    G[:, 2] = 0.0
+    return Grid(V, _normalised(G), (int(smap.resolution[0]), int(smap.resolution[1])))
+
+
+def blend(held: Grid, fresh: Grid, alpha: float) -> Grid:
+    """The canonical part alpha of the way from `held` to `fresh` (entries of the normalised rows in the held
+    view, the fresh one's sign aligned; Grid.in_view): a limited step of the warp and the affine directions."""
+    Gf = _normalised(fresh.in_view(held.view))
+    Gh = _normalised(held.G)
+    if float(np.sum(Gf * Gh)) < 0:
+        Gf = -Gf
+    G = _normalised((1.0 - alpha) * Gh + alpha * Gf)
+    G[:, 2] = 0.0
+    return Grid(held.view, G, fresh.resolution, held.levels if fresh.resolution == held.resolution else None, fresh.x)
+
+
+def _level(a_max: float, held: int | None) -> int:
+    """The ladder level for an NDC scale of at most a_max: the largest 2^(j/LADDER_STEPS) <= a_max, or the held
+    level when it is at most LEVEL_SLACK steps below that."""
+    j = math.floor(LADDER_STEPS * math.log2(a_max) + 1e-9)
+    if held is not None and j - LEVEL_SLACK <= held <= j:
+        return held
+    return j
+
+
+def fit_on_grid(grid: Grid, fit_pts: np.ndarray, corners: np.ndarray, held_levels=None):
+    """(map, levels) of the grid refit to `fit_pts` (world points the map must contain: the receivers'
+    light-plane hull and depth extremes and the samples) or None when a point is not in front of the
+    warp's centre (w <= 0). Per axis: the box of the canonical coordinates, a scale on the ladder at most
+    the box's (padded PAD_TEXELS texels and half a texel for the snap on each side), the offset snapped so
+    that canonical 0 is a texel corner; depth as solvers.optimize.Problem's fit (the fit points and the scene
+    corners at the fit points' extreme w, a caster on a receiver's light ray having its w)."""
+    v = to_view(grid.view, fit_pts)
+    ph = np.column_stack([v, np.ones(len(v))])
+    w = ph @ grid.G[2]
+    if not len(w) or not float(w.min()) > 1e-12 * max(float(np.abs(w).max()), 1e-300):
+        return None
+    rows = []
+    levels = []
+    for i in (0, 1):
+        c = (ph @ grid.G[i]) / w
+        lo, hi = float(c.min()), float(c.max())
+        n = float(grid.resolution[i])
+        size = max(hi - lo, extent_floor(max(abs(lo), abs(hi))))
+        a_max = 2.0 * max(n - 2.0 * PAD_TEXELS - 1.0, 1.0) / (n * size)
+        j = _level(a_max, None if held_levels is None else held_levels[i])
+        a = 2.0 ** (j / LADDER_STEPS)
+        b = -a * 0.5 * (lo + hi)
+        b = round((b + 1.0) * n / 2.0) * 2.0 / n - 1.0  # canonical 0 on a texel corner (at most half a texel)
+        rows.append(a * grid.G[i] + b * grid.G[2])
+        levels.append(j)
+    zc = v[:, 2] / w
+    cz = to_view(grid.view, corners)[:, 2]
+    wl, wh = float(w.min()), float(w.max())
+    z_hi = max(float(zc.max()), float(cz.max()) / wl, float(cz.max()) / wh)
+    z_lo = min(float(zc.min()), float(cz.min()) / wl, float(cz.min()) / wh)
+    near, far = -z_hi, -z_lo
+    span = max(far - near, 1e-9 * max(abs(near), abs(far), 1.0))
+    n_, f_ = near - 0.01 * span, far + 0.01 * span
+    ez = np.array([0.0, 0.0, 1.0, 0.0])
+    P = np.vstack([rows[0], rows[1], (-2.0 / (f_ - n_)) * ez - ((f_ + n_) / (f_ - n_)) * grid.G[2], grid.G[2]])
+    gw = grid.G[2, :2]
+    grad = float(np.linalg.norm(gw))
+    ext = float(np.ptp(v[:, :2], axis=0).max()) if len(v) > 1 else 0.0
+    warped = grad * ext > 1e-6 * float(np.mean(w))
+    d = -v[:, 2]
+    dc = -to_view(grid.view, corners)[:, 2]
+    smap = ShadowMap(grid.view.copy(), P, grid.resolution, light_depth=(float(min(d.min(), dc.min())), float(d.max())),
+                     warp_kind="perspective" if warped else "none",
+                     n_prime=float(wl / grad) if warped else None)
+    smap.snapped = True
+    return smap, (levels[0], levels[1])
+
+
+# ------------------------------------------------------------------ one frame (interactive)
+def _cascade_selection(camera, receivers, slack, samples: Samples, maps):
+    """Per cascade: (sample mask, receiver mask) as optimized_maps selects them (the split and, for the
+    receivers, their view-depth slack; the first and last cascades unbounded)."""
+    depth = (receivers - camera.position) @ camera.forward if len(receivers) else np.zeros(0)
+    out = []
+    for k, m in enumerate(maps):
+        lo, hi = m.split
+        sel_s = (samples.view_depth >= lo) & (samples.view_depth <= hi)
+        sel_r = np.ones(len(receivers), bool)
+        if len(maps) > 1 and len(receivers):
+            sel_r = (depth + slack >= (lo if k else -np.inf)) & (depth - slack <= (hi if k < len(maps) - 1 else np.inf))
+        out.append((sel_s, sel_r))
+    return out
+
+
+@dataclass
+class CascadeFit:
+    """What a cascade's choice needs: its samples, receivers, fit points and the scene corners."""
+
+    sub: Samples
+    part: np.ndarray
+    fit_pts: np.ndarray
+    corners: np.ndarray
+
+    def score(self, smap: ShadowMap, camera, light) -> float:
+        if smap is None:
+            return math.inf
+        if len(self.sub):
+            return float(predicted_objective([smap], self.sub, camera.position))
+        from .optimized_maps import receiver_h
+
+        return float(receiver_h(smap, self.part, camera, light))
+
+
+def cascade_fits(camera, light, samples: Samples, receivers: np.ndarray, casters_bounds, maps, receiver_slack=None):
+    receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
+    receivers = receivers[np.all(np.isfinite(receivers), axis=1)] if len(receivers) else receivers
+    slack = np.zeros(len(receivers)) if receiver_slack is None or len(receiver_slack) != len(receivers) \
+        else np.asarray(receiver_slack, float)
+    corners = box_corners(np.asarray(casters_bounds[0], float), np.asarray(casters_bounds[1], float))
+    out = []
+    for sel_s, sel_r in _cascade_selection(camera, receivers, slack, samples, maps):
+        sub = samples if sel_s.all() else samples.subset(sel_s)
+        part = receivers[sel_r] if sel_r.any() else receivers
+        pts = np.vstack([part, sub.position]) if len(sub) else part
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        hull, ext = light_plane_hull(light.direction, pts)
+        out.append(CascadeFit(sub, part, np.vstack([hull, ext]) if len(ext) else hull, corners))
+    return out
+
+
+def choose_grid(cf: CascadeFit, camera, light, fresh: Grid | None, held: Grid | None, hysteresis: float = HYSTERESIS):
+    """(map, grid, decision) for one cascade: the held grid refit unless the fresh one is better by the
+    hysteresis factor, then the smallest limited step toward it within BLEND_SLACK of the fresh objective."""
+    cand_f = fit_on_grid(fresh, cf.fit_pts, cf.corners, None) if fresh is not None else None
+    f_f = cf.score(cand_f[0], camera, light) if cand_f else math.inf
+    if held is not None and fresh is not None and held.resolution != fresh.resolution:
+        held = Grid(held.view, held.G, fresh.resolution, None, held.x)  # a new allocation: the level follows
+    cand_h = fit_on_grid(held, cf.fit_pts, cf.corners, held.levels) if held is not None else None
+    f_h = cf.score(cand_h[0], camera, light) if cand_h else math.inf
+    decision = {"objective_fresh": f_f, "objective_held": f_h if held is not None else None}
+    if cand_h is not None and math.isfinite(f_h) and not (f_f < hysteresis * f_h):
+        grid = Grid(held.view, held.G, held.resolution, cand_h[1], fresh.x if fresh is not None else held.x)
+        decision.update(kept="held", objective=f_h)
+        return cand_h[0], grid, decision
+    if cand_f is None:
+        raise ValueError("path: no grid contains the receivers")
+    if cand_h is not None and fresh is not None:
+        for alpha in BLEND_STEPS:
+            g = blend(held, fresh, alpha)
+            c = fit_on_grid(g, cf.fit_pts, cf.corners, g.levels)
+            f = cf.score(c[0], camera, light) if c else math.inf
+            if f <= BLEND_SLACK * f_f and f < hysteresis * f_h:
+                g.levels = c[1]
+                decision.update(kept="step", step=alpha, objective=f)
+                return c[0], g, decision
+    grid = Grid(fresh.view, fresh.G, fresh.resolution, cand_f[1], fresh.x)
+    decision.update(kept="fresh", objective=f_f)
+    return cand_f[0], grid, decision
+
+
+def previous_grids(state) -> list[Grid | None] | None:
+    """The held grids of a previous frame's path state (solution["solver"]["path"]), None when absent."""
+    if not isinstance(state, dict) or not isinstance(state.get("cascades"), list):
+        return None
+    return [Grid.from_json(c) if isinstance(c, dict) else None for c in state["cascades"]]
+
+
+def path_maps(camera, light, samples: Samples, receivers: np.ndarray, casters_bounds, previous_state=None,
+              hysteresis: float = HYSTERESIS, **opts):
+    """`method: path` for one light: the per-frame optimized maps (optimized_maps with `opts`, warm-started
+    from the previous frame's x), each directional cascade replaced by its coherent choice on a world-fixed
+    snapped grid (choose_grid). Returns (maps, solver_json) with solver_json["path"] = {"cascades": [the held
+    grid per cascade and the decision]} for the next frame. A light with no light-plane projective map (spot,
+    point) gets the per-frame optimized maps with the optimizer's own hysteresis (previous_x)."""
+    from .optimized_maps import optimized_maps
+
+    t0 = time.perf_counter()
+    held = previous_grids(previous_state)
+    opts = {**opts, "allow_log": False}  # a log warp is not a light-plane projective map: no world-fixed grid
+    if held is not None and all(g is not None and g.x is not None for g in held):
+        opts.setdefault("x0", [g.x for g in held])
+    maps, sj = optimized_maps(camera, light, samples, receivers, casters_bounds, **opts)
+    if not isinstance(light, DirectionalLight) or maps[0].face is not None:
+        sj["path"] = {"cascades": [], "note": "per-frame optimized: only directional maps have a world-fixed grid"}
+        return maps, sj
+    if held is not None and len(held) != len(maps):
+        held = None  # another cascade count: start fresh
+    fits = cascade_fits(camera, light, samples, receivers, casters_bounds, maps, opts.get("receiver_slack"))
+    out, state = [], []
+    xs = sj.get("x") or [None] * len(maps)
+    for k, (smap, cf) in enumerate(zip(maps, fits)):
+        fresh = grid_of(smap, light, casters_bounds)
+        if fresh is not None:
+            x = xs[k] if k < len(xs) else None
+            fresh.x = [float(v) for v in x] if x else None
+        m, g, dec = choose_grid(cf, camera, light, fresh, held[k] if held else None, hysteresis)
+        dec["objective_per_frame"] = float(sj["cascades"][k]["objective"]) if k < len(sj.get("cascades", [])) else None
+        m.split = smap.split
+        _with_bias(m, cf.part, light)
+        out.append(m)
+        state.append({**g.to_json(), "decision": {k: (v if not isinstance(v, float) or math.isfinite(v) else None)
+                                                  for k, v in dec.items()}})
+    sj["path"] = {"cascades": state, "hysteresis": hysteresis, "ladder_steps_per_octave": LADDER_STEPS,
+                  "time_ms": round((time.perf_counter() - t0) * 1e3, 3)}
+    sj["fun"] = float(sum(s["decision"]["objective"] or 0.0 for s in state))
+    return out, sj
+
+
+def previous_state(previous: dict | None, light_index: int):
+    """The path state of light `light_index` in a previous solution (service.solve's `previous=`, normalized
+    by validate_solution), or None (no previous frame, or one solved by another method)."""
+    if not previous or not isinstance(previous.get("solver"), dict):
+        return None
+    s = previous["solver"]
+    if "lights" in s:
+        s = s["lights"][light_index] if light_index < len(s["lights"]) else None
+    elif light_index != 0:
+        return None
+    return s.get("path") if isinstance(s, dict) else None
