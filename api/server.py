@@ -610,6 +610,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     add_scene_routes(app, svc, Tenant)
     add_solve_routes(app, svc, Tenant)
     add_batch_routes(app, svc, Tenant)
+    add_path_routes(app, svc, Tenant)
     return app
 
 
@@ -1123,7 +1124,6 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
 
     def queue_batch(svc: Service, tenant: str, req: S.BatchRequest, entry) -> Response:
         from ..service.batches import BatchError, expand_configurations, expansion_shape
-        from ..service.rigs import resolve_rig
 
         body = req.model_dump(by_alias=True, exclude_none=True,
                               exclude={"scene_id", "method", "solver", "time_budget_ms"})
@@ -1132,32 +1132,9 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
             shape = expansion_shape(body)
         except BatchError as e:
             raise ApiError(422, e.code, f"{e.field}: {e.message}", e.field) from e
-        limit = svc.settings.max_queue
-        if len(configs) > limit:  # before the per-configuration validation: its cost grows with the count
-            raise ApiError(413, "too_many_configurations", f"configurations: {len(configs)} configurations is "
-                           f"over the queue's capacity of {limit}", "configurations")
-        check_tenant_queue(svc, tenant, len(configs))  # also before the validation
-        try:
-            configs = S.validate_configurations(configs)
-        except S.ConfigurationError as e:
-            raise ApiError(422, "invalid_request", e.message, e.field) from e
-        for k, c in enumerate(configs):  # a rig that does not fit the scene is refused now, not per result
-            try:
-                resolve_rig(c["rig"], entry.loaded)
-            except ValueError as e:
-                field = f"configurations.{k}.rig" + (f".{e.field}" if getattr(e, "field", None) else "")
-                raise ApiError(422, "invalid_rig", f"{field}: {getattr(e, 'message', e)}", field) from e
-        with svc.batch_lock:  # the check and the insert together: two requests cannot both take the last room
-            check_tenant_queue(svc, tenant, len(configs))
-            queued = svc.queue_length()
-            if queued + len(configs) > limit:
-                raise ApiError(503, "queue_full", f"the batch queue holds {queued} of {limit} configurations; "
-                               f"{len(configs)} more do not fit", headers={"Retry-After": str(retry_after(queued))})
-            settings = {"method": req.method, "solver": req.solver,
-                        "time_budget_ms": svc.time_budget(req.time_budget_ms),
-                        "shape": list(shape) if shape else None}
-            batch_id = svc.store.create_batch(tenant, req.scene_id, configs, settings)
-        svc.runner.submit(tenant, batch_id)
+        settings = {"method": req.method, "solver": req.solver, "time_budget_ms": svc.time_budget(req.time_budget_ms),
+                    "shape": list(shape) if shape else None}
+        batch_id, configs = store_batch(svc, tenant, req.scene_id, configs, settings, entry)
         return json_response({"batch_id": batch_id, "scene_id": req.scene_id, "state": "queued",
                               "total": len(configs), "shape": settings["shape"]}, status=202)
 
@@ -1190,6 +1167,94 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
             raise batch_not_found(batch_id)
         svc.runner.cancel(tenant, batch_id)
         return json_response(status_json(svc, tenant, svc.store.batch(tenant, batch_id)))
+
+
+def store_batch(svc: Service, tenant: str, scene_id: str, configs: list[dict], settings: dict, entry,
+                what: str = "configurations") -> tuple[str, list[dict]]:
+    """Check expanded configurations (capacity, the tenant's quota, each rig validated and resolved against
+    the scene; `what` names them in errors: configurations or frames), store them as a queued batch and hand
+    it to the runner; (batch id, the validated configurations). Items with more than a rig (a path's frames:
+    frame, time) keep those fields in the store."""
+    from ..service.rigs import resolve_rig
+
+    stored = configs if any(set(c) - {"rig"} for c in configs) else None
+    limit = svc.settings.max_queue
+    if len(configs) > limit:  # before the per-configuration validation: its cost grows with the count
+        raise ApiError(413, "too_many_configurations", f"configurations: {len(configs)} configurations is "
+                       f"over the queue's capacity of {limit}", "configurations")
+    check_tenant_queue(svc, tenant, len(configs))  # also before the validation
+    try:
+        checked = S.validate_configurations([{"rig": c["rig"]} for c in configs] if stored else configs)
+    except S.ConfigurationError as e:
+        raise ApiError(422, "invalid_request", e.message.replace("configurations.", f"{what}."),
+                       e.field.replace("configurations.", f"{what}.", 1)) from e
+    configs = checked
+    if stored:  # a path's frames keep their frame index and time beside the validated rig
+        stored = [{**f, "rig": c["rig"]} for f, c in zip(stored, checked)]
+    for k, c in enumerate(configs):  # a rig that does not fit the scene is refused now, not per result
+        try:
+            resolve_rig(c["rig"], entry.loaded)
+        except ValueError as e:
+            field = f"{what}.{k}.rig" + (f".{e.field}" if getattr(e, "field", None) else "")
+            raise ApiError(422, "invalid_rig", f"{field}: {getattr(e, 'message', e)}", field) from e
+    with svc.batch_lock:  # the check and the insert together: two requests cannot both take the last room
+        check_tenant_queue(svc, tenant, len(configs))
+        queued = svc.queue_length()
+        if queued + len(configs) > limit:
+            raise ApiError(503, "queue_full", f"the batch queue holds {queued} of {limit} configurations; "
+                           f"{len(configs)} more do not fit", headers={"Retry-After": str(retry_after(queued))})
+        batch_id = svc.store.create_batch(tenant, scene_id, stored or configs, settings)
+    svc.runner.submit(tenant, batch_id)
+    return batch_id, configs
+
+
+def add_path_routes(app: FastAPI, svc: Service, Tenant) -> None:
+    @app.post("/v1/paths", summary="Solve a camera path frame by frame; answers 202 with the batch id (results: "
+              "the batch's, one line per frame in order with frame and time)",
+              response_model=S.BatchCreated, status_code=202, tags=["batches"],
+              responses=error_responses(*AUTHED, 404, 413, 422, 503))
+    async def create_path(req: S.PathRequest, tenant: Tenant, request: Request):
+        async with svc.heavy(tenant, request) as ticket:
+            entry = await scene_entry_for(svc, ticket, req.scene_id)
+            return await svc.in_slot(svc.admission.solve, ticket, queue_path, svc, tenant, req, entry)
+
+    def queue_path(svc: Service, tenant: str, req: S.PathRequest, entry) -> Response:
+        from ..renderers.scene_data import SceneError
+        from ..service.paths import PathError, expand_path_with_notes, is_coherent
+
+        body = req.model_dump(by_alias=True, exclude_none=True,
+                              exclude={"scene_id", "method", "solver", "time_budget_ms", "coherent"})
+        path = svc.store.scene_path(tenant, req.scene_id)
+        if path is None:
+            raise scene_not_found(req.scene_id)
+        sandboxed = svc.store.scene_sandboxed(tenant, req.scene_id)
+        try:
+            frames, notes = expand_path_with_notes(body, reader=lambda c, t, lp: read_animation_for(
+                svc, path, sandboxed, c, t, lp))
+        except PathError as e:
+            raise ApiError(422, e.code, f"{e.field}: {e.message}", e.field) from e
+        except SceneError as e:
+            raise scene_error(e, "usd_camera") from e
+        settings = {"method": req.method, "solver": req.solver, "time_budget_ms": svc.time_budget(req.time_budget_ms),
+                    "shape": None, "coherent": is_coherent(req.method, req.coherent), "path": True}
+        batch_id, _ = store_batch(svc, tenant, req.scene_id, frames, settings, entry, what="frames")
+        return json_response({"batch_id": batch_id, "scene_id": req.scene_id, "state": "queued", "total": len(frames),
+                              "coherent": settings["coherent"], "notes": notes}, status=202)
+
+
+def read_animation_for(svc: Service, path, sandboxed: bool, camera: str, times: list, light_paths: list) -> dict:
+    """renderers.usd_loader.read_animation on a stored scene: an upload in a child under the load limits (as
+    its load), a local scene in this process."""
+    from ..renderers.usd_loader import read_animation
+
+    if not sandboxed:
+        return read_animation(os.fspath(path), camera, times, light_paths=light_paths)
+    from ..service.isolation import run_isolated
+
+    limits = load_limits(svc.settings)
+    return run_isolated(read_animation, (os.fspath(path), camera, times), {"light_paths": light_paths, "sandbox": True},
+                        memory_bytes=limits.memory_bytes, timeout_s=limits.timeout_s,
+                        what=f"scene {os.path.basename(os.fspath(path))!r}")
 
 
 def check_tenant_queue(svc: Service, tenant: str, n: int) -> None:
