@@ -1,0 +1,326 @@
+"""Paths as input: camera paths and USD time samples expanded to frames, solved as a batch in frame order
+(CLI, REST on a real uvicorn server, the client), coherent frames given the previous frame's solution, resume
+after a SIGKILL, errors naming the field."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from serverkit import TOKENS, auth, running
+from shadowopt.api.schemas import validate_configurations
+from shadowopt.service.batches import BatchRunner
+from shadowopt.service.paths import PathError, expand_path, expand_path_with_notes
+from shadowopt.service.store import Store
+from storekit import add_upload
+
+REPO = Path(__file__).resolve().parents[1]
+DEMO = REPO / "configs" / "demo_scene.usda"
+EXE = Path(sys.executable).with_name("shadowopt")
+TINY = {"camera": {"usd_path": "/World/Camera", "resolution": [96, 54]}, "lights": [{"usd_path": "/World/Sun"}],
+        "shadow": {"resolution": [128, 128]}, "coarse_long_side": 32}
+CAM_RIG = {"camera": {"usd_path": "/World/Cam", "resolution": [96, 54]}, "lights": [{"usd_path": "/World/Sun"}],
+           "shadow": {"resolution": [128, 128]}, "coarse_long_side": 32}
+
+# A stage in centimetres (metersPerUnit 0.01): the camera slides along +X from (0, 200, 1000) cm at t = 0 to
+# (1000, 200, 1000) cm at t = 10 while its focal length goes 50 -> 25 mm; the sun tilts from 30 deg below the
+# horizon (rotateX -30) to straight down (-90); a box moves (geometry with time samples: not modelled, noted).
+ANIMATED_USDA = """#usda 1.0
+(
+    upAxis = "Y"
+    metersPerUnit = 0.01
+    startTimeCode = 0
+    endTimeCode = 10
+)
+def Xform "World"
+{
+    def Mesh "Ground"
+    {
+        int[] faceVertexCounts = [4]
+        int[] faceVertexIndices = [0, 1, 2, 3]
+        point3f[] points = [(-3000, 0, -3000), (-3000, 0, 3000), (3000, 0, 3000), (3000, 0, -3000)]
+    }
+    def Cube "Box"
+    {
+        double size = 100
+        double3 xformOp:translate.timeSamples = { 0: (0, 50, 0), 10: (300, 50, 0) }
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+    }
+    def Camera "Cam"
+    {
+        float focalLength.timeSamples = { 0: 50, 10: 25 }
+        float verticalAperture = 24
+        float2 clippingRange = (10, 10000)
+        double3 xformOp:translate.timeSamples = { 0: (0, 200, 1000), 10: (1000, 200, 1000) }
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+    }
+    def DistantLight "Sun"
+    {
+        float3 xformOp:rotateXYZ.timeSamples = { 0: (-30, 0, 0), 10: (-90, 0, 0) }
+        uniform token[] xformOpOrder = ["xformOp:rotateXYZ"]
+    }
+}
+"""
+
+
+def closed_form(t: float) -> dict:
+    """What the stage says at time code t (USD interpolates time samples linearly): position in metres,
+    fov = 2 atan(aperture / (2 focal)), near/far = clippingRange x 0.01, the sun's direction: -Z rotated about X
+    by -(30 + 6 t) deg."""
+    focal = 50.0 - 2.5 * t
+    a = math.radians(30.0 + 6.0 * t)
+    return {"position": [t, 2.0, 10.0], "fov_y_deg": math.degrees(2 * math.atan(24.0 / (2 * focal))),
+            "near": 0.1, "far": 100.0, "sun": [0.0, -math.sin(a), -math.cos(a)]}
+
+
+@pytest.fixture(scope="module")
+def animated(tmp_path_factory) -> Path:
+    p = tmp_path_factory.mktemp("paths") / "animated.usda"
+    p.write_text(ANIMATED_USDA)
+    return p
+
+
+# -- expansion -------------------------------------------------------------------------------------
+
+def test_keyframes_become_frames_in_order_with_one_sun_direction_each():
+    req = {"rig": TINY, "camera_path": {"samples": 5, "keyframes": [
+        {"position": [0, 1.7, 0], "target": [0, 1, 20]}, {"position": [8, 1.7, 0], "target": [0, 1, 20]}]},
+        "sun_arc": {"azimuth_deg": 90, "elevation_deg": [10, 50], "samples": 5}}
+    frames = expand_path(req)
+    assert [f["frame"] for f in frames] == list(range(5)) and all(f["time"] is None for f in frames)
+    assert [f["rig"]["camera"]["position"][0] for f in frames] == pytest.approx([0, 2, 4, 6, 8])
+    for k, f in enumerate(frames):
+        e = math.radians(10 + 10 * k)  # sun toward +X (azimuth 90), light travels away from it
+        assert f["rig"]["lights"][0]["direction"] == pytest.approx([-math.cos(e), -math.sin(e), 0.0], abs=1e-12)
+        assert f["rig"]["camera"]["usd_path"] == "/World/Camera"  # keeps the USD camera's intrinsics
+    validate_configurations([{"rig": f["rig"]} for f in frames])  # every frame is a valid rig
+
+
+def test_usd_camera_and_sun_time_samples_match_the_closed_form(animated):
+    frames, notes = expand_path_with_notes({"rig": CAM_RIG, "usd_camera": "/World/Cam",
+                                            "time": {"start": 0, "end": 10, "step": 2.5}}, scene_path=animated)
+    assert [f["time"] for f in frames] == [0, 2.5, 5, 7.5, 10] and [f["frame"] for f in frames] == list(range(5))
+    for f in frames:
+        want, cam = closed_form(f["time"]), f["rig"]["camera"]
+        assert cam["position"] == pytest.approx(want["position"], abs=1e-6)
+        assert cam["forward"] == pytest.approx([0, 0, -1], abs=1e-9) and cam["up"] == pytest.approx([0, 1, 0], abs=1e-9)
+        assert cam["fov_y_deg"] == pytest.approx(want["fov_y_deg"], abs=1e-4)
+        assert (cam["near"], cam["far"]) == pytest.approx((want["near"], want["far"]), rel=1e-6)
+        assert cam["resolution"] == [96, 54] and "usd_path" not in cam
+        assert f["rig"]["lights"][0] == {"type": "directional", "direction": pytest.approx(want["sun"], abs=1e-6)}
+    assert any("/World/Box" in n and "not modelled" in n for n in notes)
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"time": {"start": 0, "end": 10, "step": 0}}, "time.step"),
+    ({"time": {"start": 5, "end": 1}}, "time.end"),
+    ({"time": {"start": 0, "end": 1e9, "step": 1}}, "time"),
+    ({"time": None}, "time"),
+    ({"usd_camera": "/World/Sun"}, "usd_camera"),
+    ({"usd_camera": "/World/Nope"}, "usd_camera"),
+    ({"camera_path": {"poses": [{"position": [0, 1, 0], "target": [0, 0, 5]}]}}, "camera_path"),
+    ({"sun_arc": {"elevation_deg": 30}}, "sun_arc"),
+    ({"rig": {**CAM_RIG, "frame": "stage"}}, "rig.frame"),
+    ({"rig": {**CAM_RIG, "lights": [{"usd_path": "/World/Moon"}]}}, "rig.lights.0.usd_path"),
+    ({"speed": 2}, "speed"),
+])
+def test_bad_path_requests_name_the_field(animated, change, field):
+    req = {"rig": CAM_RIG, "usd_camera": "/World/Cam", "time": {"start": 0, "end": 10, "step": 1}, **change}
+    req = {k: v for k, v in req.items() if v is not None}
+    with pytest.raises(PathError) as e:
+        expand_path(req, scene_path=animated)
+    assert e.value.field == field
+
+
+def test_a_camera_path_with_the_wrong_number_of_sun_directions_names_it():
+    with pytest.raises(PathError) as e:
+        expand_path({"rig": TINY, "camera_path": {"samples": 3, "keyframes": [
+            {"position": [0, 1, 0], "target": [0, 0, 9]}, {"position": [1, 1, 0], "target": [0, 0, 9]}]},
+            "light_directions": [[0, -1, 0], [0, -1, 0.2]]})
+    assert e.value.field == "light_directions"
+
+
+# -- CLI -------------------------------------------------------------------------------------------
+
+def _cli(*args, cwd=REPO):
+    return subprocess.run([str(EXE), *map(str, args)], cwd=cwd, capture_output=True, text=True, timeout=300)
+
+
+def test_cli_usd_camera_path_coherent_json_lines_in_frame_order(animated, tmp_path):
+    """--camera/--time: one JSON line per frame on stdout, in order, each with frame, time and the solution
+    solved at the closed-form pose; --coherent: each frame after the first was given the previous frame's
+    solution (the optimizer reports it refit the previous frame's parameters x)."""
+    rig = tmp_path / "rig.json"
+    rig.write_text(json.dumps(CAM_RIG))
+    r = _cli("path", animated, "--rig", rig, "--camera", "/World/Cam", "--time", "0:10:5", "--coherent", "--json",
+             "--no-progress", "--out", tmp_path / "o.jsonl")
+    assert r.returncode == 0, r.stderr
+    lines = [json.loads(x) for x in r.stdout.splitlines()]
+    assert [l["frame"] for l in lines] == [0, 1, 2] and [l["time"] for l in lines] == [0, 5, 10]
+    assert (tmp_path / "o.jsonl").read_text().splitlines() == r.stdout.splitlines()
+    for l in lines:
+        want = closed_form(l["time"])
+        assert l["resolved"]["camera"]["position"] == pytest.approx(want["position"], abs=1e-5)
+        assert l["resolved"]["camera"]["fov_y_deg"] == pytest.approx(want["fov_y_deg"], abs=1e-3)
+        assert l["resolved"]["lights"][0]["direction"] == pytest.approx(want["sun"], abs=1e-5)
+    assert "temporal" not in lines[0]["solver"]["cascades"][0]
+    for a, b in zip(lines, lines[1:]):
+        assert b["solver"]["cascades"][0]["temporal"]["previous_x"] == pytest.approx(a["solver"]["x"][0])
+    assert "not modelled" in r.stderr  # the moving box is named, not ignored silently
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--camera", "/World/Cam", "--time", "0:10:0"], ["time.step"]),
+    (["--camera", "/World/Sun", "--time", "0:1"], ["usd_camera", "DistantLight"]),
+    ([], ["--path"]),
+])
+def test_cli_path_bad_input_exits_2_naming_the_field(animated, tmp_path, args, words):
+    rig = tmp_path / "rig.json"
+    rig.write_text(json.dumps(CAM_RIG))
+    r = _cli("path", animated, "--rig", rig, *args, "--no-progress")
+    assert r.returncode == 2 and all(w in r.stderr for w in words), r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def _readme_path_command() -> str:
+    text = (REPO / "README.md").read_text()
+    part = text[text.index("### Camera paths"):]
+    block = part[part.index("```sh\n") + 6:]
+    return block[:block.index("```")].strip()
+
+
+def test_readme_camera_path_command_runs_verbatim(tmp_path):
+    """The README's command, as printed (in a scratch folder with configs/ linked in): one line per frame of
+    the keyframed path, in order, each camera at its interpolated position."""
+    import shlex
+
+    (tmp_path / "configs").symlink_to(REPO / "configs")
+    cmd = _readme_path_command()
+    argv = shlex.split(cmd)
+    assert argv[0] == ".venv/bin/shadowopt" and argv[1] == "path"
+    r = _cli(*argv[1:], cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    lines = [json.loads(x) for x in r.stdout.splitlines()]
+    path = json.loads((REPO / "configs" / "demo_path.json").read_text())
+    n = path["samples"]
+    assert [l["frame"] for l in lines] == list(range(n))
+    k0, k1 = (np.array(k["position"]) for k in path["keyframes"])
+    for l in lines:
+        u = l["frame"] / (n - 1)
+        assert l["resolved"]["camera"]["position"] == pytest.approx(list(k0 + (k1 - k0) * u), abs=1e-6)
+
+
+# -- REST and the client on a real server -------------------------------------------------------
+
+def test_rest_post_paths_streams_frames_in_order_and_the_client_yields_them(animated, tmp_path, monkeypatch):
+    from shadowopt.api.client import Client, PathFrame
+
+    with running(tmp_path / "data") as server:
+        up = httpx.post(f"{server.base}/v1/scenes", params={"filename": "animated.usda"},
+                        content=animated.read_bytes(), headers={**auth("alice"),
+                                                                "Content-Type": "application/octet-stream"}, timeout=60)
+        assert up.status_code in (200, 201), up.text
+        sid = up.json()["scene_id"]
+        body = {"scene_id": sid, "rig": CAM_RIG, "usd_camera": "/World/Cam", "time": {"start": 0, "end": 10, "step": 5},
+                "method": "focused"}
+        r = httpx.post(f"{server.base}/v1/paths", json=body, headers=auth("alice"), timeout=120)
+        assert r.status_code == 202, r.text
+        created = r.json()
+        assert created["total"] == 3 and created["coherent"] is False
+        assert any("/World/Box" in n for n in created["notes"])
+        bad = httpx.post(f"{server.base}/v1/paths", json={**body, "usd_camera": "/World/Sun"}, headers=auth("alice"),
+                         timeout=60)
+        assert bad.status_code == 422 and bad.json()["error"]["field"] == "usd_camera", bad.text
+        bad = httpx.post(f"{server.base}/v1/paths", json={**body, "time": {"start": 0, "end": 1, "step": -1}},
+                         headers=auth("alice"), timeout=60)
+        assert bad.status_code == 422 and "time.step" in bad.json()["error"]["message"], bad.text
+
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            st = httpx.get(f"{server.base}/v1/batches/{created['batch_id']}", headers=auth("alice")).json()
+            if st["state"] not in ("queued", "running"):
+                break
+            time.sleep(0.2)
+        assert st["state"] == "done", st
+        text = httpx.get(f"{server.base}/v1/batches/{created['batch_id']}/results", headers=auth("alice")).text
+        lines = [json.loads(x) for x in text.splitlines()]
+        assert [(l["index"], l["frame"], l["time"]) for l in lines] == [(0, 0, 0), (1, 1, 5), (2, 2, 10)]
+        for l in lines:
+            assert l["resolved"]["camera"]["position"] == pytest.approx(closed_form(l["time"])["position"], abs=1e-5)
+
+        monkeypatch.setenv("SHADOWOPT_TOKEN", TOKENS["alice"])
+        with Client(server.base) as c:
+            got = list(c.optimize_path(sid, CAM_RIG, usd_camera="/World/Cam", time="0:10:10", method="focused",
+                                       coherent=True, poll_s=0.2))
+        assert all(isinstance(f, PathFrame) and f.ok for f in got)
+        assert [(f.frame, f.time) for f in got] == [(0, 0.0), (1, 10.0)]
+        assert got[1].solution().resolved["camera"]["position"] == pytest.approx(closed_form(10)["position"], abs=1e-5)
+
+
+# -- resume ------------------------------------------------------------------------------------------
+
+RUNNER_SCRIPT = """
+import sys, time
+from shadowopt.service.batches import BatchRunner
+from shadowopt.service.store import Store
+if __name__ == "__main__":
+    runner = BatchRunner(Store(sys.argv[1]), backend="local", workers=1)
+    runner.resume()
+    time.sleep(600)
+"""
+
+
+def _stored(db: Path, batch_id: str) -> dict[int, str]:
+    with sqlite3.connect(db) as c:
+        return dict(c.execute("SELECT idx, result FROM results WHERE batch_id = ?", (batch_id,)).fetchall())
+
+
+def test_a_coherent_path_resumes_after_sigkill_from_the_stored_previous_frame(tmp_path):
+    """Killed mid-path (runner and workers, as a power cut): resume solves only the missing frames, and the
+    first of them is given the stored solution of the frame before it."""
+    data = tmp_path / "data"
+    store = Store(data)
+    sid, _ = add_upload(store, "t", DEMO.read_bytes(), "demo_scene.usda")
+    frames = expand_path({"rig": TINY, "camera_path": {"samples": 8, "keyframes": [
+        {"position": [0, 1.7, 0], "target": [0, 1, 20]}, {"position": [6, 1.7, 2], "target": [0, 1, 20]}]}})
+    rigs = validate_configurations([{"rig": f["rig"]} for f in frames])
+    frames = [{**f, "rig": r["rig"]} for f, r in zip(frames, rigs)]
+    b = store.create_batch("t", sid, frames, {"method": "optimized", "coherent": True})
+    env = {**os.environ, "DRJIT_LIBLLVM_PATH": os.environ.get("DRJIT_LIBLLVM_PATH", "")}
+    proc = subprocess.Popen([sys.executable, "-c", RUNNER_SCRIPT, str(data)], env=env, start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 180
+        while len(_stored(store.db_path, b)) < 2 and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.01)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    before = _stored(store.db_path, b)
+    assert 2 <= len(before) < 8, f"the kill came too late or too early: {len(before)} of 8 stored"
+    assert sorted(before) == list(range(len(before)))  # a coherent path is solved in frame order
+
+    runner = BatchRunner(store, backend="local", workers=1)
+    try:
+        assert runner.resume() == [b]
+        assert runner.wait(b, timeout=180) == "done"
+    finally:
+        runner.shutdown()
+    assert runner.stats["submitted"] == 8 - len(before)
+    after = _stored(store.db_path, b)
+    assert all(after[i] == before[i] for i in before)
+    lines = store.results("t", b)
+    assert [(l["index"], l["frame"], l["time"]) for l in lines] == [(k, k, None) for k in range(8)]
+    for a, c in zip(lines, lines[1:]):  # every frame, the first one after the crash included, got its predecessor
+        assert c["solver"]["cascades"][0]["temporal"]["previous_x"] == pytest.approx(a["solver"]["x"][0])
+    store.close()
