@@ -36,7 +36,7 @@ from pydantic import BaseModel
 from .progress import progress_bar
 from .schemas import BatchCreated, BatchResultLine, BatchStatus, Health, PathFrame, Rig, SceneInfo, Solution
 
-__all__ = ["Client", "AsyncClient", "SceneInfo", "Solution", "BatchResultLine", "PathFrame", "BatchCreated", "BatchStatus",
+__all__ = ["Client", "AsyncClient", "SceneInfo", "Solution", "BatchResultLine", "PathFrame", "PathFrames", "BatchCreated", "BatchStatus",
            "Health",
            "ShadowoptError", "ClientError", "AuthError",
            "NotFoundError", "ServerError", "ConnectionFailed", "TERMINAL_STATES"]
@@ -300,6 +300,24 @@ _NOT_SENT = (httpx.ConnectError, httpx.ConnectTimeout)  # the server never saw t
 _DROPPED = (httpx.RemoteProtocolError, httpx.ReadError, httpx.WriteError)  # the connection broke midway
 
 
+class PathFrames:
+    """What `optimize_path` returns: an iterator of `PathFrame`s in frame order, with the job's `batch_id` and
+    `created` answer (its `notes`, `total`); `resume(offset)` iterates again from frame `offset`."""
+
+    def __init__(self, created: BatchCreated, frames):
+        self.created, self.batch_id, self._frames = created, created.batch_id, frames
+        self._it = frames()
+
+    def __iter__(self):
+        return self
+
+    def __next__(self) -> PathFrame:
+        return next(self._it)
+
+    def resume(self, offset: int) -> Iterator[PathFrame]:
+        return self._frames(offset)
+
+
 class _Base:
     def __init__(self, base_url: str | None = None, token: str | None = None, timeout: float = 120.0,
                  retries: int = 3, backoff_s: float = 0.25):
@@ -492,16 +510,16 @@ class Client(_Base):
 
     def optimize_path(self, scene_id: str, rig: dict | Rig, *, camera_path: dict | None = None,
                       usd_camera: str | None = None, time=None, method: str = "optimized", coherent: bool = False,
-                      poll_s: float = 0.5, **options) -> Iterator[PathFrame]:
+                      poll_s: float = 0.5, **options) -> PathFrames:
         """Submit a path (as `submit_path`, at once) and iterate its frames in order as they finish: `PathFrame`
         (`frame`, `time` and the solution's fields, or `error`; `frame.solution()` gives a `Solution`)."""
         created = self.submit_path(scene_id, rig, camera_path=camera_path, usd_camera=usd_camera, time=time,
                                    method=method, coherent=coherent, **options)
 
-        def frames():
-            for line in self.iter_results(created, follow=True, poll_s=poll_s):
+        def frames(offset: int = 0):
+            for line in self.iter_results(created, offset=offset, follow=True, poll_s=poll_s):
                 yield PathFrame.model_validate(line.model_dump(mode="json", by_alias=True))
-        return frames()
+        return PathFrames(created, frames)
 
     def batch(self, batch) -> BatchStatus:
         """`GET /v1/batches/{id}`: state, done, total, errors."""

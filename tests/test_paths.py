@@ -182,14 +182,18 @@ def test_cli_usd_camera_path_coherent_json_lines_in_frame_order(animated, tmp_pa
 @pytest.mark.parametrize("args, words", [
     (["--camera", "/World/Cam", "--time", "0:10:0"], ["time.step"]),
     (["--camera", "/World/Sun", "--time", "0:1"], ["usd_camera", "DistantLight"]),
+    (["--camera", "/World/Cam"], ["--time"]),
+    (["--camera", "/World/Cam", "--time", "a:b"], ["--time"]),
     ([], ["--path"]),
 ])
-def test_cli_path_bad_input_exits_2_naming_the_field(animated, tmp_path, args, words):
+def test_cli_path_bad_input_exits_2_naming_the_field(animated, tmp_path, capsys, args, words):
+    from shadowopt.api.cli import main
+
     rig = tmp_path / "rig.json"
     rig.write_text(json.dumps(CAM_RIG))
-    r = _cli("path", animated, "--rig", rig, *args, "--no-progress")
-    assert r.returncode == 2 and all(w in r.stderr for w in words), r.stderr
-    assert "Traceback" not in r.stderr
+    assert main(["path", str(animated), "--rig", str(rig), *args, "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert all(w in err for w in words) and "Traceback" not in err, err
 
 
 def _readme_path_command() -> str:
@@ -223,6 +227,9 @@ def test_readme_camera_path_command_runs_verbatim(tmp_path):
 # -- REST and the client on a real server -------------------------------------------------------
 
 def test_rest_post_paths_streams_frames_in_order_and_the_client_yields_them(animated, tmp_path, monkeypatch):
+    """An uploaded stage (its animation read in the isolated loader child): 202, errors naming the field, then
+    the client's optimize_path yields typed frames in order, and the batch results endpoint has the same
+    lines with frame and time."""
     from shadowopt.api.client import Client, PathFrame
 
     with running(tmp_path / "data") as server:
@@ -231,40 +238,28 @@ def test_rest_post_paths_streams_frames_in_order_and_the_client_yields_them(anim
                                                                 "Content-Type": "application/octet-stream"}, timeout=60)
         assert up.status_code in (200, 201), up.text
         sid = up.json()["scene_id"]
-        body = {"scene_id": sid, "rig": CAM_RIG, "usd_camera": "/World/Cam", "time": {"start": 0, "end": 10, "step": 5},
-                "method": "focused"}
-        r = httpx.post(f"{server.base}/v1/paths", json=body, headers=auth("alice"), timeout=120)
-        assert r.status_code == 202, r.text
-        created = r.json()
-        assert created["total"] == 3 and created["coherent"] is False
-        assert any("/World/Box" in n for n in created["notes"])
-        bad = httpx.post(f"{server.base}/v1/paths", json={**body, "usd_camera": "/World/Sun"}, headers=auth("alice"),
-                         timeout=60)
+        body = {"scene_id": sid, "rig": CAM_RIG, "usd_camera": "/World/Sun", "time": {"start": 0, "end": 10, "step": 5}}
+        bad = httpx.post(f"{server.base}/v1/paths", json=body, headers=auth("alice"), timeout=60)
         assert bad.status_code == 422 and bad.json()["error"]["field"] == "usd_camera", bad.text
         bad = httpx.post(f"{server.base}/v1/paths", json={**body, "time": {"start": 0, "end": 1, "step": -1}},
                          headers=auth("alice"), timeout=60)
         assert bad.status_code == 422 and "time.step" in bad.json()["error"]["message"], bad.text
 
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            st = httpx.get(f"{server.base}/v1/batches/{created['batch_id']}", headers=auth("alice")).json()
-            if st["state"] not in ("queued", "running"):
-                break
-            time.sleep(0.2)
-        assert st["state"] == "done", st
-        text = httpx.get(f"{server.base}/v1/batches/{created['batch_id']}/results", headers=auth("alice")).text
-        lines = [json.loads(x) for x in text.splitlines()]
-        assert [(l["index"], l["frame"], l["time"]) for l in lines] == [(0, 0, 0), (1, 1, 5), (2, 2, 10)]
-        for l in lines:
-            assert l["resolved"]["camera"]["position"] == pytest.approx(closed_form(l["time"])["position"], abs=1e-5)
-
         monkeypatch.setenv("SHADOWOPT_TOKEN", TOKENS["alice"])
         with Client(server.base) as c:
-            got = list(c.optimize_path(sid, CAM_RIG, usd_camera="/World/Cam", time="0:10:10", method="focused",
-                                       coherent=True, poll_s=0.2))
+            run = c.optimize_path(sid, CAM_RIG, usd_camera="/World/Cam", time="0:10:5", method="focused",
+                                  coherent=True, poll_s=0.2)
+            got = list(run)
+        assert run.created.total == 3 and any("/World/Box" in n for n in run.created.notes)
         assert all(isinstance(f, PathFrame) and f.ok for f in got)
-        assert [(f.frame, f.time) for f in got] == [(0, 0.0), (1, 10.0)]
-        assert got[1].solution().resolved["camera"]["position"] == pytest.approx(closed_form(10)["position"], abs=1e-5)
+        assert [(f.frame, f.time) for f in got] == [(0, 0.0), (1, 5.0), (2, 10.0)]
+        for f in got:
+            assert f.solution().resolved["camera"]["position"] == pytest.approx(closed_form(f.time)["position"], abs=1e-5)
+        text = httpx.get(f"{server.base}/v1/batches/{run.batch_id}/results", headers=auth("alice")).text
+        lines = [json.loads(x) for x in text.splitlines()]
+        assert [(l["index"], l["frame"], l["time"]) for l in lines] == [(0, 0, 0), (1, 1, 5), (2, 2, 10)]
+        assert [l["lights"][0]["cascades"][0]["view_matrix"] for l in lines] == \
+            [f["lights"][0]["cascades"][0]["view_matrix"] for f in got]
 
 
 # -- resume ------------------------------------------------------------------------------------------
