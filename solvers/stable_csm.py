@@ -18,9 +18,10 @@ Valient 2008 ("Stable rendering of cascaded shadow maps", ShaderX6) and the engi
    for every frame.
 
 Splits: practical (lambda) or the rig's kind over [camera near, shadow distance], the shadow distance
-the camera's far plane clamped to the farthest corner of the scene bounds along the view (nothing is
-received beyond), rounded up onto the same ladder so it too changes only in steps (an engine's "max
-shadow distance" setting, chosen as tightly as the scene allows). Every cascade has the same square
+the camera's far plane clamped to the scene bounds' diagonal (no receiver is farther from a camera inside
+the bounds; from a camera outside them, the farthest corner's distance), rounded up onto the same ladder:
+an engine's fixed "max shadow distance" setting, chosen as the level's size, so the splits and the
+spheres, hence the texel sizes, do not change while the camera moves or turns inside the scene. Every cascade has the same square
 resolution: `resolution`, or with a texel budget sqrt(budget / k) per side. Bias: the baselines' rule
 (baselines._with_bias over each cascade's receivers).
 """
@@ -61,7 +62,10 @@ def world_light_view(light: DirectionalLight) -> np.ndarray:
 
 
 def shadow_distance(camera: Camera, corners: np.ndarray) -> float:
-    far = float(np.max((corners - camera.position) @ camera.forward))
+    """The far end of the cascades (module doc): the far plane, clamped to the scene bounds' diagonal (or the
+    farthest corner's distance from a camera outside them), rounded up onto the ladder."""
+    far = max(float(np.max(np.linalg.norm(corners - camera.position, axis=1))),
+              float(np.linalg.norm(corners.max(0) - corners.min(0))))
     return ladder_up(min(camera.far, max(far, camera.near * 2.0)))
 
 

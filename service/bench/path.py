@@ -150,7 +150,7 @@ def bench_path(validate_rig, frames: int | None = None, screen=(320, 180), map_s
     worst = worst_path(results)
     out["worst"] = worst
     strip = strip_file or STRIP_FILE
-    if worst is not None and write:
+    if worst is not None and (write or strip_file is not None):  # a probe may ask for the picture elsewhere
         strip.parent.mkdir(parents=True, exist_ok=True)
         strip_image(thumbs, worst, methods).save(strip)
     out["verdicts"] = verdicts(results)
