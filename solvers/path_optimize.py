@@ -52,9 +52,10 @@ from .metric import predicted_objective
 from .samples import Samples
 from .shadow_map import ShadowMap
 
-LADDER_STEPS = 32  # scale levels per octave: a held level wastes at most 2^(1/32) - 1 = 2.2% of the texels per axis per step
-LEVEL_SLACK = 1  # steps a held level may exceed the tightest one before the level follows the receivers
-HYSTERESIS = 0.9  # the held grid is replaced when the fresh one's objective is below this x the held one's
+LADDER_STEPS = 64  # scale levels per octave: one step is 2^(1/64) - 1 = 1.1% of the map's size per axis
+LEVEL_SLACK = 4  # steps a held level may exceed the tightest one before the level follows the receivers
+LEVEL_HEADROOM = 1  # a new level is this many steps coarser than the tightest (room for the receivers to grow)
+HYSTERESIS = 0.85  # the held grid is replaced when the fresh one's objective is below this x the held one's
 BLEND_STEPS = (0.25, 0.5)  # fractions of the way from the held canonical part to the fresh one, tried in order
 BLEND_SLACK = 1.05  # a partial step is taken when its objective is within this factor of the fresh one's
 MEDIAN_WINDOW = 5  # frames of the second pass's moving median
@@ -145,25 +146,32 @@ def blend(held: Grid, fresh: Grid, alpha: float) -> Grid:
         Gf = -Gf
     G = _normalised((1.0 - alpha) * Gh + alpha * Gf)
     G[:, 2] = 0.0
-    return Grid(held.view, G, fresh.resolution, held.levels if fresh.resolution == held.resolution else None, fresh.x)
+    return Grid(held.view, G, fresh.resolution, None, fresh.x)
 
 
 def _level(a_max: float, held: int | None) -> int:
-    """The ladder level for an NDC scale of at most a_max: the largest 2^(j/LADDER_STEPS) <= a_max, or the held
-    level when it is at most LEVEL_SLACK steps below that."""
+    """The ladder level for an NDC scale of at most a_max: the held level while it is at most LEVEL_SLACK steps
+    below the largest 2^(j/LADDER_STEPS) <= a_max; a new grid's LEVEL_HEADROOM steps below that one."""
     j = math.floor(LADDER_STEPS * math.log2(a_max) + 1e-9)
-    if held is not None and j - LEVEL_SLACK <= held <= j:
+    if held is None:
+        return j - LEVEL_HEADROOM
+    if j - LEVEL_SLACK <= held <= j:
         return held
-    return j
+    # the receivers shrank past the slack: the tightest level (room to shrink LEVEL_SLACK more); they grew
+    # past the held level: LEVEL_SLACK steps coarser (room to grow as much): one change per band of the trend
+    return j if j > held else j - LEVEL_SLACK
 
 
-def fit_on_grid(grid: Grid, fit_pts: np.ndarray, corners: np.ndarray, held_levels=None):
-    """(map, levels) of the grid refit to `fit_pts` (world points the map must contain: the receivers'
+def fit_on_grid(grid: Grid, fit_pts: np.ndarray, corners: np.ndarray, held_levels=None, depth_origin=None):
+    """(map, levels) of the grid refit (without `held_levels`, a new grid: its s', t' rows are first rescaled
+    in place so that the ladder's level 0 is this frame's tight scale) to `fit_pts` (world points the map must contain: the receivers'
     light-plane hull and depth extremes and the samples) or None when a point is not in front of the
     warp's centre (w <= 0). Per axis: the box of the canonical coordinates, a scale on the ladder at most
     the box's (padded PAD_TEXELS texels and half a texel for the snap on each side), the offset snapped so
     that canonical 0 is a texel corner; depth as solvers.optimize.Problem's fit (the fit points and the scene
-    corners at the fit points' extreme w, a caster on a receiver's light ray having its w)."""
+    corners at the fit points' extreme w, a caster on a receiver's light ray having its w), the stored depth
+    (z - z0) / w measured from `depth_origin`'s light-view depth z0 (the camera: the per-frame optimizer's
+    depth, whose view is centred there; from the far anchor, z / w would spread over e^u times the range)."""
     v = to_view(grid.view, fit_pts)
     ph = np.column_stack([v, np.ones(len(v))])
     w = ph @ grid.G[2]
@@ -177,14 +185,21 @@ def fit_on_grid(grid: Grid, fit_pts: np.ndarray, corners: np.ndarray, held_level
         n = float(grid.resolution[i])
         size = max(hi - lo, extent_floor(max(abs(lo), abs(hi))))
         a_max = 2.0 * max(n - 2.0 * PAD_TEXELS - 1.0, 1.0) / (n * size)
+        if held_levels is None:  # a new grid: its row rescaled so that level 0 is the tight scale, and recentred so
+            # that canonical 0 (the pivot of later level changes) is the box's centre
+            k = a_max * (1.0 - 1e-6)
+            mid = 0.5 * (lo + hi)
+            grid.G[i] = k * (grid.G[i] - mid * grid.G[2])
+            c, lo, hi, a_max = k * (c - mid), k * (lo - mid), k * (hi - mid), 1.0 / (1.0 - 1e-6)
         j = _level(a_max, None if held_levels is None else held_levels[i])
         a = 2.0 ** (j / LADDER_STEPS)
         b = -a * 0.5 * (lo + hi)
         b = round((b + 1.0) * n / 2.0) * 2.0 / n - 1.0  # canonical 0 on a texel corner (at most half a texel)
         rows.append(a * grid.G[i] + b * grid.G[2])
         levels.append(j)
-    zc = v[:, 2] / w
-    cz = to_view(grid.view, corners)[:, 2]
+    z0 = 0.0 if depth_origin is None else float(to_view(grid.view, np.asarray(depth_origin, float)[None])[0, 2])
+    zc = (v[:, 2] - z0) / w
+    cz = to_view(grid.view, corners)[:, 2] - z0
     wl, wh = float(w.min()), float(w.max())
     z_hi = max(float(zc.max()), float(cz.max()) / wl, float(cz.max()) / wh)
     z_lo = min(float(zc.min()), float(cz.min()) / wl, float(cz.min()) / wh)
@@ -192,7 +207,9 @@ def fit_on_grid(grid: Grid, fit_pts: np.ndarray, corners: np.ndarray, held_level
     span = max(far - near, 1e-9 * max(abs(near), abs(far), 1.0))
     n_, f_ = near - 0.01 * span, far + 0.01 * span
     ez = np.array([0.0, 0.0, 1.0, 0.0])
-    P = np.vstack([rows[0], rows[1], (-2.0 / (f_ - n_)) * ez - ((f_ + n_) / (f_ - n_)) * grid.G[2], grid.G[2]])
+    alpha = -2.0 / (f_ - n_)
+    P = np.vstack([rows[0], rows[1], alpha * (ez - z0 * np.array([0.0, 0.0, 0.0, 1.0])) - ((f_ + n_) / (f_ - n_)) * grid.G[2],
+                   grid.G[2]])
     gw = grid.G[2, :2]
     grad = float(np.linalg.norm(gw))
     ext = float(np.ptp(v[:, :2], axis=0).max()) if len(v) > 1 else 0.0
@@ -261,11 +278,11 @@ def cascade_fits(camera, light, samples: Samples, receivers: np.ndarray, casters
 def choose_grid(cf: CascadeFit, camera, light, fresh: Grid | None, held: Grid | None, hysteresis: float = HYSTERESIS):
     """(map, grid, decision) for one cascade: the held grid refit unless the fresh one is better by the
     hysteresis factor, then the smallest limited step toward it within BLEND_SLACK of the fresh objective."""
-    cand_f = fit_on_grid(fresh, cf.fit_pts, cf.corners, None) if fresh is not None else None
+    cand_f = fit_on_grid(fresh, cf.fit_pts, cf.corners, None, camera.position) if fresh is not None else None
     f_f = cf.score(cand_f[0], camera, light) if cand_f else math.inf
     if held is not None and fresh is not None and held.resolution != fresh.resolution:
         held = Grid(held.view, held.G, fresh.resolution, None, held.x)  # a new allocation: the level follows
-    cand_h = fit_on_grid(held, cf.fit_pts, cf.corners, held.levels) if held is not None else None
+    cand_h = fit_on_grid(held, cf.fit_pts, cf.corners, held.levels, camera.position) if held is not None else None
     f_h = cf.score(cand_h[0], camera, light) if cand_h else math.inf
     decision = {"objective_fresh": f_f, "objective_held": f_h if held is not None else None}
     if cand_h is not None and math.isfinite(f_h) and not (f_f < hysteresis * f_h):
@@ -277,7 +294,7 @@ def choose_grid(cf: CascadeFit, camera, light, fresh: Grid | None, held: Grid | 
     if cand_h is not None and fresh is not None:
         for alpha in BLEND_STEPS:
             g = blend(held, fresh, alpha)
-            c = fit_on_grid(g, cf.fit_pts, cf.corners, g.levels)
+            c = fit_on_grid(g, cf.fit_pts, cf.corners, g.levels, camera.position)
             f = cf.score(c[0], camera, light) if c else math.inf
             if f <= BLEND_SLACK * f_f and f < hysteresis * f_h:
                 g.levels = c[1]
@@ -296,7 +313,7 @@ def previous_grids(state) -> list[Grid | None] | None:
 
 
 def path_maps(camera, light, samples: Samples, receivers: np.ndarray, casters_bounds, previous_state=None,
-              hysteresis: float = HYSTERESIS, **opts):
+              hysteresis: float | None = None, **opts):
     """`method: path` for one light: the per-frame optimized maps (optimized_maps with `opts`, warm-started
     from the previous frame's x), each directional cascade replaced by its coherent choice on a world-fixed
     snapped grid (choose_grid). Returns (maps, solver_json) with solver_json["path"] = {"cascades": [the held
@@ -305,6 +322,7 @@ def path_maps(camera, light, samples: Samples, receivers: np.ndarray, casters_bo
     from .optimized_maps import optimized_maps
 
     t0 = time.perf_counter()
+    hysteresis = HYSTERESIS if hysteresis is None else float(hysteresis)
     held = previous_grids(previous_state)
     opts = {**opts, "allow_log": False}  # a log warp is not a light-plane projective map: no world-fixed grid
     if held is not None and all(g is not None and g.x is not None for g in held):
@@ -328,6 +346,7 @@ def path_maps(camera, light, samples: Samples, receivers: np.ndarray, casters_bo
         m.split = smap.split
         _with_bias(m, cf.part, light)
         out.append(m)
+        dec["fresh"] = fresh.to_json() if fresh is not None else None  # the second pass's input (optimize_path)
         state.append({**g.to_json(), "decision": {k: (v if not isinstance(v, float) or math.isfinite(v) else None)
                                                   for k, v in dec.items()}})
     sj["path"] = {"cascades": state, "hysteresis": hysteresis, "ladder_steps_per_octave": LADDER_STEPS,
@@ -347,3 +366,214 @@ def previous_state(previous: dict | None, light_index: int):
     elif light_index != 0:
         return None
     return s.get("path") if isinstance(s, dict) else None
+
+
+# ------------------------------------------------------------------ whole paths (batch)
+@dataclass
+class FrameProblem:
+    """One frame of a path for one light: what path_maps needs (`opts`: optimized_maps' keywords:
+    resolution, cascades, splits, texel_budget, receiver_slack, sample_rows, ...)."""
+
+    camera: object
+    light: object
+    samples: Samples
+    receivers: np.ndarray
+    casters_bounds: tuple
+    opts: dict = field(default_factory=dict)
+
+
+def frame_problems(entry, rigs: list[dict], light_index: int = 0) -> list[FrameProblem]:
+    """FrameProblems of validated rigs on a scene entry (service.solve's coarse pass and light problems)."""
+    from ..service.pipeline import coarse_pass
+    from ..service.solve import light_problems
+
+    lo, hi = entry.loaded.geometry.bounds()
+    out = []
+    for rig in rigs:
+        resolved, buffers = coarse_pass(entry, rig)
+        prob = light_problems(resolved, buffers, (lo, hi))[light_index]
+        sh = resolved.shadow
+        opts = dict(resolution=tuple(sh.get("resolution") or (2048, 2048)),
+                    cascades=sh.get("cascades") if isinstance(sh.get("cascades"), int) else 1,
+                    splits=sh.get("splits", "practical"), split_lambda=sh.get("lambda", 0.5),
+                    texel_budget=sh.get("texel_budget"), receiver_slack=prob.receiver_slack,
+                    sample_rows=prob.sample_rows)
+        out.append(FrameProblem(resolved.camera, prob.light, prob.samples, prob.receivers, (lo, hi), opts))
+    return out
+
+
+@dataclass
+class PathResult:
+    maps: list  # per frame, the maps (list of ShadowMap per cascade)
+    objective: list  # per frame, the predicted objective of those maps
+    per_frame_objective: list  # per frame, the per-frame optimizer's (no coherence)
+    grid_changes: int  # cascade-frames whose canonical part changed from the previous frame
+    level_changes: int  # cascade-frames whose scale level changed with the same canonical part
+    passes: dict  # per pass ("interactive", "smoothed"): the same numbers, and which pass was returned
+
+    def to_json(self) -> dict:
+        return {"objective": self.objective, "per_frame_objective": self.per_frame_objective,
+                "grid_changes": self.grid_changes, "level_changes": self.level_changes, "passes": self.passes}
+
+
+def _grid_key(g: Grid):
+    return (g.G.tobytes(), g.view.tobytes())
+
+
+def _changes(grids: list[list[Grid]]) -> tuple[int, int]:
+    gc = lc = 0
+    for a, b in zip(grids, grids[1:]):
+        for ga, gb in zip(a, b):
+            if _grid_key(ga) != _grid_key(gb):
+                gc += 1
+            elif ga.levels != gb.levels:
+                lc += 1
+    return gc, lc
+
+
+def _objective(maps, fp: FrameProblem) -> float:
+    return float(predicted_objective(maps, fp.samples, fp.camera.position))
+
+
+def optimize_path(frames: list[FrameProblem], hysteresis: float | None = None, window: int = MEDIAN_WINDOW) -> PathResult:
+    """A whole path (batch precomputation). Pass 1: the interactive choice frame after frame (path_maps with
+    the previous frame's state). Pass 2 (directional lights, the same cascade count on every frame): per
+    cascade, the fresh canonical parts of pass 1 in one light view, a moving median of their normalised
+    entries over `window` frames, then segments: a segment starts on its frame's smoothed part (the fresh one
+    when that is not within `hysteresis` of the fresh objective) and grows while its part, refit with the held
+    levels (fit_on_grid), keeps each frame's objective within 1 / hysteresis of that frame's fresh one. The
+    pass with fewer grid changes (then the lower summed objective) is returned; both are reported."""
+    hysteresis = HYSTERESIS if hysteresis is None else float(hysteresis)
+    n = len(frames)
+    maps1, grids1, fresh, fresh_obj, per_frame = [], [], [], [], []
+    state = None
+    for fp in frames:
+        maps, sj = path_maps(fp.camera, fp.light, fp.samples, fp.receivers, fp.casters_bounds, state, hysteresis,
+                             **fp.opts)
+        state = sj["path"]
+        maps1.append(maps)
+        cs = state.get("cascades") or []
+        grids1.append([Grid.from_json(c) for c in cs])
+        fresh.append([Grid.from_json(c["decision"]["fresh"]) if c["decision"].get("fresh") else None for c in cs])
+        fresh_obj.append([c["decision"].get("objective_fresh") for c in cs])
+        per_frame.append(float(sum(float(c["decision"].get("objective_per_frame") or 0.0) for c in cs))
+                         if cs else _objective(maps, fp))
+    obj1 = [_objective(m, fp) for m, fp in zip(maps1, frames)]
+    gc1, lc1 = _changes(grids1) if all(grids1) else (n, 0)
+    passes = {"interactive": {"objective_sum": float(sum(obj1)), "grid_changes": gc1, "level_changes": lc1}}
+    best = (maps1, obj1, gc1, lc1, "interactive")
+    k = len(grids1[0]) if grids1 and grids1[0] else 0
+    if k and all(len(g) == k for g in grids1) and all(all(f is not None for f in fr) for fr in fresh):
+        maps2 = [[None] * k for _ in range(n)]
+        grids2 = [[None] * k for _ in range(n)]
+        for c in range(k):
+            V = fresh[0][c].view
+            G = [_normalised(fr[c].in_view(V)) for fr in fresh]
+            for i in range(1, n):
+                if float(np.sum(G[i] * G[0])) < 0:
+                    G[i] = -G[i]
+            h = max(1, int(window)) // 2
+            smooth = [_normalised(np.median(np.stack(G[max(0, i - h):i + h + 1]), axis=0)) for i in range(n)]
+            i = 0
+            while i < n:
+                fp = frames[i]
+                cf = cascade_fits(fp.camera, fp.light, fp.samples, fp.receivers, fp.casters_bounds, maps1[i],
+                                  fp.opts.get("receiver_slack"))[c]
+                g = Grid(V, smooth[i].copy(), fresh[i][c].resolution)
+                got = fit_on_grid(g, cf.fit_pts, cf.corners, None, fp.camera.position)
+                f_ref = fresh_obj[i][c] if fresh_obj[i][c] is not None else math.inf
+                if got is None or not cf.score(got[0], fp.camera, fp.light) * hysteresis <= f_ref:
+                    g = Grid(fresh[i][c].view, fresh[i][c].G.copy(), fresh[i][c].resolution)
+                    got = fit_on_grid(g, cf.fit_pts, cf.corners, None, fp.camera.position)
+                g.levels = got[1]
+                maps2[i][c], grids2[i][c] = got[0], g
+                j = i + 1
+                while j < n:
+                    fq = frames[j]
+                    cq = cascade_fits(fq.camera, fq.light, fq.samples, fq.receivers, fq.casters_bounds, maps1[j],
+                                      fq.opts.get("receiver_slack"))[c]
+                    if fresh[j][c].resolution != g.resolution:
+                        break
+                    nxt = fit_on_grid(g, cq.fit_pts, cq.corners, g.levels, fq.camera.position)
+                    f_ref = fresh_obj[j][c] if fresh_obj[j][c] is not None else math.inf
+                    if nxt is None or not cq.score(nxt[0], fq.camera, fq.light) * hysteresis <= f_ref:
+                        break
+                    g = Grid(g.view, g.G, g.resolution, nxt[1])
+                    maps2[j][c], grids2[j][c] = nxt[0], g
+                    j += 1
+                i = j
+        for i, fp in enumerate(frames):
+            for c, m in enumerate(maps2[i]):
+                m.split = maps1[i][c].split
+                cf = cascade_fits(fp.camera, fp.light, fp.samples, fp.receivers, fp.casters_bounds, maps1[i],
+                                  fp.opts.get("receiver_slack"))[c]
+                _with_bias(m, cf.part, fp.light)
+        obj2 = [_objective(m, fp) for m, fp in zip(maps2, frames)]
+        gc2, lc2 = _changes(grids2)
+        passes["smoothed"] = {"objective_sum": float(sum(obj2)), "grid_changes": gc2, "level_changes": lc2}
+        if (gc2, sum(obj2)) < (best[2], sum(best[1])):
+            best = (maps2, obj2, gc2, lc2, "smoothed")
+    passes["returned"] = best[4]
+    return PathResult(best[0], best[1], per_frame, best[2], best[3], passes)
+
+
+INTERPOLATION_RULE = ("per cascade, linear interpolation of the 16 entries of the world-to-clip matrix "
+                      "(projection x view, column vectors) between the keyframes before and after the frame, each "
+                      "keyframe's matrix first divided by the norm of its w row (the same map); the split linearly")
+
+
+def _unit_w(M: np.ndarray) -> np.ndarray:
+    return M / max(float(np.linalg.norm(M[3])), 1e-300)
+
+
+def interpolated_maps(ma: list[ShadowMap], mb: list[ShadowMap], t: float) -> list[ShadowMap]:
+    """INTERPOLATION_RULE's maps at fraction t between keyframe maps ma and mb (same cascade count)."""
+    out = []
+    for a, b in zip(ma, mb):
+        M = (1.0 - t) * _unit_w(a.matrix) + t * _unit_w(b.matrix)
+        split = tuple(float((1.0 - t) * x + t * y) if math.isfinite(x) and math.isfinite(y) else x
+                      for x, y in zip(a.split, b.split))
+        out.append(ShadowMap(np.eye(4), M, a.resolution, split=split, light_depth=a.light_depth,
+                             warp_kind=a.warp_kind, n_prime=a.n_prime))
+    return out
+
+
+def keyframes(result: PathResult, frames: list[FrameProblem], every: int) -> dict:
+    """Every `every`-th frame's maps (and the last frame's) for engines that interpolate, the rule
+    (INTERPOLATION_RULE) and what interpolation adds at the skipped frames, measured there: the objective of the
+    interpolated maps over the frame's samples against the chosen maps' (max ratio and max added), and the
+    frame's receivers that the interpolated serving map leaves outside (max count)."""
+    n = len(frames)
+    keys = list(range(0, n, max(1, int(every))))
+    if keys[-1] != n - 1:
+        keys.append(n - 1)
+    worst_ratio, worst_added, worst_outside, per = 1.0, 0.0, 0, []
+    for a, b in zip(keys, keys[1:]):
+        for j in range(a + 1, b):
+            fp = frames[j]
+            mi = interpolated_maps(result.maps[a], result.maps[b], (j - a) / (b - a))
+            f = _objective(mi, fp)
+            f0 = result.objective[j]
+            from ..renderers.ground_truth import _serving_maps
+
+            rec = np.asarray(fp.receivers, float).reshape(-1, 3)
+            depth = (rec - fp.camera.position) @ fp.camera.forward
+            idx = _serving_maps(mi, rec, depth)
+            outside = int(np.sum(idx < 0))
+            for c, m in enumerate(mi):
+                sel = idx == c
+                if sel.any():
+                    s, t, z, w = m.map_coords(rec[sel])
+                    with np.errstate(invalid="ignore"):
+                        outside += int(np.sum(~((w > 0) & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1))))
+            ratio = f / f0 if f0 > 0 else (1.0 if f == 0 else math.inf)
+            worst_ratio, worst_added = max(worst_ratio, ratio), max(worst_added, f - f0)
+            worst_outside = max(worst_outside, outside)
+            per.append({"frame": j, "objective": f, "objective_chosen": f0, "outside_receivers": outside})
+    return {"every": int(every), "frames": keys,
+            "keyframes": [{"frame": i, "cascades": [{"world_to_clip": _unit_w(m.matrix).tolist(),
+                                                      "split": [float(v) for v in m.split],
+                                                      "resolution": list(m.resolution)} for m in result.maps[i]]}
+                          for i in keys],
+            "rule": INTERPOLATION_RULE, "max_objective_ratio": worst_ratio, "max_objective_added": worst_added,
+            "max_outside_receivers": worst_outside, "skipped": per}
