@@ -85,13 +85,11 @@ def run_path(validate_rig, entry, cameras: list[dict], sun, shadow: dict, method
 
     keep = None
     if thumbs is not None:
-        from ...renderers.heatmap import errors_image
-
         pick = set(np.linspace(0, len(cams) - 1, min(STRIP_FRAMES, len(cams))).round().astype(int).tolist())
 
         def keep(f, gt):
             if f in pick:
-                thumbs.append((f, errors_image(gt).resize(THUMB)))
+                thumbs.append((f, thumbnail(gt)))
 
     st = path_stability(entry.rays, cams, light, maps, tuple(screen), depth="solution", keep=keep)
     return {"flicker": float(np.mean(st["flicker"])) if st["flicker"] else 0.0,
@@ -174,6 +172,25 @@ def worst_path(results: dict):
     return key
 
 
+def thumbnail(gt):
+    """renderers.heatmap.errors_image reduced to at most THUMB by an integer factor, a block showing a
+    misclassified colour when any of its pixels is misclassified (sparse errors stay visible)."""
+    from PIL import Image
+
+    from ...renderers.heatmap import WRONGLY_LIT, WRONGLY_SHADOWED, errors_image
+
+    arr = np.asarray(errors_image(gt))
+    h, w = arr.shape[:2]
+    f = max(1, int(np.ceil(max(w / THUMB[0], h / THUMB[1]))))
+    H, W = h // f, w // f
+    out = arr[: H * f: f, : W * f: f].copy()
+    wrong = gt.misclassified & gt.receivers
+    for mask, colour in ((wrong & ~gt.map_shadowed, WRONGLY_LIT), (wrong & gt.map_shadowed, WRONGLY_SHADOWED)):
+        block = mask[: H * f, : W * f].reshape(H, f, W, f).any(axis=(1, 3))
+        out[block] = colour
+    return Image.fromarray(out, "RGB").resize(THUMB, Image.NEAREST)
+
+
 def strip_image(thumbs: dict, worst, methods):
     """Rows: methods; columns: frames over time; each cell the frame's misclassified receivers
     (renderers.heatmap.errors_image: wrongly shadowed orange, wrongly lit blue, over greys)."""
@@ -197,8 +214,6 @@ def strip_image(thumbs: dict, worst, methods):
         for c, (f, im) in enumerate(thumbs[(n, k, m)]):
             x = label_w + c * (THUMB[0] + 2)
             img.paste(im, (x, y))
-            if r == 0:
-                d.text((x + 2, head - 14 + 0), "", fill=(0, 0, 0))
             d.text((x + 3, y + 2), f"f{f}", fill=(255, 255, 255), font=font)
     img.paste(legend, (0, head + len(rows) * (THUMB[1] + 2) + 2))
     return img
