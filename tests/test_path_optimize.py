@@ -1,0 +1,136 @@
+"""The path optimizer (solvers.path_optimize, method "path"): on a short strafe along the demo scene, its
+maps keep a world-fixed texel grid between frames (world points move by whole texels: checked with
+ShadowMap.map_coords on the returned matrices), predict no more than 1.1x the per-frame optimizer's error,
+keep every receiver inside its map (renderers.coverage at a small screen) and flicker less than the
+per-frame optimizer (renderers.stability against ray-traced visibility); whole paths: the second pass and
+keyframes whose reported interpolation error is recomputed by hand."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+SCREEN = (320, 180)
+MAP = 256
+FRAMES = 6
+# a sideways strafe at eye height, looking along the demo's row of casters, 0.13 m per frame
+STRAFE = [((0.13 * i, 1.7, 0.0), (0.0, -0.14, 1.0)) for i in range(FRAMES)]
+
+
+def _rig(validate_rig, pos, fwd):
+    return validate_rig({"camera": {"position": list(pos), "forward": list(fwd), "resolution": list(SCREEN),
+                                    "fov_y_deg": 60, "near": 0.1, "far": 300},
+                         "lights": [{"usd_path": "/World/Sun"}],
+                         "shadow": {"resolution": [MAP, MAP], "cascades": 1}, "coarse_long_side": 120})
+
+
+@pytest.fixture(scope="module")
+def strafe():
+    from shadowopt.api.cli import validate_rig
+    from shadowopt.service.pipeline import scene_entry
+    from shadowopt.service.rigs import resolve_rig
+    from shadowopt.service.solve import maps_from_solution, solve
+
+    entry = scene_entry(Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda")
+    rigs = [_rig(validate_rig, p, f) for p, f in STRAFE]
+    out = {"entry": entry, "rigs": rigs, "cameras": [], "light": None}
+    for method in ("optimized", "path"):
+        sols, prev = [], None
+        for rig in rigs:
+            prev = solve(entry, rig, method, previous=prev if method == "path" else None)
+            sols.append(prev)
+        out[method] = sols
+        out[method + "_maps"] = [maps_from_solution(s)[0] for s in sols]
+    for rig in rigs:
+        r = resolve_rig(rig, entry.loaded)
+        out["cameras"].append(r.camera)
+        out["light"] = r.lights[0]
+    return out
+
+
+def _ground_points():
+    """World points on the demo's ground in front of the strafing camera (fixed: the same in every frame)."""
+    x, z = np.meshgrid(np.linspace(-3.0, 4.0, 15), np.linspace(3.0, 25.0, 23))
+    return np.column_stack([x.ravel(), np.zeros(x.size), z.ravel()])
+
+
+def _texels(smap, pts):
+    s, t, _, w = smap.map_coords(pts)
+    return np.column_stack([s * smap.resolution[0], t * smap.resolution[1]]), w
+
+
+def test_held_frames_move_world_points_by_whole_texels(strafe):
+    pts = _ground_points()
+    held_pairs, frac_path, frac_opt = 0, [], []
+    for k in range(FRAMES - 1):
+        a, b = (strafe["path"][i]["solver"]["path"]["cascades"][0] for i in (k, k + 1))
+        ua, wa = _texels(strafe["path_maps"][k][0], pts)
+        ub, wb = _texels(strafe["path_maps"][k + 1][0], pts)
+        d = ub - ua
+        frac = np.abs(d - np.round(d))[(wa > 0) & (wb > 0)]
+        oa, _ = _texels(strafe["optimized_maps"][k][0], pts)
+        ob, _ = _texels(strafe["optimized_maps"][k + 1][0], pts)
+        e = ob - oa
+        frac_opt.append(float(np.mean(np.abs(e - np.round(e)))))
+        if b["decision"]["kept"] == "held" and a["levels"] == b["levels"]:
+            held_pairs += 1
+            frac_path.append(float(frac.max()))
+    assert held_pairs >= 3, f"only {held_pairs} of {FRAMES - 1} frame pairs kept the grid and its scale level"
+    assert max(frac_path) < 1e-4, f"held grid: world points moved by fractions of a texel: {frac_path}"
+    # the per-frame optimizer refits every frame: its texels swim (what the path method removes)
+    assert np.mean(frac_opt) > 0.05, f"per-frame optimized mean fractional texel motion {frac_opt}"
+
+
+def test_objective_within_1_1x_of_per_frame_optimized(strafe):
+    opt = [s["lights"][0]["predicted_error"]["objective"] for s in strafe["optimized"]]
+    path = [s["lights"][0]["predicted_error"]["objective"] for s in strafe["path"]]
+    ratio = float(np.mean(path) / np.mean(opt))
+    assert ratio <= 1.1, f"path objective {np.round(path, 2)} vs per-frame optimized {np.round(opt, 2)}: {ratio:.3f}x"
+
+
+def test_every_receiver_stays_inside_its_map(strafe):
+    from shadowopt.renderers.coverage import outside_pixels
+    from shadowopt.renderers.ground_truth import screen_camera
+
+    for cam, maps in zip(strafe["cameras"], strafe["path_maps"]):
+        got = outside_pixels(strafe["entry"].rays, screen_camera(cam, (160, 90)), strafe["light"], maps)
+        assert got["receiver_pixels"] > 1000 and got["outside_pixels"] == 0, got
+
+
+def test_path_flickers_less_than_per_frame_optimized(strafe):
+    stability = pytest.importorskip("shadowopt.renderers.stability")
+    st = {m: stability.path_stability(strafe["entry"].rays, strafe["cameras"], strafe["light"], strafe[m + "_maps"],
+                                      SCREEN, depth="solution") for m in ("optimized", "path")}
+    fl = {m: float(np.mean(s["flicker"])) for m, s in st.items()}
+    sw = {m: float(np.mean(s["swim_texels"])) for m, s in st.items()}
+    mis = {m: float(np.mean(s["misclassified"])) for m, s in st.items()}
+    msg = f"flicker {fl}, swim {sw}, misclassified per frame {mis}"
+    assert fl["optimized"] > 0, msg  # the per-frame maps do flicker on this path (else the test says nothing)
+    assert fl["path"] <= 0.3 * fl["optimized"], msg
+    assert sw["path"] < 0.5 * sw["optimized"], msg
+    assert max(st["path"]["outside"]) == 0, msg
+
+
+def test_whole_path_second_pass_and_keyframes(strafe):
+    from shadowopt.solvers.metric import predicted_objective
+    from shadowopt.solvers.path_optimize import frame_problems, interpolated_maps, keyframes, optimize_path
+
+    frames = frame_problems(strafe["entry"], strafe["rigs"])
+    res = optimize_path(frames)
+    assert set(res.passes) == {"interactive", "smoothed", "returned"}
+    ratio = float(np.mean(res.objective) / np.mean(res.per_frame_objective))
+    assert ratio <= 1.1, (res.objective, res.per_frame_objective)
+    for fp, maps, f in zip(frames, res.maps, res.objective):  # the reported objectives are the maps'
+        assert predicted_objective(maps, fp.samples, fp.camera.position) == pytest.approx(f, rel=1e-12)
+    kf = keyframes(res, frames, 3)
+    assert kf["frames"] == [0, 3, 5] and [s["frame"] for s in kf["skipped"]] == [1, 2, 4]
+    # the interpolation error at frame 4, by hand: halfway between keyframes 3 and 5, each matrix scaled to a unit w row
+    a, b = res.maps[3][0].matrix, res.maps[5][0].matrix
+    M = 0.5 * a / np.linalg.norm(a[3]) + 0.5 * b / np.linalg.norm(b[3])
+    mi = interpolated_maps(res.maps[3], res.maps[5], 0.5)[0]
+    assert np.allclose(mi.matrix, M, rtol=0, atol=1e-12 * np.abs(M).max())
+    f4 = predicted_objective([mi], frames[4].samples, frames[4].camera.position)
+    assert kf["skipped"][-1]["objective"] == pytest.approx(f4, rel=1e-12)
+    assert kf["max_objective_ratio"] == pytest.approx(max([1.0] + [s["objective"] / s["objective_chosen"] for s in kf["skipped"]]))
+    assert kf["max_outside_receivers"] == max(s["outside_receivers"] for s in kf["skipped"])
