@@ -135,11 +135,8 @@ def test_a_wrong_listing_fails_the_check():
 
 
 def _without(src: dict, piece: str, line: str, instead: str = "") -> dict:
-    lang = "c" if piece.startswith("light-pass-state") else piece.split(":")[0]
-    piece = piece.split(":")[-1]
-    text = src[lang][piece]
-    assert line in text, (lang, piece, line)
-    return {**src, lang: dict(src[lang], **{piece: text.replace(line, instead)})}
+    lang, piece = piece.split(":")
+    return E.replaced(src, lang, piece, line, instead)
 
 
 def test_the_caster_offset_is_needed():
@@ -153,12 +150,7 @@ def test_the_caster_offset_is_needed():
     for name, v in r["listing"].items():
         ev = r["evaluate"][name.rsplit("_", 1)[1]]
         assert v["wrong"] <= 1.25 * ev, f"{name}: listing {v['wrong']} wrong pixels vs evaluate {ev}"
-    src = E.listings()
-    src = _without(src, "light-pass-state-gl", "glPolygonOffsetClamp(reversedZ ? -k : k, 0.0f, reversedZ ? -m : m);\n")
-    src = _without(src, "light-pass-state-d3d11", "rs.SlopeScaledDepthBias = reversedZ ? -k : k;\n")
-    src = _without(src, "light-pass-state-vulkan", "rs.depthBiasSlopeFactor = reversedZ ? -k : k;\n")
-    src = _without(src, "glsl:light-pass-linear", "d + min(uLinearOffset.x * dz, uLinearOffset.y)", "d")
-    src = _without(src, "hlsl:light-pass-linear", "d + min(gLinearOffset.x * dz, gLinearOffset.y)", "d")
+    src = E.without_caster_offset(E.listings())
     r = _measure("street_canyon", 1, depth_override=quarter, sources=src, conventions=("opengl", "vulkan"))
     for name, v in r["listing"].items():
         ev = r["evaluate"][name.rsplit("_", 1)[1]]
@@ -200,7 +192,7 @@ def test_the_light_pass_stores_what_evaluate_emulates():
 
     n, path, rig = _scene("street_canyon")
     entry = scene_entry(path)
-    solved = E.solve_for_listing(validate_rig, entry, rig, 1, 512)
+    solved = E.solve_for_listing(validate_rig, entry, rig, 1, 512, conventions=("opengl",))
     rs, smap = entry.rays, solved["maps"][0]
     resolved = resolve_rig(solved["rig"], entry.loaded)
     light, camera = resolved.lights[0], screen_camera(resolved.camera, (64, 36))

@@ -45,6 +45,32 @@ def listings(text: str | None = None) -> dict:
     return out
 
 
+# The caster offset in the document's pieces: (language, piece, text, replacement) that removes it.
+CASTER_OFFSET = (
+    ("c", "light-pass-state-gl", "glPolygonOffsetClamp(reversedZ ? -k : k, 0.0f, reversedZ ? -m : m);\n", ""),
+    ("c", "light-pass-state-d3d11", "rs.SlopeScaledDepthBias = reversedZ ? -k : k;\n", ""),
+    ("c", "light-pass-state-vulkan", "rs.depthBiasSlopeFactor = reversedZ ? -k : k;\n", ""),
+    ("glsl", "light-pass-linear", "d + min(uLinearOffset.x * dz, uLinearOffset.y)", "d"),
+    ("hlsl", "light-pass-linear", "d + min(gLinearOffset.x * dz, gLinearOffset.y)", "d"),
+)
+
+
+def replaced(src: dict, lang: str, piece: str, text: str, instead: str = "") -> dict:
+    """The listings `src` with `text` (which must occur) replaced in one piece."""
+    body = src[lang][piece]
+    if text not in body:
+        raise ValueError(f"```{lang} {piece}``` no longer contains {text!r}")
+    return {**src, lang: dict(src[lang], **{piece: body.replace(text, instead)})}
+
+
+def without_caster_offset(src: dict) -> dict:
+    """The listings with the light pass's slope-scaled offset taken out (the offset call / fields of the state
+    blocks, the slope term of the linear light passes): what an engine gets that skips it."""
+    for lang, piece, text, instead in CASTER_OFFSET:
+        src = replaced(src, lang, piece, text, instead)
+    return src
+
+
 def hlsl_tools() -> str | None:
     """None when glslangValidator and spirv-cross are on the PATH, else what is missing."""
     import shutil
@@ -82,8 +108,8 @@ def scene_rigs(names=None, screen=None):
 
 
 def solve_for_listing(validate_rig, entry, rig: dict, cascades: int, map_res: int = 1024,
-                      depth_override: dict | None = None, cascade_override=None) -> dict:
-    """One optimized solution per convention of CONVENTIONS (the same maps: asserted), and its maps.
+                      depth_override: dict | None = None, cascade_override=None, conventions=CONVENTIONS) -> dict:
+    """One optimized solution per convention of `conventions` and opengl (the same maps: asserted), and its maps.
     `depth_override`: {key: value} set in both blocks of every map's `depth` (e.g. a normal offset), in the
     solutions and so in the maps evaluate reads; a callable value is called with the block (e.g. a scaled
     constant). `cascade_override`: a function called with each solution's list of cascades (to change e.g.
@@ -91,7 +117,8 @@ def solve_for_listing(validate_rig, entry, rig: dict, cascades: int, map_res: in
     from ..solve import maps_from_solution, solve
 
     sols = {}
-    for conv, (api, rz) in CONVENTIONS.items():
+    for conv in dict.fromkeys(["opengl", *conventions]):
+        api, rz = CONVENTIONS[conv]
         r = dict(rig, shadow={"resolution": [map_res, map_res], "cascades": cascades},
                  output={"convention": api, "layout": "column_major", "reversed_z": rz})
         sols[conv] = solve(entry, validate_rig(r), "optimized")
@@ -207,18 +234,21 @@ def listing_wrong_pixels(gt, gl: dict, rs, name: str) -> dict:
 
 def measure(validate_rig, name: str, path, rig: dict, cascades: int, map_res: int, screen=None,
             languages=LANGUAGES, modes=("solution",), ideal: bool = False, log=None, sources=None,
-            conventions=CONVENTIONS, depth_override: dict | None = None, cascade_override=None) -> dict:
+            conventions=CONVENTIONS, depth_override: dict | None = None, cascade_override=None,
+            no_offset: bool = False) -> dict:
     """One scene and cascade count: per depth mode of `modes`, `evaluate --depth <mode>` and the listing's wrong
     pixels per convention and language (all against the exact visibility of one screen), and with `ideal`
     the idealized `--depth ideal` too. `sources`: the shader pieces (default: the document's listings);
-    `depth_override`, `cascade_override`: solve_for_listing's."""
+    `depth_override`, `cascade_override`: solve_for_listing's. `no_offset`: also the GLSL in the opengl
+    convention without the caster offset (without_caster_offset), jobs named <...>_no_offset."""
     from ...renderers.ground_truth import evaluate_buffers, screen_camera
     from ..pipeline import scene_entry
     from ..rigs import resolve_rig
 
     t0 = time.perf_counter()
     entry = scene_entry(path)
-    solved = solve_for_listing(validate_rig, entry, rig, cascades, map_res, depth_override, cascade_override)
+    solved = solve_for_listing(validate_rig, entry, rig, cascades, map_res, depth_override, cascade_override,
+                               conventions)
     resolved = resolve_rig(solved["rig"], entry.loaded)
     light = resolved.lights[0]
     rs = entry.rays
@@ -233,10 +263,16 @@ def measure(validate_rig, name: str, path, rig: dict, cascades: int, map_res: in
     faces = np.array(rs.faces, dtype=np.uint32).reshape(-1, 3)
     to_light = -np.asarray(light.direction, float)
     jobs = [j for mode in modes for j in listing_jobs(solved, rs.origin, to_light, conventions, languages, mode)]
-    gl = run_listing(verts, faces, camera_matrices(camera, rs, verts.astype(np.float64)), jobs,
-                     listings() if sources is None else sources)
-    t2 = time.perf_counter()
+    src = listings() if sources is None else sources
+    cam = camera_matrices(camera, rs, verts.astype(np.float64))
+    gl = run_listing(verts, faces, cam, jobs, src)
     listing = {j["name"]: listing_wrong_pixels(gt, gl, rs, j["name"]) for j in jobs}
+    if no_offset:
+        bare = [dict(j, name=j["name"] + "_no_offset") for mode in modes
+                for j in listing_jobs(solved, rs.origin, to_light, ("opengl",), ("glsl",), mode)]
+        gl_bare = run_listing(verts, faces, cam, bare, without_caster_offset(src))
+        listing.update({j["name"]: listing_wrong_pixels(gt, gl_bare, rs, j["name"]) for j in bare})
+    t2 = time.perf_counter()
     sol_modes = [c["depth"]["mode"] for c in solved["solutions"]["opengl"]["lights"][0]["cascades"]]
     if log:
         log(f"{name} K={cascades}: evaluate {evals}, listing {({k: v['wrong'] for k, v in listing.items()})} "
@@ -262,16 +298,19 @@ def bench_engine(validate_rig, scenes=None, write=True, map_res=2048, screen=Non
     rows = []
     for name, path, rig in pairs:
         for k in (1, 4):
-            rows.append(measure(validate_rig, name, path, rig, k, map_res, None, languages, ENGINE_MODES, True, log))
+            rows.append(measure(validate_rig, name, path, rig, k, map_res, None, languages, ENGINE_MODES, True, log,
+                                no_offset=True))
     names = [f"{lang} {conv}" for lang in languages for conv in CONVENTIONS]
     lines = ["| scene | cascades | screen | receivers | left out | solution's modes | depth | evaluate ideal | "
-             "**evaluate --depth** | " + " | ".join(f"listing {n}" for n in names) + " |",
-             "|---|---:|---|---:|---:|---|---|---:|---:|" + "---:|" * len(names)]
+             "**evaluate --depth** | " + " | ".join(f"listing {n}" for n in names) + " | listing glsl opengl, "
+             "no caster offset |",
+             "|---|---:|---|---:|---:|---|---|---:|---:|" + "---:|" * (len(names) + 1)]
     for r in rows:
         e = r["evaluate"]
         for mode in ENGINE_MODES:
             cells = [f"{r['listing'][f'{lang}_{conv}_{mode}']['wrong']:,}"
                      for lang in languages for conv in CONVENTIONS]
+            cells.append(f"{r['listing'][f'glsl_opengl_{mode}_no_offset']['wrong']:,}")
             left_out = max(v["other_surface"] for v in r["listing"].values())
             lines.append(f"| {r['scene']} | {r['cascades']} | {r['screen'][0]}x{r['screen'][1]} | {r['receivers']:,} | "
                          f"{left_out:,} | "
@@ -292,7 +331,9 @@ def bench_engine(validate_rig, scenes=None, write=True, map_res=2048, screen=Non
             "of the map's `depth.hardware`; `linear` adds `depth.linear`'s in the shader). "
             f"Maps {map_res}x{map_res}; suns: McUsd's own, street_canyon {CORPUS_SUNS['street_canyon']}, "
             f"terrain {CORPUS_SUNS['terrain']}. The listing is compared where the rasterized surface is the "
-            "ray-traced one; `left out`: the receivers where it is not (silhouettes).")
+            "ray-traced one; `left out`: the receivers where it is not (silhouettes). The last column: the GLSL "
+            "in the opengl convention with the caster offset taken out (no glPolygonOffsetClamp, no slope term in "
+            "the linear light pass): what the slope-scaled bias buys.")
     if missing:
         note += f" HLSL not run: {missing}."
     out = {"rows": rows, "skipped": skipped, "table": note + "\n\n" + table}
