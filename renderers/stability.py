@@ -54,7 +54,7 @@ def project_pixels(camera: Camera, X: np.ndarray):
 
 def correspondences(gt_a: GroundTruth, gt_b: GroundTruth, cam_b: Camera):
     """The receiver pixels of frame a whose world point is the same receiver in frame b with unchanged
-    exact visibility (module doc). Returns (rows, cols of a; X (N, 3); normals (N, 3); view depth in b)."""
+    exact visibility (module doc). Returns (rows, cols of a; X (N, 3); normals (N, 3); view depth in b; rows, cols of b)."""
     sa, sb = gt_a.screen, gt_b.screen
     ra, ca = np.nonzero(gt_a.receivers)
     X = sa.position[ra, ca]
@@ -65,7 +65,7 @@ def correspondences(gt_a: GroundTruth, gt_b: GroundTruth, cam_b: Camera):
     with np.errstate(invalid="ignore"):
         keep[keep] &= np.abs(sb.depth[j[keep], i[keep]] - zb[keep]) < DEPTH_CONTINUITY * zb[keep]
     keep[keep] &= sb.visible[j[keep], i[keep]] == sa.visible[ra[keep], ca[keep]]
-    return ra[keep], ca[keep], X[keep], sa.normal[ra[keep], ca[keep]], zb[keep]
+    return ra[keep], ca[keep], X[keep], sa.normal[ra[keep], ca[keep]], zb[keep], j[keep], i[keep]
 
 
 def wrapped_texel_motion(uv_a: np.ndarray, uv_b: np.ndarray) -> np.ndarray:
@@ -78,8 +78,9 @@ def wrapped_texel_motion(uv_a: np.ndarray, uv_b: np.ndarray) -> np.ndarray:
 def pair_from_truth(rs: RayScene, cam_b: Camera, light: Light, maps_b: list[ShadowMap], gt_a: GroundTruth,
                     gt_b: GroundTruth, depth: str = "solution", device_maps_b: list | None = None) -> dict:
     """frame_pair_stability from the frames' evaluations (cam_b at the evaluation screen). Also returns
-    "device_maps" (b's rendered maps, for reuse) and "changed" (rows, cols of a's flickering pixels)."""
-    ra, ca, X, N, zb = correspondences(gt_a, gt_b, cam_b)
+    "device_maps" (b's rendered maps, for reuse) and "changed" / "changed_b" (rows, cols of the flickering
+    points' pixels in a / in b)."""
+    ra, ca, X, N, zb, rb, cb = correspondences(gt_a, gt_b, cam_b)
     looked = classify_points(rs, light, maps_b, X, N, zb, depth=depth, device_maps=device_maps_b)
     changed = looked["shadowed"] != gt_a.map_shadowed[ra, ca]
     n = len(X)
@@ -89,7 +90,8 @@ def pair_from_truth(rs: RayScene, cam_b: Camera, light: Light, maps_b: list[Shad
     motion = wrapped_texel_motion(uv_a[fin], uv_b[fin])
     return {"flicker": float(changed.mean()) if n else 0.0, "flicker_pixels": int(changed.sum()),
             "swim_texels": float(motion.mean()) if len(motion) else 0.0, "swim_pixels": int(len(motion)),
-            "pixels": int(n), "device_maps": looked["device_maps"], "changed": (ra[changed], ca[changed])}
+            "pixels": int(n), "device_maps": looked["device_maps"], "changed": (ra[changed], ca[changed]),
+            "changed_b": (rb[changed], cb[changed])}
 
 
 def frame_pair_stability(rs: RayScene, cam_a: Camera, cam_b: Camera, light: Light, maps_a: list[ShadowMap],
@@ -103,8 +105,8 @@ def frame_pair_stability(rs: RayScene, cam_a: Camera, cam_b: Camera, light: Ligh
     if gt_b is None:
         gt_b = evaluate_buffers(rs, cam_b, light, maps_b, screen, depth=depth)
     out = pair_from_truth(rs, screen_camera(cam_b, screen), light, maps_b, gt_a, gt_b, depth)
-    out.pop("device_maps")
-    out.pop("changed")
+    for k in ("device_maps", "changed", "changed_b"):
+        out.pop(k)
     out["misclassified_a"] = gt_a.result["misclassified_pixels"]
     out["misclassified_b"] = gt_b.result["misclassified_pixels"]
     return out
@@ -114,7 +116,9 @@ def path_stability(rs: RayScene, cameras: list[Camera], light: Light, maps: list
                    screen: tuple[int, int] | None, depth: str = "solution", keep=None) -> dict:
     """Every frame evaluated once, every consecutive pair measured: {"flicker": [per pair], "swim_texels":
     [per pair], "pixels": [per pair], "misclassified": [per frame], "receivers": [per frame], "outside":
-    [per frame]}. keep(frame index, GroundTruth): called with each frame's evaluation (e.g. for heatmaps)."""
+    [per frame]}. keep(frame index, GroundTruth, flickered): called with each frame's evaluation (e.g. for
+    heatmaps), flickered the (h, w) mask of the frame's pixels whose world point's classification changed
+    since the previous frame (None for the first)."""
     out = {"flicker": [], "swim_texels": [], "pixels": [], "misclassified": [], "receivers": [], "outside": []}
     prev = None
     for f, (cam, mp) in enumerate(zip(cameras, maps)):
@@ -122,11 +126,14 @@ def path_stability(rs: RayScene, cameras: list[Camera], light: Light, maps: list
         for k, key in (("misclassified", "misclassified_pixels"), ("receivers", "receiver_pixels"),
                        ("outside", "outside_pixels")):
             out[k].append(int(gt.result[key]))
-        if keep is not None:
-            keep(f, gt)
+        flickered = None
         if prev is not None:
             p = pair_from_truth(rs, screen_camera(cam, screen), light, mp, prev, gt, depth)
             for k in ("flicker", "swim_texels", "pixels"):
                 out[k].append(p[k])
+            flickered = np.zeros(gt.receivers.shape, bool)
+            flickered[p["changed_b"]] = True
+        if keep is not None:
+            keep(f, gt, flickered)
         prev = gt
     return out

@@ -87,9 +87,9 @@ def run_path(validate_rig, entry, cameras: list[dict], sun, shadow: dict, method
     if thumbs is not None:
         pick = set(np.linspace(0, len(cams) - 1, min(STRIP_FRAMES, len(cams))).round().astype(int).tolist())
 
-        def keep(f, gt):
+        def keep(f, gt, flickered):
             if f in pick:
-                thumbs.append((f, thumbnail(gt)))
+                thumbs.append((f, thumbnail(gt, flickered)))
 
     st = path_stability(entry.rays, cams, light, maps, tuple(screen), depth="solution", keep=keep)
     return {"flicker": float(np.mean(st["flicker"])) if st["flicker"] else 0.0,
@@ -172,9 +172,13 @@ def worst_path(results: dict):
     return key
 
 
-def thumbnail(gt):
+FLICKERED = (204, 0, 204)  # the point's classification changed since the previous frame
+
+
+def thumbnail(gt, flickered=None):
     """renderers.heatmap.errors_image reduced to at most THUMB by an integer factor, a block showing a
-    misclassified colour when any of its pixels is misclassified (sparse errors stay visible)."""
+    misclassified colour when any of its pixels is misclassified (sparse errors stay visible), and FLICKERED
+    where a pixel's world point changed its classification since the previous frame."""
     from PIL import Image
 
     from ...renderers.heatmap import WRONGLY_LIT, WRONGLY_SHADOWED, errors_image
@@ -185,7 +189,10 @@ def thumbnail(gt):
     H, W = h // f, w // f
     out = arr[: H * f: f, : W * f: f].copy()
     wrong = gt.misclassified & gt.receivers
-    for mask, colour in ((wrong & ~gt.map_shadowed, WRONGLY_LIT), (wrong & gt.map_shadowed, WRONGLY_SHADOWED)):
+    layers = [(wrong & ~gt.map_shadowed, WRONGLY_LIT), (wrong & gt.map_shadowed, WRONGLY_SHADOWED)]
+    if flickered is not None:
+        layers.append((flickered, FLICKERED))
+    for mask, colour in layers:
         block = mask[: H * f, : W * f].reshape(H, f, W, f).any(axis=(1, 3))
         out[block] = colour
     return Image.fromarray(out, "RGB").resize(THUMB, Image.NEAREST)
@@ -204,10 +211,11 @@ def strip_image(thumbs: dict, worst, methods):
     label_w, head = 130, 16
     W = label_w + cols * (THUMB[0] + 2)
     legend = errors_legend(min(W, 520))
-    img = Image.new("RGB", (W, head + len(rows) * (THUMB[1] + 2) + legend.height + 4), (255, 255, 255))
+    key_h = 16
+    img = Image.new("RGB", (W, head + len(rows) * (THUMB[1] + 2) + legend.height + key_h + 4), (255, 255, 255))
     d = ImageDraw.Draw(img)
     font = ImageFont.load_default()
-    d.text((4, 2), f"{n}, {k} cascade{'s' if k > 1 else ''}: misclassified receivers per frame", fill=(0, 0, 0), font=font)
+    d.text((4, 2), f"{n}, {k} cascade{'s' if k > 1 else ''}: misclassified receivers and flicker per frame over time", fill=(0, 0, 0), font=font)
     for r, m in enumerate(rows):
         y = head + r * (THUMB[1] + 2)
         d.text((4, y + THUMB[1] // 2 - 6), m, fill=(0, 0, 0), font=font)
@@ -215,7 +223,11 @@ def strip_image(thumbs: dict, worst, methods):
             x = label_w + c * (THUMB[0] + 2)
             img.paste(im, (x, y))
             d.text((x + 3, y + 2), f"f{f}", fill=(255, 255, 255), font=font)
-    img.paste(legend, (0, head + len(rows) * (THUMB[1] + 2) + 2))
+    y = head + len(rows) * (THUMB[1] + 2) + 2
+    d.rectangle([6, y + 3, 16, y + 13], fill=FLICKERED, outline=(0, 0, 0))
+    d.text((22, y + 2), "classification changed since the previous frame (flicker), exact visibility unchanged",
+           fill=(0, 0, 0), font=font)
+    img.paste(legend, (0, y + key_h))
     return img
 
 
