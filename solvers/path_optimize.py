@@ -289,8 +289,9 @@ def choose_grid(cf: CascadeFit, camera, light, fresh: Grid | None, held: Grid | 
         grid = Grid(held.view, held.G, held.resolution, cand_h[1], fresh.x if fresh is not None else held.x)
         decision.update(kept="held", objective=f_h)
         return cand_h[0], grid, decision
-    if cand_f is None:
-        raise ValueError("path: no grid contains the receivers")
+    if cand_f is None:  # nothing to fit (no receiver, no sample) or a map outside this family: the per-frame map
+        decision.update(kept="per-frame", objective=None)
+        return None, None, decision
     if cand_h is not None and fresh is not None:
         for alpha in BLEND_STEPS:
             g = blend(held, fresh, alpha)
@@ -343,16 +344,25 @@ def path_maps(camera, light, samples: Samples, receivers: np.ndarray, casters_bo
             fresh.x = [float(v) for v in x] if x else None
         m, g, dec = choose_grid(cf, camera, light, fresh, held[k] if held else None, hysteresis)
         dec["objective_per_frame"] = float(sj["cascades"][k]["objective"]) if k < len(sj.get("cascades", [])) else None
+        if m is None:
+            out.append(smap)
+            dec["objective"] = dec["objective_per_frame"]
+            state.append({"decision": _finite_or_none(dec)})
+            continue
         m.split = smap.split
         _with_bias(m, cf.part, light)
         out.append(m)
         dec["fresh"] = fresh.to_json() if fresh is not None else None  # the second pass's input (optimize_path)
-        state.append({**g.to_json(), "decision": {k: (v if not isinstance(v, float) or math.isfinite(v) else None)
-                                                  for k, v in dec.items()}})
+        state.append({**g.to_json(), "decision": _finite_or_none(dec)})
     sj["path"] = {"cascades": state, "hysteresis": hysteresis, "ladder_steps_per_octave": LADDER_STEPS,
                   "time_ms": round((time.perf_counter() - t0) * 1e3, 3)}
     sj["fun"] = float(sum(s["decision"]["objective"] or 0.0 for s in state))
     return out, sj
+
+
+def _finite_or_none(d: dict) -> dict:
+    """A decision for JSON: infinite objectives (a grid that cannot hold the receivers) as null."""
+    return {k: (v if not isinstance(v, float) or math.isfinite(v) else None) for k, v in d.items()}
 
 
 def previous_state(previous: dict | None, light_index: int):
@@ -424,7 +434,7 @@ def _changes(grids: list[list[Grid]]) -> tuple[int, int]:
     gc = lc = 0
     for a, b in zip(grids, grids[1:]):
         for ga, gb in zip(a, b):
-            if _grid_key(ga) != _grid_key(gb):
+            if ga is None or gb is None or _grid_key(ga) != _grid_key(gb):
                 gc += 1
             elif ga.levels != gb.levels:
                 lc += 1
@@ -459,11 +469,11 @@ def optimize_path(frames: list[FrameProblem], hysteresis: float | None = None, w
         per_frame.append(float(sum(float(c["decision"].get("objective_per_frame") or 0.0) for c in cs))
                          if cs else _objective(maps, fp))
     obj1 = [_objective(m, fp) for m, fp in zip(maps1, frames)]
-    gc1, lc1 = _changes(grids1) if all(grids1) else (n, 0)
+    gc1, lc1 = _changes(grids1)
     passes = {"interactive": {"objective_sum": float(sum(obj1)), "grid_changes": gc1, "level_changes": lc1}}
     best = (maps1, obj1, gc1, lc1, "interactive")
     k = len(grids1[0]) if grids1 and grids1[0] else 0
-    if k and all(len(g) == k for g in grids1) and all(all(f is not None for f in fr) for fr in fresh):
+    if k and all(len(g) == k for g in grids1) and all(len(fr) == k and all(f is not None for f in fr) for fr in fresh):
         maps2 = [[None] * k for _ in range(n)]
         grids2 = [[None] * k for _ in range(n)]
         for c in range(k):
