@@ -335,11 +335,19 @@ def path_maps(camera, light, samples: Samples, receivers: np.ndarray, casters_bo
     if held is not None and len(held) != len(maps):
         held = None  # another cascade count: start fresh
     fits = cascade_fits(camera, light, samples, receivers, casters_bounds, maps, opts.get("receiver_slack"))
+    # the texel allocation across cascades is held with the grids while it stays within the texel budget (one
+    # re-allocated every frame would change every cascade's scale, so its grid)
+    res = [tuple(m.resolution) for m in maps]
+    budget = opts.get("texel_budget") or sum(r[0] * r[1] for r in res)
+    if held is not None and all(g is not None for g in held) and \
+            sum(g.resolution[0] * g.resolution[1] for g in held) <= budget:
+        res = [g.resolution for g in held]
     out, state = [], []
     xs = sj.get("x") or [None] * len(maps)
     for k, (smap, cf) in enumerate(zip(maps, fits)):
         fresh = grid_of(smap, light, casters_bounds)
         if fresh is not None:
+            fresh.resolution = res[k]
             x = xs[k] if k < len(xs) else None
             fresh.x = [float(v) for v in x] if x else None
         m, g, dec = choose_grid(cf, camera, light, fresh, held[k] if held else None, hysteresis)
