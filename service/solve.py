@@ -413,6 +413,10 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
 
         if shadow.get("cascades") == "auto":
             maps, info, auto = auto_cascades(maps_for, prob, resolved.camera.position, shadow)
+            if method == "path":  # the previous frame's cascade count, with hysteresis
+                from ..solvers.path_optimize import held_cascade_count, previous_state
+
+                maps, info, auto = held_cascade_count(maps_for, maps, info, auto, previous_state(previous, li), shadow)
         else:
             (maps, info), auto = maps_for(common["cascades"]), None
         if shadow.get("snap_to_texels"):

@@ -595,3 +595,29 @@ def keyframes(result: PathResult, frames: list[FrameProblem], every: int) -> dic
                           for i in keys],
             "rule": INTERPOLATION_RULE, "max_objective_ratio": worst_ratio, "max_objective_added": worst_added,
             "max_outside_receivers": worst_outside, "skipped": per}
+
+
+def held_cascade_count(maps_for, maps, info, auto: dict, state, shadow: dict, hysteresis: float | None = None):
+    """`cascades: "auto"` with method path: the previous frame's count is kept unless the count auto_cascades
+    chose scores better by the hysteresis factor (objective x texels below `hysteresis` x the held count's), or,
+    with a target_p95_m, unless the held count misses the target and the chosen one meets it. Returns (maps, info,
+    auto) as service.solve.auto_cascades does, the rule saying when the held count was kept."""
+    hysteresis = HYSTERESIS if hysteresis is None else float(hysteresis)
+    if not isinstance(state, dict) or not isinstance(state.get("cascades"), list):
+        return maps, info, auto
+    k_prev = len(state["cascades"])
+    tried = {t["cascades"]: t for t in auto.get("tried", [])}
+    k_new = auto["chosen"]
+    if k_prev == k_new or k_prev not in tried:
+        return maps, info, auto
+    target = shadow.get("target_p95_m")
+    old, new = tried[k_prev], tried[k_new]
+    if target is not None:
+        keep = old["p95_m"] <= target or new["p95_m"] > target
+    else:
+        keep = not (new["objective"] * new["texels"] < hysteresis * old["objective"] * old["texels"])
+    if not keep:
+        return maps, info, auto
+    maps, info = maps_for(k_prev)
+    return maps, info, {**auto, "chosen": k_prev,
+                        "rule": f"{auto['rule']}; the previous frame's {k_prev} kept (path hysteresis {hysteresis})"}

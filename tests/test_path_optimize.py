@@ -134,3 +134,32 @@ def test_whole_path_second_pass_and_keyframes(strafe):
     assert kf["skipped"][-1]["objective"] == pytest.approx(f4, rel=1e-12)
     assert kf["max_objective_ratio"] == pytest.approx(max([1.0] + [s["objective"] / s["objective_chosen"] for s in kf["skipped"]]))
     assert kf["max_outside_receivers"] == max(s["outside_receivers"] for s in kf["skipped"])
+
+
+def test_auto_cascade_count_is_held_unless_clearly_better():
+    from shadowopt.solvers.path_optimize import HYSTERESIS, held_cascade_count
+
+    calls = []
+
+    def maps_for(k):
+        calls.append(k)
+        return [f"map{i}" for i in range(k)], {"k": k}
+
+    state = {"cascades": [{}, {}]}  # the previous frame had two cascades
+
+    def auto(score_1):  # auto_cascades chose one cascade, scoring score_1 x two cascades' objective x texels
+        return {"chosen": 1, "rule": "least objective x texels",
+                "tried": [{"cascades": 1, "objective": score_1, "texels": 100, "p95_m": 0.1},
+                          {"cascades": 2, "objective": 1.0, "texels": 100, "p95_m": 0.1}]}
+
+    maps, info, a = held_cascade_count(maps_for, ["m"], {"k": 1}, auto(0.95), state, {})
+    assert a["chosen"] == 2 and len(maps) == 2 and calls == [2], a  # 5% better: the held count stays
+    maps, info, a = held_cascade_count(maps_for, ["m"], {"k": 1}, auto(0.99 * HYSTERESIS), state, {})
+    assert a["chosen"] == 1 and maps == ["m"] and calls == [2], a  # better by more than the hysteresis: switch
+    # with a target: the held count is kept while it meets the target
+    t = auto(0.5)
+    maps, info, a = held_cascade_count(maps_for, ["m"], {"k": 1}, t, state, {"target_p95_m": 0.2})
+    assert a["chosen"] == 2, a
+    t["tried"][1]["p95_m"] = 0.3
+    maps, info, a = held_cascade_count(maps_for, ["m"], {"k": 1}, t, state, {"target_p95_m": 0.2})
+    assert a["chosen"] == 1, a
