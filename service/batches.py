@@ -465,7 +465,7 @@ def _solve_with(get_entry, config: dict, settings: dict) -> dict:
             from .rigs import resolve_rig
 
             sol["resolved"] = resolved_echo(resolve_rig(rig, entry.loaded), rig.get("frame", "world"))
-        for k in ("frame", "time"):  # a path job's frame index and time code (service.paths)
+        for k in ("frame", "time", "scene_time"):  # a path job's frame index and time codes (service.paths)
             if k in config:
                 sol[k] = config[k]
         return {"result": sol}
@@ -479,7 +479,7 @@ def _solve_with(get_entry, config: dict, settings: dict) -> dict:
         return {"error": {"code": "internal_error", "message": f"{type(e).__name__}: {e}"}}
 
 
-def _worker_entry(scene_path: str, sandbox: bool, settings: dict):
+def _worker_entry(scene_path: str, sandbox: bool, settings: dict, time_code: float | None = None):
     """The scene in a worker, loaded once per process by the SCENES cache, in-process (the worker is its
     own process already) but under the server's triangle limit (settings["max_triangles"], set by the
     runner from its own max_triangles, never from what was stored with the batch): a scene stored before
@@ -490,7 +490,8 @@ def _worker_entry(scene_path: str, sandbox: bool, settings: dict):
     if not _WORKER_CACHE_SET:  # a worker's cache has one owner (None): all of it, not a tenant's share, so a
         SCENES.configure(tenant_share=1.0)  # scene over half of it is still kept rather than reloaded per item
         _WORKER_CACHE_SET = True
-    return SCENES.get(scene_path, sandbox=sandbox, max_triangles=settings.get("max_triangles"))
+    # time_code: a path frame over moving geometry (service.paths: "scene_time"), the stage read at that time
+    return SCENES.get(scene_path, time_code=time_code, sandbox=sandbox, max_triangles=settings.get("max_triangles"))
 
 
 _WORKER_CACHE_SET = False
@@ -498,7 +499,7 @@ _WORKER_CACHE_SET = False
 
 def solve_configuration(scene_path: str, sandbox: bool, config: dict, settings: dict) -> dict:
     """Worker entry point (local pool)."""
-    return _solve_with(lambda: _worker_entry(scene_path, sandbox, settings), config, settings)
+    return _solve_with(lambda: _worker_entry(scene_path, sandbox, settings, config.get("scene_time")), config, settings)
 
 
 @dataclass
@@ -602,7 +603,8 @@ class SceneSolver:
         self.sandbox = sandbox
 
     def solve(self, config: dict, settings: dict) -> dict:
-        return _solve_with(lambda: _worker_entry(self.path, self.sandbox, settings), config, settings)
+        return _solve_with(lambda: _worker_entry(self.path, self.sandbox, settings, config.get("scene_time")), config,
+                           settings)
 
     def pid(self) -> int:
         return os.getpid()

@@ -10,11 +10,11 @@ A path request is a base `rig` with either
   a sun moving through the day).
 Frames are {"rig": RIG, "frame": k, "time": t or None} in order; a path job is a batch over them (the Store,
 resume, crash safety and streamed results of service.batches), each result line carrying "frame" and "time".
+On a stage whose geometry has transform or point time samples (a moving vehicle), each frame also carries
+"scene_time": t and its worker solves on the stage loaded at that time code (service.scenes.SCENES.get
+time_code; one load per frame), so a moving caster casts a moving shadow.
 With `coherent` (or a method that asks for it, COHERENT_METHODS), frames are solved one after another and
 each solve receives the previous frame's solution as `previous=` (service.solve.solve): coherent_outcomes.
-
-Not modelled yet: geometry that moves over time. A stage whose prims have transform or point time samples is
-solved with its geometry at the default time, and expand_path's notes name the moving prims.
 """
 from __future__ import annotations
 
@@ -147,10 +147,10 @@ def _usd_frames(request: dict, base: dict, scene_path, reader) -> tuple[list[dic
     if anim.get("time_range") and (times[0] < anim["time_range"][0] or times[-1] > anim["time_range"][1]):
         notes.append(f"time codes {times[0]:g}..{times[-1]:g} reach outside the stage's range "
                      f"{anim['time_range'][0]:g}..{anim['time_range'][1]:g}: values there are held")
-    if anim.get("moving"):
+    moving = bool(anim.get("moving"))
+    if moving:
         shown = ", ".join(anim["moving"][:5]) + (" ..." if len(anim["moving"]) > 5 else "")
-        notes.append(f"geometry moves over time ({shown}): not modelled yet, every frame is solved with the "
-                     "geometry at the stage's default time")
+        notes.append(f"geometry moves over time ({shown}): each frame reads the stage's geometry at its time code")
     for j, l in enumerate(lights):
         if isinstance(l, dict) and isinstance(l.get("usd_path"), str) and l["usd_path"] not in anim["lights"]:
             raise PathError(f"rig.lights.{j}.usd_path", f"{l['usd_path']} is not a light of the scene")
@@ -161,7 +161,7 @@ def _usd_frames(request: dict, base: dict, scene_path, reader) -> tuple[list[dic
         cam.update(position=_floats(v.position), forward=_floats(v.forward), up=_floats(v.up),
                    fov_y_deg=float(v.fov_y_deg), near=float(v.near), far=float(v.far))
         rig = {**base, "camera": cam, "lights": [_light_at(l, animated, k) for l in lights]}
-        frames.append({"rig": rig, "frame": k, "time": t})
+        frames.append({"rig": rig, "frame": k, "time": t, **({"scene_time": t} if moving else {})})
     return frames, notes
 
 

@@ -34,7 +34,7 @@ CAM_RIG = {"camera": {"usd_path": "/World/Cam", "resolution": [96, 54]}, "lights
 
 # A stage in centimetres (metersPerUnit 0.01): the camera slides along +X from (0, 200, 1000) cm at t = 0 to
 # (1000, 200, 1000) cm at t = 10 while its focal length goes 50 -> 25 mm; the sun tilts from 30 deg below the
-# horizon (rotateX -30) to straight down (-90); a box moves (geometry with time samples: not modelled, noted).
+# horizon (rotateX -30) to straight down (-90); a box moves 3 m along +X (geometry with time samples).
 ANIMATED_USDA = """#usda 1.0
 (
     upAxis = "Y"
@@ -118,7 +118,8 @@ def test_usd_camera_and_sun_time_samples_match_the_closed_form(animated):
         assert (cam["near"], cam["far"]) == pytest.approx((want["near"], want["far"]), rel=1e-6)
         assert cam["resolution"] == [96, 54] and "usd_path" not in cam
         assert f["rig"]["lights"][0] == {"type": "directional", "direction": pytest.approx(want["sun"], abs=1e-6)}
-    assert any("/World/Box" in n and "not modelled" in n for n in notes)
+    assert any("/World/Box" in n and "its time code" in n for n in notes)
+    assert [f["scene_time"] for f in frames] == [f["time"] for f in frames]  # solved on the stage at that time
 
 
 @pytest.mark.parametrize("change, field", [
@@ -176,7 +177,8 @@ def test_cli_usd_camera_path_coherent_json_lines_in_frame_order(animated, tmp_pa
     assert "temporal" not in lines[0]["solver"]["cascades"][0]
     for a, b in zip(lines, lines[1:]):
         assert b["solver"]["cascades"][0]["temporal"]["previous_x"] == pytest.approx(a["solver"]["x"][0])
-    assert "not modelled" in r.stderr  # the moving box is named, not ignored silently
+    assert "/World/Box" in r.stderr  # the moving box is named
+    assert [l["scene_time"] for l in lines] == [0, 5, 10]
 
 
 @pytest.mark.parametrize("args, words", [
@@ -260,6 +262,23 @@ def test_rest_post_paths_streams_frames_in_order_and_the_client_yields_them(anim
         assert [(l["index"], l["frame"], l["time"]) for l in lines] == [(0, 0, 0), (1, 1, 5), (2, 2, 10)]
         assert [l["lights"][0]["cascades"][0]["view_matrix"] for l in lines] == \
             [f["lights"][0]["cascades"][0]["view_matrix"] for f in got]
+    # The box moves (transform time samples): frame 2 was solved on the stage's geometry at t = 10, so its map
+    # is the one an in-process solve of the same rig on the stage loaded at time code 10 gives, not the one of
+    # the stage at its default time (the box at its first sample).
+    from shadowopt.api.schemas import validate_rig
+    from shadowopt.service.scenes import SCENES
+    from shadowopt.service.solve import solve
+
+    frame = expand_path({"rig": CAM_RIG, "usd_camera": "/World/Cam", "time": {"start": 10, "end": 10}},
+                        scene_path=animated)[0]
+    assert frame["scene_time"] == 10
+    rig = validate_rig(frame["rig"])
+    at_10 = solve(SCENES.get(animated, time_code=10.0), rig, method="focused")["lights"][0]["cascades"][0]
+    at_default = solve(SCENES.get(animated), rig, method="focused")["lights"][0]["cascades"][0]
+    served = lines[2]["lights"][0]["cascades"][0]
+    assert lines[2]["scene_time"] == 10
+    assert served["projection_matrix"] == pytest.approx(at_10["projection_matrix"], abs=1e-9)
+    assert served["projection_matrix"] != pytest.approx(at_default["projection_matrix"], abs=1e-6)
 
 
 # -- resume ------------------------------------------------------------------------------------------
