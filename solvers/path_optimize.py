@@ -174,13 +174,18 @@ def fit_on_grid(grid: Grid, fit_pts: np.ndarray, corners: np.ndarray, held_level
     depth, whose view is centred there; from the far anchor, z / w would spread over e^u times the range)."""
     v = to_view(grid.view, fit_pts)
     ph = np.column_stack([v, np.ones(len(v))])
-    w = ph @ grid.G[2]
-    if not len(w) or not float(w.min()) > 1e-12 * max(float(np.abs(w).max()), 1e-300):
+    with np.errstate(over="ignore", invalid="ignore"):  # a client's previous state may hold any finite numbers
+        w = ph @ grid.G[2]
+        ok = len(w) and np.isfinite(w).all() and float(w.min()) > 1e-12 * max(float(np.abs(w).max()), 1e-300)
+        if ok:
+            cs = [(ph @ grid.G[i]) / w for i in (0, 1)]
+            ok = all(np.isfinite(c).all() for c in cs)
+    if not ok:
         return None
     rows = []
     levels = []
     for i in (0, 1):
-        c = (ph @ grid.G[i]) / w
+        c = cs[i]
         lo, hi = float(c.min()), float(c.max())
         n = float(grid.resolution[i])
         size = max(hi - lo, extent_floor(max(abs(lo), abs(hi))))
@@ -339,8 +344,9 @@ def path_maps(camera, light, samples: Samples, receivers: np.ndarray, casters_bo
     # re-allocated every frame would change every cascade's scale, so its grid)
     res = [tuple(m.resolution) for m in maps]
     budget = opts.get("texel_budget") or sum(r[0] * r[1] for r in res)
-    if held is not None and all(g is not None for g in held) and \
-            sum(g.resolution[0] * g.resolution[1] for g in held) <= budget:
+    top = 2 * max(max(r) for r in res)  # a previous frame's state is a client's JSON: sides within reason
+    if held is not None and all(g is not None and 16 <= min(g.resolution) and max(g.resolution) <= top for g in held) \
+            and sum(g.resolution[0] * g.resolution[1] for g in held) <= budget:
         res = [g.resolution for g in held]
     out, state = [], []
     xs = sj.get("x") or [None] * len(maps)

@@ -163,3 +163,20 @@ def test_auto_cascade_count_is_held_unless_clearly_better():
     t["tried"][1]["p95_m"] = 0.3
     maps, info, a = held_cascade_count(maps_for, ["m"], {"k": 1}, t, state, {"target_p95_m": 0.2})
     assert a["chosen"] == 1, a
+
+
+def test_a_malformed_previous_path_state_starts_fresh(strafe):
+    """A previous solution is a client's JSON: a path state that cannot hold the receivers (zero or overflowing
+    rows, a resolution beyond the rig's) is refit from scratch, giving the first frame's maps."""
+    from shadowopt.service.solve import solve
+
+    first = strafe["path"][0]
+    good = first["solver"]["path"]["cascades"][0]
+    want = first["lights"][0]["predicted_error"]["objective"]
+    for bad in ({"view": [[0] * 4] * 4, "canonical": [[0] * 4] * 3, "resolution": [MAP, MAP], "levels": [3, 4]},
+                {**good, "canonical": [[1e308] * 4] * 3}, {**good, "resolution": [10 ** 8, 1]}, {"view": "x"}):
+        got = solve(strafe["entry"], strafe["rigs"][0], "path", previous={"solver": {"x": [None], "path": {"cascades": [bad]}}})
+        c = got["solver"]["path"]["cascades"][0]
+        assert c["decision"]["kept"] == "fresh" and c["resolution"] == [MAP, MAP], c["decision"]
+        # (the state's x, when kept, only warm-starts the per-frame search: the same optimum to its tolerance)
+        assert got["lights"][0]["predicted_error"]["objective"] == pytest.approx(want, rel=1e-3)
