@@ -173,10 +173,11 @@ def test_a_malformed_previous_path_state_starts_fresh(strafe):
     first = strafe["path"][0]
     good = first["solver"]["path"]["cascades"][0]
     want = first["lights"][0]["predicted_error"]["objective"]
-    for bad in ({"view": [[0] * 4] * 4, "canonical": [[0] * 4] * 3, "resolution": [MAP, MAP], "levels": [3, 4]},
-                {**good, "canonical": [[1e308] * 4] * 3}, {**good, "resolution": [10 ** 8, 1]}, {"view": "x"}):
+    for bad, fresh in (({"view": [[0] * 4] * 4, "canonical": [[0] * 4] * 3, "resolution": [MAP, MAP], "levels": [3, 4]}, True),
+                       ({**good, "canonical": [[1e308] * 4] * 3}, True), ({"view": "x"}, True),
+                       ({**good, "resolution": [10 ** 8, 1]}, False)):  # a sound grid: kept, at the rig's resolution
         got = solve(strafe["entry"], strafe["rigs"][0], "path", previous={"solver": {"x": [None], "path": {"cascades": [bad]}}})
         c = got["solver"]["path"]["cascades"][0]
-        assert c["decision"]["kept"] == "fresh" and c["resolution"] == [MAP, MAP], c["decision"]
+        assert (c["decision"]["kept"] == "fresh") == fresh and c["resolution"] == [MAP, MAP], c["decision"]
         # (the state's x, when kept, only warm-starts the per-frame search: the same optimum to its tolerance)
         assert got["lights"][0]["predicted_error"]["objective"] == pytest.approx(want, rel=1e-3)
