@@ -340,7 +340,8 @@ def light_json(light, maps: list[ShadowMap], total: dict, per_map: list[dict], o
 def solve(entry: SceneEntry, rig: dict, method: str = "focused", solver: str | None = None,
           time_budget_ms: float | None = None, previous: dict | None = None, hysteresis: float = 0.8,
           **options) -> dict:
-    """The solution for `method` (a baseline name or "optimized") on a scene entry and validated rig dict.
+    """The solution for `method` (a baseline name or "optimized"; "path": coherent with `previous`, the previous
+    frame's solution, solvers.path_optimize) on a scene entry and validated rig dict.
 
     `time_budget_ms` bounds the optimizer's search (method optimized) over the whole solve: it is counted from
     the start of the solve (the coarse pass included) and shared by all lights and cascades, each search
