@@ -339,6 +339,11 @@ def path_maps(camera, light, samples: Samples, receivers: np.ndarray, casters_bo
         return maps, sj
     if held is not None and len(held) != len(maps):
         held = None  # another cascade count: start fresh
+    if held is not None:  # a grid projects along the light it was made for (a moving sun: a new grid)
+        d = np.asarray(light.direction, dtype=np.float64)
+        d = d / np.linalg.norm(d)
+        held = [g if g is not None and np.allclose(-g.view[2, :3] / max(np.linalg.norm(g.view[2, :3]), 1e-300), d,
+                                                   rtol=0, atol=1e-9) else None for g in held]
     fits = cascade_fits(camera, light, samples, receivers, casters_bounds, maps, opts.get("receiver_slack"))
     # the texel allocation across cascades is held with the grids while it stays within the texel budget (one
     # re-allocated every frame would change every cascade's scale, so its grid)

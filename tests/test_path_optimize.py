@@ -181,3 +181,18 @@ def test_a_malformed_previous_path_state_starts_fresh(strafe):
         assert (c["decision"]["kept"] == "fresh") == fresh and c["resolution"] == [MAP, MAP], c["decision"]
         # (the state's x, when kept, only warm-starts the per-frame search: the same optimum to its tolerance)
         assert got["lights"][0]["predicted_error"]["objective"] == pytest.approx(want, rel=1e-3)
+
+
+def test_a_moving_sun_gets_a_new_grid(strafe):
+    """A held grid projects along the light it was made for: when the sun moves, the next frame's maps look along
+    the new direction (view -Z) and the grid is refit from scratch."""
+    from shadowopt.api.cli import validate_rig
+    from shadowopt.service.solve import maps_from_solution, solve
+
+    first = strafe["path"][0]
+    d = np.array([-0.45, -0.8, 0.4])
+    rig = validate_rig({**strafe["rigs"][0], "lights": [{"type": "directional", "direction": d.tolist()}]})
+    got = solve(strafe["entry"], rig, "path", previous=first)
+    assert got["solver"]["path"]["cascades"][0]["decision"]["kept"] == "fresh"
+    view = maps_from_solution(got)[0][0].view
+    assert np.allclose(-view[2, :3], d / np.linalg.norm(d), atol=1e-9)
