@@ -30,7 +30,8 @@ def case(repo):
     sol = solve(entry, rig, method="lispsm")
     resolved = resolve_rig(rig, entry.loaded)
     # The independent truth: the ground truth's own masks for the solution's maps.
-    gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps_from_solution(sol)[0])
+    # (evaluate's default depth test: each map's stated engine depth test, as evaluate_solution applies it)
+    gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps_from_solution(sol)[0], depth="solution")
     return entry, rig, sol, gt
 
 
