@@ -493,7 +493,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("optimize", help="compute a shadow setup (matrices, warp, splits) and its predicted error")
     scene_args(sp)
     rig_args(sp)
-    sp.add_argument("--method", choices=["uniform", "focused", "lispsm", "logpsm", "optimized", "path"], default="optimized")
+    sp.add_argument("--method", choices=["uniform", "focused", "lispsm", "logpsm", "optimized", "stable_csm", "path"], default="optimized")
     sp.add_argument("--solver", default=None, help="optimizer for --method optimized (default nlopt:LN_BOBYQA; "
                     "gradient:linesearch, gradient:lbfgs, gradient:adam, nlopt:LN_COBYLA, nlopt:LN_SBPLX, "
                     "nlopt:GN_DIRECT_L, nlopt:LD_MMA, nlopt:LD_LBFGS)")
@@ -579,7 +579,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--backend", choices=["local", "ray"], default="local")
     sp.add_argument("--workers", type=int, default=2, help="worker processes (local) or Ray actors")
     sp.add_argument("--ray-address", default=None, help="a Ray cluster (default: a local Ray instance)")
-    sp.add_argument("--method", choices=["uniform", "focused", "lispsm", "logpsm", "optimized", "path"], default=None,
+    sp.add_argument("--method", choices=["uniform", "focused", "lispsm", "logpsm", "optimized", "stable_csm", "path"], default=None,
                     help="default: the file's \"method\", else optimized")
     sp.add_argument("--solver", default=None, help="optimizer for --method optimized")
     sp.add_argument("--time-budget-ms", type=float, default=None, help="per configuration")

@@ -174,7 +174,7 @@ def format_validation_error(err) -> str:
 
 # --- REST API: requests and responses. Field names the clients rely on are fixed (additions only). ---
 
-Method = Literal["uniform", "focused", "lispsm", "logpsm", "optimized", "path"]
+Method = Literal["uniform", "focused", "lispsm", "logpsm", "optimized", "stable_csm", "path"]
 BatchState = Literal["queued", "running", "done", "failed", "cancelled"]
 ObjectId = Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.-]+$")]
 

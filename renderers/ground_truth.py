@@ -483,6 +483,24 @@ def _device_map_coords(mi, dr, smap: ShadowMap, origin: np.ndarray, X):
     return s, t, z, c[3]
 
 
+def _device_tan_psi(mi, dr, light: Light, origin: np.ndarray, X, N):
+    """min(tan psi, TAN_PSI_MAX) in Dr.Jit Float64: psi the angle between the unit normals N and the direction
+    to the light from the re-centred points X (module doc, step 4)."""
+    F64 = mi.Float64
+    one, zero = dr.opaque(F64, 1.0), dr.opaque(F64, 0.0)
+    if isinstance(light, DirectionalLight):
+        to_l = [dr.opaque(F64, float(-light.direction[r])) for r in range(3)]
+    else:
+        lp = np.asarray(light.position, dtype=np.float64) - origin
+        v = [dr.opaque(F64, float(lp[r])) - X[r] for r in range(3)]
+        inv = 1.0 / dr.maximum(dr.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), 1e-300)
+        to_l = [v[r] * inv for r in range(3)]
+    c = dr.clip(N[0] * to_l[0] + N[1] * to_l[1] + N[2] * to_l[2], zero, one)
+    tmax = dr.opaque(F64, TAN_PSI_MAX)
+    tan_psi = dr.sqrt(dr.maximum(one - c * c, zero)) / c
+    return dr.select(dr.isfinite(tan_psi), dr.minimum(tan_psi, tmax), tmax)
+
+
 def _device_lookup(rs: RayScene, light: Light, smap: ShadowMap, d_occ, X, N, tolerance: float,
                    engine: dict | None = None):
     """The engine's shadow test (module doc, step 4) in Dr.Jit for re-centred points X with unit
@@ -508,17 +526,7 @@ def _device_lookup(rs: RayScene, light: Light, smap: ShadowMap, d_occ, X, N, tol
     A = _opaque_matrix(mi, dr, _inverse_matrix(smap, rs.origin))
     near, dirn, _ = _device_rays_through(mi, dr, smap, A, (fi + 0.5) / wf, (fj + 0.5) / hf)
     d_rec = sum((X[r] - near[r]) * dirn[r] for r in range(3))
-    if isinstance(light, DirectionalLight):
-        to_l = [dr.opaque(F64, float(-light.direction[r])) for r in range(3)]
-    else:
-        lp = np.asarray(light.position, dtype=np.float64) - rs.origin
-        v = [dr.opaque(F64, float(lp[r])) - X[r] for r in range(3)]
-        inv = 1.0 / dr.maximum(dr.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), 1e-300)
-        to_l = [v[r] * inv for r in range(3)]
-    c = dr.clip(N[0] * to_l[0] + N[1] * to_l[1] + N[2] * to_l[2], zero, one)
-    tmax = dr.opaque(F64, TAN_PSI_MAX)
-    tan_psi = dr.sqrt(dr.maximum(one - c * c, zero)) / c
-    tan_psi = dr.select(dr.isfinite(tan_psi), dr.minimum(tan_psi, tmax), tmax)
+    tan_psi = _device_tan_psi(mi, dr, light, rs.origin, X, N)
     bias = (dr.opaque(F64, float(smap.depth_bias.get("constant", 0.0)))
             + dr.opaque(F64, float(smap.depth_bias.get("slope", 0.0))) * tan_psi
             + dr.opaque(F64, float(tolerance)))
@@ -628,17 +636,7 @@ def _device_engine_lookup(mi, dr, rs: RayScene, light: Light, smap: ShadowMap, s
     fj = dr.select(inside, dr.clip(dr.floor(t * hf), zero, hf - 1.0), zero)
     idx = mi.UInt32(fj) * dr.opaque(mi.UInt32, int(w)) + mi.UInt32(fi)
     stored = dr.gather(F64, stored_map, idx, inside)  # the light pass's depth buffer (_device_engine_map)
-    if isinstance(light, DirectionalLight):
-        to_l = [dr.opaque(F64, float(-light.direction[r])) for r in range(3)]
-    else:
-        lp = np.asarray(light.position, dtype=np.float64) - rs.origin
-        v = [dr.opaque(F64, float(lp[r])) - Xp[r] for r in range(3)]
-        inv = 1.0 / dr.maximum(dr.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), 1e-300)
-        to_l = [v[r] * inv for r in range(3)]
-    c = dr.clip(N[0] * to_l[0] + N[1] * to_l[1] + N[2] * to_l[2], zero, one)
-    tmax = dr.opaque(F64, TAN_PSI_MAX)
-    tan_psi = dr.sqrt(dr.maximum(one - c * c, zero)) / c
-    tan_psi = dr.select(dr.isfinite(tan_psi), dr.minimum(tan_psi, tmax), tmax)
+    tan_psi = _device_tan_psi(mi, dr, light, rs.origin, Xp, N)
     bias = dr.opaque(F64, engine["constant"]) + dr.opaque(F64, engine["slope"]) * tan_psi
     shadowed = inside & (d_rec - bias > stored)
     s0, t0, _, cw0 = _device_map_coords(mi, dr, smap, rs.origin, X)  # the metric's coordinates: X itself
