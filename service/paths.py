@@ -109,7 +109,11 @@ def time_codes(spec) -> list[float]:
         raise PathError("time.step", f"must be positive, got {vals['step']:g}")
     if vals["end"] < vals["start"]:
         raise PathError("time.end", f"{vals['end']:g} is before time.start {vals['start']:g}")
-    n = int(math.floor((vals["end"] - vals["start"]) / vals["step"] + 1e-9)) + 1
+    q = (vals["end"] - vals["start"]) / vals["step"]  # overflows to inf for extreme ranges or tiny steps
+    if not math.isfinite(q) or q + 1 > MAX_TIME_FRAMES:
+        raise PathError("time", f"(end - start) / step + 1 = {q + 1:g} frames exceed the limit of {MAX_TIME_FRAMES} "
+                        "time codes")
+    n = int(math.floor(q + 1e-9)) + 1
     if n > MAX_TIME_FRAMES:
         raise PathError("time", f"{n} frames exceed the limit of {MAX_TIME_FRAMES} time codes")
     return [vals["start"] + k * vals["step"] for k in range(n)]
@@ -154,7 +158,10 @@ def _usd_frames(request: dict, base: dict, scene_path, reader) -> tuple[list[dic
     for j, l in enumerate(lights):
         if isinstance(l, dict) and isinstance(l.get("usd_path"), str) and l["usd_path"] not in anim["lights"]:
             raise PathError(f"rig.lights.{j}.usd_path", f"{l['usd_path']} is not a light of the scene")
-    animated = {p: ls for p, ls in anim["lights"].items() if any(not _same_light(ls[0], x) for x in ls[1:])}
+    # Every USD light becomes the explicit light it is at each frame's time code: a light that holds one value
+    # over the frames asked for may still differ from its default-time value, which the solve would read.
+    animated = dict(anim["lights"])
+    notes += [str(w) for w in anim.get("warnings") or []]  # e.g. camera values USD's fallbacks replaced
     frames = []
     for k, (t, v) in enumerate(zip(times, views)):
         cam = {key: val for key, val in base_cam.items() if key not in ("usd_path", "target", "forward", "position")}
@@ -184,7 +191,7 @@ def _same_light(a, b) -> bool:
 
 
 def _light_at(light, animated: dict, k: int):
-    """A rig light at frame k: a USD light with time samples becomes the explicit light it is at that frame."""
+    """A rig light at frame k: a USD light becomes the explicit light it is at that frame's time code."""
     if not isinstance(light, dict) or light.get("usd_path") not in animated:
         return light
     u = animated[light["usd_path"]][k]

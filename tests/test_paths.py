@@ -278,7 +278,10 @@ def test_rest_post_paths_streams_frames_in_order_and_the_client_yields_them(anim
     served = lines[2]["lights"][0]["cascades"][0]
     assert lines[2]["scene_time"] == 10
     assert served["projection_matrix"] == pytest.approx(at_10["projection_matrix"], abs=1e-9)
-    assert served["projection_matrix"] != pytest.approx(at_default["projection_matrix"], abs=1e-6)
+    # The sun is read at the frame's time code even for a one-frame range (rotateX -90 at t = 10: straight down),
+    # not left as /World/Sun for the solve to read at the stage's default time (rotateX -30).
+    assert frame["rig"]["lights"][0]["direction"] == pytest.approx([0.0, -1.0, 0.0], abs=1e-6)
+    assert at_default["view_matrix"] == pytest.approx(at_10["view_matrix"], abs=1e-9)  # same explicit light
 
 
 # -- resume ------------------------------------------------------------------------------------------
@@ -338,3 +341,13 @@ def test_a_coherent_path_resumes_after_sigkill_from_the_stored_previous_frame(tm
     for a, c in zip(lines, lines[1:]):  # every frame, the first one after the crash included, got its predecessor
         assert c["solver"]["cascades"][0]["temporal"]["previous_x"] == pytest.approx(a["solver"]["x"][0])
     store.close()
+
+
+@pytest.mark.parametrize("spec", [{"start": 0, "end": 1e308, "step": 1e-300}, {"start": -1e308, "end": 1e308, "step": 1},
+                                  {"start": 0, "end": 1, "step": 1e-320}])
+def test_time_ranges_that_overflow_are_refused_naming_time(spec):
+    from shadowopt.service.paths import PathError, time_codes
+
+    with pytest.raises(PathError) as e:
+        time_codes(spec)
+    assert e.value.field == "time" and "exceed the limit" in str(e.value)
