@@ -1452,10 +1452,8 @@ def read_animation(path, camera_path: str | None, time_codes: list[float], *, li
                     ls = [_light(prim, Usd.TimeCode(t), xc, s2w) for t, xc in zip(times, caches)]
                     if ls and ls[0] is not None:
                         out["lights"][p] = ls
-            elif prim.IsA(UsdGeom.Gprim) and len(out["moving"]) < 20:
-                pts = UsdGeom.PointBased(prim).GetPointsAttr() if prim.IsA(UsdGeom.PointBased) else None
-                if UsdGeom.Xformable(prim).TransformMightBeTimeVarying() or (pts and pts.GetNumTimeSamples() > 1) \
-                        or any(UsdGeom.Xformable(a).TransformMightBeTimeVarying() for a in _ancestors(prim)):
+            elif (prim.IsA(UsdGeom.Gprim) or prim.IsA(UsdGeom.PointInstancer)) and len(out["moving"]) < 20:
+                if _changes_over_time(prim):
                     out["moving"].append(p)
         out["warnings"] = [scrub(w) for w in _dedupe(warnings)][:MAX_WARNINGS]
         return out
@@ -1464,6 +1462,24 @@ def read_animation(path, camera_path: str | None, time_codes: list[float], *, li
         return _load(path, None, asset_root, sandbox, None, max_prims, read=read)
     except SceneError as e:
         raise SceneError(e.code, scrub(e.message)) from e.__cause__
+
+
+def _changes_over_time(prim) -> bool:
+    """Whether what the loader reads of a Gprim or PointInstancer can change with the time code: its transform
+    or an ancestor's, its own or an ancestor's visibility, or any of its own attributes (points, topology, an
+    instancer's positions, orientations, scales, protoIndices, invisibleIds) having time samples."""
+    from pxr import Usd, UsdGeom
+
+    def varies(attr) -> bool:  # one sample and no default reads the same at every time code (_get)
+        n = attr.GetNumTimeSamples()
+        return n > 1 or (n == 1 and attr.Get(Usd.TimeCode.Default()) is not None)
+
+    chain = [prim, *_ancestors(prim)]
+    if any(UsdGeom.Xformable(a).TransformMightBeTimeVarying() for a in chain if a.IsA(UsdGeom.Xformable)):
+        return True
+    if any(varies(UsdGeom.Imageable(a).GetVisibilityAttr()) for a in chain if a.IsA(UsdGeom.Imageable)):
+        return True
+    return any(varies(attr) for attr in prim.GetAttributes())
 
 
 def _ancestors(prim):

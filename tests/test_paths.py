@@ -351,3 +351,57 @@ def test_time_ranges_that_overflow_are_refused_naming_time(spec):
     with pytest.raises(PathError) as e:
         time_codes(spec)
     assert e.value.field == "time" and "exceed the limit" in str(e.value)
+
+
+MOVING_KINDS = """
+#usda 1.0
+(
+    upAxis = "Y"
+    metersPerUnit = 1
+)
+def Xform "World"
+{
+    def Camera "Cam"
+    {
+        double3 xformOp:translate = (0, 2, 10)
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+    }
+    def Mesh "Ground"
+    {
+        point3f[] points = [(-5,0,-5),(5,0,-5),(5,0,5),(-5,0,5)]
+        int[] faceVertexCounts = [4]
+        int[] faceVertexIndices = [0,3,2,1]
+        token visibility.timeSamples = { 0: "inherited", 5: "invisible" }
+    }
+    def Mesh "Static"
+    {
+        point3f[] points.timeSamples = { 0: [(-1,1,0),(1,1,0),(0,2,0)] }
+        int[] faceVertexCounts = [3]
+        int[] faceVertexIndices = [0,1,2]
+    }
+    def PointInstancer "Inst"
+    {
+        point3f[] positions.timeSamples = { 0: [(0,1,5)], 10: [(6,1,6)] }
+        int[] protoIndices = [0]
+        rel prototypes = </World/Inst/Proto>
+        def Xform "Proto"
+        {
+            def Cube "C"
+            {
+                double size = 1
+            }
+        }
+    }
+    def DistantLight "Sun" {}
+}
+"""
+
+
+def test_visibility_and_instancer_samples_count_as_moving_geometry(tmp_path):
+    """A prim hidden at a time code and an instancer whose positions are sampled change what a frame sees; points
+    with one sample and no default read the same at every time code and do not."""
+    from shadowopt.renderers.usd_loader import read_animation
+
+    stage = tmp_path / "kinds.usda"
+    stage.write_text(MOVING_KINDS.lstrip())
+    assert read_animation(stage, "/World/Cam", [0.0, 10.0])["moving"] == ["/World/Ground", "/World/Inst"]
