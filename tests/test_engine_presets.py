@@ -17,6 +17,8 @@ import pytest
 
 from shadowopt.solvers.conventions import ENGINES, export_matrices
 
+from testkit import gl_depth
+
 REPO = Path(__file__).resolve().parents[1]
 
 # Where shadowopt's world point (x, y, z) (right-handed, +Y up, metres) is in each engine.
@@ -479,22 +481,6 @@ def test_warp_n_is_in_the_preset_unit(demo):
     assert maps_from_solution(sol)[0][0].n_prime == pytest.approx(world["warp"]["n"], rel=1e-12)
 
 
-def _gl_depth(tmp_path, vertices, faces, matrix, resolution, clip_z, reversed_z):
-    """Window depth rasterized by real OpenGL (Mesa through EGL) in a subprocess (renderers.gl_check)."""
-    import subprocess
-    import sys
-
-    src, out = tmp_path / "in.npz", tmp_path / "out.npz"
-    np.savez(src, vertices=vertices.astype(np.float32), faces=faces.astype(np.uint32), matrix=matrix,
-             resolution=np.array(resolution), depth_clamp=True, clip_z=clip_z, reversed_z=reversed_z)
-    p = subprocess.run([sys.executable, "-m", "shadowopt.renderers.gl_check", str(src), str(out)],
-                       capture_output=True, text=True, timeout=300)
-    if p.returncode != 0 and ("EGL" in p.stderr or "moderngl" in p.stderr):
-        pytest.skip(f"no EGL/OpenGL here: {p.stderr.strip().splitlines()[-1]}")
-    assert p.returncode == 0, p.stderr
-    return np.load(out)["depth"]
-
-
 @pytest.mark.parametrize("engine", ["unreal", "godot"])
 def test_engine_frame_geometry_rasterized_by_opengl_matches_the_ray_cast_map(demo, tmp_path, engine):
     """The demo's geometry moved into the engine's frame and units by hand (TO_ENGINE), drawn with the
@@ -519,7 +505,7 @@ def test_engine_frame_geometry_rasterized_by_opengl_matches_the_ray_cast_map(dem
     verts_e = (demo.loaded.geometry.vertices - rs.origin) @ to_e.T  # re-centred in float64 first, as an engine would
     shift = np.eye(4)
     shift[:3, 3] = to_e @ rs.origin
-    depth = _gl_depth(tmp_path, verts_e, demo.loaded.geometry.faces, clip @ shift, res, "zero_to_one", True)
+    depth = gl_depth(tmp_path, verts_e, demo.loaded.geometry.faces, clip @ shift, res, "zero_to_one", True)
     if engine == "godot":
         depth = depth[::-1]  # Vulkan-style NDC y down: framebuffer row 0 is the map's top
     covered = depth > 0.0

@@ -3,8 +3,6 @@ ray-cast map. OpenGL runs in a subprocess: Mesa loads LLVM 15, and Dr.Jit in thi
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,21 +14,9 @@ from shadowopt.service.rigs import resolve_rig
 from shadowopt.service.solve import maps_from_solution, solve
 from shadowopt.solvers.conventions import from_layout
 
+from testkit import gl_depth
+
 REPO = Path(__file__).resolve().parents[1]
-
-
-def gl_depth(tmp_path, vertices, faces, matrix, resolution, clip_z, reversed_z=False):
-    src, out = tmp_path / "in.npz", tmp_path / "out.npz"
-    np.savez(src, vertices=vertices.astype(np.float32), faces=faces.astype(np.uint32), matrix=matrix,
-             resolution=np.array(resolution), depth_clamp=True, clip_z=clip_z, reversed_z=reversed_z)
-    p = subprocess.run([sys.executable, "-m", "shadowopt.renderers.gl_check", str(src), str(out)],
-                       capture_output=True, text=True, timeout=300)
-    if p.returncode != 0 and ("EGL" in p.stderr or "moderngl" in p.stderr):
-        pytest.skip(f"no EGL/OpenGL here: {p.stderr.strip().splitlines()[-1]}")
-    assert p.returncode == 0, p.stderr
-    d = np.load(out)
-    assert "llvmpipe" in str(d["renderer"]).lower() or str(d["renderer"])
-    return d["depth"]
 
 
 @pytest.mark.parametrize("convention,reversed_z", [("opengl", False), ("d3d", False), ("vulkan", False),
