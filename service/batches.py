@@ -468,9 +468,15 @@ def _solve_with(get_entry, config: dict, settings: dict) -> dict:
         for k in ("frame", "time", "scene_time"):  # a path job's frame index and time codes (service.paths)
             if k in config:
                 sol[k] = config[k]
+        if config.get("scene_time") is not None and entry.loaded.warnings:
+            # what the loader reported reading the stage at this frame's time code (a mesh skipped there for
+            # NaN points, a prim invalid at t): the frame's own load, so its own line says it
+            sol["warnings"] = list(entry.loaded.warnings)
         return {"result": sol}
     except SceneError as e:
-        return {"error": {"code": e.code, "message": e.message}}
+        t = config.get("scene_time")
+        where = f"the stage at time code {t:g}: " if isinstance(t, (int, float)) else ""
+        return {"error": {"code": e.code, "message": where + e.message}}
     except (RigError, SolutionError) as e:
         return {"error": {"code": e.code, "message": str(e)}}
     except (KeyError, TypeError, ValueError, IndexError) as e:
@@ -483,15 +489,33 @@ def _worker_entry(scene_path: str, sandbox: bool, settings: dict, time_code: flo
     """The scene in a worker, loaded once per process by the SCENES cache, in-process (the worker is its
     own process already) but under the server's triangle limit (settings["max_triangles"], set by the
     runner from its own max_triangles, never from what was stored with the batch): a scene stored before
-    the limit existed, or before it was lowered, is refused as too_many_triangles like a new upload."""
+    the limit existed, or before it was lowered, is refused as too_many_triangles like a new upload.
+    An upload read at a path frame's time code (`time_code`, the frame's "scene_time") is a new load of the
+    stage, which the upload's check at its default time says nothing about (a stage can be light there and
+    heavy at t = 5): it runs as an upload's load does, in an isolated child under the server's load limits
+    (settings["load_limits"]: max_triangles, memory_bytes, timeout_s, set by the runner; isolation's
+    defaults without them), and over one of them the frame fails with that limit's SceneError."""
     from .scenes import SCENES
 
     global _WORKER_CACHE_SET
     if not _WORKER_CACHE_SET:  # a worker's cache has one owner (None): all of it, not a tenant's share, so a
         SCENES.configure(tenant_share=1.0)  # scene over half of it is still kept rather than reloaded per item
         _WORKER_CACHE_SET = True
+    if time_code is not None and sandbox:
+        return SCENES.get(scene_path, time_code=time_code, sandbox=sandbox, limits=frame_load_limits(settings))
     # time_code: a path frame over moving geometry (service.paths: "scene_time"), the stage read at that time
     return SCENES.get(scene_path, time_code=time_code, sandbox=sandbox, max_triangles=settings.get("max_triangles"))
+
+
+def frame_load_limits(settings: dict):
+    """service.isolation.LoadLimits of a path frame's load of an upload: the runner's load_limits (the server's
+    upload limits), the triangle limit the runner sets otherwise, isolation's defaults for the rest."""
+    from .isolation import LoadLimits
+
+    given = dict(settings.get("load_limits") or {})
+    if settings.get("max_triangles") is not None:
+        given.setdefault("max_triangles", settings["max_triangles"])
+    return LoadLimits(**{k: v for k, v in given.items() if k in ("max_triangles", "memory_bytes", "timeout_s")})
 
 
 _WORKER_CACHE_SET = False
@@ -707,9 +731,10 @@ class BatchRunner:
     """Runs queued batches one after another on a local spawn pool or Ray, writing each outcome to the store."""
 
     def __init__(self, store: Store, backend: str = "local", workers: int = 2, ray_address: str | None = None,
-                 max_triangles: int | None = None):
+                 max_triangles: int | None = None, load_limits: dict | None = None):
         """max_triangles: the server's triangle limit, applied to every scene a worker loads (None: none,
-        the CLI's own files)."""
+        the CLI's own files). load_limits: the server's upload load limits {max_triangles, memory_bytes,
+        timeout_s}, applied to an upload's load at a path frame's time code (_worker_entry)."""
         if backend not in BACKENDS:
             raise BatchError("backend", f"unknown backend {backend!r} (known: {', '.join(BACKENDS)})")
         if not isinstance(workers, int) or workers < 1:
@@ -722,6 +747,7 @@ class BatchRunner:
                                           or max_triangles < 1):
             raise BatchError("max_triangles", f"expected a positive integer, got {max_triangles!r}")
         self.max_triangles = max_triangles
+        self.load_limits = dict(load_limits) if load_limits else None
         self.stats = {"submitted": 0, "results": 0, "errors": 0}
         self._impl = None
         self._queue: collections.deque[tuple[str, str]] = collections.deque()
@@ -872,7 +898,8 @@ class BatchRunner:
     def _run_slice(self, batch_id: str, job, items: list, settings: dict) -> None:
         """Run some of a batch's pending configurations, storing each outcome as it arrives."""
         self.stats["submitted"] += len(items)
-        settings = {**(settings or {}), "max_triangles": self.max_triangles}  # this server's, not the stored one
+        settings = {**(settings or {}), "max_triangles": self.max_triangles,  # this server's, not the stored ones
+                    "load_limits": self.load_limits}
         if settings.get("coherent"):  # a coherent path: frames in order, each given the previous one's solution
             from .paths import coherent_outcomes
 
