@@ -566,7 +566,11 @@ class PathRequest(_Strict):
 
 class PathFrame(BatchResultLine):
     """One line of a path job's results: a `BatchResultLine` with the frame index and its time code (None for
-    a camera_path frame)."""
+    a camera_path frame); a failed frame's line carries them too."""
 
     frame: int | None = None
     time: float | None = None
+    scene_time: float | None = Field(None, description="the time code the stage's geometry was read at (moving "
+                                     "geometry)")
+    warnings: list[str] | None = Field(None, description="what the loader reported reading the stage at this "
+                                       "frame's time code (e.g. a mesh skipped there for NaN points)")
