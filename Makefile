@@ -9,6 +9,8 @@ LOG := $(VENV)/setup.log
 APT_PKGS := libllvm19 libegl1 libegl-mesa0 libgl1-mesa-dri
 # glslang-tools and spirv-cross: the HLSL shader listings of docs/engine-integration.md are compiled by their test.
 APT_PKGS += glslang-tools spirv-cross
+# chromium: the browser inspector's tests (tests/test_inspect_browser.py) drive Debian's Chromium headless through Playwright.
+APT_PKGS += chromium
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 # Dr.Jit needs libLLVM >= 16 (Debian's libllvm19); 15 crashes at the first kernel, 14 is refused.
 export DRJIT_LIBLLVM_PATH ?= $(firstword $(wildcard /usr/lib/*-linux-gnu/libLLVM.so.19.1) /usr/lib/x86_64-linux-gnu/libLLVM.so.19.1)
