@@ -1423,7 +1423,8 @@ def read_animation(path, camera_path: str | None, time_codes: list[float], *, li
     Returns {"camera": [UsdCamera per time] or None when `camera_path` is None, "camera_type": the prim's
     type name ("" when there is no such prim), "lights": {usd_path: [UsdLight per time]} for `light_paths`
     (default: every light of the stage), "moving": prim paths (up to 20) of geometry whose transform or
-    points have time samples, "time_range": [start, end] time codes of the stage or None, "warnings"}.
+    points have time samples, "time_range": [start, end] time codes of the stage or None, "warnings", "camera_problems":
+    the camera values replaced by fallbacks (not finite or not positive) or a non-finite transform, per time code}.
     A time code is read as Usd.TimeCode(t): world transforms from UsdGeom.XformCache(t)."""
     path = os.fspath(path)
     scrub = PathRedactor([os.path.dirname(os.path.abspath(path)), asset_root]).text
@@ -1434,7 +1435,8 @@ def read_animation(path, camera_path: str | None, time_codes: list[float], *, li
 
         up, mpu = _stage_frame(stage, warnings)
         s2w = _stage_to_world(up, mpu)
-        out = {"camera": None, "camera_type": "", "lights": {}, "moving": [], "time_range": None}
+        out = {"camera": None, "camera_type": "", "lights": {}, "moving": [], "time_range": None,
+               "camera_problems": []}
         if stage.HasAuthoredTimeCodeRange():
             out["time_range"] = [float(stage.GetStartTimeCode()), float(stage.GetEndTimeCode())]
         caches = [UsdGeom.XformCache(Usd.TimeCode(t)) for t in times]
@@ -1442,7 +1444,8 @@ def read_animation(path, camera_path: str | None, time_codes: list[float], *, li
             prim = stage.GetPrimAtPath(camera_path) if camera_path.startswith("/") else None
             out["camera_type"] = str(prim.GetTypeName()) if prim else ""
             if prim and prim.IsA(UsdGeom.Camera):
-                out["camera"] = [_camera(prim, Usd.TimeCode(t), xc, s2w, mpu, warnings) for t, xc in zip(times, caches)]
+                out["camera"] = [_camera(prim, Usd.TimeCode(t), xc, s2w, mpu, warnings, out["camera_problems"])
+                                 for t, xc in zip(times, caches)]
         budget = _Budget(None, max_prims)
         for prim in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)):
             budget.prim(prim)
@@ -1456,6 +1459,7 @@ def read_animation(path, camera_path: str | None, time_codes: list[float], *, li
                 if _changes_over_time(prim):
                     out["moving"].append(p)
         out["warnings"] = [scrub(w) for w in _dedupe(warnings)][:MAX_WARNINGS]
+        out["camera_problems"] = [scrub(w) for w in out["camera_problems"][:MAX_WARNINGS]]
         return out
 
     try:
@@ -1489,27 +1493,59 @@ def _ancestors(prim):
         p = p.GetParent()
 
 
-def _camera(prim, tc, xcache, s2w, mpu, warnings) -> UsdCamera:
+CAMERA_FALLBACKS = {"focalLength": 50.0, "horizontalAperture": 20.955, "verticalAperture": 15.2908}  # USD's
+CLIPPING_FALLBACK = (1.0, 1e6)  # UsdGeom.Camera's clippingRange fallback, stage units
+
+
+def _camera(prim, tc, xcache, s2w, mpu, warnings, problems: list | None = None) -> UsdCamera:
     """Position and axes from the camera's transform (it looks along local -Z, up is local +Y);
-    clipping range from stage units to meters; fov from the vertical aperture and focal length."""
+    clipping range from stage units to meters; fov from the vertical aperture and focal length.
+    A focalLength or aperture that is not a finite positive number (NaN, inf, 0, negative), or a clipping
+    range that is not 0 < near < far (finite), is replaced by USD's fallback with a warning naming the
+    attribute, its value and the time code; with `problems` (read_animation) the same text is appended there
+    too, so a path can refuse the frame instead of solving it with a made-up field of view."""
     from pxr import UsdGeom
 
     cam = UsdGeom.Camera(prim)
-    focal = float(_get(cam.GetFocalLengthAttr(), tc) or 50.0)
-    hap = float(_get(cam.GetHorizontalApertureAttr(), tc) or 20.955)
-    vap = float(_get(cam.GetVerticalApertureAttr(), tc) or 15.2908)
-    clip = _get(cam.GetClippingRangeAttr(), tc) or (1.0, 1e6)
+    at = "" if tc.IsDefault() else f" at time code {tc.GetValue():g}"
+
+    def bad(text: str, fallback: str) -> None:
+        warnings.append(f"{text}; USD's fallback {fallback} used")
+        if problems is not None:
+            problems.append(text)
+
+    vals = {}
+    for name, attr in (("focalLength", cam.GetFocalLengthAttr()), ("horizontalAperture", cam.GetHorizontalApertureAttr()),
+                       ("verticalAperture", cam.GetVerticalApertureAttr())):
+        v = _get(attr, tc)
+        try:
+            v = CAMERA_FALLBACKS[name] if v is None else float(v)
+        except (TypeError, ValueError):
+            v = math.nan
+        if not (math.isfinite(v) and v > 0):
+            bad(f"{prim.GetPath()}: {name} {v:g}{at} is not a finite positive number (the field of view is "
+                f"2 atan(verticalAperture / (2 focalLength)))", f"{CAMERA_FALLBACKS[name]:g}")
+            v = CAMERA_FALLBACKS[name]
+        vals[name] = v
+    focal, hap, vap = vals["focalLength"], vals["horizontalAperture"], vals["verticalAperture"]
+    clip = _get(cam.GetClippingRangeAttr(), tc)
+    try:
+        near, far = (float(clip[0]), float(clip[1])) if clip is not None else CLIPPING_FALLBACK
+    except (TypeError, ValueError, IndexError):
+        near, far = math.nan, math.nan
+    if not (math.isfinite(near) and math.isfinite(far) and 0 < near < far):
+        bad(f"{prim.GetPath()}: clippingRange ({near:g}, {far:g}){at} is not 0 < near < far (finite)",
+            f"({CLIPPING_FALLBACK[0]:g}, {CLIPPING_FALLBACK[1]:g})")
+        near, far = CLIPPING_FALLBACK
     m = s2w @ _np_matrix(xcache.GetLocalToWorldTransform(prim))
     pos = transform_points(m, np.zeros(3))
     fwd = transform_directions(m, np.array([0.0, 0.0, -1.0]))
     up = transform_directions(m, np.array([0.0, 1.0, 0.0]))
-    if focal <= 0 or vap <= 0:
-        warnings.append(f"{prim.GetPath()}: focalLength {focal:g} / verticalAperture {vap:g} are not positive; "
-                        "USD's fallbacks 50 / 15.2908 used")
-        focal, vap = 50.0, 15.2908
+    if problems is not None and not (np.all(np.isfinite(m)) and np.linalg.norm(fwd) > 1e-12 and np.linalg.norm(up) > 1e-12):
+        problems.append(f"{prim.GetPath()}: its world transform{at} is not finite or collapses the view axes "
+                        "(NaN, infinite or zero scale)")
     fov = math.degrees(2.0 * math.atan(vap / (2.0 * focal)))
-    return UsdCamera(str(prim.GetPath()), pos, fwd, up, fov, float(clip[0]) * mpu, float(clip[1]) * mpu,
-                     focal, hap, vap)
+    return UsdCamera(str(prim.GetPath()), pos, fwd, up, fov, near * mpu, far * mpu, focal, hap, vap)
 
 
 def _light(prim, tc, xcache, s2w) -> UsdLight | None:

@@ -143,6 +143,11 @@ def _usd_frames(request: dict, base: dict, scene_path, reader) -> tuple[list[dic
     if anim["camera"] is None:
         what = f"is a {anim['camera_type']}, not a Camera" if anim["camera_type"] else "is not a prim of the scene"
         raise PathError("usd_camera", f"{cam_path} {what}")
+    problems = anim.get("camera_problems") or []
+    if problems:  # a frame solved with a made-up field of view or a NaN pose would be a wrong answer
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        raise PathError("usd_camera", f"{problems[0]}{more}: fix the camera's time samples, or give the path "
+                        "as a camera_path")
     notes = []
     views = anim["camera"]
     if len(times) > 1 and all(_same_view(views[0], v) for v in views[1:]):

@@ -513,11 +513,13 @@ class Store:
             return None
         done = self._query("SELECT COUNT(*) FROM results WHERE batch_id = ?", (batch_id,))[0][0]
         failed = self._query("SELECT COUNT(*) FROM errors WHERE batch_id = ?", (batch_id,))[0][0]
-        errs = self._query("SELECT idx, code, message FROM errors WHERE batch_id = ? ORDER BY idx LIMIT ?",
+        errs = self._query("SELECT e.idx, e.code, e.message, c.config FROM errors e LEFT JOIN configurations c "
+                           "ON c.batch_id = e.batch_id AND c.idx = e.idx WHERE e.batch_id = ? ORDER BY e.idx LIMIT ?",
                            (batch_id, max_errors))
         return {"batch_id": batch_id, "scene_id": row["scene_id"], "state": row["state"], "done": done,
                 "failed": failed, "total": row["total"],
-                "errors": [{"index": r["idx"], "code": r["code"], "message": r["message"]} for r in errs],
+                "errors": [{"index": r["idx"], **_item_fields(r["config"]), "code": r["code"], "message": r["message"]}
+                           for r in errs],
                 "created_at": iso(row["created_at"]), "updated_at": iso(row["updated_at"]),
                 "settings": json.loads(row["settings"])}
 
@@ -576,7 +578,8 @@ class Store:
 
     def results(self, tenant: str, batch_id: str, offset: int = 0, limit: int | None = None) -> list[dict]:
         """Finished configurations with index >= offset, in index order: {"index": i, **result}, or
-        {"index": i, "error": {"code", "message"}} for one that failed. While the batch is queued or
+        {"index": i, "error": {"code", "message"}} for one that failed (a path's frame also with its "frame",
+        "time" and "scene_time", as a solved frame's line). While the batch is queued or
         running the list stops before the first unfinished index, so a reader that resumes at
         `offset = last index + 1` never skips a configuration that finishes later."""
         row = self._batch_row(batch_id, tenant)
@@ -589,15 +592,18 @@ class Store:
             stop = first if first is not None else stop
         lim = -1 if limit is None else max(0, int(limit))
         rows = self._query(
-            "SELECT idx, result, NULL AS code, NULL AS message FROM results WHERE batch_id = ? AND idx >= ? AND idx < ? "
-            "UNION ALL SELECT idx, NULL, code, message FROM errors WHERE batch_id = ? AND idx >= ? AND idx < ? "
+            "SELECT idx, result, NULL AS code, NULL AS message, NULL AS config FROM results "
+            "WHERE batch_id = ? AND idx >= ? AND idx < ? "
+            "UNION ALL SELECT e.idx, NULL, e.code, e.message, c.config FROM errors e LEFT JOIN configurations c "
+            "ON c.batch_id = e.batch_id AND c.idx = e.idx WHERE e.batch_id = ? AND e.idx >= ? AND e.idx < ? "
             "ORDER BY idx LIMIT ?", (batch_id, offset, stop, batch_id, offset, stop, lim))
         out = []
         for r in rows:
             if r["result"] is not None:
                 out.append({"index": r["idx"], **json.loads(r["result"])})
             else:
-                out.append({"index": r["idx"], "error": {"code": r["code"], "message": r["message"]}})
+                out.append({"index": r["idx"], **_item_fields(r["config"]),
+                            "error": {"code": r["code"], "message": r["message"]}})
         return out
 
     def set_state(self, batch_id: str, state: str, only_from: tuple[str, ...] | None = None) -> bool:
@@ -765,6 +771,21 @@ class Store:
                 conn.executescript("PRAGMA auto_vacuum=INCREMENTAL; VACUUM;")
             conn.executescript("PRAGMA incremental_vacuum;")  # executescript steps it to the end
             conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+
+
+ITEM_FIELDS = ("frame", "time", "scene_time")  # what a path's frame holds beside its rig (service.paths)
+
+
+def _item_fields(config_text: str | None) -> dict:
+    """A stored configuration's frame, time and scene_time (a path job's frame), for the line of a frame that
+    failed: it carries them as a solved frame's line does. {} for a batch configuration (a rig only)."""
+    if not config_text:
+        return {}
+    try:
+        config = json.loads(config_text)
+    except ValueError:
+        return {}
+    return {k: config[k] for k in ITEM_FIELDS if isinstance(config, dict) and k in config}
 
 
 def _scene_dict(row) -> dict:
