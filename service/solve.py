@@ -442,6 +442,92 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
     return sol
 
 
+def _path_options(shadow: dict, prob: LightProblem, solver: str | None) -> dict:
+    """optimized_maps' keywords for one light of a path frame (FrameProblem.opts)."""
+    return dict(resolution=tuple(shadow.get("resolution") or (2048, 2048)),
+                cascades=shadow.get("cascades") if isinstance(shadow.get("cascades"), int) else 1,
+                splits=shadow.get("splits", "practical"), split_lambda=shadow.get("lambda", 0.5),
+                texel_budget=shadow.get("texel_budget"), receiver_slack=prob.receiver_slack,
+                sample_rows=prob.sample_rows, solver=solver or DEFAULT_SOLVER)
+
+
+def frame_problems(entry: SceneEntry, rigs: list[dict], light_index: int = 0, solver: str | None = None):
+    """solvers.path_optimize.FrameProblems of validated rigs (one light): each frame's coarse pass and light
+    problem, as solve() makes them."""
+    return [fp for fp, _, _ in _path_frames(entry, rigs, solver, light_index)]
+
+
+def _path_frames(entry: SceneEntry, rigs: list[dict], solver: str | None, light_index: int | None = None):
+    from ..solvers.path_optimize import FrameProblem
+
+    lo, hi = entry.loaded.geometry.bounds()
+    out = []
+    for rig in rigs:
+        t0 = time.perf_counter()
+        resolved, buffers = coarse_pass(entry, rig)
+        probs = light_problems(resolved, buffers, (lo, hi))
+        fps = [FrameProblem(resolved.camera, p.light, p.samples, p.receivers, (lo, hi),
+                            _path_options(resolved.shadow, p, solver)) for p in probs]
+        out.append((fps[light_index] if light_index is not None else fps, resolved,
+                    (time.perf_counter() - t0) * 1e3))
+    return out
+
+
+def whole_path_eligible(resolved: ResolvedRig) -> bool:
+    """A frame the whole-path pass can solve with the others (solvers.path_optimize.optimize_path): every
+    light directional and a fixed cascade count (not "auto"); other paths run frame after frame (previous=)."""
+    return bool(resolved.lights) and all(l.kind == "directional" for l in resolved.lights) \
+        and isinstance(resolved.shadow.get("cascades", 1), int)
+
+
+def solve_path(entry: SceneEntry, rigs: list[dict], solver: str | None = None) -> list[dict]:
+    """Method "path" over a path known ahead (a path job, a batch precomputation): the solutions of the frames
+    of `rigs` (validated rig dicts, in order), each in the optimize schema. Every directional light's maps come
+    from solvers.path_optimize.optimize_path over all frames (segments holding one world-fixed grid, scale
+    level, depth and bias: no texel changes inside a segment); the frame's solver report says which pass was
+    returned and its segment per cascade. timings_ms: the frame's own coarse pass; optimize is the whole-path
+    pass's time divided by the frame count. Paths that are not whole_path_eligible (a spot or point light,
+    cascades "auto") are solved frame after frame with previous= (the interactive form)."""
+    from ..solvers.path_optimize import optimize_path
+
+    if not rigs:
+        return []
+    frames = _path_frames(entry, rigs, solver)
+    if not all(whole_path_eligible(f[1]) for f in frames) or len({len(f[0]) for f in frames}) != 1:
+        out, prev = [], None
+        for rig in rigs:
+            prev = solve(entry, rig, "path", solver=solver, previous=prev)
+            out.append(prev)
+        return out
+    n, n_lights = len(frames), len(frames[0][0])
+    t0 = time.perf_counter()
+    results = [optimize_path([f[0][li] for f in frames]) for li in range(n_lights)]
+    per_frame_ms = (time.perf_counter() - t0) * 1e3 / n
+    out = []
+    for i, (fps, resolved, coarse_ms) in enumerate(frames):
+        per_light, infos = [], []
+        for li, (fp, res) in enumerate(zip(fps, results)):
+            maps = res.maps[i]
+            total, per_map = maps_error(maps, fp.samples, fp.camera.position)
+            per_light.append(light_json(fp.light, maps, total, per_map, resolved.output,
+                                        entry.loaded.stage_to_world, fp.samples))
+            returned = res.passes["returned"]
+            segs = [next([a, b] for a, b in c["segments"] if a <= i <= b)
+                    for c in res.passes.get("segments", {}).get("cascades", [])] if returned == "segments" else None
+            infos.append({"fun": float(res.objective[i]), "per_frame_objective": float(res.per_frame_objective[i]),
+                          "path": {"mode": "whole path", "pass": returned, "segments": segs,
+                                   "grid_changes": res.grid_changes, "level_changes": res.level_changes,
+                                   "frames": n}})
+        timings = {"coarse": coarse_ms, "optimize": per_frame_ms, "total": coarse_ms + per_frame_ms}
+        settings = {"method": "path", "solver": solver or DEFAULT_SOLVER, "time_budget_ms": None,
+                    "coarse_long_side": resolved.coarse_long_side, "shadow": _jsonable(resolved.shadow),
+                    "whole_path": True}
+        sol = solution_json(entry, resolved, "path", per_light, timings, settings)
+        sol["solver"] = infos[0] if len(infos) == 1 else {"lights": infos}
+        out.append(sol)
+    return out
+
+
 def snap_maps(maps: list[ShadowMap], prob: LightProblem) -> None:
     """`shadow.snap_to_texels`: unwarped directional maps get a world-fixed texel grid
     (solvers.fitting.snap_to_texels); warped and perspective maps are left as they are, each with the

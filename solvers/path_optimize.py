@@ -59,6 +59,10 @@ HYSTERESIS = 0.85  # the held grid is replaced when the fresh one's objective is
 BLEND_STEPS = (0.25, 0.5)  # fractions of the way from the held canonical part to the fresh one, tried in order
 BLEND_SLACK = 1.05  # a partial step is taken when its objective is within this factor of the fresh one's
 MEDIAN_WINDOW = 5  # frames of the second pass's moving median
+SEGMENT_TOLERANCE = 1.05  # segment_pass: the fewest segments whose summed objective is within this x the per-frame one's
+SEGMENT_MAX_FRAMES = 48  # frames per segment at most (a long path: the search stays linear in its length)
+DEBUG = False
+SEGMENT_CANDIDATES = 5  # canonical parts tried per segment: its frames' fresh ones, evenly spaced
 
 
 # ------------------------------------------------------------------ the canonical part and its grid
@@ -162,7 +166,41 @@ def _level(a_max: float, held: int | None) -> int:
     return j if j > held else j - LEVEL_SLACK
 
 
-def fit_on_grid(grid: Grid, fit_pts: np.ndarray, corners: np.ndarray, held_levels=None, depth_origin=None):
+def _canonical(grid: Grid, pts: np.ndarray):
+    """(light-view points, w, [X, Y]) of world points on the grid's canonical part, or None when a point is
+    not in front of the warp's centre (w <= 0) or a coordinate is not finite."""
+    v = to_view(grid.view, pts)
+    ph = np.column_stack([v, np.ones(len(v))])
+    with np.errstate(over="ignore", invalid="ignore"):  # a client's previous state may hold any finite numbers
+        w = ph @ grid.G[2]
+        ok = len(w) and np.isfinite(w).all() and float(w.min()) > 1e-12 * max(float(np.abs(w).max()), 1e-300)
+        if ok:
+            cs = [(ph @ grid.G[i]) / w for i in (0, 1)]
+            ok = all(np.isfinite(c).all() for c in cs)
+    return (v, w, cs) if ok else None
+
+
+def _a_max(lo: float, hi: float, n: float) -> float:
+    """The largest NDC scale whose map of n texels holds [lo, hi] with PAD_TEXELS texels and the snap's half
+    texel on each side."""
+    size = max(hi - lo, extent_floor(max(abs(lo), abs(hi))))
+    return 2.0 * max(n - 2.0 * PAD_TEXELS - 1.0, 1.0) / (n * size)
+
+
+def tight_levels(grid: Grid, fit_pts: np.ndarray) -> tuple[int, int] | None:
+    """The finest ladder level per axis at which the grid holds `fit_pts` (fit_on_grid's box), or None."""
+    got = _canonical(grid, fit_pts)
+    if got is None:
+        return None
+    out = []
+    for i in (0, 1):
+        a = _a_max(float(got[2][i].min()), float(got[2][i].max()), float(grid.resolution[i]))
+        out.append(math.floor(LADDER_STEPS * math.log2(a) + 1e-9))
+    return out[0], out[1]
+
+
+def fit_on_grid(grid: Grid, fit_pts: np.ndarray, corners: np.ndarray, held_levels=None, depth_origin=None,
+                force_levels=None, depth_frame=None):
     """(map, levels) of the grid refit (without `held_levels`, a new grid: its s', t' rows are first rescaled
     in place so that the ladder's level 0 is this frame's tight scale) to `fit_pts` (world points the map must contain: the receivers'
     light-plane hull and depth extremes and the samples) or None when a point is not in front of the
@@ -171,38 +209,42 @@ def fit_on_grid(grid: Grid, fit_pts: np.ndarray, corners: np.ndarray, held_level
     that canonical 0 is a texel corner; depth as solvers.optimize.Problem's fit (the fit points and the scene
     corners at the fit points' extreme w, a caster on a receiver's light ray having its w), the stored depth
     (z - z0) / w measured from `depth_origin`'s light-view depth z0 (the camera: the per-frame optimizer's
-    depth, whose view is centred there; from the far anchor, z / w would spread over e^u times the range)."""
-    v = to_view(grid.view, fit_pts)
-    ph = np.column_stack([v, np.ones(len(v))])
-    with np.errstate(over="ignore", invalid="ignore"):  # a client's previous state may hold any finite numbers
-        w = ph @ grid.G[2]
-        ok = len(w) and np.isfinite(w).all() and float(w.min()) > 1e-12 * max(float(np.abs(w).max()), 1e-300)
-        if ok:
-            cs = [(ph @ grid.G[i]) / w for i in (0, 1)]
-            ok = all(np.isfinite(c).all() for c in cs)
-    if not ok:
+    depth, whose view is centred there; from the far anchor, z / w would spread over e^u times the range).
+    `force_levels`: these levels or None when they do not hold the points (a segment's level, segment_pass);
+    `depth_frame` (z0, near, far, light_depth): that depth or None when it does not hold this frame's range
+    (a segment's depth: the returned map's depth_frame is what it used)."""
+    got = _canonical(grid, fit_pts)
+    if got is None:
         return None
+    v, w, cs = got
     rows = []
     levels = []
     for i in (0, 1):
         c = cs[i]
         lo, hi = float(c.min()), float(c.max())
         n = float(grid.resolution[i])
-        size = max(hi - lo, extent_floor(max(abs(lo), abs(hi))))
-        a_max = 2.0 * max(n - 2.0 * PAD_TEXELS - 1.0, 1.0) / (n * size)
-        if held_levels is None:  # a new grid: its row rescaled so that level 0 is the tight scale, and recentred so
+        a_max = _a_max(lo, hi, n)
+        if held_levels is None and force_levels is None:  # a new grid: its row rescaled so that level 0 is the tight scale, and recentred so
             # that canonical 0 (the pivot of later level changes) is the box's centre
             k = a_max * (1.0 - 1e-6)
             mid = 0.5 * (lo + hi)
             grid.G[i] = k * (grid.G[i] - mid * grid.G[2])
             c, lo, hi, a_max = k * (c - mid), k * (lo - mid), k * (hi - mid), 1.0 / (1.0 - 1e-6)
-        j = _level(a_max, None if held_levels is None else held_levels[i])
+        if force_levels is not None:  # a segment's one level (segment_pass): it must hold this frame's points
+            j = int(force_levels[i])
+            if 2.0 ** (j / LADDER_STEPS) > a_max:
+                return None
+        else:
+            j = _level(a_max, None if held_levels is None else held_levels[i])
         a = 2.0 ** (j / LADDER_STEPS)
         b = -a * 0.5 * (lo + hi)
         b = round((b + 1.0) * n / 2.0) * 2.0 / n - 1.0  # canonical 0 on a texel corner (at most half a texel)
         rows.append(a * grid.G[i] + b * grid.G[2])
         levels.append(j)
-    z0 = 0.0 if depth_origin is None else float(to_view(grid.view, np.asarray(depth_origin, float)[None])[0, 2])
+    if depth_frame is not None:
+        z0 = float(depth_frame[0])
+    else:
+        z0 = 0.0 if depth_origin is None else float(to_view(grid.view, np.asarray(depth_origin, float)[None])[0, 2])
     zc = (v[:, 2] - z0) / w
     cz = to_view(grid.view, corners)[:, 2] - z0
     wl, wh = float(w.min()), float(w.max())
@@ -211,6 +253,13 @@ def fit_on_grid(grid: Grid, fit_pts: np.ndarray, corners: np.ndarray, held_level
     near, far = -z_hi, -z_lo
     span = max(far - near, 1e-9 * max(abs(near), abs(far), 1.0))
     n_, f_ = near - 0.01 * span, far + 0.01 * span
+    d = -v[:, 2]
+    dc = -to_view(grid.view, corners)[:, 2]
+    light_depth = (float(min(d.min(), dc.min())), float(d.max()))
+    if depth_frame is not None:  # a segment's held depth: it must hold this frame's range
+        if near < depth_frame[1] or far > depth_frame[2]:
+            return None
+        n_, f_, light_depth = float(depth_frame[1]), float(depth_frame[2]), tuple(depth_frame[3])
     ez = np.array([0.0, 0.0, 1.0, 0.0])
     alpha = -2.0 / (f_ - n_)
     P = np.vstack([rows[0], rows[1], alpha * (ez - z0 * np.array([0.0, 0.0, 0.0, 1.0])) - ((f_ + n_) / (f_ - n_)) * grid.G[2],
@@ -219,12 +268,11 @@ def fit_on_grid(grid: Grid, fit_pts: np.ndarray, corners: np.ndarray, held_level
     grad = float(np.linalg.norm(gw))
     ext = float(np.ptp(v[:, :2], axis=0).max()) if len(v) > 1 else 0.0
     warped = grad * ext > 1e-6 * float(np.mean(w))
-    d = -v[:, 2]
-    dc = -to_view(grid.view, corners)[:, 2]
-    smap = ShadowMap(grid.view.copy(), P, grid.resolution, light_depth=(float(min(d.min(), dc.min())), float(d.max())),
+    smap = ShadowMap(grid.view.copy(), P, grid.resolution, light_depth=light_depth,
                      warp_kind="perspective" if warped else "none",
                      n_prime=float(wl / grad) if warped else None)
     smap.snapped = True
+    smap.depth_frame = (z0, n_, f_, light_depth)  # what a segment holds (segment_pass)
     return smap, (levels[0], levels[1])
 
 
@@ -319,7 +367,7 @@ def previous_grids(state) -> list[Grid | None] | None:
 
 
 def path_maps(camera, light, samples: Samples, receivers: np.ndarray, casters_bounds, previous_state=None,
-              hysteresis: float | None = None, **opts):
+              hysteresis: float | None = None, per_frame_out: list | None = None, **opts):
     """`method: path` for one light: the per-frame optimized maps (optimized_maps with `opts`, warm-started
     from the previous frame's x), each directional cascade replaced by its coherent choice on a world-fixed
     snapped grid (choose_grid). Returns (maps, solver_json) with solver_json["path"] = {"cascades": [the held
@@ -334,6 +382,8 @@ def path_maps(camera, light, samples: Samples, receivers: np.ndarray, casters_bo
     if held is not None and all(g is not None and g.x is not None for g in held):
         opts.setdefault("x0", [g.x for g in held])
     maps, sj = optimized_maps(camera, light, samples, receivers, casters_bounds, **opts)
+    if per_frame_out is not None:  # optimize_path's reference: the per-frame optimizer's own maps
+        per_frame_out.append(maps)
     if not isinstance(light, DirectionalLight) or maps[0].face is not None:
         sj["path"] = {"cascades": [], "note": "per-frame optimized: only directional maps have a world-fixed grid"}
         return maps, sj
@@ -411,26 +461,6 @@ class FrameProblem:
     opts: dict = field(default_factory=dict)
 
 
-def frame_problems(entry, rigs: list[dict], light_index: int = 0) -> list[FrameProblem]:
-    """FrameProblems of validated rigs on a scene entry (service.solve's coarse pass and light problems)."""
-    from ..service.pipeline import coarse_pass
-    from ..service.solve import light_problems
-
-    lo, hi = entry.loaded.geometry.bounds()
-    out = []
-    for rig in rigs:
-        resolved, buffers = coarse_pass(entry, rig)
-        prob = light_problems(resolved, buffers, (lo, hi))[light_index]
-        sh = resolved.shadow
-        opts = dict(resolution=tuple(sh.get("resolution") or (2048, 2048)),
-                    cascades=sh.get("cascades") if isinstance(sh.get("cascades"), int) else 1,
-                    splits=sh.get("splits", "practical"), split_lambda=sh.get("lambda", 0.5),
-                    texel_budget=sh.get("texel_budget"), receiver_slack=prob.receiver_slack,
-                    sample_rows=prob.sample_rows)
-        out.append(FrameProblem(resolved.camera, prob.light, prob.samples, prob.receivers, (lo, hi), opts))
-    return out
-
-
 @dataclass
 class PathResult:
     maps: list  # per frame, the maps (list of ShadowMap per cascade)
@@ -464,7 +494,8 @@ def _objective(maps, fp: FrameProblem) -> float:
     return float(predicted_objective(maps, fp.samples, fp.camera.position))
 
 
-def optimize_path(frames: list[FrameProblem], hysteresis: float | None = None, window: int = MEDIAN_WINDOW) -> PathResult:
+def optimize_path(frames: list[FrameProblem], hysteresis: float | None = None, window: int = MEDIAN_WINDOW,
+                  segment_tolerance: float = SEGMENT_TOLERANCE) -> PathResult:
     """A whole path (batch precomputation). Pass 1: the interactive choice frame after frame (path_maps with
     the previous frame's state). Pass 2 (directional lights, the same cascade count on every frame): per
     cascade, the fresh canonical parts of pass 1 in one light view, a moving median of their normalised
@@ -474,23 +505,22 @@ def optimize_path(frames: list[FrameProblem], hysteresis: float | None = None, w
     pass with fewer grid changes (then the lower summed objective) is returned; both are reported."""
     hysteresis = HYSTERESIS if hysteresis is None else float(hysteresis)
     n = len(frames)
-    maps1, grids1, fresh, fresh_obj, per_frame = [], [], [], [], []
+    maps1, grids1, fresh, fresh_obj, per_frame, pf_maps = [], [], [], [], [], []
     state = None
     for fp in frames:
         maps, sj = path_maps(fp.camera, fp.light, fp.samples, fp.receivers, fp.casters_bounds, state, hysteresis,
-                             **fp.opts)
+                             per_frame_out=pf_maps, **fp.opts)
         state = sj["path"]
         maps1.append(maps)
         cs = state.get("cascades") or []
         grids1.append([Grid.from_json(c) for c in cs])
         fresh.append([Grid.from_json(c["decision"]["fresh"]) if c["decision"].get("fresh") else None for c in cs])
         fresh_obj.append([c["decision"].get("objective_fresh") for c in cs])
-        per_frame.append(float(sum(float(c["decision"].get("objective_per_frame") or 0.0) for c in cs))
-                         if cs else _objective(maps, fp))
+        per_frame.append(_objective(pf_maps[-1], fp))
     obj1 = [_objective(m, fp) for m, fp in zip(maps1, frames)]
     gc1, lc1 = _changes(grids1)
     passes = {"interactive": {"objective_sum": float(sum(obj1)), "grid_changes": gc1, "level_changes": lc1}}
-    best = (maps1, obj1, gc1, lc1, "interactive")
+    candidates = [(maps1, obj1, gc1, lc1, "interactive")]
     k = len(grids1[0]) if grids1 and grids1[0] else 0
     if k and all(len(g) == k for g in grids1) and all(len(fr) == k and all(f is not None for f in fr) for fr in fresh):
         maps2 = [[None] * k for _ in range(n)]
@@ -540,10 +570,161 @@ def optimize_path(frames: list[FrameProblem], hysteresis: float | None = None, w
         obj2 = [_objective(m, fp) for m, fp in zip(maps2, frames)]
         gc2, lc2 = _changes(grids2)
         passes["smoothed"] = {"objective_sum": float(sum(obj2)), "grid_changes": gc2, "level_changes": lc2}
-        if (gc2, sum(obj2)) < (best[2], sum(best[1])):
-            best = (maps2, obj2, gc2, lc2, "smoothed")
+        candidates.append((maps2, obj2, gc2, lc2, "smoothed"))
+        fits = [cascade_fits(fp.camera, fp.light, fp.samples, fp.receivers, fp.casters_bounds, maps1[i],
+                             fp.opts.get("receiver_slack")) for i, fp in enumerate(frames)]
+        per_frame_c = [[f.score(m, fp.camera, fp.light) for f, m in zip(fits[i], pf_maps[i])]
+                       for i, fp in enumerate(frames)]  # each cascade's reference, scored as segment_pass scores
+        got = segment_pass(frames, fits, fresh, per_frame_c, segment_tolerance)
+        if got is not None:
+            maps3, grids3, rep = got
+            for i, fp in enumerate(frames):
+                for c, m in enumerate(maps3[i]):
+                    m.split = maps1[i][c].split
+                    _with_bias(m, fits[i][c].part, fp.light)
+            for c, r in enumerate(rep):
+                for a, b in r["segments"]:
+                    hold_bias([maps3[i][c] for i in range(a, b + 1)])
+            obj3 = [_objective(m, fp) for m, fp in zip(maps3, frames)]
+            gc3, lc3 = _changes(grids3)
+            passes["segments"] = {"objective_sum": float(sum(obj3)), "grid_changes": gc3, "level_changes": lc3,
+                                  "cascades": rep}
+            candidates.append((maps3, obj3, gc3, lc3, "segments"))
+    # the pass with the fewest changes (grid, then level) among those within segment_tolerance of the per-frame
+    # optimizer's summed objective; when none is, the lowest sum
+    ref = segment_tolerance * float(sum(per_frame))
+    within = [cd for cd in candidates if sum(cd[1]) <= ref]
+    best = min(within, key=lambda cd: (cd[2] + cd[3], sum(cd[1]))) if within else \
+        min(candidates, key=lambda cd: sum(cd[1]))
     passes["returned"] = best[4]
     return PathResult(best[0], best[1], per_frame, best[2], best[3], passes)
+
+
+def hold_bias(maps: list[ShadowMap]) -> None:
+    """One bias for the frames of a segment (in place): each constant and clamp the greatest of the frames'
+    (the depth_bias rule's and, per mode, the depth block's), so that a held grid's classification does not
+    change with the bias either; the greatest is the one every frame's receivers need."""
+    if not maps:
+        return
+    for key in maps[0].depth_bias:
+        v = max(float(m.depth_bias.get(key, 0.0)) for m in maps)
+        for m in maps:
+            m.depth_bias[key] = v
+    if all(m.depth is not None for m in maps):
+        for mode in ("hardware", "linear"):
+            for key in ("constant", "slope_clamp"):
+                v = max(float(m.depth[mode][key]) for m in maps)
+                for m in maps:
+                    m.depth[mode][key] = v
+
+
+def segment_pass(frames: list["FrameProblem"], fits: list[list["CascadeFit"]], fresh: list[list[Grid]],
+                 reference: list[list[float]], tolerance: float = SEGMENT_TOLERANCE,
+                 max_frames: int = SEGMENT_MAX_FRAMES):
+    """Whole paths, one cascade at a time: cut the path into segments that each hold ONE canonical part and ONE
+    scale level (the finest level holding every frame of the segment: tight_levels), so that inside a segment
+    each frame only moves its box by whole texels (no texel changes, no flicker) and a change happens only at a
+    segment's first frame. The canonical part of a segment is the best of up to SEGMENT_CANDIDATES of its
+    frames' fresh ones (the per-frame optimizer's, pass 1). Among all cuts (dynamic programming over segment
+    counts), the one with the fewest segments whose summed objective is within `tolerance` x the summed
+    `reference` (the per-frame optimizer's objective per frame and cascade); when none is, the lowest sum.
+    Returns (maps per frame and cascade, grids per frame and cascade, report) or None when a frame has no
+    fresh canonical part."""
+    n = len(frames)
+    k = len(fits[0]) if n else 0
+    if not n or any(len(f) != k for f in fits) or any(len(g) != k or any(x is None for x in g) for g in fresh):
+        return None
+    maps = [[None] * k for _ in range(n)]
+    grids = [[None] * k for _ in range(n)]
+    report = []
+    for c in range(k):
+        cand = []  # per frame: its fresh canonical part, rescaled on its own frame (level 0 = its tight scale)
+        for o in range(n):
+            g = Grid(fresh[o][c].view, fresh[o][c].G.copy(), fresh[o][c].resolution)
+            got = fit_on_grid(g, fits[o][c].fit_pts, fits[o][c].corners, None, frames[o].camera.position)
+            cand.append(g if got is not None else None)
+        tight = {}
+
+        def level(o, kk):
+            if (o, kk) not in tight:
+                tight[o, kk] = tight_levels(cand[o], fits[kk][c].fit_pts) if cand[o] is not None else None
+            return tight[o, kk]
+
+        cost_cache = {}
+
+        def cost(o, kk, L):
+            key = (o, kk, L)
+            if key not in cost_cache:
+                fp = frames[kk]
+                got = fit_on_grid(cand[o], fits[kk][c].fit_pts, fits[kk][c].corners, L, fp.camera.position, L)
+                cost_cache[key] = (fits[kk][c].score(got[0], fp.camera, fp.light) if got else math.inf, got)
+            return cost_cache[key]
+
+        seg = {}  # (i, j) -> (summed objective, candidate, level)
+        for i in range(n):
+            for j in range(i, min(n, i + max_frames)):
+                idx = sorted({int(round(x)) for x in np.linspace(i, j, min(SEGMENT_CANDIDATES, j - i + 1))})
+                best = (math.inf, None, None)
+                for o in idx:
+                    lv = [level(o, kk) for kk in range(i, j + 1)]
+                    if any(v is None for v in lv):
+                        continue
+                    L = (min(v[0] for v in lv), min(v[1] for v in lv))
+                    tot = 0.0
+                    for kk in range(i, j + 1):
+                        tot += cost(o, kk, L)[0]
+                        if tot >= best[0]:
+                            break
+                    if tot < best[0]:
+                        best = (tot, o, L)
+                seg[i, j] = best
+        # dp[s][j]: the least summed objective of frames 0..j in s segments, and the cut
+        INF = (math.inf, None)
+        dp = [[INF] * n for _ in range(n + 1)]
+        for j in range(min(n, max_frames)):
+            dp[1][j] = (seg[0, j][0], None)
+        for s_ in range(2, n + 1):
+            for j in range(s_ - 1, n):
+                best = INF
+                for i in range(max(s_ - 1, j - max_frames + 1), j + 1):
+                    prev = dp[s_ - 1][i - 1][0]
+                    if prev < math.inf and seg[i, j][0] < math.inf and prev + seg[i, j][0] < best[0]:
+                        best = (prev + seg[i, j][0], i)
+                dp[s_][j] = best
+        ref = float(sum(r[c] for r in reference))
+        counts = [s_ for s_ in range(1, n + 1) if dp[s_][n - 1][0] < math.inf]
+        if not counts:
+            return None
+        # within tolerance of the reference, or of the best cut when the reference is out of reach (the ladder,
+        # the snap and a held texel allocation cost a little even with a segment per frame)
+        bound = tolerance * max(ref, min(dp[s_][n - 1][0] for s_ in counts))
+        within = [s_ for s_ in counts if dp[s_][n - 1][0] <= bound]
+        if DEBUG:
+            print("cascade", c, "ref", round(ref, 3), "per frame ref", [round(r[c], 2) for r in reference],
+                  "dp", [round(dp[s_][n - 1][0], 2) for s_ in counts][:6], "...", round(dp[counts[-1]][n - 1][0], 2),
+                  "res", [cand[o].resolution if cand[o] else None for o in range(n)][:3])
+        s_best = within[0] if within else min(counts, key=lambda s_: dp[s_][n - 1][0])
+        cuts, j, s_ = [], n - 1, s_best
+        while s_ >= 1:
+            i = dp[s_][j][1] if s_ > 1 else 0
+            cuts.append((i, j))
+            j, s_ = i - 1, s_ - 1
+        for i, j in reversed(cuts):
+            _, o, L = seg[i, j]
+            # one depth for the segment (stored depth from its first camera, the union of the frames' ranges):
+            # with the grid and the level held, a frame's light pass stores the same depths as the previous one's
+            z0 = frames[i].camera.position
+            held = [fit_on_grid(cand[o], fits[kk][c].fit_pts, fits[kk][c].corners, L, z0, L)[0].depth_frame
+                    for kk in range(i, j + 1)]
+            df = (held[0][0], min(h[1] for h in held), max(h[2] for h in held),
+                  (min(h[3][0] for h in held), max(h[3][1] for h in held)))
+            for kk in range(i, j + 1):
+                got = fit_on_grid(cand[o], fits[kk][c].fit_pts, fits[kk][c].corners, L, None, L, df)
+                maps[kk][c] = got[0]
+                grids[kk][c] = Grid(cand[o].view, cand[o].G, cand[o].resolution, got[1])
+        report.append({"segments": [[i, j] for i, j in reversed(cuts)], "objective_sum": dp[s_best][n - 1][0],
+                       "reference_sum": ref, "within_tolerance": bool(within)})
+    return maps, grids, report
 
 
 INTERPOLATION_RULE = ("per cascade, linear interpolation of the 16 entries of the world-to-clip matrix "

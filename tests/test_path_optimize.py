@@ -114,11 +114,12 @@ def test_path_flickers_less_than_per_frame_optimized(strafe):
 
 def test_whole_path_second_pass_and_keyframes(strafe):
     from shadowopt.solvers.metric import predicted_objective
-    from shadowopt.solvers.path_optimize import frame_problems, interpolated_maps, keyframes, optimize_path
+    from shadowopt.service.solve import frame_problems
+    from shadowopt.solvers.path_optimize import interpolated_maps, keyframes, optimize_path
 
     frames = frame_problems(strafe["entry"], strafe["rigs"])
     res = optimize_path(frames)
-    assert set(res.passes) == {"interactive", "smoothed", "returned"}
+    assert set(res.passes) == {"interactive", "smoothed", "segments", "returned"}
     ratio = float(np.mean(res.objective) / np.mean(res.per_frame_objective))
     assert ratio <= 1.1, (res.objective, res.per_frame_objective)
     for fp, maps, f in zip(frames, res.maps, res.objective):  # the reported objectives are the maps'

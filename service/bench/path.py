@@ -29,7 +29,7 @@ from .suite import ROOT, corpus_scenes, machine, write_section
 
 PATHS_FILE = ROOT / "configs" / "paths.json"
 STRIP_FILE = ROOT / "docs" / "bench" / "path_strip.png"
-DEFAULT_METHODS = ("stable_csm", "focused", "lispsm", "optimized", "optimized_hysteresis", "path")
+DEFAULT_METHODS = ("stable_csm", "focused", "lispsm", "optimized", "optimized_hysteresis", "path_interactive", "path")
 REFERENCE = "stable_csm"
 STRIP_FRAMES = 8  # frames shown per method in the strip
 THUMB = (160, 90)
@@ -58,7 +58,9 @@ def _solve_method(method: str):
     """(solve method name, pass previous=) for a benchmark method name."""
     if method == "optimized_hysteresis":
         return "optimized", True
-    return method, method == "path"
+    if method == "path_interactive":
+        return "path", True
+    return method, False
 
 
 def run_path(validate_rig, entry, cameras: list[dict], sun, shadow: dict, method: str, screen, thumbs=None,
@@ -66,16 +68,18 @@ def run_path(validate_rig, entry, cameras: list[dict], sun, shadow: dict, method
     """One path, one configuration, one method: per frame solve + evaluate, per pair stability."""
     from ...renderers.stability import path_stability
     from ..rigs import resolve_rig
-    from ..solve import maps_from_solution, solve
+    from ..solve import maps_from_solution, solve, solve_path
 
     name, chain = _solve_method(method)
     cams, maps, setup = [], [], []
     prev = None
     light = None
-    for cam in cameras:
-        rig = validate_rig({"camera": {**cam, "resolution": list(screen)},
-                            "lights": [{"type": "directional", "direction": [float(v) for v in sun]}], "shadow": shadow})
-        sol = solve(entry, rig, method=name, previous=prev if chain else None)
+    rigs = [validate_rig({"camera": {**cam, "resolution": list(screen)},
+                          "lights": [{"type": "directional", "direction": [float(v) for v in sun]}], "shadow": shadow})
+            for cam in cameras]
+    whole = solve_path(entry, rigs) if method == "path" else None  # the whole path ahead (a path job)
+    for i, rig in enumerate(rigs):
+        sol = whole[i] if whole is not None else solve(entry, rig, method=name, previous=prev if chain else None)
         prev = sol
         r = resolve_rig(rig, entry.loaded)
         cams.append(r.camera)
