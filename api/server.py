@@ -614,6 +614,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     add_solve_routes(app, svc, Tenant)
     add_batch_routes(app, svc, Tenant)
     add_path_routes(app, svc, Tenant)
+    from .inspect import add_inspect_routes; add_inspect_routes(app, svc, Tenant)  # /inspect and the scene's glTF
     return app
 
 
