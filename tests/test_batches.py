@@ -458,6 +458,14 @@ def test_cli_batch_bad_configs_exit_2_naming_the_field(tmp_path, content, words)
     p = _cli("batch", DEMO, "--configs", cfg, "--out", tmp_path / "o.jsonl")
     assert p.returncode == 2, (p.stdout, p.stderr)
     assert words in p.stderr and "Traceback" not in p.stderr
+    # the error's `field` (what a program reads; the text above is built separately), from the same steps
+    # the CLI takes: expand the request, then validate each configuration
+    from shadowopt.api.schemas import ConfigurationError, validate_configurations
+
+    with pytest.raises((BatchError, ConfigurationError)) as e:
+        validate_configurations(expand_configurations({"configurations": content} if isinstance(content, list)
+                                                      else content))
+    assert e.value.field == words or e.value.field.startswith(words + "."), (e.value.field, words)
 
 
 def test_cli_batch_on_a_file_that_is_not_usd_exits_2_with_the_loaders_reason(tmp_path):
