@@ -59,9 +59,8 @@ HYSTERESIS = 0.85  # the held grid is replaced when the fresh one's objective is
 BLEND_STEPS = (0.25, 0.5)  # fractions of the way from the held canonical part to the fresh one, tried in order
 BLEND_SLACK = 1.05  # a partial step is taken when its objective is within this factor of the fresh one's
 MEDIAN_WINDOW = 5  # frames of the second pass's moving median
-SEGMENT_TOLERANCE = 1.05  # segment_pass: the fewest segments whose summed objective is within this x the per-frame one's
+SEGMENT_TOLERANCE = 1.3  # segment_pass: the fewest segments whose summed objective is within this x the per-frame one's
 SEGMENT_MAX_FRAMES = 48  # frames per segment at most (a long path: the search stays linear in its length)
-DEBUG = False
 SEGMENT_CANDIDATES = 5  # canonical parts tried per segment: its frames' fresh ones, evenly spaced
 
 
@@ -590,12 +589,10 @@ def optimize_path(frames: list[FrameProblem], hysteresis: float | None = None, w
             passes["segments"] = {"objective_sum": float(sum(obj3)), "grid_changes": gc3, "level_changes": lc3,
                                   "cascades": rep}
             candidates.append((maps3, obj3, gc3, lc3, "segments"))
-    # the pass with the fewest changes (grid, then level) among those within segment_tolerance of the per-frame
-    # optimizer's summed objective; when none is, the lowest sum
-    ref = segment_tolerance * float(sum(per_frame))
-    within = [cd for cd in candidates if sum(cd[1]) <= ref]
-    best = min(within, key=lambda cd: (cd[2] + cd[3], sum(cd[1]))) if within else \
-        min(candidates, key=lambda cd: sum(cd[1]))
+    # the pass with the fewest changes (grid and level) among those within segment_tolerance of the per-frame
+    # optimizer's summed objective, or of the best pass's when that is out of reach (a held texel allocation)
+    bound = segment_tolerance * max(float(sum(per_frame)), min(float(sum(cd[1])) for cd in candidates))
+    best = min((cd for cd in candidates if sum(cd[1]) <= bound), key=lambda cd: (cd[2] + cd[3], sum(cd[1])))
     passes["returned"] = best[4]
     return PathResult(best[0], best[1], per_frame, best[2], best[3], passes)
 
@@ -699,10 +696,6 @@ def segment_pass(frames: list["FrameProblem"], fits: list[list["CascadeFit"]], f
         # the snap and a held texel allocation cost a little even with a segment per frame)
         bound = tolerance * max(ref, min(dp[s_][n - 1][0] for s_ in counts))
         within = [s_ for s_ in counts if dp[s_][n - 1][0] <= bound]
-        if DEBUG:
-            print("cascade", c, "ref", round(ref, 3), "per frame ref", [round(r[c], 2) for r in reference],
-                  "dp", [round(dp[s_][n - 1][0], 2) for s_ in counts][:6], "...", round(dp[counts[-1]][n - 1][0], 2),
-                  "res", [cand[o].resolution if cand[o] else None for o in range(n)][:3])
         s_best = within[0] if within else min(counts, key=lambda s_: dp[s_][n - 1][0])
         cuts, j, s_ = [], n - 1, s_best
         while s_ >= 1:
