@@ -7,10 +7,11 @@ re-centred on the bounds' centre before the float32 conversion, as the ray scene
 transform sees world coordinates and one that re-centres (the inspector, for float32 precision) reads it
 from the node.
 
-Above `max_triangles` the mesh is decimated by quadric edge collapse (Garland and Heckbert 1997, through
-the fast-simplification package that trimesh calls) to at most that many triangles; `ExportInfo` says how
-many the scene has and how many were served. A decimated mesh is a preview: its shadows are not the
-scene's.
+Above `max_triangles` the mesh is decimated by quadric edge collapse (Garland and Heckbert 1997; the
+pyfqmr package, Fast-Quadric-Mesh-Simplification) to at most that many triangles, open borders kept (a
+ground plane's quad is planar, so collapsing its corners costs no quadric error: without the border rule
+a decimated scene loses its ground); `ExportInfo` says how many the scene has and how many were served.
+A decimated mesh is a preview: its shadows are not the scene's.
 """
 from __future__ import annotations
 
@@ -75,12 +76,16 @@ def _export(loaded: LoadedScene, max_triangles: int) -> tuple[bytes, ExportInfo]
     vertices = np.asarray(g.vertices, dtype=np.float64) - origin
     faces = np.asarray(g.faces, dtype=np.int64).reshape(-1, 3)
     n = int(faces.shape[0])
-    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False, validate=False)
     decimated = n > max_triangles
     if decimated:
-        mesh = mesh.simplify_quadric_decimation(face_count=max_triangles)
-        if len(mesh.faces) > max_triangles:  # the collapse stops near the target: cut the rest
-            mesh = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces[:max_triangles], process=False)
+        import pyfqmr
+
+        simplify = pyfqmr.Simplify()
+        simplify.setMesh(vertices, faces)
+        simplify.simplify_mesh(target_count=max_triangles, aggressiveness=7, preserve_border=True, verbose=False)
+        vertices, faces, _ = simplify.getMesh()
+        faces = np.asarray(faces, dtype=np.int64)[:max_triangles]  # the collapse stops at or near the target
+    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False, validate=False)
     mesh.vertices = np.asarray(mesh.vertices, dtype=np.float32).astype(np.float64)
     scene = trimesh.Scene()
     transform = np.eye(4)
