@@ -480,15 +480,20 @@ def whole_path_eligible(resolved: ResolvedRig) -> bool:
         and isinstance(resolved.shadow.get("cascades", 1), int)
 
 
-def solve_path(entry: SceneEntry, rigs: list[dict], solver: str | None = None) -> list[dict]:
+def solve_path(entry: SceneEntry, rigs: list[dict], solver: str | None = None,
+               keyframes_every: int | None = None) -> list[dict]:
     """Method "path" over a path known ahead (a path job, a batch precomputation): the solutions of the frames
     of `rigs` (validated rig dicts, in order), each in the optimize schema. Every directional light's maps come
     from solvers.path_optimize.optimize_path over all frames (segments holding one world-fixed grid, scale
     level, depth and bias: no texel changes inside a segment); the frame's solver report says which pass was
     returned and its segment per cascade. timings_ms: the frame's own coarse pass; optimize is the whole-path
     pass's time divided by the frame count. Paths that are not whole_path_eligible (a spot or point light,
-    cascades "auto") are solved frame after frame with previous= (the interactive form)."""
-    from ..solvers.path_optimize import optimize_path
+    cascades "auto") are solved frame after frame with previous= (the interactive form).
+    `keyframes_every` K: for engines that interpolate, every frame's report also says whether it is a keyframe
+    (frames 0, K, 2K, ... and the last), the interpolation rule, and what interpolating the keyframes' matrices
+    adds on these frames (solvers.path_optimize.keyframes: the objective of the interpolated maps at each skipped
+    frame, the worst ratio to the chosen maps' and the receivers left outside)."""
+    from ..solvers.path_optimize import keyframes, optimize_path
 
     if not rigs:
         return []
@@ -502,6 +507,8 @@ def solve_path(entry: SceneEntry, rigs: list[dict], solver: str | None = None) -
     n, n_lights = len(frames), len(frames[0][0])
     t0 = time.perf_counter()
     results = [optimize_path([f[0][li] for f in frames]) for li in range(n_lights)]
+    kfs = [keyframes(res, [f[0][li] for f in frames], keyframes_every) if keyframes_every else None
+           for li, res in enumerate(results)]
     per_frame_ms = (time.perf_counter() - t0) * 1e3 / n
     out = []
     for i, (fps, resolved, coarse_ms) in enumerate(frames):
@@ -518,6 +525,15 @@ def solve_path(entry: SceneEntry, rigs: list[dict], solver: str | None = None) -
                           "path": {"mode": "whole path", "pass": returned, "segments": segs,
                                    "grid_changes": res.grid_changes, "level_changes": res.level_changes,
                                    "frames": n}})
+            if kfs[li] is not None:
+                kf = kfs[li]
+                skipped = {d["frame"]: d for d in kf["skipped"]}
+                infos[-1]["path"]["keyframes"] = {
+                    "every": kf["every"], "is_keyframe": i in kf["frames"], "rule": kf["rule"],
+                    "max_objective_ratio": kf["max_objective_ratio"], "max_objective_added": kf["max_objective_added"],
+                    "max_outside_receivers": kf["max_outside_receivers"],
+                    "interpolated_objective": skipped[i]["objective"] if i in skipped else None,
+                    "interpolated_outside_receivers": skipped[i]["outside_receivers"] if i in skipped else None}
         timings = {"coarse": coarse_ms, "optimize": per_frame_ms, "total": coarse_ms + per_frame_ms}
         settings = {"method": "path", "solver": solver or DEFAULT_SOLVER, "time_budget_ms": None,
                     "coarse_long_side": resolved.coarse_long_side, "shadow": _jsonable(resolved.shadow),

@@ -240,3 +240,23 @@ def test_whole_path_segments_hold_everything_but_whole_texel_moves(strafe):
     f = sum(s["solver"]["fun"] for s in sols)
     ref = sum(s["solver"]["per_frame_objective"] for s in sols)
     assert f <= SEGMENT_TOLERANCE * ref * (1 + 1e-9), (f, ref)
+
+
+def test_whole_path_keyframes_report_what_interpolation_adds(strafe):
+    """solve_path(keyframes_every=K): keyframes at 0, K, ... and the last frame; each skipped frame reports the
+    objective of the rule's interpolated maps there, recomputed here from the keyframes' returned matrices."""
+    from shadowopt.service.solve import frame_problems, maps_from_solution, solve_path
+    from shadowopt.solvers.metric import predicted_objective
+    from shadowopt.solvers.path_optimize import interpolated_maps
+
+    sols = solve_path(strafe["entry"], strafe["rigs"], keyframes_every=2)
+    kf = [s["solver"]["path"]["keyframes"] for s in sols]
+    assert [k["is_keyframe"] for k in kf] == [True, False, True, False, True, True]
+    maps = [maps_from_solution(s)[0] for s in sols]
+    fp = frame_problems(strafe["entry"], strafe["rigs"][3:4])[0]
+    mi = interpolated_maps(maps[2], maps[4], 0.5)
+    assert kf[3]["interpolated_objective"] == pytest.approx(predicted_objective(mi, fp.samples, fp.camera.position),
+                                                            rel=1e-6)
+    assert kf[0]["interpolated_objective"] is None
+    assert kf[0]["max_objective_ratio"] >= max(k["interpolated_objective"] / s["solver"]["fun"]
+                                               for k, s in zip(kf, sols) if k["interpolated_objective"]) * (1 - 1e-9)
