@@ -172,6 +172,12 @@ def cmd_bench(args) -> int:
                             paths=args.paths.split(",") if args.paths else None,
                             methods=args.methods.split(",") if args.methods else None,
                             write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
+    elif args.bench == "throughput":  # path jobs' frames/s per method, local pool and Ray (service.bench.throughput)
+        from ..service.bench.throughput import bench_throughput
+
+        result = bench_throughput(validate_rig, frames=args.frames or 1000, screen=args.screen or (320, 180),
+                                  map_side=args.map, methods=args.methods.split(",") if args.methods else None,
+                                  write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     else:  # argparse restricts choices
         raise CliError(f"unknown benchmark {args.bench!r}")
     if args.json:
@@ -543,8 +549,10 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_analyze)
 
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
-    sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch", "security", "engine", "path"])
-    sp.add_argument("--frames", type=int, default=None, help="path: frames per path (default: configs/paths.json's samples)")
+    sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch", "security", "engine", "path",
+                                       "throughput"])
+    sp.add_argument("--frames", type=int, default=None, help="path: frames per path (default: configs/paths.json's samples); "
+                    "throughput: frames of the long path (default 1000)")
     sp.add_argument("--paths", default=None, help="path: comma-separated path names from configs/paths.json")
     sp.add_argument("--methods", default=None, help="path: comma-separated methods (default: stable_csm, focused, "
                     "lispsm, optimized, optimized_hysteresis and path where available)")
@@ -599,7 +607,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "frame's solution (as optimize --previous)")
     sp.add_argument("--json", action="store_true", help="one JSON line per frame on stdout, in frame order")
     sp.add_argument("--out", default=None, metavar="FILE", help="also write the JSON lines to FILE")
-    sp.add_argument("--workers", type=int, default=2, help="worker processes (a coherent path uses one)")
+    sp.add_argument("--workers", type=int, default=2, help="worker processes (a coherent path runs in as many "
+                    "coherent chunks, each starting fresh, when it has 16 frames per worker)")
     sp.add_argument("--solver", default=None, help="optimizer for --method optimized")
     sp.add_argument("--time-budget-ms", type=float, default=None, help="per frame")
     sp.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
