@@ -498,11 +498,28 @@ def test_focused_rectangle_puts_the_longer_side_on_the_larger_dimension():
     cam = Camera.look([0, 30, 0], [0, -1, 0.001], up=[1, 1, 0], near=1, far=100, resolution=(800, 800), fov_y_deg=40)
     pts = np.random.default_rng(0).uniform([-20, 0, -2], [20, 0, 2], (500, 3))  # a long thin strip along x
     pts = pts @ np.array([[np.cos(0.5), 0, np.sin(0.5)], [0, 1, 0], [-np.sin(0.5), 0, np.cos(0.5)]])
+    # Independent truth: the points' minimum-area rectangle by brute force over rotations (then refined), whose
+    # sides, each grown so that PAD_TEXELS texels lie outside the points on each side (n / (n - 2 PAD)), are the
+    # map's: the longer side on the larger map dimension.
+    xz = pts[:, [0, 2]]
+
+    def sides(a):  # (A, 2): the extents along the axes turned by each angle
+        c, s = np.cos(a)[:, None], np.sin(a)[:, None]
+        u, v = xz[:, 0] * c + xz[:, 1] * s, -xz[:, 0] * s + xz[:, 1] * c
+        return np.stack([u.max(1) - u.min(1), v.max(1) - v.min(1)], 1)
+
+    angles = np.linspace(0, np.pi / 2, 9001)
+    best = angles[int(np.argmin(np.prod(sides(angles), 1)))]
+    fine = np.linspace(best - 1e-3, best + 1e-3, 2001)
+    sf = sides(fine)
+    long_side, short_side = sorted(sf[int(np.argmin(np.prod(sf, 1)))], reverse=True)
     for res in ((2048, 512), (512, 2048)):
         m = baseline("focused", cam, DirectionalLight.make([0, -1, 0]), pts, None, resolution=res)[0]
         width, height = 2 / m.projection[0, 0], 2 / m.projection[1, 1]
         assert (width > height) == (res[0] > res[1])
-        assert width * height < 40 * 4 * 1.1  # the rotated strip's own rectangle, not its bounding box
+        big, small = max(res), min(res)
+        assert max(width, height) == pytest.approx(long_side * big / (big - 2 * PAD_TEXELS), rel=1e-5)
+        assert min(width, height) == pytest.approx(short_side * small / (small - 2 * PAD_TEXELS), rel=1e-5)
 
 
 # ---------------------------------------------------------------- η, n' and the log warp
