@@ -86,3 +86,28 @@ def test_an_invisible_parent_hides_children_without_their_own_opinion(tmp_path):
         assert UsdGeom.Imageable(stage.GetPrimAtPath(p)).ComputeVisibility() == UsdGeom.Tokens.invisible
     g = load_scene(tmp_path / "v.usda").geometry
     assert g.prim_paths == ["/Shown/Cube"] and g.triangle_count == 12
+
+
+def test_instanced_and_parent_mirrored_meshes_face_outward(tmp_path):
+    """Prototypes (either orientation) placed by a PointInstancer with mirroring scales, and a leftHanded
+    mesh under a mirroring parent Xform: each instance is a closed box whose triangles face outward."""
+    s = new_stage(tmp_path / "i.usda")
+    inst = UsdGeom.PointInstancer.Define(s, "/Inst")
+    for lh in (False, True):
+        cube_mesh(s, f"/Inst/Protos/B{int(lh)}", lh, scale=(1.0, 1.0, 1.0), translate=(0.0, 0.0, 0.0))
+    inst.CreatePrototypesRel().SetTargets(["/Inst/Protos/B0", "/Inst/Protos/B1"])
+    inst.CreateProtoIndicesAttr([0, 1, 0, 1])
+    inst.CreatePositionsAttr([Gf.Vec3f(0, 0, 0), Gf.Vec3f(5, 0, 0), Gf.Vec3f(0, 0, 7), Gf.Vec3f(9, 0, 9)])
+    scales = [(1, 1, 1), (1, 1, 1), (-2, 1, 1), (-1, 3, 1)]
+    inst.CreateScalesAttr([Gf.Vec3f(*v) for v in scales])
+    UsdGeom.XformCommonAPI(UsdGeom.Xform.Define(s, "/Mirror")).SetScale(Gf.Vec3f(1, -1, 1))
+    cube_mesh(s, "/Mirror/L", True, scale=(1.0, 2.0, 3.0), translate=(20.0, 0.0, 0.0))
+    s.GetRootLayer().Save()
+    g = load_scene(tmp_path / "i.usda").geometry
+    volumes = {p: abs(float(np.prod(v))) for p, v in zip([f"/Inst[{k}]" for k in range(4)], scales)}
+    volumes["/Mirror/L"] = 6.0
+    assert len(g.prim_paths) == 5
+    for k, path in enumerate(g.prim_paths):
+        vol, worst = outwardness(g.vertices, g.faces[g.face_prim == k])
+        expected = next(v for p, v in volumes.items() if path.startswith(p))
+        assert vol == pytest.approx(expected, rel=1e-6) and worst > 0.1, (path, vol, worst)
