@@ -899,7 +899,7 @@ class BatchRunner:
         """Run some of a batch's pending configurations, storing each outcome as it arrives."""
         self.stats["submitted"] += len(items)
         settings = {**(settings or {}), "max_triangles": self.max_triangles,  # this server's, not the stored ones
-                    "load_limits": self.load_limits}
+                    "load_limits": self.load_limits or (settings or {}).get("load_limits")}
         if settings.get("coherent"):  # a coherent path: frames in order, each given the previous one's solution
             from .paths import coherent_outcomes
 

@@ -1,0 +1,212 @@
+"""Attacks on path jobs (POST /v1/paths) with crafted stages, against a real uvicorn server (and, where the test
+looks inside the process, FastAPI's TestClient): a frame whose geometry is skipped at its time code says so on
+its line; a stage light at its default time and heavy at t = 5 loads at t = 5 under the upload's load limits and
+fails that frame alone; a failed frame's line keeps frame/time; a NaN focal length is named as such; the POST
+reads the stage's animation once, in a scene-load slot."""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from serverkit import auth, running
+
+# Three frames of a USD camera at t = 0, 5, 10 (the camera holds still: the stage's geometry moves).
+RIG = {"camera": {"usd_path": "/World/Cam", "resolution": [96, 54]}, "lights": [{"usd_path": "/World/Sun"}],
+       "shadow": {"resolution": [128, 128]}, "coarse_long_side": 32}
+TIMES = {"start": 0, "end": 10, "step": 5}
+LOAD_TIMEOUT_S = 10.0  # the server's load time limit here: these stages load in 1-5 s (cold child, loaded machine)
+
+STAGE = """#usda 1.0
+(
+    upAxis = "Y"
+    metersPerUnit = 1
+    startTimeCode = 0
+    endTimeCode = 10
+)
+def Xform "World"
+{
+    def Mesh "Ground"
+    {
+        point3f[] points = [(-5,0,-5),(5,0,-5),(5,0,5),(-5,0,5)]
+        int[] faceVertexCounts = [4]
+        int[] faceVertexIndices = [0,3,2,1]
+    }
+    def Camera "Cam"
+    {
+%(camera)s
+        double3 xformOp:translate = (0, 2, 10)
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+    }
+%(body)s
+    def DistantLight "Sun"
+    {
+        float3 xformOp:rotateXYZ = (-60, 20, 0)
+        uniform token[] xformOpOrder = ["xformOp:rotateXYZ"]
+    }
+}
+"""
+
+# A triangle caster whose points are NaN at t = 5 only (USD holds the sample: no interpolation across it at 5).
+NAN_CASTER = """
+    def Mesh "Caster"
+    {
+        int[] faceVertexCounts = [3]
+        int[] faceVertexIndices = [0, 1, 2]
+        point3f[] points.timeSamples = {
+            0: [(-1, 1, 0), (1, 1, 0), (0, 2, 0)],
+            4.9: [(-1, 1, 0), (1, 1, 0), (0, 2, 0)],
+            5: [(nan, nan, nan), (nan, 1, 0), (0, 2, 0)],
+            5.1: [(-1, 1, 0), (1, 1, 0), (0, 2, 0)],
+            10: [(-1, 1, 0), (1, 1, 0), (0, 2, 0)] }
+    }
+"""
+
+HEAVY_INSTANCES = 200_000  # cubes at t = 10 only: 2.4 M triangles; that load takes ~14 s on an idle 2-core machine
+
+
+def heavy_crowd() -> str:
+    """A PointInstancer of one cube at t = 0 and t = 5 and HEAVY_INSTANCES cubes at t = 10 (2.7 MB of text): the
+    upload's check at the default time (the first sample) sees one cube."""
+    pos = ",".join(f"({i % 500},0.5,{i // 500})" for i in range(HEAVY_INSTANCES))
+    idx = ",".join("0" for _ in range(HEAVY_INSTANCES))
+    return f"""
+    def PointInstancer "Crowd"
+    {{
+        point3f[] positions.timeSamples = {{ 0: [(0,0.5,0)], 5: [(1,0.5,0)], 9.9: [(1,0.5,0)], 10: [{pos}] }}
+        int[] protoIndices.timeSamples = {{ 0: [0], 5: [0], 9.9: [0], 10: [{idx}] }}
+        rel prototypes = </World/Crowd/Proto>
+        def Xform "Proto"
+        {{
+            def Cube "C"
+            {{
+                double size = 0.5
+            }}
+        }}
+    }}
+"""
+
+
+def stage(body: str = "", camera: str = "        float focalLength = 35") -> str:
+    return STAGE % {"camera": camera, "body": body}
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    env = {"SHADOWOPT_LOAD_TIMEOUT_S": str(LOAD_TIMEOUT_S), "SHADOWOPT_BATCH_WORKERS": "1"}
+    with running(tmp_path_factory.mktemp("path-attacks") / "data", env=env) as s:
+        yield s
+
+
+def upload(server, text: str, name: str) -> str:
+    r = httpx.post(f"{server.base}/v1/scenes", params={"filename": name}, content=text.encode(),
+                   headers={**auth("alice"), "Content-Type": "application/octet-stream"}, timeout=120)
+    assert r.status_code in (200, 201), r.text
+    return r.json()["scene_id"]
+
+
+def run_path(server, scene_id: str, timeout: float = 240.0) -> tuple[dict, list[dict]]:
+    """POST the three-frame path, wait for it; (status, result lines)."""
+    r = httpx.post(f"{server.base}/v1/paths", json={"scene_id": scene_id, "rig": RIG, "usd_camera": "/World/Cam",
+                                                    "time": TIMES, "method": "focused"},
+                   headers=auth("alice"), timeout=120)
+    assert r.status_code == 202, r.text
+    batch = r.json()["batch_id"]
+    deadline = time.monotonic() + timeout
+    while True:
+        st = httpx.get(f"{server.base}/v1/batches/{batch}", headers=auth("alice"), timeout=30).json()
+        if st["state"] not in ("queued", "running") or time.monotonic() > deadline:
+            break
+        time.sleep(0.2)
+    text = httpx.get(f"{server.base}/v1/batches/{batch}/results", headers=auth("alice"), timeout=30).text
+    return st, [json.loads(x) for x in text.splitlines()]
+
+
+@pytest.fixture(scope="module")
+def attacked(server):
+    """One path over a stage whose caster is NaN at t = 5 and which is light at its default time (the upload's
+    check: 14 triangles) but holds 2.4 M triangles at t = 10: (status, result lines, seconds the path took)."""
+    sid = upload(server, stage(NAN_CASTER + heavy_crowd()), "attacked.usda")
+    t0 = time.monotonic()
+    st, lines = run_path(server, sid)
+    return st, lines, time.monotonic() - t0
+
+
+def test_a_frame_whose_mesh_is_nan_at_its_time_code_says_so_on_its_line(attacked):
+    """The caster's points are NaN at t = 5: the loader skips it there, and that frame's line (only that one)
+    carries the loader's warning naming the prim and why."""
+    st, lines, _ = attacked
+    assert [(l["frame"], l["time"], l["scene_time"]) for l in lines] == [(0, 0, 0), (1, 5, 5), (2, 10, 10)]
+    assert "error" not in lines[0] and "error" not in lines[1], [l.get("error") for l in lines]
+    assert any(w.startswith("/World/Caster: skipped") and "NaN" in w for w in lines[1]["warnings"]), lines[1]
+    assert not any("/World/Caster" in w for w in lines[0].get("warnings") or [])
+
+
+def test_a_stage_heavy_only_at_one_time_code_fails_that_frame_alone_over_the_load_time_limit(attacked):
+    """The worker's load at t = 10 runs isolated under the upload's time limit and is stopped there: that
+    frame's line (with its frame, time and scene_time, like a solved frame's) names the limit, the batch's
+    errors too, and the other frames are solved."""
+    st, lines, took = attacked
+    assert st["state"] == "done" and st["done"] == 2 and st["failed"] == 1, st
+    assert [l["index"] for l in lines] == [0, 1, 2]
+    bad = lines[2]
+    assert (bad["frame"], bad["time"], bad["scene_time"]) == (2, 10, 10)
+    assert bad["error"]["code"] == "load_timeout", bad
+    assert "time code 10" in bad["error"]["message"] and "load time limit" in bad["error"]["message"]
+    assert f"{LOAD_TIMEOUT_S:g} s" in bad["error"]["message"]
+    assert st["errors"] == [{"index": 2, "frame": 2, "time": 10, "scene_time": 10, "code": "load_timeout",
+                             "message": bad["error"]["message"]}]
+    assert took < 60, f"the heavy frame was not stopped at the limit ({took:.0f} s)"  # an unlimited load: ~14 s+
+
+
+def test_a_nan_focal_length_is_refused_naming_the_attribute_and_time_code(server):
+    """focalLength NaN at t = 5 (and USD's interpolation toward it between samples): a 422 naming usd_camera with
+    the camera attribute, its value and the time code, not a range error on a fov_y_deg the request never gave."""
+    sid = upload(server, stage(camera="        float focalLength.timeSamples = { 0: 35, 5: nan, 10: 35 }"),
+                 "nan_focal.usda")
+    r = httpx.post(f"{server.base}/v1/paths", json={"scene_id": sid, "rig": RIG, "usd_camera": "/World/Cam",
+                                                    "time": TIMES}, headers=auth("alice"), timeout=120)
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert err["field"] == "usd_camera"
+    assert "/World/Cam: focalLength nan at time code 5 is not a finite positive number" in err["message"]
+    assert "fov_y_deg" not in err["message"]
+
+
+def test_the_animation_is_read_once_in_a_load_slot_not_a_solver_slot(tmp_path, monkeypatch):
+    """In the server process (TestClient): the POST's read of the stage's animation holds a scene-load slot and
+    no solver slot, and the same path asked again is answered from the cache (no second read)."""
+    from starlette.testclient import TestClient
+
+    import shadowopt.api.server as server_mod
+    from shadowopt.api.settings import Settings
+
+    warm = tmp_path / "warm.usda"  # no camera: the warm-up loads it and solves nothing
+    warm.write_text(stage().replace('def Camera "Cam"', 'def Xform "Cam"'))
+    seen = []
+    real = server_mod.read_animation_for
+
+    def spy(svc, *args):
+        seen.append((svc.admission.load.busy, svc.admission.solve.busy))
+        return real(svc, *args)
+
+    monkeypatch.setattr(server_mod, "read_animation_for", spy)
+    app = server_mod.create_app(Settings(data_dir=str(tmp_path / "data"), warm_scenes=[str(warm)]))
+    svc = app.state.service
+    with TestClient(app) as client:
+        assert svc.ready.wait(120)
+        svc.runner.submit = lambda *a, **k: None  # the frames are not solved here: only the POST is looked at
+        moving = tmp_path / "moving.usda"  # an operator's file (read in this process: the uploads' isolated read
+        moving.write_text(stage(NAN_CASTER))  # is the same call in a child, measured on the real server above)
+        scene_id = svc.store.link_scene(server_mod.LOCAL_TENANT, moving)
+        body = {"scene_id": scene_id, "rig": RIG, "usd_camera": "/World/Cam", "time": TIMES}
+        first = client.post("/v1/paths", json=body)
+        again = client.post("/v1/paths", json=body)
+        other = client.post("/v1/paths", json={**body, "time": {"start": 0, "end": 10, "step": 2}})
+    assert first.status_code == again.status_code == other.status_code == 202, (first.text, again.text, other.text)
+    assert first.json()["total"] == 3 and other.json()["total"] == 6
+    assert first.json()["notes"] == again.json()["notes"]
+    assert seen == [(1, 0), (1, 0)]  # two distinct paths read, each in a load slot with no solver slot held
