@@ -44,6 +44,7 @@ function status(text, isError = false) {
 async function refreshScenes(select) {
   const list = (await (await api("/v1/scenes")).json()).scenes;
   state.scenes = list;
+  state.listings = (state.listings || 0) + 1;
   const sel = $("scene");
   sel.innerHTML = "";
   for (const s of list) {
@@ -53,9 +54,10 @@ async function refreshScenes(select) {
     sel.appendChild(o);
   }
   if (!list.length) { status("no scenes yet: drop a USD file or upload the demo scene"); return; }
-  const id = select && list.some((s) => s.scene_id === select) ? select : (state.sceneId && list.some((s) => s.scene_id === state.sceneId) ? state.sceneId : list[0].scene_id);
+  const has = (id) => id && list.some((s) => s.scene_id === id);
+  const id = has(select) ? select : (has(state.sceneId) ? state.sceneId : list[0].scene_id);
   sel.value = id;
-  await openScene(id);
+  if (id !== state.sceneId) await openScene(id);  // the open scene stays as it is
 }
 
 async function upload(file) {
@@ -467,7 +469,7 @@ out vec4 oColor;
 void main() {
     ivec2 size = textureSize(uShadowMap, 0).xy;
     float d = texelFetch(uShadowMap, ivec3(min(ivec2(vUV * vec2(size)), size - 1), uLayer), 0).r;
-    oColor = vec4(vec3(pow(clamp(d, 0.0, 1.0), 4.0)), 1.0);
+    oColor = vec4(d, d, d, 1.0);
 }
 `;
 
@@ -478,7 +480,7 @@ class Renderer {
     if (!gl) throw new Error("this browser has no WebGL2");
     this.gl = gl;
     this.ext = { clamp: gl.getExtension("EXT_depth_clamp"), offset: gl.getExtension("EXT_polygon_offset_clamp"),
-                 clip: gl.getExtension("EXT_clip_control") };
+                 clip: gl.getExtension("EXT_clip_control"), floatTarget: gl.getExtension("EXT_color_buffer_float") };
     const dbg = gl.getExtension("WEBGL_debug_renderer_info");
     this.name = gl.getParameter(dbg ? dbg.UNMASKED_RENDERER_WEBGL : gl.RENDERER);
     this.geometry = null;
@@ -634,7 +636,7 @@ class Renderer {
         gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_COMPARE_MODE, gl.NONE);
         this.mapKey = key;
       }
-      maps.forEach((m, k) => this.lightPass(k, m, clip, reversedZ, T));
+      if (!state.skipLight) maps.forEach((m, k) => this.lightPass(k, m, clip, reversedZ, T));
       const o = this.offsets;
       maps.forEach((m, k) => {
         const d = m.depth, blk = d[d.mode];
@@ -679,17 +681,20 @@ class Renderer {
     gl.bindVertexArray(null);
     state.stats.renders++;
     $("render-note").textContent = note.join("; ");
-    if (nMaps) this.drawMaps(nMaps);
+    // the light-space view after the frame: its read-back waits for the GPU, the picture should not
+    clearTimeout(this.mapTimer);
+    if (nMaps && this.ext.floatTarget) this.mapTimer = setTimeout(() => this.drawMaps(nMaps), 30);
   }
 
-  // The stored depth of each map, side by side (light space, depth^4 so near casters stand out).
+  // The stored depth of each map, side by side (light space; grey from the nearest to the farthest caster
+  // depth of the map, white where nothing was drawn).
   drawMaps(n) {
-    const gl = this.gl, side = 128;
+    const gl = this.gl, side = 160;
     const out = $("maps");
     out.width = side * n; out.height = side;
     const tex = gl.createTexture();
     gl.bindTexture(gl.TEXTURE_2D, tex);
-    gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA8, side, side);
+    gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA32F, side, side);
     const fbo = gl.createFramebuffer();
     gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
     gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, tex, 0);
@@ -699,13 +704,21 @@ class Renderer {
     gl.activeTexture(gl.TEXTURE0);
     gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.mapTex);
     gl.uniform1i(gl.getUniformLocation(this.progs.quad, "uShadowMap"), 0);
-    const ctx = out.getContext("2d"), px = new Uint8Array(side * side * 4);
+    const ctx = out.getContext("2d"), px = new Float32Array(side * side * 4);
+    const empty = state.renderSolution && state.renderSolution.convention.reversed_z ? 0.0 : 1.0;
     for (let k = 0; k < n; k++) {
       gl.uniform1i(gl.getUniformLocation(this.progs.quad, "uLayer"), k);
       gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
-      gl.readPixels(0, 0, side, side, gl.RGBA, gl.UNSIGNED_BYTE, px);
+      gl.readPixels(0, 0, side, side, gl.RGBA, gl.FLOAT, px);
+      let lo = Infinity, hi = -Infinity;
+      for (let i = 0; i < px.length; i += 4) if (px[i] !== empty) { lo = Math.min(lo, px[i]); hi = Math.max(hi, px[i]); }
       const img = ctx.createImageData(side, side);
-      for (let y = 0; y < side; y++) img.data.set(px.subarray((side - 1 - y) * side * 4, (side - y) * side * 4), y * side * 4);
+      for (let y = 0; y < side; y++) for (let x = 0; x < side; x++) {
+        const d = px[((side - 1 - y) * side + x) * 4], o = (y * side + x) * 4;
+        const g = d === empty ? 255 : Math.round(30 + 190 * (d - lo) / Math.max(hi - lo, 1e-12));
+        img.data[o] = img.data[o + 1] = img.data[o + 2] = g;
+        img.data[o + 3] = 255;
+      }
       ctx.putImageData(img, k * side, 0);
     }
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
@@ -801,6 +814,7 @@ function wire() {
   $("view").addEventListener("change", () => renderer.render());
   $("overlay").addEventListener("change", () => { drawOverlay(); if ($("overlay").value !== "none") evaluate(); else showEvaluation(); });
   $("evaluate").addEventListener("click", () => evaluate());
+  $("refresh").addEventListener("click", () => refreshScenes().catch((e) => status(e.message, true)));
   const dome = $("dome");
   let domeDown = false;
   dome.addEventListener("pointerdown", (e) => { domeDown = true; domeDrag(e); });
@@ -853,7 +867,7 @@ async function main() {
   } catch (e) { status(e.message, true); return; }
   wire();
   // for tests and the benchmark: read-only views of the page's state
-  window.inspector = { state, renderer, classification: () => renderer.classification(), optimize: requestOptimize };
+  window.inspector = { state, renderer, classification: () => renderer.classification() };
   await start();
   document.body.dataset.ready = "1";
 }
