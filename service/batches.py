@@ -36,6 +36,7 @@ IN_FLIGHT_PER_WORKER = 2  # keeps workers busy while a cancel takes effect withi
 MAX_RETRIES = 1  # a configuration in flight when a worker process dies is tried once more
 RUNNER_RETRIES, RUNNER_RETRY_S = 3, 1.0  # a batch whose run fails as a whole is re-queued this often first
 SLICE = 64  # configurations a batch runs before it lets a batch that arrived meanwhile take a turn
+CHUNK = 8  # at most this many configurations per worker task (one round trip, one store commit)
 
 
 class BatchError(FieldError):
@@ -445,6 +446,21 @@ def _worker_init(llvm: str | None, threads: int | None = None, parent_pid: int |
     if threads:
         for var in THREAD_VARS:
             os.environ.setdefault(var, str(threads))
+        _jit_threads(threads)
+
+
+def _jit_threads(threads: int) -> None:
+    """Dr.Jit's kernel threads in a worker: its share of the cores. Dr.Jit's pool defaults to every core in
+    each process, so two workers on two cores ran four kernel threads that spun against each other and
+    against NumPy (measured on the demo path: the edge-pass kernel 2.4 ms with one thread, 5-6 ms with two
+    while another worker ran). Kernels are element-wise, so results are the same bits (checked on every
+    method); solvers.metric.serial_kernels restores this count after its own serial sections."""
+    try:
+        import drjit as dr
+
+        dr.set_thread_count(max(1, int(threads)))
+    except Exception:  # no Dr.Jit here: nothing to size
+        pass
 
 
 def _solve_with(get_entry, config: dict, settings: dict) -> dict:
@@ -526,6 +542,63 @@ def solve_configuration(scene_path: str, sandbox: bool, config: dict, settings: 
     return _solve_with(lambda: _worker_entry(scene_path, sandbox, settings, config.get("scene_time")), config, settings)
 
 
+def solve_group(solve_one, group: list[tuple[int, dict]], settings: dict) -> list[tuple[int, dict]]:
+    """A worker task: several configurations one after another, [(index, outcome), ...]. In a coherent
+    path (settings["coherent"]) a frame whose configuration brings no "previous" gets the frame before it
+    in this task as its previous, as service.paths.previous_of reads it back from the store (a JSON round
+    trip, so the same numbers as a frame solved in its own task); the task's first frame brings its own
+    (or none: the first frame of a coherent chunk)."""
+    from .paths import previous_of
+
+    out, prev_index, prev = [], None, None
+    for i, c in group:
+        if settings.get("coherent") and "previous" not in c and prev is not None and prev_index == i - 1:
+            c = {**c, "previous": prev}
+        o = solve_one(c)
+        out.append((i, o))
+        prev_index, prev = i, previous_of(json.loads(json.dumps(o["result"]))) if "result" in o else None
+    return out
+
+
+def solve_chunk(scene_path: str, sandbox: bool, group: list[tuple[int, dict]], settings: dict) -> list[tuple[int, dict]]:
+    """Worker entry point (local pool) for a task of several configurations (solve_group)."""
+    return solve_group(lambda c: solve_configuration(scene_path, sandbox, c, settings), group, settings)
+
+
+class TaskQueue:
+    """The worker tasks of a run: groups of (index, config), each one round trip to a worker and one store
+    commit. `take()` gives the next group (None: none ready now), `finished()` says no group will come,
+    `done(outcomes)` is told each task's outcomes (a coherent path's next task is ready once the one
+    before it is back: service.paths). `pause()`: start no new task (those in flight finish)."""
+
+    def __init__(self, groups=(), pause=None):
+        self.groups = collections.deque(groups)
+        self.pause = pause or (lambda: False)
+
+    def take(self):
+        return self.groups.popleft() if self.groups and not self.pause() else None
+
+    def finished(self) -> bool:
+        return not self.groups or self.pause()
+
+    def done(self, outcomes) -> None:
+        pass
+
+    def retry(self, group) -> None:
+        """A group lost with its worker, to run again (first)."""
+        self.groups.appendleft(group)
+
+
+def chunk_size(n: int, workers: int) -> int:
+    """Configurations per task for n independent ones: up to CHUNK, but enough tasks to keep every worker
+    busy (IN_FLIGHT_PER_WORKER each) to the end."""
+    return max(1, min(CHUNK, n // max(1, workers * IN_FLIGHT_PER_WORKER * 2)))
+
+
+def chunked(items: list, size: int) -> list[list]:
+    return [items[k:k + size] for k in range(0, len(items), max(1, size))]
+
+
 @dataclass
 class SceneJob:
     path: str
@@ -557,48 +630,74 @@ class _LocalBackend:
         return self.pool
 
     def run(self, job: SceneJob, items: list[tuple[int, dict]], settings: dict, should_stop):
+        """Each configuration its own task; yields (index, outcome) as they complete."""
+        for outs in self.run_groups(job, TaskQueue([[ic] for ic in items]), settings, should_stop):
+            yield from outs
+
+    def run_groups(self, job: SceneJob, tasks: TaskQueue, settings: dict, should_stop):
+        """Run the queue's tasks (solve_chunk), IN_FLIGHT_PER_WORKER per worker; yields each task's
+        [(index, outcome), ...] as it completes. A task lost with a dying worker runs once more (an
+        independent one split into single configurations, so only a configuration that kills its worker
+        again fails: worker_crashed)."""
         from concurrent.futures.process import BrokenProcessPool
 
-        queue = collections.deque((i, c, 0) for i, c in items)
+        retries = collections.deque()  # (group, tries) lost with a worker
         inflight = {}
         try:
-            while queue or inflight:
+            while True:
                 if should_stop():
                     return
                 pool = self._ensure_pool()
-                while queue and len(inflight) < self.workers * IN_FLIGHT_PER_WORKER:
-                    i, c, tries = queue.popleft()
-                    inflight[pool.submit(solve_configuration, job.path, job.sandbox, c, settings)] = (i, c, tries)
+                while len(inflight) < self.workers * IN_FLIGHT_PER_WORKER:
+                    group, tries = retries.popleft() if retries else (tasks.take(), 0)
+                    if group is None:
+                        break
+                    inflight[pool.submit(solve_chunk, job.path, job.sandbox, group, settings)] = (group, tries)
+                if not inflight:
+                    if retries or not tasks.finished():
+                        time.sleep(0.01)  # nothing was ready (the queue said so): ask again
+                        continue
+                    return
                 done, _ = wait(list(inflight), timeout=0.5, return_when=FIRST_COMPLETED)
                 broken = False
                 for fut in done:
                     try:
-                        out = fut.result()
+                        outs = fut.result()
                     except BrokenProcessPool:
                         broken = True
                         continue
                     except Exception as e:
-                        out = {"error": {"code": "internal_error", "message": f"{type(e).__name__}: {e}"}}
-                    i, _, _ = inflight.pop(fut)
-                    yield i, out
+                        group, _ = inflight[fut]
+                        outs = [(i, {"error": {"code": "internal_error", "message": f"{type(e).__name__}: {e}"}})
+                                for i, _ in group]
+                    inflight.pop(fut)
+                    tasks.done(outs)
+                    yield outs
                 if broken:
-                    yield from self._after_crash(inflight, queue)
+                    for lost in self._after_crash(inflight, retries, coherent=bool(settings.get("coherent"))):
+                        tasks.done(lost)
+                        yield lost
         finally:
             for fut in inflight:
                 fut.cancel()
 
-    def _after_crash(self, inflight: dict, queue: collections.deque):
-        """A worker died: everything in flight is lost. Retry each once in a new pool, then give up on it."""
+    def _after_crash(self, inflight: dict, retries: collections.deque, coherent: bool) -> list[list]:
+        """A worker died: everything in flight is lost. Retry each task once in a new pool (independent
+        configurations one by one), then give up on it; the outcomes given up, per task."""
         log.warning("a batch worker process died; restarting the pool")
         self.pool.shutdown(wait=False, cancel_futures=True)
         self.pool = None
-        for fut, (i, c, tries) in sorted(inflight.items(), key=lambda kv: -kv[1][0]):
+        failed = []
+        for fut, (group, tries) in sorted(inflight.items(), key=lambda kv: -kv[1][0][0][0]):
             if tries < MAX_RETRIES:
-                queue.appendleft((i, c, tries + 1))
+                for g in ([group] if coherent else [[ic] for ic in reversed(group)]):
+                    retries.appendleft((g, tries + 1))
             else:
-                yield i, {"error": {"code": "worker_crashed",
-                                    "message": "the worker process died while solving this configuration"}}
+                failed.append([(i, {"error": {"code": "worker_crashed",
+                                              "message": "the worker process died while solving this configuration"}})
+                               for i, _ in group])
         inflight.clear()
+        return sorted(failed, key=lambda g: g[0][0])
 
     def close(self, wait_workers: bool = True):
         if self.pool is not None:
@@ -610,7 +709,7 @@ class SceneSolver:
     """A Ray actor body: receives the scene file's bytes once, loads it once, solves configurations."""
 
     def __init__(self, data: bytes, path: str, filename: str, sandbox: bool, llvm: str | None):
-        _worker_init(llvm)
+        _worker_init(llvm, threads=1)  # an actor holds one CPU (num_cpus=1): one kernel thread, as Ray's OMP_NUM_THREADS
         if not sandbox and os.path.isfile(path):
             self.path = path  # same machine, a local file: keep its relative asset references working
         else:
@@ -629,6 +728,9 @@ class SceneSolver:
     def solve(self, config: dict, settings: dict) -> dict:
         return _solve_with(lambda: _worker_entry(self.path, self.sandbox, settings, config.get("scene_time")), config,
                            settings)
+
+    def solve_chunk(self, group: list, settings: dict) -> list:
+        return solve_group(lambda c: self.solve(c, settings), group, settings)
 
     def pid(self) -> int:
         return os.getpid()
@@ -679,38 +781,57 @@ class _RayBackend:
         self.actors, self.actors_key = [], None
 
     def run(self, job: SceneJob, items: list[tuple[int, dict]], settings: dict, should_stop):
+        """Each configuration its own task; yields (index, outcome) as they complete."""
+        for outs in self.run_groups(job, TaskQueue([[ic] for ic in items]), settings, should_stop):
+            yield from outs
+
+    def run_groups(self, job: SceneJob, tasks: TaskQueue, settings: dict, should_stop):
+        """As _LocalBackend.run_groups, on the actors (IN_FLIGHT_PER_WORKER tasks each); a dead actor is
+        replaced and its tasks run once more."""
         ray = self.ray
         actors = self._actors_for(job)
-        queue = collections.deque((i, c, 0) for i, c in items)
-        inflight = {}  # ObjectRef -> (index, config, tries, actor)
+        retries = collections.deque()
+        inflight = {}  # ObjectRef -> (group, tries, actor)
         load = {id(a): 0 for a in actors}
+        coherent = bool(settings.get("coherent"))
         try:
-            while queue or inflight:
+            while True:
                 if should_stop():
                     return
                 for a in actors:
-                    while queue and load[id(a)] < IN_FLIGHT_PER_WORKER:
-                        i, c, tries = queue.popleft()
-                        inflight[a.solve.remote(c, settings)] = (i, c, tries, a)
+                    while load[id(a)] < IN_FLIGHT_PER_WORKER:
+                        group, tries = retries.popleft() if retries else (tasks.take(), 0)
+                        if group is None:
+                            break
+                        inflight[a.solve_chunk.remote(group, settings)] = (group, tries, a)
                         load[id(a)] += 1
+                if not inflight:
+                    if retries or not tasks.finished():
+                        time.sleep(0.01)
+                        continue
+                    break
                 ready, _ = ray.wait(list(inflight), num_returns=1, timeout=0.5)
                 for ref in ready:
-                    i, c, tries, a = inflight.pop(ref)
+                    group, tries, a = inflight.pop(ref)
                     load[id(a)] -= 1
                     try:
-                        out = ray.get(ref)
+                        outs = ray.get(ref)
                     except ray.exceptions.RayActorError as e:
                         pos = next((k for k, x in enumerate(actors) if x is a), None)
                         if pos is not None:  # replace the dead actor (once per death)
                             actors[pos] = self.spawn()
                             load[id(actors[pos])] = 0
                         if tries < MAX_RETRIES:
-                            queue.appendleft((i, c, tries + 1))
+                            for g in ([group] if coherent else [[ic] for ic in reversed(group)]):
+                                retries.appendleft((g, tries + 1))
                             continue
-                        out = {"error": {"code": "worker_crashed", "message": f"Ray worker died: {e}"}}
+                        outs = [(i, {"error": {"code": "worker_crashed", "message": f"Ray worker died: {e}"}})
+                                for i, _ in group]
                     except Exception as e:
-                        out = {"error": {"code": "internal_error", "message": f"{type(e).__name__}: {e}"}}
-                    yield i, out
+                        outs = [(i, {"error": {"code": "internal_error", "message": f"{type(e).__name__}: {e}"}})
+                                for i, _ in group]
+                    tasks.done(outs)
+                    yield outs
             self.last_actor_pids = ray.get([a.pid.remote() for a in actors])
         finally:
             if inflight:  # abandoned (cancel, shutdown): do not leave work queued on the actors
@@ -757,6 +878,7 @@ class BatchRunner:
         self._runner_failures: dict[str, int] = {}
         self._stop = False
         self._thread: threading.Thread | None = None
+        self._turn_done = 0  # configurations the current batch stored in this turn
 
     # public
     def submit(self, tenant: str, batch_id: str) -> None:
@@ -879,41 +1001,46 @@ class BatchRunner:
         configs = self.store.configurations(batch_id)
         job = SceneJob(str(path), rec["filename"], self.store.scene_sandboxed(tenant, st["scene_id"]))
         items = [(i, configs[i]) for i in pending]
-        for start in range(0, len(items), SLICE):
-            self._run_slice(batch_id, job, items[start:start + SLICE], st["settings"])
-            if self._stop or self._should_stop(batch_id):
-                break
-            if start + SLICE < len(items) and self._others_waiting():
-                # take turns: the rest of this batch goes behind the batches that arrived meanwhile
-                with self._cv:
-                    self._queue.append((tenant, batch_id))
-                return
-        if not self._stop:
-            self.store.finish_batch(batch_id)
+        self._turn_done = 0
+
+        def pause():  # take turns: after a slice, a batch that arrived meanwhile goes first
+            return self._turn_done >= SLICE and self._others_waiting()
+
+        self._run_slice(batch_id, job, items, st["settings"], pause, total=st["total"])
+        if self._stop:
+            return
+        if not self._should_stop(batch_id) and self.store.pending_indices(batch_id):
+            with self._cv:  # paused: the rest goes behind the batches that arrived meanwhile
+                self._queue.append((tenant, batch_id))
+            return
+        self.store.finish_batch(batch_id)
 
     def _others_waiting(self) -> bool:
         with self._cv:
             return bool(self._queue)
 
-    def _run_slice(self, batch_id: str, job, items: list, settings: dict) -> None:
-        """Run some of a batch's pending configurations, storing each outcome as it arrives."""
+    def _run_slice(self, batch_id: str, job, items: list, settings: dict, pause=None, total: int | None = None) -> None:
+        """Run a batch's pending configurations (until `pause()`), storing each task's outcomes in one
+        commit as they arrive: independent configurations in tasks of chunk_size, a coherent path's in
+        chains (service.paths.coherent_outcomes)."""
         self.stats["submitted"] += len(items)
         settings = {**(settings or {}), "max_triangles": self.max_triangles,  # this server's, not the stored ones
                     "load_limits": self.load_limits or (settings or {}).get("load_limits")}
+        stop = lambda: self._should_stop(batch_id)  # noqa: E731
+        backend = self._backend()
         if settings.get("coherent"):  # a coherent path: frames in order, each given the previous one's solution
             from .paths import coherent_outcomes
 
-            outcomes = coherent_outcomes(self.store, self._backend(), batch_id, job, items, settings,
-                                         lambda: self._should_stop(batch_id))
+            groups = coherent_outcomes(self.store, backend, batch_id, job, items, settings, stop, pause=pause,
+                                       total=total)
         else:
-            outcomes = self._backend().run(job, items, settings, lambda: self._should_stop(batch_id))
-        for index, out in outcomes:
-            if "result" in out:
-                self.store.put_result(batch_id, index, out["result"])
-                self.stats["results"] += 1
-            else:
-                self.store.put_error(batch_id, index, out["error"]["code"], out["error"]["message"])
-                self.stats["errors"] += 1
+            tasks = TaskQueue(chunked(items, chunk_size(len(items), self.workers)), pause)
+            groups = backend.run_groups(job, tasks, settings, stop)
+        for outs in groups:
+            self.store.put_outcomes(batch_id, outs)
+            self._turn_done += len(outs)
+            for _, out in outs:
+                self.stats["results" if "result" in out else "errors"] += 1
             with self._cv:
                 self._cv.notify_all()
 

@@ -219,28 +219,91 @@ def previous_of(line: dict | None) -> dict | None:
     return {k: v for k, v in line.items() if k not in _RESULT_EXTRAS}
 
 
-def coherent_outcomes(store: Store, backend, batch_id: str, job, items: list, settings: dict, should_stop):
-    """The batch runner's outcomes for a coherent path: frames one after another in index order, each
-    configuration given "previous" = the previous frame's solution (from the store after a resume), which
-    service.batches._solve_with passes to solve(..., previous=...). Yields (index, outcome)."""
-    prev_index, prev = None, None
-    for i, c in sorted(items, key=lambda ic: ic[0]):
-        if should_stop():
+MIN_CHUNK_FRAMES = 16  # a coherent chunk is at least this long (shorter paths stay one chunk)
+
+
+def chunk_starts(total: int, chunks: int | None) -> list[int]:
+    """The first frames of a coherent path's chunks: `chunks` (settings["coherent_chunks"], the workers that
+    share the path) contiguous runs of equal length, each at least MIN_CHUNK_FRAMES. Each chunk is coherent
+    within itself and its first frame starts fresh (no previous): one fresh start per chunk is the price of
+    solving them in parallel. Fixed by the batch's total and settings, so a resumed path keeps them."""
+    k = max(1, min(int(chunks or 1), total // MIN_CHUNK_FRAMES))
+    return sorted({(j * total) // k for j in range(k)})
+
+
+class _Chains:
+    """A coherent path's worker tasks (service.batches.TaskQueue's protocol): per chunk, runs of up to
+    batches.CHUNK consecutive frames, one task in flight per chunk; a task's first frame brings the previous
+    frame's solution (from the task before it, or from the store after a resume), the worker chains the
+    rest (batches.solve_group)."""
+
+    def __init__(self, store: Store, batch_id: str, items: list, starts: list[int], pause, chunk: int):
+        import bisect
+        import collections
+
+        self.store, self.batch_id, self.starts, self.chunk = store, batch_id, set(starts), chunk
+        self.pause = pause or (lambda: False)
+        self.chains = collections.defaultdict(collections.deque)
+        for i, c in sorted(items, key=lambda ic: ic[0]):
+            self.chains[bisect.bisect_right(starts, i) - 1].append((i, c))
+        self.of = {}  # first index of a task in flight -> chain
+        self.busy, self.last = set(), {}  # chain -> (index, previous) of its last solved frame
+
+    def _previous(self, ch, i: int):
+        if i in self.starts or i == 0:
+            return None
+        if ch in self.last and self.last[ch][0] == i - 1:
+            return self.last[ch][1]
+        owner = self.store.batch_owner(self.batch_id)
+        rows = self.store.results(owner, self.batch_id, offset=i - 1, limit=1) if owner is not None else []
+        return previous_of(rows[0]) if rows and rows[0]["index"] == i - 1 else None
+
+    def take(self):
+        if self.pause():
+            return None
+        for ch in sorted(self.chains):
+            q = self.chains[ch]
+            if ch in self.busy or not q:
+                continue
+            i, c = q.popleft()
+            prev = self._previous(ch, i)
+            group = [(i, {**c, "previous": prev} if prev is not None else c)]
+            while q and len(group) < self.chunk and q[0][0] == group[-1][0] + 1 and q[0][0] not in self.starts:
+                group.append(q.popleft())
+            self.busy.add(ch)
+            self.of[i] = ch
+            return group
+        return None
+
+    def finished(self) -> bool:
+        return self.pause() or not any(self.chains.values())
+
+    def done(self, outs) -> None:
+        ch = self.of.pop(outs[0][0], None)
+        if ch is None:
             return
-        if prev_index != i - 1:
-            prev = None
-            if i > 0:
-                owner = store.batch_owner(batch_id)
-                rows = store.results(owner, batch_id, offset=i - 1, limit=1) if owner is not None else []
-                prev = previous_of(rows[0]) if rows and rows[0]["index"] == i - 1 else None
-        config = {**c, "previous": prev} if prev is not None else c
-        got = None
-        for index, out in backend.run(job, [(i, config)], settings, should_stop):
-            got = out
-            yield index, out
-        if got is None:  # stopped while solving it
-            return
-        prev, prev_index = previous_of(got.get("result")), i
+        self.busy.discard(ch)
+        i, out = outs[-1]
+        self.last[ch] = (i, previous_of(out.get("result")))
+
+
+def coherent_outcomes(store: Store, backend, batch_id: str, job, items: list, settings: dict, should_stop,
+                      pause=None, total: int | None = None):
+    """The batch runner's outcomes for a coherent path, one worker task's [(index, outcome), ...] at a time:
+    within each chunk (chunk_starts: settings["coherent_chunks"], default one) frames one after another in
+    index order, each configuration given "previous" = the previous frame's solution (from the store after
+    a resume), which service.batches._solve_with passes to solve(..., previous=...); the chunks in parallel."""
+    from .batches import CHUNK
+
+    if total is None:
+        owner = store.batch_owner(batch_id)
+        st = store.batch(owner, batch_id, max_errors=0) if owner is not None else None
+        total = st["total"] if st else max((i for i, _ in items), default=-1) + 1
+    starts = chunk_starts(total, settings.get("coherent_chunks"))
+    # tasks of up to CHUNK frames, at least 8 per chunk (a short path streams, and is stored, frame by frame)
+    chunk = max(1, min(CHUNK, total // len(starts) // 8))
+    chains = _Chains(store, batch_id, items, starts, pause, chunk)
+    yield from backend.run_groups(job, chains, settings, should_stop)
 
 
 def is_coherent(method: str | None, coherent: bool | None) -> bool:
@@ -251,10 +314,12 @@ def is_coherent(method: str | None, coherent: bool | None) -> bool:
 
 def run_path(scene_path, frames: list[dict], *, method: str = "optimized", coherent: bool = False,
              workers: int = 2, on_line=None, progress: bool = True, solver: str | None = None,
-             time_budget_ms: float | None = None) -> dict:
+             time_budget_ms: float | None = None, backend: str = "local", ray_address: str | None = None) -> dict:
     """Solve the frames (validated {"rig", "frame", "time"}) as a batch in a temporary Store; call
     `on_line(line)` for each result line in frame order as soon as it and every frame before it are done.
-    Returns a summary {state, total, done, failed, errors, seconds}."""
+    A coherent path runs as `workers` coherent chunks in parallel (chunk_starts: one fresh start per chunk;
+    a path shorter than MIN_CHUNK_FRAMES per worker stays one chunk). Returns a summary {state, total,
+    done, failed, errors, seconds}."""
     from ..api.progress import progress_bar
     from ..renderers.scene_data import SceneError
 
@@ -262,10 +327,12 @@ def run_path(scene_path, frames: list[dict], *, method: str = "optimized", coher
         raise SceneError("not_found", f"cannot open scene {os.fspath(scene_path)!r}: no such file")
     settings = {"method": method, "solver": solver, "time_budget_ms": time_budget_ms,
                 "coherent": is_coherent(method, coherent)}
+    if settings["coherent"] and workers > 1:
+        settings["coherent_chunks"] = workers
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="shadowopt-path-") as tmp:
         store = Store(tmp)
-        runner = BatchRunner(store, workers=1 if settings["coherent"] else workers)
+        runner = BatchRunner(store, backend=backend, workers=workers, ray_address=ray_address)
         bar = progress_bar(len(frames), "path", unit="frame", enabled=progress) or _NoBar()
         try:
             scene_id = store.link_scene("local", scene_path)

@@ -569,6 +569,33 @@ class Store:
             ("UPDATE batches SET updated_at = ? WHERE batch_id = ?", (now, batch_id))])
         return n == 1
 
+    def put_outcomes(self, batch_id: str, outcomes: list[tuple[int, dict]]) -> list[bool]:
+        """put_result / put_error for several configurations in one transaction (one commit for a worker
+        task's frames): each outcome is (index, {"result": solution}) or (index, {"error": {"code",
+        "message"}}). Per outcome, False when that configuration already had a result or an error."""
+        if not outcomes:
+            return []
+        row = self._batch_row(batch_id)
+        if row is None:
+            raise KeyError(f"no batch {batch_id!r}")
+        now = time.time()
+        statements = []
+        for index, out in outcomes:
+            if not 0 <= index < row["total"]:
+                raise IndexError(f"configuration index {index} outside [0, {row['total']})")
+            if "result" in out:
+                statements.append((
+                    "INSERT OR IGNORE INTO results (batch_id, idx, result, created_at) SELECT ?, ?, ?, ? "
+                    "WHERE NOT EXISTS (SELECT 1 FROM errors WHERE batch_id = ? AND idx = ?)",
+                    (batch_id, index, json.dumps(out["result"]), now, batch_id, index)))
+            else:
+                statements.append((
+                    "INSERT OR IGNORE INTO errors (batch_id, idx, code, message, created_at) SELECT ?, ?, ?, ?, ? "
+                    "WHERE NOT EXISTS (SELECT 1 FROM results WHERE batch_id = ? AND idx = ?)",
+                    (batch_id, index, out["error"]["code"], out["error"]["message"], now, batch_id, index)))
+        statements.append(("UPDATE batches SET updated_at = ? WHERE batch_id = ?", (now, batch_id)))
+        return [n == 1 for n in self._write(statements)[:-1]]
+
     def _first_pending(self, batch_id: str, offset: int) -> int | None:
         return self._query(
             "SELECT MIN(c.idx) FROM configurations c WHERE c.batch_id = ? AND c.idx >= ? "

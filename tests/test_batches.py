@@ -491,3 +491,24 @@ def test_hints_break_where_a_map_changes_its_depth_mode():
     assert h["breaks"][0]["reasons"] == ["light 0: depth mode hardware -> linear"]
     assert h["segments"] == [[0, 1], [2, 2]]
     assert "lights[].cascades[].depth.mode" in h["switch_fields"]
+
+
+def test_put_outcomes_stores_a_tasks_results_and_errors_in_one_commit_once(tmp_path):
+    store = Store(tmp_path / "data")
+    sid = store.link_scene("t", DEMO)
+    b = store.create_batch("t", sid, arc_configs(4), {"method": "focused"})
+    got = store.put_outcomes(b, [(0, {"result": {"method": "focused", "x": 1.5}}),
+                                 (2, {"error": {"code": "invalid_rig", "message": "no camera"}})])
+    assert got == [True, True]
+    assert store.put_outcomes(b, [(0, {"result": {"method": "focused", "x": 9.0}}),  # already stored: kept
+                                  (2, {"result": {"method": "focused"}}),  # already an error: kept
+                                  (1, {"result": {"method": "focused", "x": 2.5}})]) == [False, False, True]
+    assert store.put_error(b, 1, "worker_crashed", "late") is False
+    lines = store.results("t", b)
+    assert lines[:3] == [{"index": 0, "method": "focused", "x": 1.5}, {"index": 1, "method": "focused", "x": 2.5},
+                         {"index": 2, "error": {"code": "invalid_rig", "message": "no camera"}}]
+    assert store.pending_indices(b) == [3]
+    with pytest.raises(IndexError):
+        store.put_outcomes(b, [(3, {"result": {}}), (4, {"result": {}})])
+    assert store.pending_indices(b) == [3]  # nothing of a refused task is stored
+    store.close()

@@ -405,3 +405,70 @@ def test_visibility_and_instancer_samples_count_as_moving_geometry(tmp_path):
     stage = tmp_path / "kinds.usda"
     stage.write_text(MOVING_KINDS.lstrip())
     assert read_animation(stage, "/World/Cam", [0.0, 10.0])["moving"] == ["/World/Ground", "/World/Inst"]
+
+
+# -- throughput: tasks of several frames, coherent chunks ------------------------------------------
+
+WALK = {"keyframes": [{"position": [0, 1.7, 0], "target": [0, 1, 20]}, {"position": [6, 1.7, 2], "target": [0, 1, 20]}]}
+
+
+def _walk_frames(n: int) -> list[dict]:
+    frames = expand_path({"rig": TINY, "camera_path": {**WALK, "samples": n}})
+    rigs = validate_configurations([{"rig": f["rig"]} for f in frames])
+    return [{**f, "rig": r["rig"]} for f, r in zip(frames, rigs)]
+
+
+def test_chunk_starts_split_a_long_path_evenly_and_keep_a_short_one_whole():
+    from shadowopt.service.paths import MIN_CHUNK_FRAMES, chunk_starts
+
+    assert chunk_starts(1000, 2) == [0, 500] and chunk_starts(1000, 3) == [0, 333, 666]
+    assert chunk_starts(1000, None) == [0] and chunk_starts(1000, 1) == [0]
+    assert chunk_starts(2 * MIN_CHUNK_FRAMES - 1, 2) == [0]  # a chunk would be shorter than MIN_CHUNK_FRAMES
+    assert chunk_starts(2 * MIN_CHUNK_FRAMES, 2) == [0, MIN_CHUNK_FRAMES]
+    assert chunk_starts(3, 8) == [0]
+
+
+def test_a_path_in_tasks_of_several_frames_on_two_workers_has_each_frames_maps_bit_for_bit():
+    """A path job (tasks of several frames, two workers, one Dr.Jit thread each) answers every frame with the
+    maps and matrices this process computes for that frame alone, to the last bit."""
+    from shadowopt.service.batches import chunk_size
+    from shadowopt.service.paths import run_path
+    from shadowopt.service.scenes import SCENES
+    from shadowopt.service.solve import solve
+
+    frames = _walk_frames(24)
+    assert chunk_size(len(frames), 2) > 1  # the tasks do hold several frames
+    lines = []
+    s = run_path(DEMO, frames, method="focused", workers=2, on_line=lines.append, progress=False)
+    assert (s["done"], s["failed"]) == (24, 0)
+    assert [l["frame"] for l in lines] == list(range(24))
+    entry = SCENES.get(str(DEMO))
+    for line, f in zip(lines, frames):
+        alone = json.loads(json.dumps(solve(entry, f["rig"], method="focused")["lights"]))
+        assert line["lights"] == alone, f"frame {f['frame']}"
+
+
+def test_a_coherent_path_on_two_workers_is_two_coherent_chunks_each_starting_fresh():
+    """--coherent with two workers: frames 0-19 and 20-39 each solved in order from a fresh start, every other
+    frame given its predecessor's solution; each frame equals this process's own chain, bit for bit."""
+    from shadowopt.service.paths import chunk_starts, previous_of, run_path
+    from shadowopt.service.scenes import SCENES
+    from shadowopt.service.solve import solve
+
+    frames = _walk_frames(40)
+    assert chunk_starts(40, 2) == [0, 20]
+    lines = []
+    s = run_path(DEMO, frames, method="optimized", coherent=True, workers=2, on_line=lines.append, progress=False)
+    assert (s["done"], s["failed"]) == (40, 0) and [l["frame"] for l in lines] == list(range(40))
+    for k in (0, 20):
+        assert "temporal" not in lines[k]["solver"]["cascades"][0], k  # a fresh start
+    for a, c in zip(lines, lines[1:]):
+        if c["frame"] != 20:
+            assert c["solver"]["cascades"][0]["temporal"]["previous_x"] == pytest.approx(a["solver"]["x"][0])
+    entry = SCENES.get(str(DEMO))
+    prev = None
+    for line, f in zip(lines, frames):
+        sol = json.loads(json.dumps(solve(entry, f["rig"], method="optimized",
+                                          previous=None if f["frame"] in (0, 20) else prev)))
+        assert line["lights"] == sol["lights"], f"frame {f['frame']}"
+        prev = previous_of(sol)
