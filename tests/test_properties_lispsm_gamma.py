@@ -37,3 +37,20 @@ def test_lispsm_n_opt_is_wimmers_formula_at_several_light_angles(gamma):
     m = baseline("lispsm", cam, light, pts, None)[0]
     assert m.warp_kind == "perspective", (gamma, m.warp_kind)
     assert m.n_prime == pytest.approx((zn + math.sqrt(zn * zf)) / sin_g, rel=1e-9), gamma
+
+
+@pytest.mark.parametrize("gamma", [45.0, 120.0])
+def test_each_cascade_uses_n_opt_of_its_own_depth_range(gamma):
+    """With cascades, z_n and z_f are the cascade's: the receivers' nearest depth to the first split, the
+    splits between, the last split to the receivers' farthest depth (the last map's split ends at the camera's
+    far plane, its receivers end before)."""
+    cam = Camera.look([0, 2, 0], [0, 0, 1], near=0.1, far=200, resolution=(1280, 720))
+    pts, _ = ground_samples(cam)
+    depth = (pts - cam.position) @ cam.forward
+    maps = baseline("lispsm", cam, light_at(gamma, cam), pts, None, cascades=3)
+    sin_g = math.sin(math.radians(gamma))
+    for i, m in enumerate(maps):
+        zn = float(depth.min()) if i == 0 else m.split[0]
+        zf = float(depth.max()) if i == len(maps) - 1 else m.split[1]
+        assert m.warp_kind == "perspective" and zn < zf
+        assert m.n_prime == pytest.approx((zn + math.sqrt(zn * zf)) / sin_g, rel=1e-9), (gamma, i)
