@@ -20,7 +20,7 @@ from shadowopt.service.solve import solve
 from shadowopt.solvers import baselines, optimize
 from shadowopt.solvers.frames import stage_to_world
 
-PADS = (0.0, 4.0, 64.0)  # texels on each side of a 512-texel map: none, a few, an eighth of the map
+PADS = (0.0, 64.0)  # texels on each side of a 512-texel map: none, an eighth of the map
 CAM = {"position": (0, 1.7, 0), "forward": (0, -0.15, 1.0), "near": 0.1, "far": 300, "resolution": (320, 180),
        "fov_y_deg": 60}
 
@@ -62,4 +62,4 @@ def test_more_fit_padding_never_loses_coverage(entry, method, cascades, monkeypa
             assert sol["solver"]["cascades"][0]["chosen"] == "optimized", pad
         mean_m.append(sol["lights"][0]["predicted_error"]["mean_m"])
     if method == "focused":  # the pad did take effect: the same receivers on fewer texels, coarser texels
-        assert mean_m[0] < mean_m[1] < mean_m[2], mean_m
+        assert mean_m[0] < mean_m[1], mean_m
