@@ -172,6 +172,10 @@ def cmd_bench(args) -> int:
                             paths=args.paths.split(",") if args.paths else None,
                             methods=args.methods.split(",") if args.methods else None,
                             write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
+    elif args.bench == "inspect":  # the browser inspector: slider to new shadows on screen (headless chromium)
+        from ..service.bench.inspect import bench_inspect
+
+        result = bench_inspect(write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "throughput":  # path jobs' frames/s per method, local pool and Ray (service.bench.throughput)
         from ..service.bench.throughput import bench_throughput
 
@@ -550,7 +554,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
     sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch", "security", "engine", "path",
-                                       "throughput"])
+                                       "throughput", "inspect"])
     sp.add_argument("--frames", type=int, default=None, help="path: frames per path (default: configs/paths.json's samples); "
                     "throughput: frames of the long path (default 1000)")
     sp.add_argument("--paths", default=None, help="path: comma-separated path names from configs/paths.json")
