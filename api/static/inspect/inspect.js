@@ -142,7 +142,8 @@ function rig() {
   const light = lightSel === "sliders" ? { type: "directional", direction: sunDirection() } : { usd_path: lightSel };
   const c = $("cascades").value;
   return { camera, lights: [light],
-           shadow: { texel_budget: +$("budget").value, cascades: c === "auto" ? "auto" : +c } };
+           shadow: { texel_budget: +$("budget").value, cascades: c === "auto" ? "auto" : +c },
+           coarse_long_side: +$("coarse").value };
 }
 
 function output(preset) {
@@ -319,7 +320,8 @@ function showInteraction() {
   const s = state.stats;
   rows($("interaction-table"), [
     ["optimize requests", s.optimizeRequests], ["last slider → shadows ms", fmt(s.lastLatencyMs, 4)],
-    ["last optimize round trip ms", fmt(s.lastOptimizeMs, 4)], ["last render ms", fmt(s.lastRenderMs, 3)],
+    ["last optimize round trip ms", fmt(s.lastOptimizeMs, 4)],
+    ["server setup ms", state.solution ? fmt(state.solution.timings_ms.total, 4) : "–"],
     ["renderer", renderer.name],
   ]);
 }
@@ -599,7 +601,8 @@ class Renderer {
     if (this.canvas.width !== w || this.canvas.height !== h) { this.canvas.width = w; this.canvas.height = h; }
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
     gl.viewport(0, 0, w, h);
-    gl.clearColor(0, 0, 0, 1);
+    // the sky in the shaded views; black (no surface) in the classification, which is read back
+    if ($("view").value === "classification") gl.clearColor(0, 0, 0, 1); else gl.clearColor(0.45, 0.6, 0.78, 1);
     gl.clearDepth(1.0);
     gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
     if (!this.geometry || !state.info) return;
@@ -808,7 +811,7 @@ function wire() {
     if (f) upload(f).catch((err) => status(err.message, true));
   });
   for (const id of ["azimuth", "elevation"]) $(id).addEventListener("input", () => { $("light").value = "sliders"; sunChanged(); });
-  for (const id of ["camera", "resolution", "cascades", "budget", "method", "preset", "light", "time-budget"]) {
+  for (const id of ["camera", "resolution", "cascades", "budget", "method", "preset", "light", "time-budget", "coarse"]) {
     $(id).addEventListener("change", () => { renderer.render(); drawOverlay(); requestOptimize(); });
   }
   $("view").addEventListener("change", () => renderer.render());
