@@ -2,7 +2,7 @@
 system browser; its software WebGL2 is SwiftShader through ANGLE) against a real uvicorn on 127.0.0.1 with
 tokens. The page loads and asks for a token; a scene uploaded through the page appears; the WebGL render
 of the demo rig (the document's light pass and lookup) agrees with evaluate's shadowed/lit classification
-on >= 99% of the receiver pixels; moving the sun slider sends one optimize and moves the shadows; another
+on >= 99% of the receiver pixels (also with four cascades in Direct3D's reversed-Z clip space); moving the sun slider sends one optimize and moves the shadows; another
 tenant's scene is not listed. Screenshots of each step are written to the test's temporary folder (and
 to $SHADOWOPT_SCREENSHOTS when set)."""
 from __future__ import annotations
@@ -87,7 +87,7 @@ def test_page_asks_for_the_token_then_loads(page, server, shots):
     assert "401" in page.text_content("#status")  # the server's message, shown as it is
     page.fill("#token", TOKENS["alice"])
     page.click("#token-form button")
-    page.wait_for_function("document.body.dataset.ready === '1'")
+    page.wait_for_function("document.body.dataset.ready === '1' && window.inspector.state.listings >= 1")
     assert page.evaluate("sessionStorage.getItem('shadowopt-token')") == TOKENS["alice"]
     assert "no scenes" in page.text_content("#status")
     assert page.errors == []
@@ -176,3 +176,22 @@ def test_another_tenants_scene_is_not_listed(page, server, shots):
         {{headers: {{Authorization: 'Bearer ' + sessionStorage.getItem('shadowopt-token')}}}})).status""")
     assert status == 404
     page.screenshot(path=str(shots / "5-other-tenant.png"))
+
+
+def test_four_cascades_reversed_z_agree_with_evaluate(page, server, shots):
+    """Four cascades in one array texture, Direct3D's clip space with reversed Z (EXT_clip_control, the
+    comparison flipped): the same agreement."""
+    for sel, value in (("#preset", "reversed_z"), ("#cascades", "4")):
+        n = page.evaluate("window.inspector.state.stats.optimizeResponses")
+        page.select_option(sel, value)
+        _solved(page, n + 1)
+    sol = page.evaluate("window.inspector.state.solution")
+    assert sol["convention"]["api"] == "d3d" and sol["convention"]["reversed_z"] and len(sol["lights"][0]["cascades"]) == 4
+    classes = _classes(page)
+    receivers, map_shadowed, _ = _evaluator_mask(server, page)
+    agree = float(np.mean((classes == "S")[receivers] == map_shadowed[receivers]))
+    print(f"4 cascades, reversed Z: {agree:.4%} agree")
+    assert agree >= 0.99
+    page.select_option("#view", "cascades")
+    page.screenshot(path=str(shots / "3b-cascades.png"))
+    page.select_option("#view", "shaded")

@@ -140,9 +140,12 @@ function rig() {
   camera.resolution = resolution();
   const lightSel = $("light").value;
   const light = lightSel === "sliders" ? { type: "directional", direction: sunDirection() } : { usd_path: lightSel };
-  const c = $("cascades").value;
-  return { camera, lights: [light],
-           shadow: { texel_budget: +$("budget").value, cascades: c === "auto" ? "auto" : +c },
+  const c = $("cascades").value, budget = +$("budget").value;
+  // a given count of cascades: one size for every map (the listing's array texture holds one), the budget
+  // shared equally; "auto": the service sizes the maps from the budget
+  const side = Math.floor(Math.sqrt(budget / (c === "auto" ? 1 : +c)));
+  const shadow = c === "auto" ? { texel_budget: budget, cascades: "auto" } : { resolution: [side, side], cascades: +c };
+  return { camera, lights: [light], shadow,
            coarse_long_side: +$("coarse").value };
 }
 
@@ -791,6 +794,7 @@ function wire() {
     e.preventDefault();
     sessionStorage.setItem(TOKEN_KEY, $("token").value.trim());
     $("token-form").hidden = true;
+    status("checking the token…");
     start();
   });
   $("scene").addEventListener("change", () => openScene($("scene").value).catch((e) => status(e.message, true)));
