@@ -1240,6 +1240,7 @@ def add_path_routes(app: FastAPI, svc: Service, Tenant) -> None:
                         anim = await path_animation(svc, ticket, req.scene_id, *need.args)
             except PathError as e:
                 raise ApiError(422, e.code, f"{e.field}: {e.message}", e.field) from e
+            check_path_triangles(svc, entry, anim, frames)
             # the per-frame validation (every frame's rig resolved against the scene) is solver-bound work
             return await svc.in_slot(svc.admission.solve, ticket, queue_path, svc, tenant, req, frames, notes, entry)
 
@@ -1255,6 +1256,23 @@ def add_path_routes(app: FastAPI, svc: Service, Tenant) -> None:
         batch_id, _ = store_batch(svc, tenant, req.scene_id, frames, settings, entry, what="frames")
         return json_response({"batch_id": batch_id, "scene_id": req.scene_id, "state": "queued", "total": len(frames),
                               "coherent": settings["coherent"], "notes": notes}, status=202)
+
+
+def check_path_triangles(svc: Service, entry, anim: dict | None, frames: list) -> None:
+    """413 too_many_triangles (field time) when the stage's sampled topology (read_animation's triangles_added:
+    a mesh's faceVertexCounts, an instancer's protoIndices) puts it over max_triangles at one of the path's time
+    codes: a stage light at its default time (the upload's check) and heavy at t = 5 is refused before any
+    frame is queued. An estimate from topology alone; each frame's load checks the real count again."""
+    added = (anim or {}).get("triangles_added")
+    if not added:
+        return
+    k = max(range(len(added)), key=added.__getitem__)
+    total, limit = entry.loaded.geometry.triangle_count + added[k], svc.settings.max_triangles
+    if total > limit:
+        grow = ", ".join(anim.get("growing") or [])
+        raise ApiError(413, "too_many_triangles", f"time: at time code {frames[k]['time']:g} the stage has about "
+                       f"{total} triangles ({grow} grow there), over the limit of {limit}; refused before any frame "
+                       "is solved", "time")
 
 
 class _NeedAnimation(Exception):

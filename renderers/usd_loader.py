@@ -1424,7 +1424,9 @@ def read_animation(path, camera_path: str | None, time_codes: list[float], *, li
     type name ("" when there is no such prim), "lights": {usd_path: [UsdLight per time]} for `light_paths`
     (default: every light of the stage), "moving": prim paths (up to 20) of geometry whose transform or
     points have time samples, "time_range": [start, end] time codes of the stage or None, "warnings", "camera_problems":
-    the camera values replaced by fallbacks (not finite or not positive) or a non-finite transform, per time code}.
+    the camera values replaced by fallbacks (not finite or not positive) or a non-finite transform, per time code,
+    "triangles_added": per time code the triangles the geometry's sampled topology adds to the default time's
+    count (_triangle_change; None when no prim's count changes), "growing": up to 5 of those prims}.
     A time code is read as Usd.TimeCode(t): world transforms from UsdGeom.XformCache(t)."""
     path = os.fspath(path)
     scrub = PathRedactor([os.path.dirname(os.path.abspath(path)), asset_root]).text
@@ -1447,6 +1449,7 @@ def read_animation(path, camera_path: str | None, time_codes: list[float], *, li
                 out["camera"] = [_camera(prim, Usd.TimeCode(t), xc, s2w, mpu, warnings, out["camera_problems"])
                                  for t, xc in zip(times, caches)]
         budget = _Budget(None, max_prims)
+        extra, growing = None, []
         for prim in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)):
             budget.prim(prim)
             p = str(prim.GetPath())
@@ -1455,9 +1458,16 @@ def read_animation(path, camera_path: str | None, time_codes: list[float], *, li
                     ls = [_light(prim, Usd.TimeCode(t), xc, s2w) for t, xc in zip(times, caches)]
                     if ls and ls[0] is not None:
                         out["lights"][p] = ls
-            elif (prim.IsA(UsdGeom.Gprim) or prim.IsA(UsdGeom.PointInstancer)) and len(out["moving"]) < 20:
+            elif prim.IsA(UsdGeom.Gprim) or prim.IsA(UsdGeom.PointInstancer):
                 if _changes_over_time(prim):
-                    out["moving"].append(p)
+                    if len(out["moving"]) < 20:
+                        out["moving"].append(p)
+                    delta = _triangle_change(prim, times)
+                    if delta is not None:
+                        extra = [a + b for a, b in zip(extra, delta)] if extra else delta
+                        growing.append(p)
+        out["triangles_added"] = extra  # per time code, or None when no prim's triangle count changes
+        out["growing"] = growing[:5]
         out["warnings"] = [scrub(w) for w in _dedupe(warnings)][:MAX_WARNINGS]
         out["camera_problems"] = [scrub(w) for w in out["camera_problems"][:MAX_WARNINGS]]
         return out
@@ -1484,6 +1494,65 @@ def _changes_over_time(prim) -> bool:
     if any(varies(UsdGeom.Imageable(a).GetVisibilityAttr()) for a in chain if a.IsA(UsdGeom.Imageable)):
         return True
     return any(varies(attr) for attr in prim.GetAttributes())
+
+
+def _held(attr, times: list[float]) -> list:
+    """attr's value at each time code for an attribute USD holds rather than interpolates (integer arrays:
+    topology, protoIndices), read once per time sample it lands on (its lower bracketing sample)."""
+    from pxr import Usd
+
+    values, out = {}, []
+    for t in times:
+        bracket = attr.GetBracketingTimeSamples(t)  # (lower, upper), empty without samples
+        key = float(bracket[0]) if bracket else None
+        if key not in values:
+            values[key] = attr.Get(Usd.TimeCode(key)) if key is not None else attr.Get(Usd.TimeCode(t))
+        out.append(values[key])
+    return out
+
+
+def _triangle_change(prim, times: list[float]) -> list[int] | None:
+    """What a Mesh with sampled faceVertexCounts, or a PointInstancer with sampled protoIndices, adds at each
+    time code to the triangles the loader counts at the default time (a stage light there and heavy at t = 5);
+    None when its triangle count cannot change. Instances counted whatever their mask (an upper bound);
+    prototypes' triangles as at the default time."""
+    from pxr import Usd, UsdGeom
+
+    default = Usd.TimeCode.Default()
+    if prim.IsA(UsdGeom.Mesh):
+        attr = UsdGeom.Mesh(prim).GetFaceVertexCountsAttr()
+        if attr.GetNumTimeSamples() == 0:
+            return None
+        base = _face_triangles(_get(attr, default))
+        return [_face_triangles(v) - base for v in _held(attr, times)]
+    if not prim.IsA(UsdGeom.PointInstancer):
+        return None
+    inst = UsdGeom.PointInstancer(prim)
+    attr = inst.GetProtoIndicesAttr()
+    if attr.GetNumTimeSamples() == 0:
+        return None
+    stage = prim.GetStage()
+    proto_tris = []
+    for target in inst.GetPrototypesRel().GetTargets():
+        root, n = stage.GetPrimAtPath(target), 0
+        if root:
+            for q in Usd.PrimRange(root, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)):
+                if q.IsA(UsdGeom.Mesh):
+                    n += _face_triangles(_get(UsdGeom.Mesh(q).GetFaceVertexCountsAttr(), default))
+                elif q.IsA(UsdGeom.Gprim):
+                    n += implicit_triangle_count(q.GetTypeName())
+        proto_tris.append(n)
+    tris = np.asarray(proto_tris + [0], np.int64)  # an index naming no prototype: no triangles
+
+    def count(v) -> int:
+        idx = _as_array(v, None, np.int64)
+        if idx is None or not len(idx):
+            return 0
+        idx = np.where((idx >= 0) & (idx < len(proto_tris)), idx, len(proto_tris))
+        return int(tris[idx].sum())
+
+    base = count(_get(attr, default))
+    return [count(v) - base for v in _held(attr, times)]
 
 
 def _ancestors(prim):

@@ -68,11 +68,11 @@ NAN_CASTER = """
 HEAVY_INSTANCES = 200_000  # cubes at t = 10 only: 2.4 M triangles; that load takes ~14 s on an idle 2-core machine
 
 
-def heavy_crowd() -> str:
-    """A PointInstancer of one cube at t = 0 and t = 5 and HEAVY_INSTANCES cubes at t = 10 (2.7 MB of text): the
-    upload's check at the default time (the first sample) sees one cube."""
-    pos = ",".join(f"({i % 500},0.5,{i // 500})" for i in range(HEAVY_INSTANCES))
-    idx = ",".join("0" for _ in range(HEAVY_INSTANCES))
+def heavy_crowd(n: int = HEAVY_INSTANCES) -> str:
+    """A PointInstancer of one cube at t = 0 and t = 5 and n cubes at t = 10 (2.7 MB of text for HEAVY_INSTANCES):
+    the upload's check at the default time (the first sample) sees one cube."""
+    pos = ",".join(f"({i % 500},0.5,{i // 500})" for i in range(n))
+    idx = ",".join("0" for _ in range(n))
     return f"""
     def PointInstancer "Crowd"
     {{
@@ -178,7 +178,8 @@ def test_a_nan_focal_length_is_refused_naming_the_attribute_and_time_code(server
 
 def test_the_animation_is_read_once_in_a_load_slot_not_a_solver_slot(tmp_path, monkeypatch):
     """In the server process (TestClient): the POST's read of the stage's animation holds a scene-load slot and
-    no solver slot, and the same path asked again is answered from the cache (no second read)."""
+    no solver slot, and the same path asked again is answered from the cache (no second read). A stage whose
+    instancer grows past max_triangles at one time code is refused at the POST, naming it."""
     from starlette.testclient import TestClient
 
     import shadowopt.api.server as server_mod
@@ -194,7 +195,7 @@ def test_the_animation_is_read_once_in_a_load_slot_not_a_solver_slot(tmp_path, m
         return real(svc, *args)
 
     monkeypatch.setattr(server_mod, "read_animation_for", spy)
-    app = server_mod.create_app(Settings(data_dir=str(tmp_path / "data"), warm_scenes=[str(warm)]))
+    app = server_mod.create_app(Settings(data_dir=str(tmp_path / "data"), warm_scenes=[str(warm)], max_triangles=1000))
     svc = app.state.service
     with TestClient(app) as client:
         assert svc.ready.wait(120)
@@ -206,7 +207,18 @@ def test_the_animation_is_read_once_in_a_load_slot_not_a_solver_slot(tmp_path, m
         first = client.post("/v1/paths", json=body)
         again = client.post("/v1/paths", json=body)
         other = client.post("/v1/paths", json={**body, "time": {"start": 0, "end": 10, "step": 2}})
+        crowd = tmp_path / "crowd.usda"  # ground 2 + one cube 12 = 14 triangles at its default time, 2 + 100 x 12 at 10
+        crowd.write_text(stage(heavy_crowd(100)))
+        grown = client.post("/v1/paths", json={**body, "scene_id": svc.store.link_scene(server_mod.LOCAL_TENANT, crowd)})
+        calm = client.post("/v1/paths", json={**body, "scene_id": svc.store.link_scene(server_mod.LOCAL_TENANT, crowd),
+                                              "time": {"start": 0, "end": 9}})
+    assert grown.status_code == 413, grown.text  # refused before any frame is queued, naming the time code
+    err = grown.json()["error"]
+    assert (err["code"], err["field"]) == ("too_many_triangles", "time")
+    assert "time code 10" in err["message"] and "1202 triangles" in err["message"] and "/World/Crowd" in err["message"]
+    assert calm.status_code == 202, calm.text
     assert first.status_code == again.status_code == other.status_code == 202, (first.text, again.text, other.text)
     assert first.json()["total"] == 3 and other.json()["total"] == 6
     assert first.json()["notes"] == again.json()["notes"]
-    assert seen == [(1, 0), (1, 0)]  # two distinct paths read, each in a load slot with no solver slot held
+    assert seen[:2] == [(1, 0), (1, 0)]  # two distinct paths read, each in a load slot with no solver slot held
+    assert len(seen) == 4  # and the two crowd paths
