@@ -457,7 +457,7 @@ void main() {
     if (uView == 1 && uParams.x > 0.5) {
         int last = int(uParams.x) - 1, k = 0;
         while (k < last && vViewDepth > uCascade[k].y) k++;   // the lookup's cascade selection
-        c = mix(c, uCascadeColours[k], 0.45);
+        c = mix(c, uCascadeColours[k], 0.3);
     }
     oColor = vec4(pow(c, vec3(1.0 / 2.2)), 1.0);
 }
