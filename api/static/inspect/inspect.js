@@ -178,13 +178,16 @@ async function optimize() {
     const jobs = [postOptimize(asked)];
     // the picture needs world-frame matrices: an engine preset's frame is the engine's, so the same request
     // in the world frame is solved beside it (its numbers are the preset's)
-    if (preset.startsWith("engine:")) jobs.push(postOptimize(base));
-    const [sol, worldSol] = await Promise.all(jobs);
+    const compare = $("compare").value;
+    jobs.push(preset.startsWith("engine:") ? postOptimize(base) : Promise.resolve(null));
+    if (compare) jobs.push(postOptimize(Object.assign(structuredClone(base), { method: compare })));
+    const [sol, worldSol, compared] = await Promise.all(jobs);
     state.stats.lastOptimizeMs = performance.now() - t0;
     if (seq === state.seq) {
       state.solution = sol;
       state.solution.rig = asked.rig;
       state.renderSolution = worldSol || sol;
+      state.compareSolution = compared || null;
       state.evaluation = null;
       drawOverlay();
       const tr = performance.now();
@@ -283,9 +286,9 @@ function showSolution() {
   ]);
   const rep = $("solver-report");
   const sv = s.solver;
-  if (!sv) { rep.textContent = "no search: the method's closed form"; return; }
-  const lines = [`${sv.name || ""}: ${sv.message || ""}, ${sv.nfev || 0} evaluations, ${fmt(sv.time_ms, 3)} ms`];
-  for (const c of sv.cascades || []) {
+  const lines = sv ? [`${sv.name || ""}: ${sv.message || ""}, ${sv.nfev || 0} evaluations, ${fmt(sv.time_ms, 3)} ms`]
+                   : ["no search: the method's closed form"];
+  for (const c of (sv && sv.cascades) || []) {
     const base = c.baselines || {};
     const names = Object.keys(base);
     const best = names.length ? names.reduce((a, b) => (base[a] <= base[b] ? a : b)) : null;
@@ -293,6 +296,13 @@ function showSolution() {
     if (best) line += `; best baseline ${best} ${fmt(base[best])}` +
       (c.objective > 0 ? ` (${fmt(base[best] / c.objective, 3)}× the chosen)` : "");
     lines.push(line);
+  }
+  const cmp = state.compareSolution;
+  if (cmp) {  // the method right of the split
+    const q = cmp.lights[0].predicted_error || {};
+    lines.push(`compared (right of the split): ${cmp.method}, predicted p95 m ${fmt(q.p95_m)} (left ${fmt(p.p95_m)}), ` +
+               `misclassified px ${fmt(q.misclassified_pixels, 4)} (left ${fmt(p.misclassified_pixels, 4)}), ` +
+               `setup ${fmt(cmp.timings_ms.total, 4)} ms`);
   }
   rep.textContent = lines.join("\n");
   rep.style.whiteSpace = "pre-wrap";
@@ -339,7 +349,9 @@ function drawOverlay() {
   ctx.clearRect(0, 0, w, h);
   const e = state.evaluation, mode = $("overlay").value;
   if (!e || !e.image || mode === "none") return;
+  ctx.globalAlpha = mode === "errors" ? 1.0 : 0.85;  // the m heatmap lets the picture show through a little
   ctx.drawImage(e.image, 0, 0, w, h, 0, 0, w, h);  // the picture is the PNG's top-left region
+  ctx.globalAlpha = 1.0;
   if (mode === "errors") {  // only the misclassified pixels, over the WebGL picture
     const img = ctx.getImageData(0, 0, w, h), d = img.data;
     for (let i = 0; i < d.length; i += 4) {
@@ -604,6 +616,7 @@ class Renderer {
     if (this.canvas.width !== w || this.canvas.height !== h) { this.canvas.width = w; this.canvas.height = h; }
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
     gl.viewport(0, 0, w, h);
+    gl.disable(gl.SCISSOR_TEST);
     // the sky in the shaded views; black (no surface) in the classification, which is read back
     if ($("view").value === "classification") gl.clearColor(0, 0, 0, 1); else gl.clearColor(0.45, 0.6, 0.78, 1);
     gl.clearDepth(1.0);
@@ -623,25 +636,52 @@ class Renderer {
               near: c.near || 0.1, far: c.far || 1000 };
     } else cam = sol.resolved.camera;
     const cm = cameraMatrices(cam, origin, state.info.bounds, w / h);
+    // two methods side by side: the first left of the split, the compared one right of it
+    const other = $("compare").value && state.compareSolution ? state.compareSolution : null;
+    const splitX = other ? Math.round(w * +$("split").value / 100) : w;
+    const nMaps = this.drawWith(sol, 0, 0, splitX, cm, T, note);
+    if (other) {
+      this.drawWith(other, 1, splitX, w, cm, T, note);
+      this.mapTex = this.slots[0].tex;  // the light-space view shows the left method's maps
+      gl.enable(gl.SCISSOR_TEST);  // the divide
+      gl.scissor(Math.max(0, splitX - 1), 0, 2, h);
+      gl.clearColor(1, 1, 1, 1);
+      gl.clear(gl.COLOR_BUFFER_BIT);
+    }
+    gl.disable(gl.SCISSOR_TEST);
+    state.stats.renders++;
+    $("render-note").textContent = [...new Set(note)].join("; ");
+    // the light-space view after the frame: its read-back waits for the GPU, the picture should not
+    clearTimeout(this.mapTimer);
+    if (nMaps && this.ext.floatTarget) this.mapTimer = setTimeout(() => this.drawMaps(nMaps), 30);
+  }
+
+  // The light passes of one solution into its slot's array texture, then the camera pass over the columns
+  // [x0, x1) of the canvas; the number of maps drawn.
+  drawWith(sol, slot, x0, x1, cm, T, note) {
+    const gl = this.gl, [w, h] = this.size();
+    this.slots = this.slots || [{}, {}];
+    const sl = this.slots[slot];
     const block = new Float32Array(this.blockSize / 4);
-    let nMaps = 0, reversedZ = false;
+    let nMaps = 0;
     if (sol && sol.lights[0].type === "directional") {
       const maps = sol.lights[0].cascades;
       const clip = sol.convention.reversed_z ? "reversed_z" : sol.convention.api;
-      reversedZ = !!sol.convention.reversed_z;
+      const reversedZ = !!sol.convention.reversed_z;
       const [mw, mh] = maps[0].resolution;
       if (maps.some((m) => m.resolution[0] !== mw || m.resolution[1] !== mh)) note.push("maps of different sizes: the listing's array holds one");
       if (maps.some((m) => m.warp && m.warp.kind === "log")) note.push("a log-warped map: the listing's light pass has no log warp");
       const key = `${mw}x${mh}x${maps.length}`;
-      if (key !== this.mapKey) {
-        if (this.mapTex) gl.deleteTexture(this.mapTex);
-        this.mapTex = gl.createTexture();
-        gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.mapTex);
+      if (key !== sl.key) {
+        if (sl.tex) gl.deleteTexture(sl.tex);
+        sl.tex = gl.createTexture();
+        gl.bindTexture(gl.TEXTURE_2D_ARRAY, sl.tex);
         gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl.DEPTH_COMPONENT32F, mw, mh, maps.length);
         for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D_ARRAY, p, gl.NEAREST);
         gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_COMPARE_MODE, gl.NONE);
-        this.mapKey = key;
+        sl.key = key;
       }
+      this.mapTex = sl.tex;
       if (!state.skipLight) maps.forEach((m, k) => this.lightPass(k, m, clip, reversedZ, T));
       const o = this.offsets;
       maps.forEach((m, k) => {
@@ -656,23 +696,28 @@ class Renderer {
       block.set([...unit(sol.resolved.lights[0].direction).map((v) => -v), 0], o.uToLight);
       block.set([maps.length, reversedZ ? 1 : 0, 0, 0], o.uParams);
       nMaps = maps.length;
-    } else if (sol) note.push("the picture shows directional lights' maps only");
+    } else {
+      if (sol) note.push("the picture shows directional lights' maps only");
+      block.set([...unit(sunDirection()).map((v) => -v), 0], this.offsets.uToLight);  // unshadowed
+    }
+    if (!sl.tex) {  // nothing to sample yet: a 1-texel array keeps the sampler complete
+      sl.tex = gl.createTexture();
+      gl.bindTexture(gl.TEXTURE_2D_ARRAY, sl.tex);
+      gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl.DEPTH_COMPONENT32F, 1, 1, 1);
+      for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D_ARRAY, p, gl.NEAREST);
+      sl.key = "";
+    }
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
     gl.viewport(0, 0, w, h);
+    gl.enable(gl.SCISSOR_TEST);
+    gl.scissor(x0, 0, x1 - x0, h);
     const prog = this.progs.camera;
     gl.useProgram(prog);
     gl.bindBuffer(gl.UNIFORM_BUFFER, this.ubo);
     gl.bufferData(gl.UNIFORM_BUFFER, block, gl.DYNAMIC_DRAW);
     gl.bindBufferBase(gl.UNIFORM_BUFFER, 0, this.ubo);
-    if (!nMaps) {  // no maps yet: the sun of the sliders, unshadowed
-      block.set([...unit(sunDirection()).map((v) => -v), 0], this.offsets.uToLight);
-      gl.bufferData(gl.UNIFORM_BUFFER, block, gl.DYNAMIC_DRAW);
-    }
     gl.activeTexture(gl.TEXTURE0);
-    if (this.mapTex) gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.mapTex);
-    else { this.mapTex = gl.createTexture(); gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.mapTex);
-           gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl.DEPTH_COMPONENT32F, 1, 1, 1); this.mapKey = "";
-           for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D_ARRAY, p, gl.NEAREST); }
+    gl.bindTexture(gl.TEXTURE_2D_ARRAY, sl.tex);
     gl.uniform1i(gl.getUniformLocation(prog, "uShadowMap"), 0);
     gl.uniformMatrix4fv(gl.getUniformLocation(prog, "uCamViewProj"), false, mul(cm.proj, cm.view));
     gl.uniformMatrix4fv(gl.getUniformLocation(prog, "uCamView"), false, cm.view);
@@ -685,11 +730,9 @@ class Renderer {
     gl.bindVertexArray(this.vao);
     gl.drawElements(gl.TRIANGLES, this.count, gl.UNSIGNED_INT, 0);
     gl.bindVertexArray(null);
-    state.stats.renders++;
-    $("render-note").textContent = note.join("; ");
-    // the light-space view after the frame: its read-back waits for the GPU, the picture should not
-    clearTimeout(this.mapTimer);
-    if (nMaps && this.ext.floatTarget) this.mapTimer = setTimeout(() => this.drawMaps(nMaps), 30);
+    gl.disable(gl.SCISSOR_TEST);
+    if (slot === 0) this.mapTex = sl.tex;
+    return nMaps;
   }
 
   // The stored depth of each map, side by side (light space; grey from the nearest to the farthest caster
@@ -819,6 +862,8 @@ function wire() {
     $(id).addEventListener("change", () => { renderer.render(); drawOverlay(); requestOptimize(); });
   }
   $("view").addEventListener("change", () => renderer.render());
+  $("split").addEventListener("input", () => renderer.render());
+  $("compare").addEventListener("change", () => requestOptimize());
   $("overlay").addEventListener("change", () => { drawOverlay(); if ($("overlay").value !== "none") evaluate(); else showEvaluation(); });
   $("evaluate").addEventListener("click", () => evaluate());
   $("refresh").addEventListener("click", () => refreshScenes().catch((e) => status(e.message, true)));
