@@ -69,7 +69,7 @@ def bench_inspect(moves: int = 12, drags: int = 4, screen: str = "640x360", writ
                         n = page.evaluate("window.inspector.state.stats.latencies.length")
                         page.fill("#azimuth", str(-150 + 7 * warm))
                         _wait_latencies(page, n)
-                    single, drag, trip, server = [], [], [], []
+                    single, drag, trip, server, page_part = [], [], [], [], []
                     for i in range(moves):
                         n = page.evaluate("window.inspector.state.stats.latencies.length")
                         page.fill("#azimuth", str(-120 + 17 * i))
@@ -78,6 +78,7 @@ def bench_inspect(moves: int = 12, drags: int = 4, screen: str = "640x360", writ
                         single.append(s[0]["lastLatencyMs"])
                         trip.append(s[0]["lastOptimizeMs"])
                         server.append(s[1])
+                        page_part.append(s[0]["lastLatencyMs"] - s[0]["lastOptimizeMs"])
                     for i in range(drags):
                         n = page.evaluate("window.inspector.state.stats.latencies.length")
                         page.evaluate(f"""async () => {{ const el = document.getElementById('azimuth');
@@ -90,7 +91,8 @@ def bench_inspect(moves: int = 12, drags: int = 4, screen: str = "640x360", writ
                            "single_p50_ms": percentile(sorted(single), 50), "single_p95_ms": percentile(sorted(single), 95),
                            "drag_p50_ms": percentile(sorted(drag), 50), "drag_max_ms": round(max(drag), 1),
                            "round_trip_p50_ms": percentile(sorted(trip), 50),
-                           "server_p50_ms": percentile(sorted(server), 50)}
+                           "server_p50_ms": percentile(sorted(server), 50),
+                           "page_p50_ms": percentile(sorted(page_part), 50)}
                     rows.append(row)
                     log(f"inspect: {row}")
                 browser.close()
@@ -108,19 +110,21 @@ def bench_inspect(moves: int = 12, drags: int = 4, screen: str = "640x360", writ
 
 def inspect_table(rows: list[dict], screen: str, renderer: str, load_avg: list[float]) -> str:
     lines = ["| method | coarse buffer | single move p50 ms | p95 ms | after a drag p50 ms | max ms | "
-             "optimize round trip p50 ms | server setup p50 ms | <= 150 ms (single p50) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "optimize round trip p50 ms | server setup p50 ms | page: draw + 2 frames p50 ms | <= 150 ms (single p50) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         ok = r["single_p50_ms"] is not None and r["single_p50_ms"] <= TARGET_MS
         lines.append(f"| {r['method']} | {r['coarse_long_side']} px | **{r['single_p50_ms']:.0f}** | "
                      f"{r['single_p95_ms']:.0f} | {r['drag_p50_ms']:.0f} | {r['drag_max_ms']:.0f} | "
-                     f"{r['round_trip_p50_ms']:.0f} | {r['server_p50_ms']:.0f} | {'yes' if ok else 'no'} |")
+                     f"{r['round_trip_p50_ms']:.0f} | {r['server_p50_ms']:.0f} | {r['page_p50_ms']:.0f} | "
+                     f"{'yes' if ok else 'no'} |")
     lines.append("")
     lines.append(f"New shadows on screen after the last sun-slider event, measured by the page (`/inspect`) in headless "
                  f"chromium ({renderer}), demo scene and camera at {screen}, 1 map from a 4 M texel budget, search "
                  f"budget 60 ms. Single move: one input event, the next after the shadows are drawn; drag: 10 input "
                  f"events 16 ms apart (one optimize in flight, the newest sun sent when it returns). Includes the "
-                 f"HTTP round trip, the solve, the light pass and camera pass in WebGL2 and two animation frames. "
+                 f"HTTP round trip, the solve, the light pass and camera pass in WebGL2 and two animation frames (page: the "
+                 f"latency less the round trip). "
                  f"Load average (1 min) during the run: {min(load_avg):.1f}-{max(load_avg):.1f} on "
                  f"{os.cpu_count()} cores (the browser, the server and other work share them).")
     return "\n".join(lines)
