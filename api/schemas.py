@@ -76,7 +76,11 @@ class ShadowSpec(_Strict):
         None, description="total texels per light")
     cascades: Annotated[int, Field(ge=1, le=16)] | Literal["auto"] = 1
     max_cascades: Annotated[int, Field(ge=1, le=16)] = 4
-    target_p95_m: Annotated[float, Field(gt=0)] | None = None
+    target_p95_m: Annotated[float, Field(gt=0)] | None = Field(None, description=(
+        "p95 texel footprint in pixels to meet: cascades auto takes the fewest cascades meeting it; when the "
+        "maps meet it with fewer texels than allowed, a smaller resolution is returned (unless fixed_resolution)"))
+    fixed_resolution: bool = Field(False, description="keep the given resolution or texel budget even when "
+                                   "target_p95_m is met with fewer texels")
     splits: Literal["practical", "log", "uniform", "optimized"] = "practical"
     snap_to_texels: bool = Field(False, description="unwarped directional maps: a texel grid fixed in the world "
                                  "(no shimmering while the camera moves without turning)")
@@ -303,6 +307,16 @@ class LightSolution(_Open):
 
     type: str
     usd_path: str | None = None
+    shadow: Literal["map", "none"] = Field("map", description=(
+        "map: the light has visible receivers and its cascades are its maps; none: no visible receiver faces "
+        "the light inside its cone, so it gets no map (cascades is empty) and casts no shadow: the engine "
+        "renders none for it"))
+    reason: str | None = Field(None, description="with shadow none: why, with the coarse buffer's counts")
+    need: dict | None = Field(None, description="the light's receivers in the coarse buffer: seen_pixels, "
+                              "in_cone_pixels, receiver_pixels (facing the light in its cone: lit or shadowed), "
+                              "lit_pixels, shadowed_pixels, edge_points, edge_receivers")
+    notes: list[str] | None = Field(None, description="what was dropped or changed and why (an empty cascade, "
+                                    "a smaller resolution that meets target_p95_m)")
     cascades: list[ShadowMapSolution]
     predicted_error: dict
 
