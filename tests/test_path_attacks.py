@@ -18,6 +18,7 @@ from serverkit import auth, running
 RIG = {"camera": {"usd_path": "/World/Cam", "resolution": [96, 54]}, "lights": [{"usd_path": "/World/Sun"}],
        "shadow": {"resolution": [128, 128]}, "coarse_long_side": 32}
 TIMES = {"start": 0, "end": 10, "step": 5}
+LOAD_MEMORY_BYTES = 1536 << 20  # the load memory limit: these stages load under it at t = 0 (~1.3 GB)
 LOAD_TIMEOUT_S = 10.0  # the server's load time limit here: these stages load in 1-5 s (cold child, loaded machine)
 
 STAGE = """#usda 1.0
@@ -69,15 +70,16 @@ HEAVY_INSTANCES = 200_000  # cubes at t = 10 only: 2.4 M triangles; that load ta
 
 
 def heavy_crowd(n: int = HEAVY_INSTANCES) -> str:
-    """A PointInstancer of one cube at t = 0 and t = 5 and n cubes at t = 10 (2.7 MB of text for HEAVY_INSTANCES):
+    """A PointInstancer of one cube except n cubes at t = 10 (2.7 MB of text for HEAVY_INSTANCES):
     the upload's check at the default time (the first sample) sees one cube."""
     pos = ",".join(f"({i % 500},0.5,{i // 500})" for i in range(n))
     idx = ",".join("0" for _ in range(n))
     return f"""
     def PointInstancer "Crowd"
     {{
-        point3f[] positions.timeSamples = {{ 0: [(0,0.5,0)], 5: [(1,0.5,0)], 9.9: [(1,0.5,0)], 10: [{pos}] }}
-        int[] protoIndices.timeSamples = {{ 0: [0], 5: [0], 9.9: [0], 10: [{idx}] }}
+        point3f[] positions.timeSamples = {{ 0: [(0,0.5,0)], 5: [(1,0.5,0)], 9.9: [(1,0.5,0)], 10: [{pos}],
+                                             10.1: [(1,0.5,0)] }}
+        int[] protoIndices.timeSamples = {{ 0: [0], 5: [0], 9.9: [0], 10: [{idx}], 10.1: [0] }}
         rel prototypes = </World/Crowd/Proto>
         def Xform "Proto"
         {{
@@ -90,13 +92,38 @@ def heavy_crowd(n: int = HEAVY_INSTANCES) -> str:
 """
 
 
+BALLS = 20_000  # spheres (960 triangles each) at t = 15 only: ~0.9 GB of triangles, over the load memory limit
+
+
+def ball_crowd() -> str:
+    """A PointInstancer of one sphere up to t = 14.9 and BALLS spheres at t = 15 (0.3 MB of text)."""
+    pos = ",".join(f"({i % 200},0.5,{i // 200})" for i in range(BALLS))
+    idx = ",".join("0" for _ in range(BALLS))
+    return f"""
+    def PointInstancer "Balls"
+    {{
+        point3f[] positions.timeSamples = {{ 0: [(0,0.5,0)], 14.9: [(0,0.5,0)], 15: [{pos}] }}
+        int[] protoIndices.timeSamples = {{ 0: [0], 14.9: [0], 15: [{idx}] }}
+        rel prototypes = </World/Balls/Proto>
+        def Xform "Proto"
+        {{
+            def Sphere "S"
+            {{
+                double radius = 0.3
+            }}
+        }}
+    }}
+"""
+
+
 def stage(body: str = "", camera: str = "        float focalLength = 35") -> str:
     return STAGE % {"camera": camera, "body": body}
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    env = {"SHADOWOPT_LOAD_TIMEOUT_S": str(LOAD_TIMEOUT_S), "SHADOWOPT_BATCH_WORKERS": "1"}
+    env = {"SHADOWOPT_LOAD_TIMEOUT_S": str(LOAD_TIMEOUT_S), "SHADOWOPT_LOAD_MEMORY_BYTES": str(LOAD_MEMORY_BYTES),
+           "SHADOWOPT_MAX_TRIANGLES": "50000000", "SHADOWOPT_BATCH_WORKERS": "1"}
     with running(tmp_path_factory.mktemp("path-attacks") / "data", env=env) as s:
         yield s
 
@@ -108,10 +135,10 @@ def upload(server, text: str, name: str) -> str:
     return r.json()["scene_id"]
 
 
-def run_path(server, scene_id: str, timeout: float = 240.0) -> tuple[dict, list[dict]]:
-    """POST the three-frame path, wait for it; (status, result lines)."""
+def run_path(server, scene_id: str, times: dict = TIMES, timeout: float = 240.0) -> tuple[dict, list[dict]]:
+    """POST the path, wait for it; (status, result lines)."""
     r = httpx.post(f"{server.base}/v1/paths", json={"scene_id": scene_id, "rig": RIG, "usd_camera": "/World/Cam",
-                                                    "time": TIMES, "method": "focused"},
+                                                    "time": times, "method": "focused"},
                    headers=auth("alice"), timeout=120)
     assert r.status_code == 202, r.text
     batch = r.json()["batch_id"]
@@ -127,11 +154,12 @@ def run_path(server, scene_id: str, timeout: float = 240.0) -> tuple[dict, list[
 
 @pytest.fixture(scope="module")
 def attacked(server):
-    """One path over a stage whose caster is NaN at t = 5 and which is light at its default time (the upload's
-    check: 14 triangles) but holds 2.4 M triangles at t = 10: (status, result lines, seconds the path took)."""
-    sid = upload(server, stage(NAN_CASTER + heavy_crowd()), "attacked.usda")
+    """One path (t = 0, 5, 10, 15) over a stage whose caster is NaN at t = 5, and which is light at its default
+    time (the upload's check: 14 triangles) but holds 2.4 M triangles at t = 10 (slow to load) and 19 M at
+    t = 15 (big): (status, result lines, seconds the path took)."""
+    sid = upload(server, stage(NAN_CASTER + heavy_crowd() + ball_crowd()), "attacked.usda")
     t0 = time.monotonic()
-    st, lines = run_path(server, sid)
+    st, lines = run_path(server, sid, {"start": 0, "end": 15, "step": 5})
     return st, lines, time.monotonic() - t0
 
 
@@ -139,27 +167,32 @@ def test_a_frame_whose_mesh_is_nan_at_its_time_code_says_so_on_its_line(attacked
     """The caster's points are NaN at t = 5: the loader skips it there, and that frame's line (only that one)
     carries the loader's warning naming the prim and why."""
     st, lines, _ = attacked
-    assert [(l["frame"], l["time"], l["scene_time"]) for l in lines] == [(0, 0, 0), (1, 5, 5), (2, 10, 10)]
+    assert [(l["frame"], l["time"], l["scene_time"]) for l in lines] == [(k, 5 * k, 5 * k) for k in range(4)]
     assert "error" not in lines[0] and "error" not in lines[1], [l.get("error") for l in lines]
     assert any(w.startswith("/World/Caster: skipped") and "NaN" in w for w in lines[1]["warnings"]), lines[1]
     assert not any("/World/Caster" in w for w in lines[0].get("warnings") or [])
 
 
-def test_a_stage_heavy_only_at_one_time_code_fails_that_frame_alone_over_the_load_time_limit(attacked):
-    """The worker's load at t = 10 runs isolated under the upload's time limit and is stopped there: that
-    frame's line (with its frame, time and scene_time, like a solved frame's) names the limit, the batch's
+def test_frames_heavy_only_at_their_time_code_fail_alone_over_the_upload_load_limits(attacked):
+    """The worker's loads at t = 10 (2.4 M instanced cubes: slow) and t = 15 (19 M triangles of spheres: over the
+    memory limit) run isolated under the upload's limits and are stopped there: each of those frames' lines
+    (with its frame, time and scene_time, like a solved frame's) names the time code and the limit, the batch's
     errors too, and the other frames are solved."""
     st, lines, took = attacked
-    assert st["state"] == "done" and st["done"] == 2 and st["failed"] == 1, st
-    assert [l["index"] for l in lines] == [0, 1, 2]
-    bad = lines[2]
-    assert (bad["frame"], bad["time"], bad["scene_time"]) == (2, 10, 10)
-    assert bad["error"]["code"] == "load_timeout", bad
-    assert "time code 10" in bad["error"]["message"] and "load time limit" in bad["error"]["message"]
-    assert f"{LOAD_TIMEOUT_S:g} s" in bad["error"]["message"]
-    assert st["errors"] == [{"index": 2, "frame": 2, "time": 10, "scene_time": 10, "code": "load_timeout",
-                             "message": bad["error"]["message"]}]
-    assert took < 60, f"the heavy frame was not stopped at the limit ({took:.0f} s)"  # an unlimited load: ~14 s+
+    assert st["state"] == "done" and st["done"] == 2 and st["failed"] == 2, st
+    assert [l["index"] for l in lines] == [0, 1, 2, 3]
+    slow, big = lines[2], lines[3]
+    assert (slow["frame"], slow["time"], slow["scene_time"]) == (2, 10, 10)
+    assert (big["frame"], big["time"], big["scene_time"]) == (3, 15, 15)
+    # 2.4 M cubes pass the memory limit only just: which limit stops them first depends on the machine's speed
+    assert slow["error"]["code"] in ("load_timeout", "memory_limit"), slow
+    assert "time code 10" in slow["error"]["message"] and "(the load " in slow["error"]["message"]
+    assert big["error"]["code"] == "memory_limit", big
+    assert "time code 15" in big["error"]["message"] and "1.5 GiB" in big["error"]["message"]
+    assert "(the load memory limit)" in big["error"]["message"]
+    assert st["errors"] == [{"index": k, "frame": k, "time": 5 * k, "scene_time": 5 * k, **lines[k]["error"]}
+                            for k in (2, 3)]
+    assert took < 90, f"the heavy frames were not stopped at the limits ({took:.0f} s)"  # unlimited: ~40 s+
 
 
 def test_a_nan_focal_length_is_refused_naming_the_attribute_and_time_code(server):
