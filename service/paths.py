@@ -12,7 +12,8 @@ Frames are {"rig": RIG, "frame": k, "time": t or None} in order; a path job is a
 resume, crash safety and streamed results of service.batches), each result line carrying "frame" and "time".
 On a stage whose geometry has transform or point time samples (a moving vehicle), each frame also carries
 "scene_time": t and its worker solves on the stage loaded at that time code (service.scenes.SCENES.get
-time_code; one load per frame), so a moving caster casts a moving shadow.
+time_code; one load per frame: an upload's in an isolated child under the server's load limits), so a moving
+caster casts a moving shadow; the loader's warnings for that time code go on the frame's line ("warnings").
 With `coherent` (or a method that asks for it, COHERENT_METHODS), frames are solved one after another and
 each solve receives the previous frame's solution as `previous=` (service.solve.solve): coherent_outcomes.
 """
