@@ -195,3 +195,15 @@ def test_four_cascades_reversed_z_agree_with_evaluate(page, server, shots):
     page.select_option("#view", "cascades")
     page.screenshot(path=str(shots / "3b-cascades.png"))
     page.select_option("#view", "shaded")
+
+
+def test_orbit_camera_agrees_with_evaluate(page, server):
+    """The orbit camera: the page builds its view from the pose it sends, the evaluator from the rig."""
+    n = page.evaluate("window.inspector.state.stats.optimizeResponses")
+    page.select_option("#camera", "orbit")
+    _solved(page, n + 1)
+    rig = page.evaluate("window.inspector.state.solution.rig")
+    assert "position" in rig["camera"] and "usd_path" not in rig["camera"]
+    classes = _classes(page)
+    receivers, map_shadowed, _ = _evaluator_mask(server, page)
+    assert float(np.mean((classes == "S")[receivers] == map_shadowed[receivers])) >= 0.99

@@ -90,6 +90,12 @@ async function openScene(id) {
   const lo = state.info.bounds.min, hi = state.info.bounds.max;
   const centre = lo.map((v, i) => (v + hi[i]) / 2), extent = Math.hypot(...hi.map((v, i) => v - lo[i]));
   state.orbit = { target: centre, radius: extent * 0.6, az: 0.6, el: 0.45, extent };
+  const first = state.info.cameras[0];
+  if (first) {  // orbit starts at the scene's first camera, turning about a point a little ahead of it
+    const f = unit(first.forward), d = Math.max(extent * 0.04, 1e-3);
+    state.orbit = { target: first.position.map((v, i) => v + d * f[i]), radius: d, extent,
+                    az: Math.atan2(-f[0], -f[2]), el: Math.asin(Math.max(-1, Math.min(1, -f[1]))) };
+  }
   // lights: the scene's directional lights (their direction sets the sliders) or the sliders' sun
   const light = $("light");
   light.innerHTML = "";
@@ -131,7 +137,12 @@ function orbitCamera() {
   const o = state.orbit;
   const p = [o.target[0] + o.radius * Math.cos(o.el) * Math.sin(o.az), o.target[1] + o.radius * Math.sin(o.el),
              o.target[2] + o.radius * Math.cos(o.el) * Math.cos(o.az)];
-  return { position: p, target: o.target, fov_y_deg: 60, near: o.extent * 1e-3, far: o.extent * 4 };
+  // far: the scene's farthest corner from here (it bounds the cascades' splits); near: a small part of it
+  const lo = state.info.bounds.min, hi = state.info.bounds.max;
+  let far = 0;
+  for (let i = 0; i < 8; i++) far = Math.max(far, Math.hypot(...[(i & 1 ? hi : lo)[0], (i & 2 ? hi : lo)[1], (i & 4 ? hi : lo)[2]].map((v, k) => v - p[k])));
+  far = Math.max(far * 1.01, o.extent * 1e-3);
+  return { position: p, target: o.target, fov_y_deg: 60, near: Math.max(far * 1e-4, 1e-3), far };
 }
 
 function rig() {
