@@ -597,6 +597,50 @@ def optimize_path(frames: list[FrameProblem], hysteresis: float | None = None, w
     return PathResult(best[0], best[1], per_frame, best[2], best[3], passes)
 
 
+def concat_samples(parts: list[Samples]) -> Samples:
+    """The samples of several frames as one set (each keeps its own pixel footprint dx, dy, view depth and
+    weight): the objective over it is the weighted mean over all the frames' samples."""
+    def cat(name):
+        vals = [getattr(p, name) for p in parts]
+        if any(v is None for v in vals):
+            return None if all(v is None for v in vals) else np.concatenate(
+                [np.ones(len(p)) if v is None else v for p, v in zip(parts, vals)])
+        return np.concatenate(vals)
+
+    return Samples(cat("position"), cat("normal"), cat("dx"), cat("dy"), cat("view_depth"), cat("weight"),
+                   cat("pixel"), parts[0].kind, cat("pixels"), cat("light_area_factor"))
+
+
+def joint_grid(frames: list["FrameProblem"], c: int, resolution=None) -> Grid | None:
+    """Cascade c's canonical part optimized for several frames at once: the per-frame optimizer
+    (optimized_maps) on the union of their samples and receivers, seen from the middle frame's camera (its
+    splits and warp frame), so that its objective is the error summed over the frames. None when that map
+    is not a light-plane projective map."""
+    from .optimized_maps import optimized_maps
+
+    mid = frames[len(frames) // 2]
+    samples = concat_samples([f.samples for f in frames])
+    recs = [np.asarray(f.receivers, float).reshape(-1, 3) for f in frames]
+    opts = dict(mid.opts)
+    rows, slack, off = [], [], 0
+    for f, r in zip(frames, recs):
+        sr, sl = f.opts.get("sample_rows"), f.opts.get("receiver_slack")
+        rows.append(None if sr is None else np.asarray(sr) + off)
+        slack.append(np.zeros(len(r)) if sl is None or len(sl) != len(r) else np.asarray(sl, float))
+        off += len(r)
+    opts["sample_rows"] = None if any(r is None for r in rows) else np.concatenate(rows)
+    opts["receiver_slack"] = np.concatenate(slack)
+    opts.pop("x0", None)
+    opts["allow_log"] = False
+    maps, _ = optimized_maps(mid.camera, mid.light, samples, np.vstack(recs), mid.casters_bounds, **opts)
+    if c >= len(maps):
+        return None
+    g = grid_of(maps[c], mid.light, mid.casters_bounds)
+    if g is not None and resolution is not None:
+        g.resolution = tuple(resolution)
+    return g
+
+
 def hold_bias(maps: list[ShadowMap]) -> None:
     """One bias for the frames of a segment (in place): each constant and clamp the greatest of the frames'
     (the depth_bias rule's and, per mode, the depth block's), so that a held grid's classification does not
@@ -617,7 +661,7 @@ def hold_bias(maps: list[ShadowMap]) -> None:
 
 def segment_pass(frames: list["FrameProblem"], fits: list[list["CascadeFit"]], fresh: list[list[Grid]],
                  reference: list[list[float]], tolerance: float = SEGMENT_TOLERANCE,
-                 max_frames: int = SEGMENT_MAX_FRAMES):
+                 max_frames: int = SEGMENT_MAX_FRAMES, joint: bool = True):
     """Whole paths, one cascade at a time: cut the path into segments that each hold ONE canonical part and ONE
     scale level (the finest level holding every frame of the segment: tight_levels), so that inside a segment
     each frame only moves its box by whole texels (no texel changes, no flicker) and a change happens only at a
@@ -625,6 +669,8 @@ def segment_pass(frames: list["FrameProblem"], fits: list[list["CascadeFit"]], f
     frames' fresh ones (the per-frame optimizer's, pass 1). Among all cuts (dynamic programming over segment
     counts), the one with the fewest segments whose summed objective is within `tolerance` x the summed
     `reference` (the per-frame optimizer's objective per frame and cascade); when none is, the lowest sum.
+    With `joint`, each chosen segment of two or more frames also tries its joint optimum (joint_grid: the error
+    summed over the segment's frames, minimized) and keeps it when its summed objective is lower.
     Returns (maps per frame and cascade, grids per frame and cascade, report) or None when a frame has no
     fresh canonical part."""
     n = len(frames)
@@ -698,11 +744,27 @@ def segment_pass(frames: list["FrameProblem"], fits: list[list["CascadeFit"]], f
         within = [s_ for s_ in counts if dp[s_][n - 1][0] <= bound]
         s_best = within[0] if within else min(counts, key=lambda s_: dp[s_][n - 1][0])
         cuts, j, s_ = [], n - 1, s_best
+        report_joint = []
         while s_ >= 1:
             i = dp[s_][j][1] if s_ > 1 else 0
             cuts.append((i, j))
             j, s_ = i - 1, s_ - 1
         for i, j in reversed(cuts):
+            if j > i and joint:  # the segment's own optimum: the per-frame optimizer over all its frames' samples
+                g = joint_grid(frames[i:j + 1], c, cand[i].resolution if cand[i] is not None else None)
+                if g is not None:
+                    mid = (i + j) // 2
+                    if fit_on_grid(g, fits[mid][c].fit_pts, fits[mid][c].corners, None,
+                                   frames[mid].camera.position) is not None:
+                        cand.append(g)
+                        o = len(cand) - 1
+                        lv = [level(o, kk) for kk in range(i, j + 1)]
+                        if all(v is not None for v in lv):
+                            L = (min(v[0] for v in lv), min(v[1] for v in lv))
+                            tot = sum(cost(o, kk, L)[0] for kk in range(i, j + 1))
+                            if tot < seg[i, j][0]:
+                                report_joint.append([i, j])
+                                seg[i, j] = (tot, o, L)
             _, o, L = seg[i, j]
             # one depth for the segment (stored depth from its first camera, the union of the frames' ranges):
             # with the grid and the level held, a frame's light pass stores the same depths as the previous one's
@@ -715,8 +777,9 @@ def segment_pass(frames: list["FrameProblem"], fits: list[list["CascadeFit"]], f
                 got = fit_on_grid(cand[o], fits[kk][c].fit_pts, fits[kk][c].corners, L, None, L, df)
                 maps[kk][c] = got[0]
                 grids[kk][c] = Grid(cand[o].view, cand[o].G, cand[o].resolution, got[1])
-        report.append({"segments": [[i, j] for i, j in reversed(cuts)], "objective_sum": dp[s_best][n - 1][0],
-                       "reference_sum": ref, "within_tolerance": bool(within)})
+        report.append({"segments": [[i, j] for i, j in reversed(cuts)],
+                       "objective_sum": float(sum(seg[i, j][0] for i, j in cuts)),
+                       "reference_sum": ref, "within_tolerance": bool(within), "joint": report_joint})
     return maps, grids, report
 
 
