@@ -6,6 +6,7 @@ reads the stage's animation once, in a scene-load slot."""
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 
@@ -255,3 +256,47 @@ def test_the_animation_is_read_once_in_a_load_slot_not_a_solver_slot(tmp_path, m
     assert first.json()["notes"] == again.json()["notes"]
     assert seen[:2] == [(1, 0), (1, 0)]  # two distinct paths read, each in a load slot with no solver slot held
     assert len(seen) == 4  # and the two crowd paths
+
+
+@pytest.mark.parametrize("camera, words", [
+    ("        float verticalAperture.timeSamples = { 0: 24, 5: -1, 10: 24 }",
+     "verticalAperture -1 at time code 5 is not a finite positive number"),
+    ("        float2 clippingRange.timeSamples = { 0: (0.1, 100), 5: (0, 100), 10: (0.1, 100) }",
+     "clippingRange (0, 100) at time code 5 is not 0 < near < far"),
+    ("        float focalLength = inf", "focalLength inf at time code 0 is not a finite positive number"),
+])
+def test_unusable_camera_values_are_refused_naming_the_attribute(tmp_path, camera, words):
+    """The path's expansion (what POST /v1/paths and `shadowopt path --camera` run) names the camera attribute,
+    its value at the time code and why, for an aperture, a clipping range and an infinite focal length."""
+    from shadowopt.service.paths import PathError, expand_path
+
+    p = tmp_path / "cam.usda"
+    p.write_text(stage(camera=camera))
+    with pytest.raises(PathError) as e:
+        expand_path({"rig": RIG, "usd_camera": "/World/Cam", "time": TIMES}, scene_path=p)
+    assert e.value.field == "usd_camera" and words in str(e.value), str(e.value)
+
+
+def test_a_camera_whose_transform_is_nan_at_a_time_code_is_refused(tmp_path):
+    from shadowopt.service.paths import PathError, expand_path
+
+    p = tmp_path / "cam.usda"
+    p.write_text(stage().replace("double3 xformOp:translate = (0, 2, 10)",
+                                 "double3 xformOp:translate.timeSamples = { 0: (0, 2, 10), 5: (nan, 2, 10), 10: (0, 2, 10) }"))
+    with pytest.raises(PathError) as e:
+        expand_path({"rig": RIG, "usd_camera": "/World/Cam", "time": {"start": 5, "end": 5}}, scene_path=p)
+    assert e.value.field == "usd_camera" and "world transform at time code 5 is not finite" in str(e.value)
+    assert len(expand_path({"rig": RIG, "usd_camera": "/World/Cam", "time": {"start": 0, "end": 0}}, scene_path=p)) == 1
+
+
+def test_the_loader_replaces_a_nan_focal_length_by_usds_fallback_and_says_so(tmp_path):
+    """At a scene's load (its default time) a NaN focalLength is USD's fallback 50 mm with the aperture kept:
+    fov = 2 atan(24 / (2 x 50)) = 26.99 deg, and a warning names the attribute and its value."""
+    from shadowopt.renderers.usd_loader import load_scene
+
+    p = tmp_path / "cam.usda"
+    p.write_text(stage(camera="        float focalLength = nan\n        float verticalAperture = 24"))
+    scene = load_scene(p)
+    assert scene.cameras[0].fov_y_deg == pytest.approx(2 * math.degrees(math.atan(24 / 100)), abs=1e-9)
+    assert any(w.startswith("/World/Cam: focalLength nan is not a finite positive number") and "fallback 50" in w
+               for w in scene.warnings), scene.warnings
