@@ -1,5 +1,6 @@
 """`method: path`: shadow maps that stay still while the camera moves (interactive: the previous frame
-only; batch: a whole path, smoothed, with keyframes for engines that interpolate).
+only; batch: a whole path cut into segments that hold their texel grid, with keyframes for engines that
+interpolate).
 
 Why texels swim. A directional map is a 2D projective map of the light plane, s = (g0 . p) / (g2 . p),
 t = (g1 . p) / (g2 . p) (Chong & Gortler 2007: rows 1, 2 and 4 of P annihilate the light direction). The
@@ -29,10 +30,14 @@ Coverage: the box is padded by PAD_TEXELS texels plus half a texel per side for 
 rounds the scale down (the map grows), so every fit point (receivers' light-plane hull and the samples)
 stays inside the map.
 
-Whole paths (`optimize_path`): the interactive pass, then a second pass that smooths the fresh canonical
-parts along the path (a moving median of their normalised entries) and cuts the path into segments that
-share one canonical part (a segment grows while its part keeps every frame within `hysteresis` of that
-frame's fresh objective), each frame refit on the segment's snapped grid; and `keyframes`: every K-th
+Whole paths (`optimize_path`, segment_pass): the path cut into segments, each holding one canonical part,
+one scale level (the finest that holds every frame of the segment), one depth (stored from the segment's
+first camera over the union of its frames' ranges) and one bias (the greatest its frames need): inside a
+segment a frame's map differs from the previous one's only by a whole-texel move of its box, so no receiver
+changes texel, stored depth or bias, and nothing flickers; the grid changes only at a segment's first frame.
+The cut: the fewest segments whose summed objective is within SEGMENT_TOLERANCE of the per-frame optimizer's
+(dynamic programming over segment counts; each segment's candidates are its frames' fresh canonical parts and
+its joint optimum over all its frames' samples). `keyframes`: every K-th
 frame's maps, the rule (linear interpolation of the world-to-clip matrix entries, each keyframe's matrix
 scaled so its w row has unit norm) and the error interpolation adds at the skipped frames (objective ratio
 and receivers left outside), measured.
@@ -58,7 +63,6 @@ LEVEL_HEADROOM = 1  # a new level is this many steps coarser than the tightest (
 HYSTERESIS = 0.85  # the held grid is replaced when the fresh one's objective is below this x the held one's
 BLEND_STEPS = (0.25, 0.5)  # fractions of the way from the held canonical part to the fresh one, tried in order
 BLEND_SLACK = 1.05  # a partial step is taken when its objective is within this factor of the fresh one's
-MEDIAN_WINDOW = 5  # frames of the second pass's moving median
 SEGMENT_TOLERANCE = 1.3  # segment_pass: the fewest segments whose summed objective is within this x the per-frame one's
 SEGMENT_MAX_FRAMES = 48  # frames per segment at most (a long path: the search stays linear in its length)
 SEGMENT_CANDIDATES = 5  # canonical parts tried per segment: its frames' fresh ones, evenly spaced
@@ -467,7 +471,7 @@ class PathResult:
     per_frame_objective: list  # per frame, the per-frame optimizer's (no coherence)
     grid_changes: int  # cascade-frames whose canonical part changed from the previous frame
     level_changes: int  # cascade-frames whose scale level changed with the same canonical part
-    passes: dict  # per pass ("interactive", "smoothed"): the same numbers, and which pass was returned
+    passes: dict  # per pass ("interactive", "segments"): the same numbers, and which pass was returned
 
     def to_json(self) -> dict:
         return {"objective": self.objective, "per_frame_objective": self.per_frame_objective,
@@ -493,18 +497,16 @@ def _objective(maps, fp: FrameProblem) -> float:
     return float(predicted_objective(maps, fp.samples, fp.camera.position))
 
 
-def optimize_path(frames: list[FrameProblem], hysteresis: float | None = None, window: int = MEDIAN_WINDOW,
+def optimize_path(frames: list[FrameProblem], hysteresis: float | None = None,
                   segment_tolerance: float = SEGMENT_TOLERANCE) -> PathResult:
-    """A whole path (batch precomputation). Pass 1: the interactive choice frame after frame (path_maps with
-    the previous frame's state). Pass 2 (directional lights, the same cascade count on every frame): per
-    cascade, the fresh canonical parts of pass 1 in one light view, a moving median of their normalised
-    entries over `window` frames, then segments: a segment starts on its frame's smoothed part (the fresh one
-    when that is not within `hysteresis` of the fresh objective) and grows while its part, refit with the held
-    levels (fit_on_grid), keeps each frame's objective within 1 / hysteresis of that frame's fresh one. The
-    pass with fewer grid changes (then the lower summed objective) is returned; both are reported."""
+    """A whole path (batch precomputation). Pass 1 ("interactive"): the editor's choice frame after frame
+    (path_maps with the previous frame's state), which also gives each frame's fresh canonical parts and the
+    per-frame optimizer's maps (the reference). Pass 2 ("segments", directional lights with the same cascade
+    count on every frame): segment_pass. Returned: the pass with the fewest grid and level changes among those
+    whose summed objective is within `segment_tolerance` of the per-frame optimizer's (or of the best pass's,
+    when a held texel allocation puts that out of reach); both are reported."""
     hysteresis = HYSTERESIS if hysteresis is None else float(hysteresis)
-    n = len(frames)
-    maps1, grids1, fresh, fresh_obj, per_frame, pf_maps = [], [], [], [], [], []
+    maps1, grids1, fresh, per_frame, pf_maps = [], [], [], [], []
     state = None
     for fp in frames:
         maps, sj = path_maps(fp.camera, fp.light, fp.samples, fp.receivers, fp.casters_bounds, state, hysteresis,
@@ -514,62 +516,14 @@ def optimize_path(frames: list[FrameProblem], hysteresis: float | None = None, w
         cs = state.get("cascades") or []
         grids1.append([Grid.from_json(c) for c in cs])
         fresh.append([Grid.from_json(c["decision"]["fresh"]) if c["decision"].get("fresh") else None for c in cs])
-        fresh_obj.append([c["decision"].get("objective_fresh") for c in cs])
         per_frame.append(_objective(pf_maps[-1], fp))
     obj1 = [_objective(m, fp) for m, fp in zip(maps1, frames)]
     gc1, lc1 = _changes(grids1)
     passes = {"interactive": {"objective_sum": float(sum(obj1)), "grid_changes": gc1, "level_changes": lc1}}
     candidates = [(maps1, obj1, gc1, lc1, "interactive")]
     k = len(grids1[0]) if grids1 and grids1[0] else 0
+    fits = None
     if k and all(len(g) == k for g in grids1) and all(len(fr) == k and all(f is not None for f in fr) for fr in fresh):
-        maps2 = [[None] * k for _ in range(n)]
-        grids2 = [[None] * k for _ in range(n)]
-        for c in range(k):
-            V = fresh[0][c].view
-            G = [_normalised(fr[c].in_view(V)) for fr in fresh]
-            for i in range(1, n):
-                if float(np.sum(G[i] * G[0])) < 0:
-                    G[i] = -G[i]
-            h = max(1, int(window)) // 2
-            smooth = [_normalised(np.median(np.stack(G[max(0, i - h):i + h + 1]), axis=0)) for i in range(n)]
-            i = 0
-            while i < n:
-                fp = frames[i]
-                cf = cascade_fits(fp.camera, fp.light, fp.samples, fp.receivers, fp.casters_bounds, maps1[i],
-                                  fp.opts.get("receiver_slack"))[c]
-                g = Grid(V, smooth[i].copy(), fresh[i][c].resolution)
-                got = fit_on_grid(g, cf.fit_pts, cf.corners, None, fp.camera.position)
-                f_ref = fresh_obj[i][c] if fresh_obj[i][c] is not None else math.inf
-                if got is None or not cf.score(got[0], fp.camera, fp.light) * hysteresis <= f_ref:
-                    g = Grid(fresh[i][c].view, fresh[i][c].G.copy(), fresh[i][c].resolution)
-                    got = fit_on_grid(g, cf.fit_pts, cf.corners, None, fp.camera.position)
-                g.levels = got[1]
-                maps2[i][c], grids2[i][c] = got[0], g
-                j = i + 1
-                while j < n:
-                    fq = frames[j]
-                    cq = cascade_fits(fq.camera, fq.light, fq.samples, fq.receivers, fq.casters_bounds, maps1[j],
-                                      fq.opts.get("receiver_slack"))[c]
-                    if fresh[j][c].resolution != g.resolution:
-                        break
-                    nxt = fit_on_grid(g, cq.fit_pts, cq.corners, g.levels, fq.camera.position)
-                    f_ref = fresh_obj[j][c] if fresh_obj[j][c] is not None else math.inf
-                    if nxt is None or not cq.score(nxt[0], fq.camera, fq.light) * hysteresis <= f_ref:
-                        break
-                    g = Grid(g.view, g.G, g.resolution, nxt[1])
-                    maps2[j][c], grids2[j][c] = nxt[0], g
-                    j += 1
-                i = j
-        for i, fp in enumerate(frames):
-            for c, m in enumerate(maps2[i]):
-                m.split = maps1[i][c].split
-                cf = cascade_fits(fp.camera, fp.light, fp.samples, fp.receivers, fp.casters_bounds, maps1[i],
-                                  fp.opts.get("receiver_slack"))[c]
-                _with_bias(m, cf.part, fp.light)
-        obj2 = [_objective(m, fp) for m, fp in zip(maps2, frames)]
-        gc2, lc2 = _changes(grids2)
-        passes["smoothed"] = {"objective_sum": float(sum(obj2)), "grid_changes": gc2, "level_changes": lc2}
-        candidates.append((maps2, obj2, gc2, lc2, "smoothed"))
         fits = [cascade_fits(fp.camera, fp.light, fp.samples, fp.receivers, fp.casters_bounds, maps1[i],
                              fp.opts.get("receiver_slack")) for i, fp in enumerate(frames)]
         per_frame_c = [[f.score(m, fp.camera, fp.light) for f, m in zip(fits[i], pf_maps[i])]
@@ -577,22 +531,23 @@ def optimize_path(frames: list[FrameProblem], hysteresis: float | None = None, w
         got = segment_pass(frames, fits, fresh, per_frame_c, segment_tolerance)
         if got is not None:
             maps3, grids3, rep = got
-            for i, fp in enumerate(frames):
+            for i in range(len(frames)):
                 for c, m in enumerate(maps3[i]):
                     m.split = maps1[i][c].split
-                    _with_bias(m, fits[i][c].part, fp.light)
-            for c, r in enumerate(rep):
-                for a, b in r["segments"]:
-                    hold_bias([maps3[i][c] for i in range(a, b + 1)])
             obj3 = [_objective(m, fp) for m, fp in zip(maps3, frames)]
             gc3, lc3 = _changes(grids3)
             passes["segments"] = {"objective_sum": float(sum(obj3)), "grid_changes": gc3, "level_changes": lc3,
                                   "cascades": rep}
             candidates.append((maps3, obj3, gc3, lc3, "segments"))
-    # the pass with the fewest changes (grid and level) among those within segment_tolerance of the per-frame
-    # optimizer's summed objective, or of the best pass's when that is out of reach (a held texel allocation)
     bound = segment_tolerance * max(float(sum(per_frame)), min(float(sum(cd[1])) for cd in candidates))
     best = min((cd for cd in candidates if sum(cd[1]) <= bound), key=lambda cd: (cd[2] + cd[3], sum(cd[1])))
+    if best[4] == "segments":  # the bias of the maps returned (pass 1's have theirs), one per segment
+        for i, fp in enumerate(frames):
+            for c, m in enumerate(best[0][i]):
+                _with_bias(m, fits[i][c].part, fp.light)
+        for c, r in enumerate(passes["segments"]["cascades"]):
+            for a, b in r["segments"]:
+                hold_bias([best[0][i][c] for i in range(a, b + 1)])
     passes["returned"] = best[4]
     return PathResult(best[0], best[1], per_frame, best[2], best[3], passes)
 
