@@ -26,7 +26,7 @@ def add_inspect_routes(app: FastAPI, svc, Tenant) -> None:
     """The inspector's routes on `app` (svc: the server's Service; Tenant: its authenticated-tenant
     dependency)."""
     from ..service.scene_export import DEFAULT_TRIANGLE_BUDGET, MAX_TRIANGLE_BUDGET
-    from .server import AUTHED, error_responses, scene_entry_for, solver_errors
+    from .server import AUTHED, ApiError, error_responses, scene_entry_for, solver_errors
 
     router = APIRouter()
 
@@ -44,6 +44,12 @@ def add_inspect_routes(app: FastAPI, svc, Tenant) -> None:
                                  "Garland and Heckbert 1997) to at most this many"))] = DEFAULT_TRIANGLE_BUDGET):
         from ..service.scene_export import scene_glb
 
+        try:  # the glTF writer and the decimation are the requirements' trimesh and pyfqmr
+            import pyfqmr  # noqa: F401
+            import trimesh  # noqa: F401
+        except ImportError as e:
+            raise ApiError(503, "geometry_export_unavailable", f"this server cannot write glTF: {e.name} is not "
+                           "installed (requirements.lock)") from e
         async with svc.heavy(tenant, request) as ticket:
             entry = await scene_entry_for(svc, ticket, scene_id)
             with solver_errors():
