@@ -10,6 +10,10 @@ s = sqrt(W H / (w h)), the rig's pixels per screen pixel along a side; screens k
 Depth (renderers.ground_truth.DEPTH_CHOICES): "solution" (default) emulates what an engine does with each
 map's `depth` block in the mode the solution chose; "hardware" / "linear" force that block; "ideal" is the
 idealized per-texel rule of `depth_bias`. Each evaluation says which (`depth`, `depth_rule`).
+
+A light whose solution entry has no map (`shadow` "none": no visible receiver faces it inside its cone) casts no
+shadow, as in an engine that renders no map for it: its true shadows on visible receivers are misclassified
+pixels (0 by construction when the solve found none); the evaluation says so (`shadow`, `no_map_rule`).
 """
 from __future__ import annotations
 
@@ -24,6 +28,10 @@ from .rigs import SolutionError, resolve_rig
 from .scenes import SceneEntry
 from .solution_check import validate_solution
 from .solve import maps_from_solution
+
+
+NO_MAP_RULE = ("the light has no shadow map (shadow none): it casts no shadow, so every visible receiver it truly "
+               "shadows counts as misclassified (none when the solve found no visible receiver for it)")
 
 
 def pixel_units(gt, rig_resolution) -> dict:
@@ -138,6 +146,9 @@ def _evaluate(entry, resolved, solution, per_light_maps, screen, heatmap_path, g
             path = f"{stem}.light{k}.{ext}" if dot else f"{heatmap_path}.light{k}"
         gt = evaluate_buffers(entry.rays, resolved.camera, light, maps, screen=screen, depth=depth)
         res = gt.result
+        if not maps:  # shadow "none" (service.need): what an engine does without a map
+            res["shadow"] = "none"
+            res["no_map_rule"] = NO_MAP_RULE
         res.update(pixel_units(gt, resolved.camera.resolution))
         if path is not None:
             t1 = time.perf_counter()

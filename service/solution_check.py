@@ -6,7 +6,8 @@ A malformed field raises `service.rigs.SolutionError` naming the exact field pat
 422 with that field and the CLI exits 2, never an internal error. What is checked is what the readers use:
 
 - `lights`: one entry per rig light (1..16), each an object whose `type`, when given, is the rig light's kind;
-- per light `cascades` (1..16), each an object with
+- per light `shadow` (when given: "map", or "none" for a light with no visible receiver, whose `cascades` is
+  then the empty list: it casts no shadow), `cascades` (1..16 unless shadow is "none"), each an object with
   `internal.view` and `internal.projection` (4x4 finite matrices whose product is invertible: the evaluator
   casts rays through its inverse), `resolution` (two integers in 1..16384), `split` (camera view-depth
   range [lo, hi], lo finite, hi a number >= lo or null for unbounded), `light_depth` (two finite numbers),
@@ -40,6 +41,7 @@ MAX_CONDITION = 1e12  # projection @ view: real solutions have ~1e2-1e4; beyond 
 LIGHT_KINDS = ("directional", "spot", "point")
 WARP_KINDS = ("none", "perspective", "log")
 FACES = ("+x", "-x", "+y", "-y", "+z", "-z")
+SHADOW_KINDS = ("map", "none")  # a light's `shadow`: maps, or none (no visible receiver: cascades [])
 BIAS_TERMS = ("constant", "slope", "constant_texels", "slope_texels")
 
 
@@ -153,6 +155,14 @@ def _light(ck: _Check, light, field: str, kind: str | None) -> dict:
             ck.fail(f"{field}.type", f"the solution is for a {t} light but the rig's light is {kind}")
     if "cascades" not in light:
         ck.fail(field, "a light needs its cascades (the list of shadow maps)")
+    shadow = light.get("shadow")
+    if shadow is not None and shadow not in SHADOW_KINDS:
+        ck.fail(f"{field}.shadow", f"expected one of {', '.join(SHADOW_KINDS)}, got {_show(shadow)}")
+    if shadow == "none":  # a light with no visible receiver: no map, it casts no shadow (service.need)
+        if light["cascades"] != []:
+            ck.fail(f"{field}.cascades", f"a light with shadow 'none' has no maps (an empty list), got "
+                    f"{_show(light['cascades'])}")
+        return {**light, "cascades": []}
     cascades = ck.lst(light["cascades"], f"{field}.cascades", "a list of cascades (shadow maps)", 1, MAX_CASCADES)
     return {**light, "cascades": [_cascade(ck, c, f"{field}.cascades.{k}") for k, c in enumerate(cascades)]}
 

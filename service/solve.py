@@ -6,6 +6,7 @@ matrix convention, layout and frame.
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from functools import lru_cache
@@ -23,6 +24,7 @@ from ..solvers.shadow_map import ShadowMap
 from .pipeline import coarse_pass
 from .echo import resolved_echo
 from .request_cost import flush_if_large, solve_work
+from .need import drop_empty_maps, light_need, no_shadow_reason
 from .rigs import ResolvedRig
 from .scenes import SceneEntry
 from .solution_check import SCHEMA_VERSION, validate_solution
@@ -376,6 +378,12 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
     per_light = []
     solvers_json = []
     for li, prob in enumerate(light_problems(resolved, buffers, (lo, hi))):
+        need = light_need(buffers, li)
+        if not need.needs_map:  # no visible receiver: no map, nothing beyond the coarse pass (service.need)
+            per_light.append(no_map_json(prob, need, (buffers.width, buffers.height)))
+            if method in ("optimized", "path"):
+                solvers_json.append(None)
+            continue
         common = dict(resolution=tuple(shadow.get("resolution") or (2048, 2048)),
                       cascades=shadow.get("cascades") if isinstance(shadow.get("cascades"), int) else 1,
                       splits=shadow.get("splits", "practical"),
@@ -413,13 +421,22 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
                             allow_log=allow_log or method == "logpsm", **opts), None
 
         if shadow.get("cascades") == "auto":
-            maps, info, auto = auto_cascades(maps_for, prob, resolved.camera.position, shadow)
+            maps, info, auto = auto_cascades(maps_for, prob, resolved.camera.position, shadow, resolved.camera,
+                                             drop=method != "path")
             if method == "path":  # the previous frame's cascade count, with hysteresis
                 from ..solvers.path_optimize import held_cascade_count, previous_state
 
                 maps, info, auto = held_cascade_count(maps_for, maps, info, auto, previous_state(previous, li), shadow)
         else:
             (maps, info), auto = maps_for(common["cascades"]), None
+        notes = list(auto.pop("notes", [])) if auto is not None else []
+        if method != "path":  # path: each cascade holds its world-fixed grid from frame to frame, none is dropped
+            maps, dropped = drop_empty_maps(maps, prob.receivers, prob.receiver_slack, resolved.camera)
+            notes += dropped
+            if shadow.get("target_p95_m") is not None and not shadow.get("fixed_resolution"):
+                maps, note = smaller_resolution(maps, prob, resolved.camera.position, float(shadow["target_p95_m"]))
+                if note:
+                    notes.append(note)
         if shadow.get("snap_to_texels"):
             snap_maps(maps, prob)
         if info is not None:
@@ -429,6 +446,10 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
         total, per_map = maps_error(maps, prob.samples, resolved.camera.position)
         per_light.append(light_json(prob.light, maps, total, per_map, resolved.output,
                                     entry.loaded.stage_to_world, prob.samples))
+        per_light[-1]["shadow"] = "map"
+        per_light[-1]["need"] = need.to_json()
+        if notes:
+            per_light[-1]["notes"] = notes
         if auto is not None:
             per_light[-1]["auto_cascades"] = auto
     t2 = time.perf_counter()
@@ -437,9 +458,19 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
                 "time_budget_ms": time_budget_ms, "coarse_long_side": resolved.coarse_long_side,
                 "shadow": _jsonable(shadow)}
     sol = solution_json(entry, resolved, method, per_light, timings, settings)
-    if method in ("optimized", "path"):
+    if method in ("optimized", "path") and any(s is not None for s in solvers_json):
         sol["solver"] = solvers_json[0] if len(solvers_json) == 1 else {"lights": solvers_json}
     return sol
+
+
+def no_map_json(prob: LightProblem, need, size: tuple[int, int]) -> dict:
+    """The solution entry of a light that gets no map (service.need): `shadow` "none", the reason, no
+    cascades; its predicted error is that of no samples, 0 texels."""
+    total = error_stats(np.zeros(0), np.zeros(0), pixels=np.zeros(0))
+    total.update(unserved_samples=int(len(prob.samples)), limit=None, ratio_to_limit=None, texels=0)
+    return {"type": prob.light.kind, "usd_path": prob.light.usd_path, "samples_kind": prob.samples.kind,
+            "shadow": "none", "reason": no_shadow_reason(prob.light, need, size), "need": need.to_json(),
+            "cascades": [], "predicted_error": total}
 
 
 def _path_options(shadow: dict, prob: LightProblem, solver: str | None) -> dict:
@@ -588,25 +619,91 @@ def _previous_x(previous: dict | None, light_index: int):
     return [x if x else None for x in s.get("x", [])]
 
 
-def auto_cascades(maps_for, prob: LightProblem, origin, shadow: dict):
-    """`cascades: "auto"`: the smallest k up to max_cascades whose predicted p95_m meets target_p95_m;
-    without a target, the k with the least objective times texels (k maps of the same size)."""
+AUTO_TOLERANCE = 0.05  # cascades "auto": the fewest cascades whose objective x texels is within 5% of the least
+# p95_m scales as texels^P95_TEXEL_EXPONENT: m is a texel's footprint in screen pixels, a texel's side is the map's
+# extent over its resolution per side (the fit does not depend on it), so m ~ 1/side ~ texels^-1/2 at a fixed
+# aspect (Stamminger & Drettakis 2002's texel-to-pixel ratio; checked against two resolutions in tests/test_need.py)
+P95_TEXEL_EXPONENT = -0.5
+ENGINE_SIZE_STEP = 64  # a smaller resolution is rounded up to a multiple of 64 texels per side
+
+
+def texels_for_p95(p95_m: float, texels: int, target: float) -> int:
+    """The texels at which p95_m (measured with `texels`) would meet `target` (P95_TEXEL_EXPONENT)."""
+    return int(math.ceil(texels * (p95_m / target) ** (1.0 / -P95_TEXEL_EXPONENT)))
+
+
+def auto_cascades(maps_for, prob: LightProblem, origin, shadow: dict, camera=None, drop: bool = True):
+    """`cascades: "auto"`: with target_p95_m, the smallest k up to max_cascades whose predicted p95_m meets it;
+    otherwise (or when none does) the fewest cascades whose objective x texels (the objective alone under a
+    texel budget: every k gets the same texels) is within AUTO_TOLERANCE of the least: fewer draw calls for
+    the engine. Cascades with no receivers are dropped (service.need) before k is scored (`drop`, with the
+    camera), so a k that returns fewer maps counts as that many. When no k meets the target, says what texel
+    budget would (texels_for_p95 from the k with the least p95_m)."""
     target = shadow.get("target_p95_m")
     kmax = int(shadow.get("max_cascades") or 4)
-    tried = []
-    best = None
+    tried, cands = [], []
     for k in range(1, kmax + 1):
         maps, info = maps_for(k)
+        notes = []
+        if drop and camera is not None:
+            maps, notes = drop_empty_maps(maps, prob.receivers, prob.receiver_slack, camera)
         err, _ = maps_error(maps, prob.samples, origin)
         texels = sum(m.resolution[0] * m.resolution[1] for m in maps)
-        tried.append({"cascades": k, "p95_m": err["p95_m"], "objective": err["objective"], "texels": texels})
-        score = err["objective"] * texels
+        tried.append({"cascades": k, "returned": len(maps), "p95_m": err["p95_m"], "objective": err["objective"],
+                      "texels": texels})
         if target is not None and err["p95_m"] <= target:
-            return maps, info, {"chosen": k, "rule": f"smallest k with p95_m <= {target}", "tried": tried}
-        if best is None or score < best[0]:
-            best = (score, maps, info, k)
-    rule = "least objective x texels" if target is None else f"no k met p95_m <= {target}: least objective x texels"
-    return best[1], best[2], {"chosen": best[3], "rule": rule, "tried": tried}
+            return maps, info, {"chosen": k, "returned": len(maps), "rule": f"smallest k with p95_m <= {target}",
+                                "tried": tried, "notes": notes}
+        cands.append((err["objective"] * texels, len(maps), k, maps, info, notes))
+    best = min(c[0] for c in cands)
+    ok = [c for c in cands if c[0] <= best * (1.0 + AUTO_TOLERANCE)]
+    _, n, k, maps, info, notes = min(ok, key=lambda c: (c[1], c[2]))
+    rule = f"fewest cascades with objective x texels within {AUTO_TOLERANCE:.0%} of the least"
+    out = {"chosen": k, "returned": n, "rule": rule if target is None else f"no k met p95_m <= {target}: {rule}",
+           "tolerance": AUTO_TOLERANCE, "tried": tried, "notes": notes}
+    if target is not None:
+        t = min(tried, key=lambda t: t["p95_m"])
+        need = texels_for_p95(t["p95_m"], t["texels"], target)
+        out["needed_texel_budget"] = need
+        out["budget_estimate"] = (f"about {need:,} texels would meet p95_m <= {target:g} (now {t['texels']:,}): "
+                                  f"k = {t['cascades']} has p95_m {t['p95_m']:.3g}, and p95_m scales as "
+                                  f"texels^{P95_TEXEL_EXPONENT:g}")
+    return maps, info, out
+
+
+def smaller_resolution(maps: list[ShadowMap], prob: LightProblem, origin, target: float):
+    """Maps that meet p95_m <= `target` with fewer texels than given: every map's sides scaled by
+    p95_m / target (P95_TEXEL_EXPONENT), rounded up to a multiple of ENGINE_SIZE_STEP (never above the given
+    size), the depth bias refitted to the new texels; the scale is raised until the target is met again.
+    Returns (maps, note) with the maps changed in place, or (maps, None) when nothing smaller meets it."""
+    from ..solvers.baselines import _with_bias
+
+    err, _ = maps_error(maps, prob.samples, origin)
+    p95, before = err["p95_m"], map_texels(maps)
+    if not (err["samples"] and 0 < p95 <= target):
+        return maps, None
+    given = [tuple(m.resolution) for m in maps]
+    s = p95 / target
+    while s < 1.0:
+        sizes = [tuple(min(g, max(ENGINE_SIZE_STEP, ENGINE_SIZE_STEP * math.ceil(g * s / ENGINE_SIZE_STEP)))
+                       for g in res) for res in given]
+        if sizes == given:
+            break
+        for m, r in zip(maps, sizes):
+            m.resolution = r
+            _with_bias(m, prob.receivers, prob.light)
+        e2, _ = maps_error(maps, prob.samples, origin)
+        if e2["p95_m"] <= target:
+            after = map_texels(maps)
+            return maps, (f"resolution lowered to {', '.join(f'{a}x{b}' for a, b in sizes)} (multiples of "
+                          f"{ENGINE_SIZE_STEP}) from {', '.join(f'{a}x{b}' for a, b in given)}: p95_m {e2['p95_m']:.3g} "
+                          f"still meets {target:g}; {before - after:,} of {before:,} texels saved "
+                          f"({(before - after) / before:.0%}); shadow.fixed_resolution keeps the given size")
+        s *= 1.15
+    for m, r in zip(maps, given):  # nothing smaller met the target: the given sizes
+        m.resolution = r
+        _with_bias(m, prob.receivers, prob.light)
+    return maps, None
 
 
 def _jsonable(d):

@@ -1,0 +1,191 @@
+"""Model only what the scene needs (service.need): a light with no visible receiver gets no map, a cascade with
+none is dropped; every reader of solutions accepts such a light."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shadowopt.api.schemas import Solution
+from shadowopt.renderers.ground_truth import render_screen
+from shadowopt.renderers.ray_scene import build_ray_scene
+from shadowopt.renderers.scene_data import LoadedScene, SceneGeometry
+from shadowopt.service.evaluation import evaluate_solution
+from shadowopt.service.rigs import SolutionError, resolve_rig
+from shadowopt.service.scenes import SceneEntry
+from shadowopt.service.solution_check import validate_solution
+from shadowopt.service.solve import maps_from_solution, solve
+from shadowopt.solvers.cameras import Camera
+from shadowopt.solvers.frames import stage_to_world
+from testkit import box, plane
+
+CAM = {"position": (0, 1.7, 0), "forward": (0, -0.15, 1.0), "near": 0.1, "far": 300}
+SUN = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}
+UP_SPOT = {"type": "spot", "position": (0, 5, 0), "direction": (0, 1, 0), "cone_deg": 20}  # points at the sky
+
+
+def entry_from(parts) -> SceneEntry:
+    verts, faces, prims, off = [], [], [], 0
+    for k, (v, f) in enumerate(parts):
+        verts.append(np.asarray(v, float))
+        faces.append(np.asarray(f) + off)
+        prims.append(np.full(len(f), k))
+        off += len(v)
+    g = SceneGeometry(np.vstack(verts), np.vstack(faces).astype(np.int32), np.concatenate(prims).astype(np.int32),
+                      [f"/p{k}" for k in range(len(parts))])
+    loaded = LoadedScene("mem", "hash", g, [], [], "Y", 1.0, stage_to_world("Y", 1.0), None)
+    return SceneEntry(loaded, build_ray_scene(g), 0.0, 0.0)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return entry_from([plane(100), box([-1, 0, 8], [1, 3, 10]), box([3, 0, 20], [5, 6, 23])])
+
+
+def rig(lights, camera=CAM, res=256, **shadow):
+    return {"camera": {"resolution": (320, 180), "fov_y_deg": 60, **camera}, "lights": lights,
+            "shadow": {"resolution": (res, res), "cascades": 1, **shadow}, "coarse_long_side": 120}
+
+
+def test_spot_light_facing_the_sky_gets_no_map_and_every_reader_accepts_it(scene):
+    r = rig([SUN, UP_SPOT])
+    sol = solve(scene, r, "focused")
+    sun, spot = sol["lights"]
+    assert sun["shadow"] == "map" and len(sun["cascades"]) == 1 and sun["need"]["receiver_pixels"] > 0
+    assert spot["shadow"] == "none" and spot["cascades"] == []
+    assert spot["need"]["receiver_pixels"] == spot["need"]["edge_receivers"] == 0
+    assert "0 are inside its 20 degree cone" in spot["reason"]
+    assert spot["predicted_error"]["texels"] == 0
+    # readers: the checker, maps_from_solution, the typed model (client), the evaluator
+    validate_solution(sol, light_kinds=["directional", "spot"])
+    assert [len(m) for m in maps_from_solution(sol)] == [1, 0]
+    assert Solution.model_validate(sol).lights[1].shadow == "none"
+    ev = evaluate_solution(scene, r, sol, depth="ideal")["lights"][1]
+    # ray-traced truth: no pixel the camera sees is inside the upward cone, so nothing is misclassified
+    assert ev["shadow"] == "none" and ev["receiver_pixels"] == 0 and ev["misclassified_pixels"] == 0
+
+
+def test_checker_refuses_maps_under_shadow_none_and_an_empty_list_without_it(scene):
+    sol = solve(scene, rig([SUN, UP_SPOT]), "focused")
+    bad = {**sol, "lights": [sol["lights"][0], {**sol["lights"][1], "cascades": sol["lights"][0]["cascades"]}]}
+    with pytest.raises(SolutionError, match=r"lights\.1\.cascades"):
+        validate_solution(bad)
+    bad = {**sol, "lights": [{**sol["lights"][0], "shadow": None, "cascades": []}, sol["lights"][1]]}
+    with pytest.raises(SolutionError, match=r"lights\.0\.cascades"):
+        validate_solution(bad)
+    bad = {**sol, "lights": [{**sol["lights"][0], "shadow": "some"}, sol["lights"][1]]}
+    with pytest.raises(SolutionError, match=r"lights\.0\.shadow"):
+        validate_solution(bad)
+
+
+def test_a_light_without_a_map_casts_no_shadow_in_the_evaluator(scene):
+    """Strip the sun's map: the evaluator counts exactly the receivers the sun truly shadows (ray traced)."""
+    r = rig([SUN])
+    sol = solve(scene, r, "focused")
+    stripped = {**sol, "lights": [{**sol["lights"][0], "shadow": "none", "cascades": []}]}
+    ev = evaluate_solution(scene, r, stripped, depth="ideal")
+    resolved = resolve_rig(r, scene.loaded)
+    sb = render_screen(scene.rays, resolved.camera, resolved.lights[0])
+    truth = int((sb.receivers & ~sb.visible).sum())
+    assert truth > 50  # the boxes' shadows
+    assert ev["misclassified_pixels"] == truth and ev["shadow"] == "none"
+
+
+def test_spot_receivers_are_the_coarse_pixels_inside_its_cone():
+    """On a lone ground plane, a spot pointing down: the receivers are exactly the coarse pixels whose ground
+    point is within the cone (closed form: a circle of radius h tan(cone) around the spot's foot)."""
+    entry = entry_from([plane(100)])
+    spot = {"type": "spot", "position": (0, 4, 10), "direction": (0, -1, 0), "cone_deg": 30}
+    r = rig([spot])
+    sol = solve(entry, r, "focused")
+    need = sol["lights"][0]["need"]
+    cam = resolve_rig(r, entry.loaded).camera
+    w, h = 120, 68  # coarse_long_side 120 at 320x180
+    d = cam.ray_directions(w, h).reshape(-1, 3)
+    t = -cam.position[1] / d[:, 1]
+    p = cam.position + t[:, None] * d
+    on = (t > 0) & (np.abs(p[:, 0]) <= 100) & (np.abs(p[:, 2]) <= 100) & ((p - cam.position) @ cam.forward <= cam.far)
+    r2 = (p[:, 0] - 0) ** 2 + (p[:, 2] - 10) ** 2
+    inside = on & (r2 <= (4 * np.tan(np.radians(30))) ** 2)
+    # pixels whose ground point is within 2% of the cone's edge may go either way (float32 rays)
+    edge = on & np.isclose(np.sqrt(r2), 4 * np.tan(np.radians(30)), rtol=0.02)
+    assert need["seen_pixels"] == int(on.sum())
+    assert int(inside.sum()) - int(edge.sum()) <= need["receiver_pixels"] <= int(inside.sum()) + int(edge.sum())
+    assert need["receiver_pixels"] == need["in_cone_pixels"]  # the plane faces the spot everywhere in its cone
+    assert sol["lights"][0]["shadow"] == "map"
+
+
+def test_cascades_in_a_depth_gap_are_dropped():
+    """A 6 m ground patch near the camera and a wall 100 m away, nothing between: of 4 practical cascades over
+    the receivers' depth range, those falling in the gap (closed form: between the patch's farthest corner and
+    the wall's face) serve no receiver and are not returned; the kept splits stay contiguous."""
+    entry = entry_from([plane(3.0), box([-20, 0, 95], [20, 15, 100])])
+    cam = {"position": (0, 2.0, -4.0), "forward": (0, -0.3, 1.0), "near": 0.1, "far": 300}
+    r = rig([SUN], camera=cam, cascades=4, splits="practical")
+    sol = solve(entry, r, "focused")
+    light = sol["lights"][0]
+    f = np.array(cam["forward"]) / np.linalg.norm(cam["forward"])
+    corners = np.array([[x, 0, z] for x in (-3, 3) for z in (-3, 3)])
+    patch_far = float(((corners - cam["position"]) @ f).max())
+    wall = np.array([[x, y, 95] for x in (-20, 20) for y in (0, 15)])
+    wall_near = float(((wall - cam["position"]) @ f).min())
+    splits = [c["split"] for c in light["cascades"]]
+    assert len(splits) + len(light["notes"]) == 4 and 2 <= len(splits) < 4
+    for note in light["notes"]:  # "cascade k (view depth lo-hi) dropped: ..."
+        lo, hi = (float(x) for x in note.split("view depth ")[1].split(")")[0].split("-"))
+        assert patch_far * 0.97 <= lo and hi <= wall_near * 1.03, note
+    for (_, b), (c, _) in zip(splits, splits[1:]):
+        assert b == pytest.approx(c)
+    assert all(c["predicted_error"]["samples"] > 0 for c in light["cascades"])
+    assert validate_solution(sol)["lights"][0]["cascades"]
+    ev = evaluate_solution(entry, r, sol, depth="ideal")
+    assert ev["outside_pixels"] == 0  # every visible receiver is still served by a kept cascade
+
+
+def _p95(entry, r):
+    return solve(entry, r, "focused")["lights"][0]["predicted_error"]["p95_m"]
+
+
+def test_p95_scales_as_texels_to_the_minus_half_and_the_budget_estimate_meets_the_target(scene):
+    """The exponent auto's budget estimate uses (P95_TEXEL_EXPONENT = -1/2), measured: 4x the texels halves
+    p95_m; and solving at the estimated budget meets the target it was asked for."""
+    from shadowopt.service.solve import P95_TEXEL_EXPONENT
+
+    a = _p95(scene, rig([SUN], res=512, fixed_resolution=True))
+    b = _p95(scene, rig([SUN], res=1024, fixed_resolution=True))
+    assert np.log(b / a) / np.log(4.0) == pytest.approx(P95_TEXEL_EXPONENT, abs=0.05)
+    r = rig([SUN], cascades="auto", max_cascades=2, target_p95_m=a / 3, fixed_resolution=True)
+    r["shadow"].pop("resolution")
+    r["shadow"]["texel_budget"] = 512 * 512
+    auto = solve(scene, r, "focused")["lights"][0]["auto_cascades"]
+    assert auto["rule"].startswith("no k met") and "texels^-0.5" in auto["budget_estimate"]
+    best = min(auto["tried"], key=lambda t: t["p95_m"])
+    r2 = rig([SUN], cascades=best["cascades"], fixed_resolution=True)
+    r2["shadow"].pop("resolution")
+    r2["shadow"]["texel_budget"] = auto["needed_texel_budget"]
+    assert _p95(scene, r2) <= a / 3 * 1.1
+
+
+def test_auto_takes_the_fewest_cascades_within_the_tolerance(scene):
+    """Each k's scores in `tried` are those of the same solve with cascades = k; the chosen k is the fewest whose
+    objective x texels is within 5% of the least."""
+    r = rig([SUN], cascades="auto", max_cascades=3)
+    light = solve(scene, r, "focused")["lights"][0]
+    auto = light["auto_cascades"]
+    for t in auto["tried"]:
+        fixed = solve(scene, rig([SUN], cascades=t["cascades"]), "focused")["lights"][0]["predicted_error"]
+        assert t["objective"] == pytest.approx(fixed["objective"])
+    score = {t["cascades"]: t["objective"] * t["texels"] for t in auto["tried"]}
+    assert auto["chosen"] == min(k for k, v in score.items() if v <= min(score.values()) * 1.05)
+    assert auto["returned"] == len(light["cascades"])
+
+
+def test_a_met_target_returns_a_smaller_resolution_unless_fixed(scene):
+    p95 = _p95(scene, rig([SUN], res=2048, fixed_resolution=True))
+    target = 2.5 * p95  # met at 2048: about 2048 / 2.5 per side would do
+    fixed = solve(scene, rig([SUN], res=2048, target_p95_m=target, fixed_resolution=True), "focused")["lights"][0]
+    assert fixed["cascades"][0]["resolution"] == [2048, 2048] and not fixed.get("notes")
+    light = solve(scene, rig([SUN], res=2048, target_p95_m=target), "focused")["lights"][0]
+    w, h = light["cascades"][0]["resolution"]
+    assert w % 64 == 0 and h % 64 == 0 and w * h < 2048 * 2048 / 4
+    assert light["predicted_error"]["p95_m"] <= target
+    assert any("texels saved" in n for n in light["notes"])
