@@ -86,7 +86,7 @@ async function openScene(id) {
   const cam = $("camera");
   cam.innerHTML = "";
   for (const c of state.info.cameras) cam.add(new Option(c.usd_path, c.usd_path));
-  cam.add(new Option("orbit (drag on the picture, wheel to zoom)", "orbit"));
+  cam.add(new Option("orbit (drag, wheel to zoom; fly: W A S D, Q E)", "orbit"));
   const lo = state.info.bounds.min, hi = state.info.bounds.max;
   const centre = lo.map((v, i) => (v + hi[i]) / 2), extent = Math.hypot(...hi.map((v, i) => v - lo[i]));
   state.orbit = { target: centre, radius: extent * 0.6, az: 0.6, el: 0.45, extent };
@@ -900,6 +900,19 @@ function wire() {
     renderer.render();
   });
   cv.addEventListener("pointerup", () => { if (drag) { drag = null; requestOptimize(); } });
+  // fly: W/S forward and back, A/D sideways, Q/E down and up (the orbit's centre moves with the camera)
+  window.addEventListener("keydown", (e) => {
+    if ($("camera").value !== "orbit" || /^(INPUT|SELECT|TEXTAREA)$/.test(document.activeElement.tagName)) return;
+    const o = state.orbit, c = orbitCamera();
+    const f = unit(sub(o.target, c.position)), r = unit(cross(f, [0, 1, 0])), step = o.radius * 0.15;
+    const move = { w: f, s: f.map((v) => -v), d: r, a: r.map((v) => -v), e: [0, 1, 0], q: [0, -1, 0] }[e.key.toLowerCase()];
+    if (!move) return;
+    e.preventDefault();
+    o.target = o.target.map((v, i) => v + step * move[i]);
+    renderer.render();
+    clearTimeout(state.wheelTimer);
+    state.wheelTimer = setTimeout(requestOptimize, 200);
+  });
   cv.addEventListener("wheel", (e) => {
     if ($("camera").value !== "orbit") return;
     e.preventDefault();
