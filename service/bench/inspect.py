@@ -126,5 +126,6 @@ def inspect_table(rows: list[dict], screen: str, renderer: str, load_avg: list[f
                  f"HTTP round trip, the solve, the light pass and camera pass in WebGL2 and two animation frames (page: the "
                  f"latency less the round trip). "
                  f"Load average (1 min) during the run: {min(load_avg):.1f}-{max(load_avg):.1f} on "
-                 f"{os.cpu_count()} cores (the browser, the server and other work share them).")
+                 f"{os.cpu_count()} cores (the browser, the server and other work share them): the server's "
+                 f"part is the solve under that load (section `load` measures the same solve's latency on its own).")
     return "\n".join(lines)
