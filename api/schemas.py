@@ -73,7 +73,11 @@ class LightSpec(_Strict):
 class ShadowSpec(_Strict):
     resolution: Resolution | None = Field(None, description="texels per map (width, height)")
     texel_budget: Annotated[int, Field(gt=0, le=16 * 16384 * 16384)] | None = Field(
-        None, description="total texels per light")
+        None, description="total texels per light (budget_scope light) or for the whole rig (budget_scope rig)")
+    budget_scope: Literal["light", "rig"] = Field("light", description=(
+        "rig: texel_budget is shared by all lights, split by need (Chong 2003's Lagrange allocation: each light's "
+        "share grows with its predicted misclassified pixels; a light with no visible receiver gets none); "
+        "the solution's texel_budget_split reports it"))
     cascades: Annotated[int, Field(ge=1, le=16)] | Literal["auto"] = 1
     max_cascades: Annotated[int, Field(ge=1, le=16)] = 4
     target_p95_m: Annotated[float, Field(gt=0)] | None = Field(None, description=(
@@ -90,6 +94,8 @@ class ShadowSpec(_Strict):
     def _budget(self):
         if self.resolution is not None and self.texel_budget is not None:
             raise ValueError("give resolution or texel_budget, not both")
+        if self.budget_scope == "rig" and self.texel_budget is None:
+            raise ValueError("budget_scope rig needs a texel_budget (the rig's total texels)")
         if self.resolution is None and self.texel_budget is None:
             self.resolution = (2048, 2048)
         return self
