@@ -285,7 +285,7 @@ function showSolution() {
   const s = state.solution, L = s.lights[0], p = L.predicted_error || {};
   const maps = L.cascades;
   rows($("solution-table"), [
-    ["method", s.method], ["maps", maps.map((c) => c.resolution.join("×")).join(", ")],
+    ["method", s.method], ["maps", L.shadow === "none" ? `none: ${L.reason || ""}` : maps.map((c) => c.resolution.join("×")).join(", ")],
     ["splits (m)", maps.map((c) => c.split.map((v) => fmt(v, 3)).join("–")).join(" | ")],
     ["warp", maps.map((c) => c.warp.kind).join(", ")],
     ["depth mode", maps.map((c) => (c.depth || {}).mode).join(", ")],
@@ -294,6 +294,7 @@ function showSolution() {
     ["setup ms (server)", fmt(s.timings_ms.total, 4)], ["round trip ms", fmt(state.stats.lastOptimizeMs, 4)],
     ["convention", `${s.convention.api}${s.convention.reversed_z ? ", reversed Z" : ""}` +
                    (s.convention.engine ? ` (${s.convention.engine}: ${s.convention.handedness}-handed, ${s.convention.up_axis} up, ${s.convention.length_unit})` : "")],
+    ...(L.notes && L.notes.length ? [["notes", L.notes.join("; ")]] : []),
   ]);
   const rep = $("solver-report");
   const sv = s.solver;
@@ -675,8 +676,12 @@ class Renderer {
     const sl = this.slots[slot];
     const block = new Float32Array(this.blockSize / 4);
     let nMaps = 0;
-    if (sol && sol.lights[0].type === "directional") {
-      const maps = sol.lights[0].cascades;
+    const light = sol && sol.lights[0];
+    if (light && (!light.cascades || !light.cascades.length)) {
+      note.push(`no shadow map: ${light.reason || "the light reaches no receiver the camera sees"}`);
+    }
+    if (light && light.type === "directional" && light.cascades && light.cascades.length) {
+      const maps = light.cascades;
       const clip = sol.convention.reversed_z ? "reversed_z" : sol.convention.api;
       const reversedZ = !!sol.convention.reversed_z;
       const [mw, mh] = maps[0].resolution;
@@ -708,7 +713,7 @@ class Renderer {
       block.set([maps.length, reversedZ ? 1 : 0, 0, 0], o.uParams);
       nMaps = maps.length;
     } else {
-      if (sol) note.push("the picture shows directional lights' maps only");
+      if (light && light.type !== "directional") note.push("the picture shows directional lights' maps only");
       block.set([...unit(sunDirection()).map((v) => -v), 0], this.offsets.uToLight);  // unshadowed
     }
     if (!sl.tex) {  // nothing to sample yet: a 1-texel array keeps the sampler complete
