@@ -120,3 +120,22 @@ def drop_empty_maps(maps, receivers: np.ndarray, slack: np.ndarray, camera) -> t
                 j = nxt[0]
                 maps[j].split = (min(maps[j].split[0], maps[k].split[0]), maps[j].split[1])
     return [maps[k] for k in keep], notes
+
+
+def split_budget(budget: int, misclassified: list[float | None], probe_texels: int) -> list[int]:
+    """One texel budget for the whole rig, split across lights by need: Chong 2003's Lagrange allocation across
+    frusta, generalized to lights. A light's predicted misclassified pixels go as M_i(T) = d_i T^-1/2 (a
+    shadow edge's band of wrong pixels is one texel footprint wide, and the footprint's side goes as T^-1/2:
+    solvers.metric.predicted_misclassified), so d_i = M_i(probe) sqrt(probe). Minimizing sum_i d_i T_i^-1/2
+    under sum_i T_i = budget: d_i T_i^-3/2 / 2 = lambda for every light, T_i = budget d_i^(2/3) / sum_j
+    d_j^(2/3). None (a light with no map) gets 0; when no light has a predicted misclassified pixel (no
+    shadow edge on screen) the budget is shared equally by the lights with maps."""
+    active = [i for i, m in enumerate(misclassified) if m is not None]
+    out = [0] * len(misclassified)
+    if not active:
+        return out
+    w = np.array([max(float(misclassified[i]), 0.0) * np.sqrt(probe_texels) for i in active]) ** (2.0 / 3.0)
+    w = w / w.sum() if w.sum() > 0 else np.full(len(active), 1.0 / len(active))
+    for i, f in zip(active, w):
+        out[i] = int(budget * f)
+    return out

@@ -24,7 +24,7 @@ from ..solvers.shadow_map import ShadowMap
 from .pipeline import coarse_pass
 from .echo import resolved_echo
 from .request_cost import flush_if_large, solve_work
-from .need import drop_empty_maps, light_need, no_shadow_reason
+from .need import drop_empty_maps, light_need, no_shadow_reason, split_budget
 from .rigs import ResolvedRig
 from .scenes import SceneEntry
 from .solution_check import SCHEMA_VERSION, validate_solution
@@ -377,7 +377,9 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
     lo, hi = entry.loaded.geometry.bounds()
     per_light = []
     solvers_json = []
-    for li, prob in enumerate(light_problems(resolved, buffers, (lo, hi))):
+    probs = light_problems(resolved, buffers, (lo, hi))
+    split = rig_budget_split(resolved, buffers, probs, (lo, hi)) if shadow.get("budget_scope") == "rig" else None
+    for li, prob in enumerate(probs):
         need = light_need(buffers, li)
         if not need.needs_map:  # no visible receiver: no map, nothing beyond the coarse pass (service.need)
             per_light.append(no_map_json(prob, need, (buffers.width, buffers.height)))
@@ -389,6 +391,8 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
                       splits=shadow.get("splits", "practical"),
                       split_lambda=shadow.get("lambda", 0.5), texel_budget=shadow.get("texel_budget"),
                       receiver_slack=prob.receiver_slack)
+        if split is not None:  # budget_scope rig: this light's share of the rig's texels
+            common["texel_budget"] = max(1, split["lights"][li]["texels"])
         allow_log = bool(resolved.output.get("allow_log_warp", False))
 
         def maps_for(k: int):
@@ -458,9 +462,42 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
                 "time_budget_ms": time_budget_ms, "coarse_long_side": resolved.coarse_long_side,
                 "shadow": _jsonable(shadow)}
     sol = solution_json(entry, resolved, method, per_light, timings, settings)
+    if split is not None:
+        for li, light in enumerate(per_light):
+            split["lights"][li]["returned_texels"] = sum(c["resolution"][0] * c["resolution"][1]
+                                                         for c in light["cascades"])
+        split["returned_texels"] = sum(l["returned_texels"] for l in split["lights"])
+        sol["texel_budget_split"] = split
     if method in ("optimized", "path") and any(s is not None for s in solvers_json):
         sol["solver"] = solvers_json[0] if len(solvers_json) == 1 else {"lights": solvers_json}
     return sol
+
+
+def rig_budget_split(resolved: ResolvedRig, buffers: CoarseBuffers, probs: list[LightProblem], bounds) -> dict:
+    """`budget_scope: "rig"`: the rig's texel_budget split across its lights by need (service.need.split_budget).
+    Each light with visible receivers is probed with the focused baseline at an equal share (its cascade count,
+    1 for auto); its predicted misclassified pixels there set its need. A light with none gets 0 texels."""
+    shadow = resolved.shadow
+    budget = int(shadow["texel_budget"])
+    needs = [light_need(buffers, li) for li in range(len(probs))]
+    n = sum(1 for nd in needs if nd.needs_map)
+    probe = budget // max(n, 1)
+    k = shadow.get("cascades") if isinstance(shadow.get("cascades"), int) else 1
+    mis = []
+    for prob, nd in zip(probs, needs):
+        if not nd.needs_map:
+            mis.append(None)
+            continue
+        maps = baseline("focused", resolved.camera, prob.light, prob.receivers, bounds, cascades=k,
+                        splits=shadow.get("splits", "practical") if shadow.get("splits") != "optimized" else "practical",
+                        split_lambda=shadow.get("lambda", 0.5), texel_budget=probe, receiver_slack=prob.receiver_slack)
+        mis.append(float(maps_error(maps, prob.samples, resolved.camera.position)[0]["misclassified_pixels"]))
+    texels = split_budget(budget, mis, probe)
+    return {"scope": "rig", "budget": budget, "probe_texels": probe,
+            "rule": ("T_i = budget d_i^(2/3) / sum d_j^(2/3), d_i = predicted misclassified pixels at an equal share x "
+                     "sqrt(share) (Chong 2003's Lagrange allocation, generalized to lights); 0 for a light with no "
+                     "visible receiver"),
+            "lights": [{"texels": t, "predicted_misclassified_at_probe": m} for t, m in zip(texels, mis)]}
 
 
 def no_map_json(prob: LightProblem, need, size: tuple[int, int]) -> dict:

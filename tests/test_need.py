@@ -189,3 +189,35 @@ def test_a_met_target_returns_a_smaller_resolution_unless_fixed(scene):
     assert w % 64 == 0 and h % 64 == 0 and w * h < 2048 * 2048 / 4
     assert light["predicted_error"]["p95_m"] <= target
     assert any("texels saved" in n for n in light["notes"])
+
+
+def test_one_rig_budget_is_split_by_need_and_beats_equal_shares(scene):
+    """budget_scope rig: the light with no visible receiver gets 0 texels, the others share the budget as the
+    Lagrange condition says (brute force over the split agrees), and the rig's predicted misclassified pixels
+    are no more than with the same total split equally per light (today's per-light budget)."""
+    from shadowopt.service.need import split_budget
+
+    spot = {"type": "spot", "position": (0.5, 5, 12), "direction": (0, -1, 0.1), "cone_deg": 25}
+    lights = [SUN, UP_SPOT, spot]
+    B = 3 * 512 * 512
+
+    def run(scope, budget):
+        r = rig(lights, fixed_resolution=True, budget_scope=scope)
+        r["shadow"].pop("resolution")
+        r["shadow"]["texel_budget"] = budget
+        return solve(scene, r, "focused")
+
+    sol = run("rig", B)
+    split = sol["texel_budget_split"]
+    t = [l["texels"] for l in split["lights"]]
+    assert t[1] == 0 and sol["lights"][1]["shadow"] == "none" and sum(t) <= B
+    assert split["returned_texels"] <= B
+    d = [l["predicted_misclassified_at_probe"] for l in split["lights"]]
+    # brute force: the share of light 0 minimizing d0 T0^-1/2 + d2 (B - T0)^-1/2
+    f = np.linspace(0.01, 0.99, 9801)
+    cost = d[0] / np.sqrt(f * B) + d[2] / np.sqrt((1 - f) * B)
+    assert t[0] / B == pytest.approx(f[np.argmin(cost)], abs=2e-4)
+    assert split_budget(B, d, split["probe_texels"]) == t
+    even = run("light", B // 2)  # the same total over the two lights with receivers
+    mis = lambda s: sum(l["predicted_error"]["misclassified_pixels"] for l in s["lights"])
+    assert mis(sol) <= mis(even) * 1.001
