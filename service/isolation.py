@@ -11,7 +11,8 @@
 - `load_isolated(path, ..., limits=LoadLimits(...))` runs renderers.usd_loader.load_scene in a child
   started with the spawn method (never fork: the server holds LLVM and threads), with RLIMIT_AS set
   once numpy and usd-core are imported (a fixed cost the limit still counts) and before the scene's
-  first byte is read, killed after `timeout_s` of wall clock (counted from when the job is handed over). The
+  first byte is read, killed after `timeout_s` of wall clock (counted from when the child, its imports done,
+  begins the job: a spawn slowed by a loaded machine is not the scene's cost; SPAWN_GRACE_S more to start). The
   LoadedScene comes back pickled over a pipe (40 MB for the chess set: 0.05 s), and the child's memory
   goes back to the system when it exits. Over the memory limit -> SceneError("memory_limit"), over time
   -> SceneError("load_timeout"), a child that crashes (a signal: USD segfaulting on a damaged file)
@@ -55,6 +56,7 @@ DEFAULT_MEMORY_BYTES = 3 << 30
 DEFAULT_TIMEOUT_S = 60.0
 DEFAULT_MAX_TRIANGLES = 5_000_000
 CHILD_THREADS = 4  # USD's work threads in a loader child (each one maps a stack)
+SPAWN_GRACE_S = 60.0  # a loader child gets this long beyond the time limit to import numpy and usd-core
 CPU_SLACK_S = 10  # RLIMIT_CPU = timeout * threads + this: a backstop should the parent not kill the child
 PDEATHSIG = sys.platform.startswith("linux")
 PEAK_STEP, PEAK_POLL_S = 16 << 20, 0.01  # a loader child reports its mapped memory in 16 MB steps
@@ -251,6 +253,7 @@ def _run_job(conn, fn, args: tuple, kwargs: dict, memory_bytes: int, timeout_s: 
     """In the child: limits, then fn(*args, **kwargs); one answer back, then the child exits."""
     from ..renderers.scene_data import SceneError
 
+    conn.send(("ready", 0))  # imports done: the load's time limit starts now (run_isolated)
     lock = threading.Lock()
     reporter = _PeakReporter(conn, lock)
     _limit_self(memory_bytes, timeout_s)
@@ -378,8 +381,8 @@ _stats_lock = threading.Lock()
 def run_isolated(fn, args: tuple = (), kwargs: dict | None = None, *, memory_bytes: int = DEFAULT_MEMORY_BYTES,
                  timeout_s: float = DEFAULT_TIMEOUT_S, what: str = "the scene"):
     """fn(*args, **kwargs) in a child process (a warm spare, or one spawned for it) with RLIMIT_AS =
-    memory_bytes, killed after timeout_s of wall clock. fn must be importable by name (the child imports
-    its module) and return a picklable value. Raises SceneError memory_limit / load_timeout / corrupt
+    memory_bytes, killed after timeout_s of wall clock from when it begins fn (its imports done). fn must be
+    importable by name (the child imports its module) and return a picklable value. Raises SceneError memory_limit / load_timeout / corrupt
     (a crash), or fn's own SceneError with its code and message."""
     from ..renderers.scene_data import SceneError
 
@@ -418,12 +421,20 @@ def run_isolated(fn, args: tuple = (), kwargs: dict | None = None, *, memory_byt
             SPARES.refill()  # for the next load, importing while this one runs
         except Exception:  # noqa: BLE001 - no spare (out of fds or processes): this load goes on without
             pass
-        deadline = time.monotonic() + timeout_s
+        # The time limit counts from the child's "ready" (numpy and usd-core imported, the job begun): a cold
+        # child's spawn and imports (0.5-1.5 s idle, 5 s and more on a loaded machine) are the machine's latency,
+        # not the scene's cost. A child that never gets ready is killed SPAWN_GRACE_S after the limit.
+        start_by = time.monotonic() + timeout_s + SPAWN_GRACE_S
+        deadline = None
         msg = None
         while True:
-            left = deadline - time.monotonic()
+            left = (deadline if deadline is not None else start_by) - time.monotonic()
             if left <= 0:
                 proc.kill()
+                if deadline is None:
+                    raise SceneError("load_timeout", f"the loader for {what} did not start within "
+                                     f"{timeout_s + SPAWN_GRACE_S:g} s (the load time limit plus {SPAWN_GRACE_S:g} s "
+                                     "to start); refused")
                 raise SceneError("load_timeout", f"loading {what} took longer than {timeout_s:g} s (the load time "
                                  f"limit); refused")
             if conn.poll(min(left, 0.1)):
@@ -433,6 +444,9 @@ def run_isolated(fn, args: tuple = (), kwargs: dict | None = None, *, memory_byt
                     msg = None
                 if msg is not None and msg[0] == "peak":
                     peak = max(peak, msg[1])
+                    continue
+                if msg is not None and msg[0] == "ready":
+                    deadline = time.monotonic() + timeout_s
                     continue
                 break
             peak = max(peak, _status(proc.pid).get("VmPeak", 0))
