@@ -182,6 +182,11 @@ def cmd_bench(args) -> int:
         result = bench_throughput(validate_rig, frames=args.frames or 1000, screen=args.screen or (320, 180),
                                   map_side=args.map, methods=args.methods.split(",") if args.methods else None,
                                   write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
+    elif args.bench == "budget":  # what a rig's lights need: rig budget split vs per-light (service.bench.budget)
+        from ..service.bench.budget import bench_budget
+
+        result = bench_budget(validate_rig, scenes=args.scenes, screen=args.screen or (320, 180), map_side=args.map,
+                              write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     else:  # argparse restricts choices
         raise CliError(f"unknown benchmark {args.bench!r}")
     if args.json:
@@ -554,7 +559,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
     sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch", "security", "engine", "path",
-                                       "throughput", "inspect"])
+                                       "throughput", "inspect", "budget"])
     sp.add_argument("--frames", type=int, default=None, help="path: frames per path (default: configs/paths.json's samples); "
                     "throughput: frames of the long path (default 1000)")
     sp.add_argument("--paths", default=None, help="path: comma-separated path names from configs/paths.json")

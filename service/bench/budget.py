@@ -1,0 +1,108 @@
+"""`shadowopt bench budget`: what a rig's lights need, on the corpus rigs (configs/corpus.json).
+
+Each rig gets four lights, some irrelevant to its view: a sun (direction (-0.3, -0.8, 0.5)), a spot 30 degrees
+wide above the view's look point pointing down, a spot beside the camera pointing at the sky (20 degrees), and a
+point light above the look point (the look point: the centre of the scene's bounds when it is in front of the
+camera, else a point a quarter of the far plane ahead; heights a tenth of the bounds' diagonal, at most 50 m).
+
+Two solves with the same total texels B = 4 x `map_side`^2 (focused maps, one cascade):
+- per light: texel_budget B/4 for each light (today's fixed per-light budget; before the need rule every light
+  got its B/4, so the rig allocated all of B);
+- rig: texel_budget B with budget_scope rig (service.need.split_budget: split by need).
+Per solve: the texels returned, the lights with no map, the cube faces dropped, and the misclassified pixels
+measured against ray-traced shadows (service.evaluation, depth "solution": each map's engine depth block) over
+all lights at the rig's screen. The target: 0 texels for lights and cascades without visible receivers, and the
+rig split's misclassified pixels no more than the per-light budget's.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .suite import corpus_scenes, machine, write_section
+
+SUN = (-0.3, -0.8, 0.5)
+
+
+def _lights(entry, camera) -> list[dict]:
+    lo, hi = entry.loaded.geometry.bounds()
+    centre = (lo + hi) / 2.0
+    pos, fwd = camera.position, camera.forward
+    ahead = float((centre - pos) @ fwd)
+    look = centre if 0 < ahead < camera.far else pos + fwd * camera.far * 0.25
+    h = float(min(np.linalg.norm(hi - lo) * 0.1, 50.0))
+    up = np.array([0.0, 1.0, 0.0])
+    return [{"type": "directional", "direction": list(SUN)},
+            {"type": "spot", "position": (look + up * h).tolist(), "direction": [0.0, -1.0, 0.0], "cone_deg": 30.0},
+            {"type": "spot", "position": (pos + up * h * 0.5).tolist(), "direction": [0.0, 1.0, 0.0], "cone_deg": 20.0},
+            {"type": "point", "position": (look + up * h * 0.5).tolist()}]
+
+
+def bench_budget(validate_rig, scenes=None, screen=(320, 180), map_side: int = 1024, write: bool = True,
+                 log=None) -> dict:
+    from ..evaluation import evaluate_solution
+    from ..rigs import resolve_rig
+    from ..scenes import SceneCache
+    from ..solve import solve
+
+    found, skipped = corpus_scenes(scenes.split(",") if isinstance(scenes, str) else scenes)
+    B = 4 * map_side * map_side
+    rows, cache = [], SceneCache()
+    for name, (path, spec) in found.items():
+        entry = cache.get(path)
+        for rig_name, part in spec.get("rigs", {}).items():
+            base = {"camera": {**part["camera"], "resolution": list(screen)},
+                    "lights": [{"type": "directional", "direction": list(SUN)}]}
+            camera = resolve_rig(validate_rig(base), entry.loaded).camera
+            lights = _lights(entry, camera)
+            row = {"scene": name, "rig_name": rig_name}
+            for scope, budget in (("light", B // 4), ("rig", B)):
+                rig = validate_rig({**base, "lights": lights,
+                                    "shadow": {"texel_budget": budget, "budget_scope": scope, "cascades": 1,
+                                               "fixed_resolution": True}})
+                t0 = time.perf_counter()
+                sol = solve(entry, rig, "focused")
+                ms = (time.perf_counter() - t0) * 1e3
+                ev = evaluate_solution(entry, rig, sol, depth="solution")
+                per = ev["lights"] if "lights" in ev else [ev]
+                row[scope] = {
+                    "texels": sum(c["resolution"][0] * c["resolution"][1] for l in sol["lights"] for c in l["cascades"]),
+                    "no_map": [k for k, l in enumerate(sol["lights"]) if l["shadow"] == "none"],
+                    "dropped": sum(len(l.get("notes") or []) for l in sol["lights"]),
+                    "misclassified": int(sum(x["misclassified_pixels"] for x in per)),
+                    "per_light_misclassified": [int(x["misclassified_pixels"]) for x in per],
+                    "solve_ms": ms}
+            if log:
+                log(f"{name}/{rig_name}: per light {row['light']['texels']:,} texels, {row['light']['misclassified']} "
+                    f"misclassified; rig {row['rig']['texels']:,}, {row['rig']['misclassified']}")
+            rows.append(row)
+        cache.clear()
+    table = _table(rows, skipped, B)
+    result = {"benchmark": "budget", "machine": machine(), "total_texels": B, "screen": list(screen),
+              "rows": rows, "skipped": skipped, "table": table}
+    if write:
+        write_section("budget", table, f"shadowopt bench budget --map {map_side}")
+    return result
+
+
+def _table(rows, skipped, B) -> str:
+    lines = [f"Four lights per rig (sun, a spot over the view, a spot at the sky beside the camera, a point light); "
+             f"{B:,} texels in all: per light {B // 4:,} each (before the need rule every light took its share, "
+             f"{B:,} in all), or one rig budget split by need. Misclassified: measured, all lights, rig screen.",
+             "", "| scene / rig | lights without a map | faces dropped | per light: texels | misclassified "
+             "| rig split: texels | misclassified | per light (sun, spot, sky spot, point) |",
+             "|---|---|---:|---:|---:|---:|---:|---|"]
+    for r in rows:
+        a, b = r["light"], r["rig"]
+        lines.append(f"| {r['scene']} / {r['rig_name']} | {', '.join(map(str, a['no_map'])) or 'none'} | {a['dropped']} | "
+                     f"{a['texels']:,} | {a['misclassified']} | {b['texels']:,} | **{b['misclassified']}** | "
+                     f"{a['per_light_misclassified']} -> {b['per_light_misclassified']} |")
+    for name, why in skipped.items():
+        lines.append(f"| {name} | skipped: {why} |")
+    if rows:
+        la = sum(r["light"]["misclassified"] for r in rows)
+        lb = sum(r["rig"]["misclassified"] for r in rows)
+        lines.append(f"\nTotal misclassified: per light {la}, rig split {lb}; rigs where the split is no worse: "
+                     f"{sum(r['rig']['misclassified'] <= r['light']['misclassified'] for r in rows)} of {len(rows)}.")
+    return "\n".join(lines)
