@@ -512,3 +512,22 @@ def test_put_outcomes_stores_a_tasks_results_and_errors_in_one_commit_once(tmp_p
         store.put_outcomes(b, [(3, {"result": {}}), (4, {"result": {}})])
     assert store.pending_indices(b) == [3]  # nothing of a refused task is stored
     store.close()
+
+
+def _kernel_threads() -> int:
+    import drjit as dr
+
+    return dr.thread_count()
+
+
+def test_pool_workers_run_dr_jit_on_their_share_of_the_cores():
+    """Two workers on N cores: each runs Dr.Jit's kernels on N // 2 threads (its default is every core in every
+    process: two workers ran twice as many spinning kernel threads as cores), asked of a real worker."""
+    from shadowopt.service.batches import _LocalBackend
+
+    be = _LocalBackend(2)
+    try:
+        got = be._ensure_pool().submit(_kernel_threads).result(timeout=120)
+    finally:
+        be.close()
+    assert got == max(1, (os.cpu_count() or 1) // 2)
