@@ -798,13 +798,15 @@ class _RayBackend:
             while True:
                 if should_stop():
                     return
-                for a in actors:
-                    while load[id(a)] < IN_FLIGHT_PER_WORKER:
-                        group, tries = retries.popleft() if retries else (tasks.take(), 0)
-                        if group is None:
-                            break
-                        inflight[a.solve_chunk.remote(group, settings)] = (group, tries, a)
-                        load[id(a)] += 1
+                while True:  # the least loaded actor first: a coherent path's chunks (one task each) spread out
+                    a = min(actors, key=lambda x: load[id(x)])
+                    if load[id(a)] >= IN_FLIGHT_PER_WORKER:
+                        break
+                    group, tries = retries.popleft() if retries else (tasks.take(), 0)
+                    if group is None:
+                        break
+                    inflight[a.solve_chunk.remote(group, settings)] = (group, tries, a)
+                    load[id(a)] += 1
                 if not inflight:
                     if retries or not tasks.finished():
                         time.sleep(0.01)
