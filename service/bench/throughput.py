@@ -11,7 +11,8 @@ and for the coarse pass the same work as any rig up to 360 px wide (180 coarse p
 Each (backend, workers) gets a fresh runner. Its first run ("cold") includes starting the workers
 (imports, the scene load, the kernels' first compile from Dr.Jit's disk cache); the runs after it reuse
 the workers, as a server with a running pool does. Per method: `repeats` runs of `short` frames (their
-median frames/s), and on the local pool with the most workers one run of the whole `frames`-frame path.
+median frames/s), and on the local pool with the most workers one run of the whole `frames`-frame path
+(and the first CHUNK_COMPARE frames of it in tasks of several frames and in tasks of one).
 Method path (and any --coherent path) is coherent: each frame gets the previous frame's solution, in as
 many coherent chunks as workers (service.paths.chunk_starts: one fresh start per chunk).
 
@@ -37,6 +38,7 @@ SCREEN = (320, 180)
 KEYFRAMES = [{"position": [0.0, 1.7, 0.0], "target": [0.0, 1.0, 20.0]},
              {"position": [6.0, 1.7, 2.0], "target": [0.0, 1.0, 20.0]}]
 TARGET_FPS = 50.0
+CHUNK_COMPARE = 240  # frames of the run with tasks of several frames against one frame per task
 
 
 def path_frames(validate_rig, frames: int, screen=SCREEN, map_side: int = 1024) -> list[dict]:
@@ -137,10 +139,12 @@ def measure(backend: str, workers: int, methods, short: list[dict], repeats: int
                     log(f"bench throughput: {backend}, {workers} worker(s), {m}, {len(long)} frames")
                     rows[m]["long"] = _run_path(runner, store, clock, scene_id, long, m, workers)
             if backend == "local" and long is not None and methods[0] != "path":
-                saved = batches.CHUNK  # the same path with one configuration per task, for comparison
+                part = long[:CHUNK_COMPARE]  # tasks of several frames against one frame per task
+                rows["chunked"] = _run_path(runner, store, clock, scene_id, part, methods[0], workers)
+                saved = batches.CHUNK
                 batches.CHUNK = 1
                 try:
-                    rows["chunk1"] = _run_path(runner, store, clock, scene_id, long, methods[0], workers)
+                    rows["chunk1"] = _run_path(runner, store, clock, scene_id, part, methods[0], workers)
                 finally:
                     batches.CHUNK = saved
         finally:
@@ -159,7 +163,7 @@ def _scene_load_s() -> float:
     return time.perf_counter() - t
 
 
-def bench_throughput(validate_rig, frames: int = 1000, short_frames: int = 48, repeats: int = 3, methods=None,
+def bench_throughput(validate_rig, frames: int = 1000, short_frames: int = 40, repeats: int = 3, methods=None,
                      screen=SCREEN, map_side: int = 1024, backends=("local", "ray"), workers=(1, 2),
                      write: bool = True, log=None) -> dict:
     log = log or (lambda m: print(m, file=sys.stderr))
@@ -224,11 +228,12 @@ def _table(results, skipped, methods, frames, short_frames, repeats, screen, map
                 cold_fps = r["frames"] / (r["wall_s"] + local["startup_s"])
                 lines.append(f"| {m} | **{r['fps']:.1f}** | {r['wall_s']:.1f} | {cold_fps:.1f} | {ms['coarse']:.1f} | {ms['solve']:.1f} | "
                              f"{ms['outside']:.1f} | {ms['store']:.2f} | {ms['submit']:.2f} | {ms['stream']:.2f} | {r['failed']} |")
-        c1 = local["methods"].get("chunk1")
-        if c1:
-            lines.append(f"| {methods[0]}, one frame per task | {c1['fps']:.1f} | {c1['wall_s']:.1f} | | {c1['ms']['coarse']:.1f} | "
-                         f"{c1['ms']['solve']:.1f} | {c1['ms']['outside']:.1f} | {c1['ms']['store']:.2f} | "
-                         f"{c1['ms']['submit']:.2f} | {c1['ms']['stream']:.2f} | {c1['failed']} |")
+        for key, what in (("chunked", "tasks of up to 8 frames"), ("chunk1", "one frame per task")):
+            c1 = local["methods"].get(key)
+            if c1:
+                lines.append(f"| {methods[0]}, {c1['frames']} frames, {what} | {c1['fps']:.1f} | {c1['wall_s']:.1f} | | "
+                             f"{c1['ms']['coarse']:.1f} | {c1['ms']['solve']:.1f} | {c1['ms']['outside']:.1f} | "
+                             f"{c1['ms']['store']:.2f} | {c1['ms']['submit']:.2f} | {c1['ms']['stream']:.2f} | {c1['failed']} |")
         lines.append("")
     lines += [f"**Scaling** ({short_frames}-frame paths, median frames/s of {repeats}; cold: the first run on a fresh "
               "runner, start-up included):\n",
