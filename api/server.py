@@ -1245,12 +1245,13 @@ def add_path_routes(app: FastAPI, svc: Service, Tenant) -> None:
             return await svc.in_slot(svc.admission.solve, ticket, queue_path, svc, tenant, req, frames, notes, entry)
 
     def queue_path(svc: Service, tenant: str, req: S.PathRequest, frames: list, notes: list, entry) -> Response:
-        from ..service.paths import is_coherent
+        from ..service.paths import is_coherent, is_whole_path
 
         limits = load_limits(svc.settings)  # a frame's load of the stage at its time code runs under these (the
         # runner passes the server's own at run time; these are the fallback it keeps when it has none)
         settings = {"method": req.method, "solver": req.solver, "time_budget_ms": svc.time_budget(req.time_budget_ms),
                     "shape": None, "coherent": is_coherent(req.method, req.coherent), "path": True,
+                    "whole_path": is_whole_path(req.method, req.coherent),
                     "load_limits": {"max_triangles": limits.max_triangles, "memory_bytes": limits.memory_bytes,
                                     "timeout_s": limits.timeout_s}}
         batch_id, _ = store_batch(svc, tenant, req.scene_id, frames, settings, entry, what="frames")

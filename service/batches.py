@@ -37,6 +37,7 @@ MAX_RETRIES = 1  # a configuration in flight when a worker process dies is tried
 RUNNER_RETRIES, RUNNER_RETRY_S = 3, 1.0  # a batch whose run fails as a whole is re-queued this often first
 SLICE = 64  # configurations a batch runs before it lets a batch that arrived meanwhile take a turn
 CHUNK = 8  # at most this many configurations per worker task (one round trip, one store commit)
+WHOLE_PATH_FRAMES = 48  # method path over a path job: frames solved together per task (frame index // this)
 
 
 class BatchError(FieldError):
@@ -542,7 +543,22 @@ def solve_configuration(scene_path: str, sandbox: bool, config: dict, settings: 
     return _solve_with(lambda: _worker_entry(scene_path, sandbox, settings, config.get("scene_time")), config, settings)
 
 
-def solve_group(solve_one, group: list[tuple[int, dict]], settings: dict) -> list[tuple[int, dict]]:
+def _solve_whole_with(get_entry, group: list[tuple[int, dict]], settings: dict) -> list[tuple[int, dict]]:
+    """A whole-path task (settings["whole_path"]): the group's frames solved together by service.solve.solve_path,
+    each outcome with the frame's extras. Raises on any failure (solve_group then solves frame by frame)."""
+    from .solve import solve_path
+
+    sols = solve_path(get_entry(), [c["rig"] for _, c in group], solver=settings.get("solver"))
+    out = []
+    for (i, c), sol in zip(group, sols):
+        for k in ("frame", "time", "scene_time"):
+            if k in c:
+                sol[k] = c[k]
+        out.append((i, {"result": sol}))
+    return out
+
+
+def solve_group(solve_one, group: list[tuple[int, dict]], settings: dict, solve_whole=None) -> list[tuple[int, dict]]:
     """A worker task: several configurations one after another, [(index, outcome), ...]. In a coherent
     path (settings["coherent"]) a frame whose configuration brings no "previous" gets the frame before it
     in this task as its previous, as service.paths.previous_of reads it back from the store (a JSON round
@@ -550,6 +566,12 @@ def solve_group(solve_one, group: list[tuple[int, dict]], settings: dict) -> lis
     (or none: the first frame of a coherent chunk)."""
     from .paths import previous_of
 
+    if settings.get("whole_path") and solve_whole is not None and group \
+            and all(c.get("scene_time") is None for _, c in group):  # moving geometry: a stage per frame
+        try:
+            return solve_whole(group)
+        except Exception:  # a frame that fails: every frame alone, each failure on its own line
+            pass
     out, prev_index, prev = [], None, None
     for i, c in group:
         if settings.get("coherent") and "previous" not in c and prev is not None and prev_index == i - 1:
@@ -562,7 +584,8 @@ def solve_group(solve_one, group: list[tuple[int, dict]], settings: dict) -> lis
 
 def solve_chunk(scene_path: str, sandbox: bool, group: list[tuple[int, dict]], settings: dict) -> list[tuple[int, dict]]:
     """Worker entry point (local pool) for a task of several configurations (solve_group)."""
-    return solve_group(lambda c: solve_configuration(scene_path, sandbox, c, settings), group, settings)
+    return solve_group(lambda c: solve_configuration(scene_path, sandbox, c, settings), group, settings,
+                       lambda g: _solve_whole_with(lambda: _worker_entry(scene_path, sandbox, settings), g, settings))
 
 
 class TaskQueue:
@@ -730,7 +753,9 @@ class SceneSolver:
                            settings)
 
     def solve_chunk(self, group: list, settings: dict) -> list:
-        return solve_group(lambda c: self.solve(c, settings), group, settings)
+        return solve_group(lambda c: self.solve(c, settings), group, settings,
+                           lambda g: _solve_whole_with(lambda: _worker_entry(self.path, self.sandbox, settings), g,
+                                                       settings))
 
     def pid(self) -> int:
         return os.getpid()
@@ -1035,6 +1060,12 @@ class BatchRunner:
 
             groups = coherent_outcomes(self.store, backend, batch_id, job, items, settings, stop, pause=pause,
                                        total=total)
+        elif settings.get("whole_path"):  # method path: runs of consecutive frames solved together, cut at fixed
+            # multiples of WHOLE_PATH_FRAMES so that a resumed path solves the same runs
+            runs = collections.defaultdict(list)
+            for i, c in sorted(items, key=lambda ic: ic[0]):
+                runs[i // WHOLE_PATH_FRAMES].append((i, c))
+            groups = backend.run_groups(job, TaskQueue([runs[k] for k in sorted(runs)], pause), settings, stop)
         else:
             tasks = TaskQueue(chunked(items, chunk_size(len(items), self.workers)), pause)
             groups = backend.run_groups(job, tasks, settings, stop)

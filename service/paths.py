@@ -14,8 +14,9 @@ On a stage whose geometry has transform or point time samples (a moving vehicle)
 "scene_time": t and its worker solves on the stage loaded at that time code (service.scenes.SCENES.get
 time_code; one load per frame: an upload's in an isolated child under the server's load limits), so a moving
 caster casts a moving shadow; the loader's warnings for that time code go on the frame's line ("warnings").
-With `coherent` (or a method that asks for it, COHERENT_METHODS), frames are solved one after another and
-each solve receives the previous frame's solution as `previous=` (service.solve.solve): coherent_outcomes.
+With `coherent`, frames are solved one after another and each solve receives the previous frame's solution
+as `previous=` (service.solve.solve): coherent_outcomes. Method path without `coherent` solves the frames
+together (is_whole_path: tasks of batches.WHOLE_PATH_FRAMES consecutive frames, service.solve.solve_path).
 """
 from __future__ import annotations
 
@@ -30,7 +31,8 @@ from .store import UNFINISHED, Store
 
 MAX_FRAMES = MAX_CONFIGURATIONS  # like a batch's configurations
 MAX_TIME_FRAMES = 10_000  # time codes read from a stage per request (one transform cache each), as keyframe samples
-COHERENT_METHODS = ("path",)  # methods that always get the previous frame (engineer O's path optimizer)
+COHERENT_METHODS = ()  # methods that always get the previous frame (none: method path sees the whole path)
+WHOLE_PATH_METHODS = ("path",)  # methods whose frames are solved together (service.solve.solve_path)
 PATH_FIELDS = ("rig", "camera_path", "usd_camera", "time", "light_directions", "sun_arc", "light_index")
 _RESULT_EXTRAS = ("index", "frame", "time")
 
@@ -311,6 +313,13 @@ def is_coherent(method: str | None, coherent: bool | None) -> bool:
     return bool(coherent) or method in COHERENT_METHODS
 
 
+def is_whole_path(method: str | None, coherent: bool | None) -> bool:
+    """Method path over a path job: the frames solved together in tasks of batches.WHOLE_PATH_FRAMES
+    (service.solve.solve_path: segments that hold their texel grid), unless `coherent` asks for the editor's
+    form (each frame given the previous one's solution)."""
+    return method in WHOLE_PATH_METHODS and not coherent
+
+
 # -- the CLI's path -------------------------------------------------------------------------------
 
 def run_path(scene_path, frames: list[dict], *, method: str = "optimized", coherent: bool = False,
@@ -327,7 +336,7 @@ def run_path(scene_path, frames: list[dict], *, method: str = "optimized", coher
     if not os.path.isfile(scene_path):
         raise SceneError("not_found", f"cannot open scene {os.fspath(scene_path)!r}: no such file")
     settings = {"method": method, "solver": solver, "time_budget_ms": time_budget_ms,
-                "coherent": is_coherent(method, coherent)}
+                "coherent": is_coherent(method, coherent), "whole_path": is_whole_path(method, coherent)}
     if settings["coherent"] and workers > 1:
         settings["coherent_chunks"] = workers
     t0 = time.perf_counter()

@@ -472,3 +472,25 @@ def test_a_coherent_path_on_two_workers_is_two_coherent_chunks_each_starting_fre
                                           previous=None if f["frame"] in (0, 20) else prev)))
         assert line["lights"] == sol["lights"], f"frame {f['frame']}"
         prev = previous_of(sol)
+
+
+def test_method_path_in_a_path_job_solves_the_frames_together_as_solve_path_does():
+    """Method path over a path job (no --coherent): each run of up to WHOLE_PATH_FRAMES frames is solved together
+    by service.solve.solve_path (segments holding their texel grid), so every line has the maps solve_path gives
+    those frames in this process, and says which segment of the run it belongs to."""
+    from shadowopt.service.batches import WHOLE_PATH_FRAMES
+    from shadowopt.service.paths import run_path
+    from shadowopt.service.scenes import SCENES
+    from shadowopt.service.solve import solve_path
+
+    frames = _walk_frames(6)
+    assert len(frames) <= WHOLE_PATH_FRAMES
+    lines = []
+    s = run_path(DEMO, frames, method="path", workers=2, on_line=lines.append, progress=False)
+    assert (s["done"], s["failed"]) == (6, 0)
+    assert [l["frame"] for l in lines] == list(range(6))
+    want = solve_path(SCENES.get(str(DEMO)), [f["rig"] for f in frames])
+    for line, w in zip(lines, want):
+        assert line["solver"]["path"]["mode"] == "whole path", line["solver"]
+        assert line["solver"]["path"]["segments"] == w["solver"]["path"]["segments"]
+        assert line["lights"] == json.loads(json.dumps(w["lights"])), f"frame {line['frame']}"
