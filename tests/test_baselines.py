@@ -9,22 +9,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shadowopt.renderers.ray_scene import build_ray_scene
-from shadowopt.renderers.scene_data import LoadedScene, SceneGeometry
 from shadowopt.service.evaluation import evaluate_solution
 from shadowopt.service.scenes import SceneEntry
 from shadowopt.service.solve import maps_from_solution, solve
 from shadowopt.solvers.baselines import PAD_TEXELS, baseline
 from shadowopt.solvers.cameras import Camera
 from shadowopt.solvers.fitting import box_corners, min_area_rectangle
-from shadowopt.solvers.frames import stage_to_world
 from shadowopt.solvers.light_frames import directional_view, spot_view
 from shadowopt.solvers.lights import DirectionalLight, PointLight, SpotLight
 from shadowopt.solvers.metric import predicted_error
 from shadowopt.solvers.samples import Samples, pixel_derivatives
 from shadowopt.solvers.shadow_map import LogWarp, map_for_depth
 from shadowopt.solvers.warp import eta_from_n_prime, eta_shaping, logp_params, n_prime_from_eta
-from testkit import box, ground_samples, plane
+from testkit import box, ground_samples, plane, scene_entry_of
 
 METHODS = ("uniform", "focused", "lispsm", "logpsm")
 
@@ -69,16 +66,7 @@ def test_lispsm_warp_distance_for_an_overhead_light_is_the_closed_form():
 
 
 def entry_from(parts, cameras=(), lights=()) -> SceneEntry:
-    verts, faces, prims, off = [], [], [], 0
-    for k, (v, f) in enumerate(parts):
-        verts.append(np.asarray(v, float))
-        faces.append(np.asarray(f) + off)
-        prims.append(np.full(len(f), k))
-        off += len(v)
-    g = SceneGeometry(np.vstack(verts), np.vstack(faces).astype(np.int32), np.concatenate(prims).astype(np.int32),
-                      [f"/p{k}" for k in range(len(parts))])
-    loaded = LoadedScene("mem", "hash", g, list(cameras), list(lights), "Y", 1.0, stage_to_world("Y", 1.0), None)
-    return SceneEntry(loaded, build_ray_scene(g), 0.0, 0.0)
+    return scene_entry_of(parts, cameras, lights)
 
 
 

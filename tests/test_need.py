@@ -7,16 +7,13 @@ import pytest
 
 from shadowopt.api.schemas import Solution
 from shadowopt.renderers.ground_truth import render_screen
-from shadowopt.renderers.ray_scene import build_ray_scene
-from shadowopt.renderers.scene_data import LoadedScene, SceneGeometry
 from shadowopt.service.evaluation import evaluate_solution
 from shadowopt.service.rigs import SolutionError, resolve_rig
 from shadowopt.service.scenes import SceneEntry
 from shadowopt.service.solution_check import validate_solution
 from shadowopt.service.solve import maps_from_solution, solve
 from shadowopt.solvers.cameras import Camera
-from shadowopt.solvers.frames import stage_to_world
-from testkit import box, plane
+from testkit import box, plane, scene_entry_of
 
 CAM = {"position": (0, 1.7, 0), "forward": (0, -0.15, 1.0), "near": 0.1, "far": 300}
 SUN = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}
@@ -24,16 +21,7 @@ UP_SPOT = {"type": "spot", "position": (0, 5, 0), "direction": (0, 1, 0), "cone_
 
 
 def entry_from(parts) -> SceneEntry:
-    verts, faces, prims, off = [], [], [], 0
-    for k, (v, f) in enumerate(parts):
-        verts.append(np.asarray(v, float))
-        faces.append(np.asarray(f) + off)
-        prims.append(np.full(len(f), k))
-        off += len(v)
-    g = SceneGeometry(np.vstack(verts), np.vstack(faces).astype(np.int32), np.concatenate(prims).astype(np.int32),
-                      [f"/p{k}" for k in range(len(parts))])
-    loaded = LoadedScene("mem", "hash", g, [], [], "Y", 1.0, stage_to_world("Y", 1.0), None)
-    return SceneEntry(loaded, build_ray_scene(g), 0.0, 0.0)
+    return scene_entry_of(parts)
 
 
 @pytest.fixture(scope="module")

@@ -10,13 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from testkit import box, plane
+from testkit import box, plane, scene_entry_of
 
-from shadowopt.renderers.ray_scene import build_ray_scene
-from shadowopt.renderers.scene_data import LoadedScene, SceneGeometry
-from shadowopt.service.scenes import SceneEntry
 from shadowopt.service.solve import solve
-from shadowopt.solvers.frames import stage_to_world
 
 LIGHT = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}
 CAM = {"position": (0, 1.7, 0), "forward": (0, -0.15, 1.0), "near": 0.1, "far": 300}
@@ -25,16 +21,7 @@ CAM = {"position": (0, 1.7, 0), "forward": (0, -0.15, 1.0), "near": 0.1, "far": 
 @pytest.fixture(scope="module")
 def entry():
     parts = [plane(100), box([-1, 0, 8], [1, 3, 10]), box([3, 0, 20], [5, 6, 23])]
-    verts, faces, prims, off = [], [], [], 0
-    for k, (v, f) in enumerate(parts):
-        verts.append(np.asarray(v, float))
-        faces.append(np.asarray(f) + off)
-        prims.append(np.full(len(f), k))
-        off += len(v)
-    g = SceneGeometry(np.vstack(verts), np.vstack(faces).astype(np.int32), np.concatenate(prims).astype(np.int32),
-                      [f"/p{k}" for k in range(len(parts))])
-    loaded = LoadedScene("mem", "hash", g, [], [], "Y", 1.0, stage_to_world("Y", 1.0), None)
-    return SceneEntry(loaded, build_ray_scene(g), 0.0, 0.0)
+    return scene_entry_of(parts)
 
 
 def rig():

@@ -10,15 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from testkit import box, plane
+from testkit import box, plane, scene_entry_of
 
-from shadowopt.renderers.ray_scene import build_ray_scene
-from shadowopt.renderers.scene_data import LoadedScene, SceneGeometry
 from shadowopt.service.evaluation import evaluate_solution
-from shadowopt.service.scenes import SceneEntry
 from shadowopt.service.solve import solve
 from shadowopt.solvers import baselines, optimize
-from shadowopt.solvers.frames import stage_to_world
 
 PADS = (0.0, 64.0)  # texels on each side of a 512-texel map: none, an eighth of the map
 CAM = {"position": (0, 1.7, 0), "forward": (0, -0.15, 1.0), "near": 0.1, "far": 300, "resolution": (320, 180),
@@ -28,16 +24,7 @@ CAM = {"position": (0, 1.7, 0), "forward": (0, -0.15, 1.0), "near": 0.1, "far": 
 @pytest.fixture(scope="module")
 def entry():
     parts = [plane(100), box([-1, 0, 8], [1, 3, 10]), box([3, 0, 20], [5, 6, 23])]
-    verts, faces, prims, off = [], [], [], 0
-    for k, (v, f) in enumerate(parts):
-        verts.append(np.asarray(v, float))
-        faces.append(np.asarray(f) + off)
-        prims.append(np.full(len(f), k))
-        off += len(v)
-    g = SceneGeometry(np.vstack(verts), np.vstack(faces).astype(np.int32), np.concatenate(prims).astype(np.int32),
-                      [f"/p{k}" for k in range(len(parts))])
-    loaded = LoadedScene("mem", "hash", g, [], [], "Y", 1.0, stage_to_world("Y", 1.0), None)
-    return SceneEntry(loaded, build_ray_scene(g), 0.0, 0.0)
+    return scene_entry_of(parts)
 
 
 def rig(cascades):

@@ -34,6 +34,18 @@ def merge(*parts) -> SceneGeometry:
                          np.concatenate(prims).astype(np.int32), [f"/p{k}" for k in range(len(parts))])
 
 
+def scene_entry_of(parts, cameras=(), lights=()):
+    """An in-memory service SceneEntry (Y up, metres) of (vertices, faces) parts merged (merge), with its ray scene."""
+    from shadowopt.renderers.ray_scene import build_ray_scene
+    from shadowopt.renderers.scene_data import LoadedScene
+    from shadowopt.service.scenes import SceneEntry
+    from shadowopt.solvers.frames import stage_to_world
+
+    g = merge(*parts)
+    loaded = LoadedScene("mem", "hash", g, list(cameras), list(lights), "Y", 1.0, stage_to_world("Y", 1.0), None)
+    return SceneEntry(loaded, build_ray_scene(g), 0.0, 0.0)
+
+
 def frustum(half_w, half_h, near, far):
     """OpenGL perspective projection with a symmetric near rectangle of half-size (half_w, half_h)."""
     p = np.zeros((4, 4))
