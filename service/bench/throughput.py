@@ -13,8 +13,8 @@ Each (backend, workers) gets a fresh runner. Its first run ("cold") includes sta
 the workers, as a server with a running pool does. Per method: `repeats` runs of `short` frames (their
 median frames/s), and on the local pool with the most workers one run of the whole `frames`-frame path
 (and the first CHUNK_COMPARE frames of it in tasks of several frames and in tasks of one).
-Method path (and any --coherent path) is coherent: each frame gets the previous frame's solution, in as
-many coherent chunks as workers (service.paths.chunk_starts: one fresh start per chunk).
+Method path is solved as a path job solves it: runs of up to batches.WHOLE_PATH_FRAMES consecutive frames,
+each run solved together by one worker (service.solve.solve_path), the runs in parallel.
 
 Stages, per frame: the coarse pass and the rest of the solve as each solution's timings_ms reports them
 (in the worker), the time outside any solve (workers x wall - the solves' sum: task round trips, idle
@@ -30,6 +30,7 @@ import sys
 import tempfile
 import time
 
+from ..batches import WHOLE_PATH_FRAMES
 from .suite import ROOT, machine, write_section
 
 SCENE = ROOT / "configs" / "demo_scene.usda"
@@ -68,9 +69,9 @@ class _Clock:
 
 
 def _settings(method: str, workers: int) -> dict:
-    from ..paths import is_coherent
+    from ..paths import is_coherent, is_whole_path
 
-    s = {"method": method, "coherent": is_coherent(method, False)}
+    s = {"method": method, "coherent": is_coherent(method, False), "whole_path": is_whole_path(method, False)}
     if s["coherent"] and workers > 1:
         s["coherent_chunks"] = workers
     return s
@@ -212,7 +213,7 @@ def _table(results, skipped, methods, frames, short_frames, repeats, screen, map
     by = {(r["backend"], r["workers"]): r for r in results}
     top = max((r["workers"] for r in results), default=1)
     lines = [f"Demo scene, a walk of {frames} frames (and {short_frames}-frame runs, median of {repeats}), "
-             f"{screen[0]}x{screen[1]} rig, one {map_side}² map; method path coherent in as many chunks as workers. "
+             f"{screen[0]}x{screen[1]} rig, one {map_side}² map; method path in runs of up to {WHOLE_PATH_FRAMES} frames solved together (the whole-path pass), runs in parallel. "
              f"Load average {load[0]:.1f} before, {load[1]:.1f} after on {os.cpu_count()} cores; "
              f"{seconds:.0f} s in all; one scene load {load_s * 1e3:.0f} ms.\n"]
     local = by.get(("local", top))
