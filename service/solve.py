@@ -664,9 +664,17 @@ P95_TEXEL_EXPONENT = -0.5
 ENGINE_SIZE_STEP = 64  # a smaller resolution is rounded up to a multiple of 64 texels per side
 
 
-def texels_for_p95(p95_m: float, texels: int, target: float) -> int:
-    """The texels at which p95_m (measured with `texels`) would meet `target` (P95_TEXEL_EXPONENT)."""
-    return int(math.ceil(texels * (p95_m / target) ** (1.0 / -P95_TEXEL_EXPONENT)))
+MAX_TEXEL_ESTIMATE = 2.0 ** 53  # beyond this an estimated budget is no budget (a target far below any reachable p95_m)
+
+
+def texels_for_p95(p95_m: float, texels: int, target: float) -> int | None:
+    """The texels at which p95_m (measured with `texels`) would meet `target` (P95_TEXEL_EXPONENT), or None when
+    that is not a finite number below MAX_TEXEL_ESTIMATE."""
+    try:
+        v = texels * (p95_m / target) ** (1.0 / -P95_TEXEL_EXPONENT)
+    except (OverflowError, ZeroDivisionError):
+        return None
+    return int(math.ceil(v)) if math.isfinite(v) and 0 <= v <= MAX_TEXEL_ESTIMATE else None
 
 
 def auto_cascades(maps_for, prob: LightProblem, origin, shadow: dict, camera=None, drop: bool = True):
@@ -702,7 +710,9 @@ def auto_cascades(maps_for, prob: LightProblem, origin, shadow: dict, camera=Non
         t = min(tried, key=lambda t: t["p95_m"])
         need = texels_for_p95(t["p95_m"], t["texels"], target)
         out["needed_texel_budget"] = need
-        out["budget_estimate"] = (f"about {need:,} texels would meet p95_m <= {target:g} (now {t['texels']:,}): "
+        reach = f"about {need:,} texels would" if need is not None else \
+            f"no texel budget up to {MAX_TEXEL_ESTIMATE:.3g} would"
+        out["budget_estimate"] = (f"{reach} meet p95_m <= {target:g} (now {t['texels']:,}): "
                                   f"k = {t['cascades']} has p95_m {t['p95_m']:.3g}, and p95_m scales as "
                                   f"texels^{P95_TEXEL_EXPONENT:g}")
     return maps, info, out

@@ -435,7 +435,9 @@ def test_point_light_faces_keep_world_axis_names_under_a_preset(demo):
     lights = [{"type": "point", "position": [0.5, 3.0, 0.5]}]
     world = solve(demo, _rig({}, lights=lights), "focused")["lights"][0]["cascades"]
     sol = solve(demo, _rig({"engine": "unreal"}, lights=lights), "focused")["lights"][0]["cascades"]
-    assert [c["face"] for c in sol] == [c["face"] for c in world] == ["+x", "-x", "+y", "-y", "+z", "-z"]
+    faces = [c["face"] for c in world]  # the faces with receivers (the others are dropped), in the cube's order
+    assert [c["face"] for c in sol] == faces and len(faces) >= 3
+    assert faces == [f for f in ["+x", "-x", "+y", "-y", "+z", "-z"] if f in faces]
     for c in sol:
         axis = {"x": 0, "y": 1, "z": 2}[c["face"][1]]
         d = np.zeros(3)

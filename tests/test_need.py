@@ -209,3 +209,14 @@ def test_one_rig_budget_is_split_by_need_and_beats_equal_shares(scene):
     even = run("light", B // 2)  # the same total over the two lights with receivers
     mis = lambda s: sum(l["predicted_error"]["misclassified_pixels"] for l in s["lights"])
     assert mis(sol) <= mis(even) * 1.001
+
+
+def test_a_budget_estimate_beyond_reach_is_none_not_an_overflow():
+    """texels_for_p95: (p95 / target)^2 x texels, None when that is not a finite count below 2^53 (a target of
+    5e-324 m once made optimize answer 500 OverflowError)."""
+    from shadowopt.service.solve import MAX_TEXEL_ESTIMATE, texels_for_p95
+
+    assert texels_for_p95(4.0, 1024 * 1024, 2.0) == 4 * 1024 * 1024
+    assert texels_for_p95(100.0, 1024 * 1024, 5e-324) is None
+    assert texels_for_p95(float("inf"), 1024, 1.0) is None
+    assert texels_for_p95(1.0, int(MAX_TEXEL_ESTIMATE), 0.5) is None
