@@ -85,6 +85,10 @@ class ShadowSpec(_Strict):
         "maps meet it with fewer texels than allowed, a smaller resolution is returned (unless fixed_resolution)"))
     fixed_resolution: bool = Field(False, description="keep the given resolution or texel budget even when "
                                    "target_p95_m is met with fewer texels")
+    point_light_maps: Literal["auto", "cube", "face_partition"] = Field("auto", description=(
+        "point lights: auto keeps whichever of the cube map and Lloyd et al. 2007's face partitioning (maps only "
+        "for faces with visible receivers, each fitted and warped) has the lower predicted objective; cube or "
+        "face_partition forces one"))
     splits: Literal["practical", "log", "uniform", "optimized"] = "practical"
     snap_to_texels: bool = Field(False, description="unwarped directional maps: a texel grid fixed in the world "
                                  "(no shimmering while the camera moves without turning)")

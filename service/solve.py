@@ -24,6 +24,7 @@ from ..solvers.shadow_map import ShadowMap
 from .pipeline import coarse_pass
 from .echo import resolved_echo
 from .request_cost import flush_if_large, solve_work
+from . import point_faces
 from .need import drop_empty_maps, light_need, no_shadow_reason, split_budget
 from .rigs import ResolvedRig
 from .scenes import SceneEntry
@@ -434,9 +435,13 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
         else:
             (maps, info), auto = maps_for(common["cascades"]), None
         notes = list(auto.pop("notes", [])) if auto is not None else []
+        fp_block = None
         if method != "path":  # path: each cascade holds its world-fixed grid from frame to frame, none is dropped
             maps, dropped = drop_empty_maps(maps, prob.receivers, prob.receiver_slack, resolved.camera)
             notes += dropped
+            # A point light: Lloyd et al. 2007 face partitioning against the cube, by objective (service.point_faces)
+            maps, fp_block = point_faces.choose(method, resolved.camera, prob, (lo, hi), maps, allow_log, maps_error,
+                                                resolved.camera.position, shadow.get("point_light_maps", "auto"))
             if shadow.get("target_p95_m") is not None and not shadow.get("fixed_resolution"):
                 maps, note = smaller_resolution(maps, prob, resolved.camera.position, float(shadow["target_p95_m"]))
                 if note:
@@ -452,6 +457,8 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
                                     entry.loaded.stage_to_world, prob.samples))
         per_light[-1]["shadow"] = "map"
         per_light[-1]["need"] = need.to_json()
+        if fp_block is not None:
+            per_light[-1]["face_partitioning"] = fp_block
         if notes:
             per_light[-1]["notes"] = notes
         if auto is not None:

@@ -1,0 +1,91 @@
+"""Point lights by face partitioning (Lloyd et al. 2007 FP, FP+P, FP+LogP; geometry in solvers.face_partition),
+chosen against the cube map by the predicted objective.
+
+For a point light the service fits both: the maps the method returned (the six-face cube, faces without receivers
+already dropped by service.need; or optimized's single cone map) and the face partition at the same total texels.
+The partition's texels are split across its faces by need with the rig's allocation (service.need.split_budget:
+Chong 2003's Lagrange allocation, T_i ~ d_i^(2/3), d_i from each face's predicted misclassified pixels at an equal
+share), each face kept at no less than a quarter of an equal share (a face with receivers but no shadow edge on
+screen still shades its receivers). The one with the lower predicted objective (solvers.metric's mean h, what the
+optimizer minimizes) is returned; the solution's `face_partitioning` block says which, and the faces and
+resolutions of the partition.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..solvers.baselines import _with_bias
+from ..solvers.face_partition import assign_receivers, partition_maps
+from .need import split_budget
+
+SKIP_METHODS = ("uniform", "path", "stable_csm")  # the whole cube by definition / a held texel grid
+MIN_SIDE = 16
+FLOOR_SHARE = 0.25  # of an equal share: the least a face with receivers gets
+
+
+def warp_for(method: str, allow_log: bool) -> str:
+    """The partition's warp: focused -> none (FP), the warped methods -> perspective (FP+P), or the log warp
+    (FP+LogP) when the request allows it (output.allow_log_warp)."""
+    if method == "focused":
+        return "none"
+    return "log" if allow_log else "perspective"
+
+
+def face_shares(total: int, misclassified: list[float], probe: int) -> list[int]:
+    """Texels per face: split_budget by need, floored at FLOOR_SHARE of an equal share, then scaled so the
+    faces hold no more than `total`."""
+    t = np.array(split_budget(total, misclassified, probe), dtype=np.float64)
+    t = np.maximum(t, FLOOR_SHARE * total / max(len(t), 1))
+    t *= total / t.sum()
+    return [int(x) for x in t]
+
+
+def _objective(err: dict) -> float:
+    o = err.get("objective")
+    return float(o) if o is not None and np.isfinite(o) and err.get("unserved_samples", 0) == 0 else math.inf
+
+
+def choose(method: str, camera, prob, bounds, maps: list, allow_log: bool, maps_error, origin,
+           mode: str = "auto") -> tuple[list, dict | None]:
+    """(maps to return, the solution's face_partitioning block) for a point light; (maps, None) otherwise.
+    mode (shadow.point_light_maps): auto (the lower objective), cube (the method's maps), face_partition."""
+    if prob.light.kind != "point" or method in SKIP_METHODS or not len(prob.receivers) or not maps or mode == "cube":
+        return maps, None
+    light = prob.light
+    total = int(sum(m.resolution[0] * m.resolution[1] for m in maps))
+    faces = assign_receivers(light.position, prob.receivers)
+    n = len(faces)
+    probe = total // n
+    side = max(MIN_SIDE, math.isqrt(probe))
+    warp = warp_for(method, allow_log)
+    fp, parts = partition_maps(camera, light, prob.receivers, bounds, (side, side), warp)
+    _, per_face = maps_error(fp, prob.samples, origin)
+    mis = [float(e.get("misclassified_pixels") or 0.0) for e in per_face]
+    shares = face_shares(total, mis, side * side)
+    res = {m.face: (max(MIN_SIDE, math.isqrt(t)),) * 2 for m, t in zip(fp, shares)}
+    fp, parts = partition_maps(camera, light, prob.receivers, bounds, res, warp)
+    fp_err, _ = maps_error(fp, prob.samples, origin)
+    ref_err, _ = maps_error(maps, prob.samples, origin)
+    fp_obj, ref_obj = _objective(fp_err), _objective(ref_err)
+    chosen = "face_partitioning" if fp_obj < ref_obj or mode == "face_partition" else "cube" if maps[0].face is not None else "single_map"
+    name = {"none": "FP", "perspective": "FP+P", "log": "FP+LogP"}[warp]
+    block = {
+        "chosen": chosen, "variant": name,
+        "objective": fp_err.get("objective"), "unserved_samples": fp_err.get("unserved_samples"),
+        "returned_objective_otherwise": ref_err.get("objective"),
+        "total_texels": total, "partition_texels": int(sum(m.resolution[0] * m.resolution[1] for m in fp)),
+        "faces": [{"face": m.face, "resolution": list(m.resolution), "receivers": int(len(p)), "warp": m.warp_kind,
+                   "eta": m.eta, "predicted_misclassified_at_probe": d}
+                  for m, p, d in zip(fp, parts, mis)],
+        "rule": (f"Lloyd et al. 2007 face partitioning ({name}): maps only for the cube faces whose frusta hold "
+                 f"visible receivers, each fitted to its receivers and warped as a directional map; texels split "
+                 f"across faces by need (Chong 2003's Lagrange allocation) at the same total texels as the cube; "
+                 f"kept when its predicted objective is lower (shadow.point_light_maps auto)"),
+    }
+    if warp != "log" and method in ("lispsm", "logpsm", "optimized") and not allow_log:
+        block["log_warp"] = "FP+LogP not tried: output.allow_log_warp is false"
+    if chosen != "face_partitioning":
+        return maps, block
+    return [_with_bias(m, p, light) for m, p in zip(fp, parts)], block
