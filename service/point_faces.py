@@ -55,37 +55,50 @@ def choose(method: str, camera, prob, bounds, maps: list, allow_log: bool, maps_
         return maps, None
     light = prob.light
     total = int(sum(m.resolution[0] * m.resolution[1] for m in maps))
-    faces = assign_receivers(light.position, prob.receivers)
-    n = len(faces)
-    probe = total // n
-    side = max(MIN_SIDE, math.isqrt(probe))
-    warp = warp_for(method, allow_log)
+    ref_err, _ = maps_error(maps, prob.samples, origin)
+    ref_obj = _objective(ref_err)
+    tried = []
+    for warp in dict.fromkeys(("none", warp_for(method, allow_log))):  # FP, and FP+P / FP+LogP for warped methods
+        fp, parts, err, mis = partition(camera, light, prob, bounds, total, warp, maps_error, origin)
+        tried.append((_objective(err), warp, fp, parts, err, mis))
+    best = min(tried, key=lambda c: c[0])
+    fp_obj, warp, fp, parts, fp_err, mis = best
+    chosen = "face_partitioning" if fp_obj < ref_obj or mode == "face_partition" else \
+        "cube" if maps[0].face is not None else "single_map"
+    names = {"none": "FP", "perspective": "FP+P", "log": "FP+LogP"}
+    name = names[warp]
+    block = {
+        "chosen": chosen, "variant": name,
+        "objective": fp_err.get("objective"), "unserved_samples": fp_err.get("unserved_samples"),
+        "returned_objective_otherwise": ref_err.get("objective"),
+        "variants_objective": {names[c[1]]: c[4].get("objective") for c in tried},
+        "total_texels": total, "partition_texels": int(sum(m.resolution[0] * m.resolution[1] for m in fp)),
+        "faces": [{"face": m.face, "resolution": list(m.resolution), "receivers": int(len(p)), "warp": m.warp_kind,
+                   "eta": m.eta, "predicted_misclassified_at_probe": d}
+                  for m, p, d in zip(fp, parts, mis)],
+        "rule": ("Lloyd et al. 2007 face partitioning: maps only for the cube faces whose frusta hold visible "
+                 "receivers, each fitted to its receivers (FP), and for the warped methods also warped as a "
+                 "directional map (FP+P; FP+LogP with output.allow_log_warp); texels split across faces by need "
+                 "(Chong 2003's Lagrange allocation) at the same total texels as the cube; the variant with the "
+                 "lowest predicted objective is kept when it is lower than the cube's (shadow.point_light_maps auto)"),
+    }
+    if method in ("lispsm", "logpsm", "optimized") and not allow_log:
+        block["log_warp"] = "FP+LogP not tried: output.allow_log_warp is false"
+    if chosen != "face_partitioning":
+        return maps, block
+    return [_with_bias(m, p, light) for m, p in zip(fp, parts)], block
+
+
+def partition(camera, light, prob, bounds, total: int, warp: str, maps_error, origin):
+    """(maps, fitted receivers per map, predicted error, per-face predicted misclassified at the probe) of the
+    face partition with `warp` at `total` texels: probe every face at an equal share, split by need, refit."""
+    n = len(assign_receivers(light.position, prob.receivers))
+    side = max(MIN_SIDE, math.isqrt(total // n))
     fp, parts = partition_maps(camera, light, prob.receivers, bounds, (side, side), warp)
     _, per_face = maps_error(fp, prob.samples, origin)
     mis = [float(e.get("misclassified_pixels") or 0.0) for e in per_face]
     shares = face_shares(total, mis, side * side)
     res = {m.face: (max(MIN_SIDE, math.isqrt(t)),) * 2 for m, t in zip(fp, shares)}
     fp, parts = partition_maps(camera, light, prob.receivers, bounds, res, warp)
-    fp_err, _ = maps_error(fp, prob.samples, origin)
-    ref_err, _ = maps_error(maps, prob.samples, origin)
-    fp_obj, ref_obj = _objective(fp_err), _objective(ref_err)
-    chosen = "face_partitioning" if fp_obj < ref_obj or mode == "face_partition" else "cube" if maps[0].face is not None else "single_map"
-    name = {"none": "FP", "perspective": "FP+P", "log": "FP+LogP"}[warp]
-    block = {
-        "chosen": chosen, "variant": name,
-        "objective": fp_err.get("objective"), "unserved_samples": fp_err.get("unserved_samples"),
-        "returned_objective_otherwise": ref_err.get("objective"),
-        "total_texels": total, "partition_texels": int(sum(m.resolution[0] * m.resolution[1] for m in fp)),
-        "faces": [{"face": m.face, "resolution": list(m.resolution), "receivers": int(len(p)), "warp": m.warp_kind,
-                   "eta": m.eta, "predicted_misclassified_at_probe": d}
-                  for m, p, d in zip(fp, parts, mis)],
-        "rule": (f"Lloyd et al. 2007 face partitioning ({name}): maps only for the cube faces whose frusta hold "
-                 f"visible receivers, each fitted to its receivers and warped as a directional map; texels split "
-                 f"across faces by need (Chong 2003's Lagrange allocation) at the same total texels as the cube; "
-                 f"kept when its predicted objective is lower (shadow.point_light_maps auto)"),
-    }
-    if warp != "log" and method in ("lispsm", "logpsm", "optimized") and not allow_log:
-        block["log_warp"] = "FP+LogP not tried: output.allow_log_warp is false"
-    if chosen != "face_partitioning":
-        return maps, block
-    return [_with_bias(m, p, light) for m, p in zip(fp, parts)], block
+    err, _ = maps_error(fp, prob.samples, origin)
+    return fp, parts, err, mis

@@ -25,8 +25,8 @@ directional map is (Lloyd §6.1 "FP+P", "FP+LogP"). The steps, one function each
 6. `fit_face`: the face's map. Without a warp: the focused fit, the minimum-area rectangle of the receivers' (a, b)
    (Chong & Gortler 2007 §2.3), padded by PAD_TEXELS texels, as an off-centre frustum (solvers.baselines' spot
    fit). With a warp: the perspective warp of solvers.warp.warp_matrix applied after the face's perspective divide
-   (X = a'/(b' - y_c), Y = -1/(b' - y_c), Z = z_ndc/(b' - y_c), y_c = y0 - n', Lloyd eq. 75 with a = n'), then a
-   box fit in warped space; light rays stay lines of constant (X, Y) and depth is monotonic along each of them.
+   (X = a'/(b' - y_c), Y = -1/(b' - y_c), y_c = y0 - n', Lloyd eq. 75 with a = n'), then a box fit in warped
+   space; light rays stay lines of constant (X, Y) and depth (z_ndc = A + B/w') is monotonic along each of them.
    FP+LogP adds Lloyd's log warp on t (eq. 78, c0, c1, c2: solvers.warp.log_warp), carried as the map's LogWarp.
    Depth covers each receiver's light ray from the near plane to the receiver, so every caster on it is inside.
 
@@ -125,15 +125,6 @@ def face_warp_n(camera: Camera, light_dirs: np.ndarray, view_depth: np.ndarray, 
     return float(n), eta
 
 
-def _box(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """4x4 taking the (already divided) coordinates [lo, hi]^3 to [-1, 1]^3, homogeneous w unchanged."""
-    m = np.eye(4)
-    for i in range(3):
-        m[i, i] = 2.0 / (hi[i] - lo[i])
-        m[i, 3] = -(hi[i] + lo[i]) / (hi[i] - lo[i])
-    return m
-
-
 def _fit_plain(view: np.ndarray, receivers: np.ndarray, near: float, far: float, resolution) -> tuple:
     """The focused fit of a face without a warp: (view, projection)."""
     ab, _ = face_coords(view, receivers)
@@ -147,23 +138,37 @@ def _fit_plain(view: np.ndarray, receivers: np.ndarray, near: float, far: float,
 
 def _fit_warped(view: np.ndarray, receivers: np.ndarray, near: float, far: float, n_prime: float, resolution,
                 pad_t: bool) -> tuple:
-    """(projection, (y0, y1)) of a warped face: view +Y is the warp axis (module doc, step 6)."""
+    """(projection, (y0, y1)) of a warped face: view +Y is the warp axis (module doc, step 6).
+
+    x, y: solvers.warp.warp_matrix after the face's perspective divide, then a box fit in warped space. Depth:
+    the warped w' = d (b - y_c) (d the distance along the face axis) is positive and grows along every light
+    ray, so clip z = A w' + B (z_ndc = A + B/w') is monotonic along each ray and never wraps through infinity;
+    A, B put z_ndc = -1 at w' = near u0 and +1 at w' = far u1 (u = b - y_c over the map), so every ray's depth
+    range holds [near, far]."""
     ab, _ = face_coords(view, receivers)
     y0, y1 = float(ab[:, 1].min()), float(ab[:, 1].max())
     yc = y0 - n_prime
-    P = warp_matrix(yc) @ frustum(-near, near, -near, near, near, far)  # eq. 75 after the face's divide
-    hv = np.column_stack([to_view(view, receivers), np.ones(len(receivers))]) @ P.T
-    w = hv[:, 3]
-    X, Z = hv[:, 0] / w, hv[:, 2] / w
-    Z_near = -1.0 / (ab[:, 1] - yc)  # z_ndc = -1 (the near plane) on each receiver's light ray
+    M = warp_matrix(yc) @ frustum(-near, near, -near, near, near, far)  # eq. 75 after the face's divide
+    hv = np.column_stack([to_view(view, receivers), np.ones(len(receivers))]) @ M.T
+    X = hv[:, 0] / hv[:, 3]
     xlo, xhi = texel_margin(X.min(keepdims=True), X.max(keepdims=True), resolution[0], 1.0, MIN_EXTENT)
     Ylo, Yhi = -1.0 / (y0 - yc), -1.0 / (y1 - yc)
     if pad_t:
         (Ylo,), (Yhi,) = texel_margin(np.array([Ylo]), np.array([Yhi]), resolution[1], 1.0, 0.0)
-    zlo, zhi = float(min(Z_near.min(), Z.min())), float(Z.max())
-    span = max(zhi - zlo, 1e-12)
-    box = _box(np.array([xlo[0], Ylo, zlo - 0.01 * span]), np.array([xhi[0], Yhi, zhi + 0.01 * span]))
-    return box @ P, (y0, y1)
+    u0, u1 = -1.0 / Ylo, -1.0 / min(Yhi, -1e-300)  # Y = -1/u
+    if not (0 < u0 < u1):
+        u0, u1 = y0 - yc, y1 - yc
+    w_lo, w_hi = near * u0, far * u1
+    B = 2.0 / (1.0 / w_hi - 1.0 / w_lo)
+    A = 1.0 - B / w_hi
+    P = np.zeros((4, 4))
+    sx, sy = 2.0 / (xhi[0] - xlo[0]), 2.0 / (Yhi - Ylo)
+    P[0] = sx * M[0] - sx * 0.5 * (xhi[0] + xlo[0]) * M[3]
+    P[1] = sy * M[1] - sy * 0.5 * (Yhi + Ylo) * M[3]
+    P[2] = A * M[3]
+    P[2, 3] += B
+    P[3] = M[3]
+    return P, (y0, y1)
 
 
 def fit_face(camera: Camera, position: np.ndarray, face: str, view: np.ndarray, receivers: np.ndarray,
