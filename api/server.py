@@ -1052,7 +1052,7 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
             with solver_errors():
                 sol = await svc.in_slot(svc.admission.solve, ticket, solve, entry, rig, method=req.method,
                                         solver=req.solver, time_budget_ms=budget, previous=req.previous,
-                                        hysteresis=req.hysteresis)
+                                        hysteresis=req.hysteresis, cache_tenant=tenant)  # service.coarse_cache
             svc.metrics.optimize.observe(time.perf_counter() - t0, req.method)
         return json_response(sol)
 

@@ -222,8 +222,9 @@ def light_problems(resolved: ResolvedRig, buffers: CoarseBuffers, bounds) -> lis
         samples = select_samples(resolved.camera, light, buffers.position, buffers.normal, buffers.hit,
                                  lb.facing, lb.boundary, lb.in_light)
         mask = buffers.hit & lb.facing & lb.in_light
-        recv, slack = receiver_points(resolved.camera, buffers, mask, bounds,
-                                      fine.receiver[li] if fine is not None else None)
+        memo = getattr(buffers, "receivers_memo", None)  # service.coarse_cache: per receiver mask, exact
+        recv, slack = (memo or (lambda f, *a: f(*a)))(receiver_points, resolved.camera, buffers, mask, bounds,
+                                                      fine.receiver[li] if fine is not None else None)
         out.append(LightProblem(light, samples, recv, slack, sample_rows(samples, mask)))
     return out
 
@@ -372,7 +373,12 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
             return None
         return max(1.0, float(time_budget_ms) - (time.perf_counter() - t0) * 1e3)
 
-    resolved, buffers = coarse_pass(entry, rig)
+    if options.get("cache_tenant") is not None:  # the camera part cached per tenant and scene (service.coarse_cache)
+        from .coarse_cache import cached_coarse_pass
+
+        resolved, buffers = cached_coarse_pass(entry, rig, options["cache_tenant"])
+    else:
+        resolved, buffers = coarse_pass(entry, rig)
     t1 = time.perf_counter()
     shadow = resolved.shadow
     lo, hi = entry.loaded.geometry.bounds()

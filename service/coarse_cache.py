@@ -1,0 +1,247 @@
+"""The coarse pass split in its camera part and its light part, with the camera part cached in the
+server process: when only the light changes (the inspector's sun slider, a sun sweep over one camera),
+the camera rays, their hits, normals and view depths, the edge pass's fine rays (renderers.coarse) and
+the receivers of a receiver mask (service.solve.receiver_points) are the same, and only the shadow rays,
+the facing tests and the shadow-boundary mask are traced again.
+
+Exact, not an approximation: the light part runs renderers.coarse's own kernels (_light_test) on the
+camera part's Dr.Jit values as they were computed (float32, before any conversion), so the buffers equal
+renderers.coarse.render_coarse's bit for bit (tests/test_coarse_cache.py compares every array).
+
+Keyed by (tenant, the scene entry, coarse size, boundary radius, the camera's every parameter): one
+tenant's entries are never another's, and a re-uploaded or reloaded scene is a new entry object (the
+cache holds only a weak reference to it, so a changed scene can never hit). Bounded LRU.
+"""
+from __future__ import annotations
+
+import threading
+import time
+import weakref
+from collections import OrderedDict
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..renderers.coarse import (DEFAULT_BOUNDARY_RADIUS, CoarseBuffers, FinePoints, LightBuffers, boundary_mask,
+                                fine_points, _camera_rays, _light_test, _mask_numpy, _surface_hits, _vec_to_numpy)
+from ..renderers.mitsuba_setup import mitsuba
+
+MAX_CAMERAS = 16  # camera entries kept (each a few MB at the 180 px default)
+MAX_RECEIVER_MASKS = 8  # receiver sets kept per camera entry (one per distinct receiver mask)
+
+
+@dataclass
+class CameraPass:
+    """What renderers.coarse.render_coarse computes before any light: NumPy buffers (read-only: shared by
+    every solve that hits) and the raw float32 Dr.Jit values the light tests start from."""
+
+    width: int
+    height: int
+    hit: np.ndarray
+    position: np.ndarray
+    normal: np.ndarray
+    depth: np.ndarray
+    prim_id: np.ndarray
+    p32: np.ndarray  # (3, w h) float32 hit points relative to the ray scene's origin, as traced
+    n32: np.ndarray  # (3, w h) float32 normals turned towards the camera, as computed
+    fine: FinePoints | None
+    fine_p32: np.ndarray | None  # the edge pass's (padded) rays: hit points, normals, hit mask, count
+    fine_n32: np.ndarray | None
+    fine_ok: np.ndarray | None
+    trace_ms: float = 0.0
+    receivers: OrderedDict = field(default_factory=OrderedDict)  # mask key -> (points, slack)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+def _readonly(*arrays):
+    for a in arrays:
+        if isinstance(a, np.ndarray):
+            a.flags.writeable = False
+
+
+def camera_pass(rs, camera, long_side: int) -> CameraPass:
+    """render_coarse's camera rays and hits, and the edge pass (renderers.coarse.fine_points) traced with
+    no light; the same kernels and operations."""
+    mi = mitsuba()
+    import drjit as dr
+
+    t0 = time.perf_counter()
+    width, height = camera.coarse_resolution(long_side)
+    ray, fwd = _camera_rays(mi, dr, camera, width, height, rs.origin)
+    pi, hit, t, p, n = _surface_hits(mi, dr, rs, ray, fwd, camera)
+    depth = dr.select(hit, t * dr.dot(ray.d, fwd), dr.inf)
+    prim = dr.gather(mi.UInt32, rs.face_prim, pi.prim_index, hit)
+    dr.eval(hit, p, n, depth, prim)
+    shape = (height, width)
+    size = width * height
+    hit_np = np.array(_mask_numpy(hit, size)).reshape(shape)
+    p32 = np.ascontiguousarray(p.numpy(), dtype=np.float32)
+    n32 = np.ascontiguousarray(n.numpy(), dtype=np.float32)
+    pos = p32.T.astype(np.float64).reshape(height, width, 3) + rs.origin  # render_coarse's conversion
+    pos[~hit_np] = np.nan
+    nrm = n32.T.astype(np.float32).reshape(height, width, 3)
+    nrm[~hit_np] = 0.0
+    depth_np = np.array(depth.numpy(), dtype=np.float32).reshape(shape)
+    prim_np = np.where(hit_np, prim.numpy().astype(np.int64).reshape(shape), -1).astype(np.int32)
+    # the edge pass with no light: its receiver lists are computed per light (light_part)
+    fine = fine_points(rs, camera, [], hit_np, depth_np)
+    fp = fn = fo = None
+    if fine.rays:
+        fp, fn, fo = _fine_rays(mi, dr, rs, camera, fine, hit_np.shape)
+    cp = CameraPass(width, height, hit_np, pos, nrm, depth_np, prim_np, p32, n32, fine, fp, fn, fo,
+                    trace_ms=(time.perf_counter() - t0) * 1e3)
+    _readonly(hit_np, pos, nrm, depth_np, prim_np, p32, n32, fp, fn, fo, fine.position, fine.normal, fine.depth,
+              fine.flat, fine.traced)
+    return cp
+
+
+def _fine_rays(mi, dr, rs, camera, fine: FinePoints, shape):
+    """The edge pass's padded rays again (fine_points' own construction) to keep their float32 hit points
+    and normals for the per-light receiver test."""
+    h, w = shape
+    f = fine.factor
+    vj, vi = np.divmod(fine.traced, fine.grid_shape[1])
+    n = len(vj)
+    size = 1 << int(np.ceil(np.log2(max(n, 1024))))
+    th = camera.tan_half_fov_y
+    tw = th * camera.aspect
+    x = (vi / f * (2.0 / w) - 1.0) * tw
+    y = (1.0 - vj / f * (2.0 / h)) * th
+    fw, rt, up = camera.forward, camera.right, camera.up
+    comp = [fw[k] + x * rt[k] + y * up[k] for k in range(3)]
+    norm = np.sqrt(comp[0] * comp[0] + comp[1] * comp[1] + comp[2] * comp[2])
+    d = mi.Vector3f(*(mi.Float(np.resize((c / norm).astype(np.float32), size)) for c in comp))
+    from ..renderers.coarse import _opaque3
+
+    o = _opaque3(mi, dr, mi.Point3f, camera.position - rs.origin)
+    fwd = _opaque3(mi, dr, mi.Vector3f, camera.forward)
+    pi, ok, t, p, nrm = _surface_hits(mi, dr, rs, mi.Ray3f(o, d), fwd, camera)
+    dr.eval(ok, p, nrm)
+    return (np.ascontiguousarray(p.numpy(), dtype=np.float32), np.ascontiguousarray(nrm.numpy(), dtype=np.float32),
+            np.asarray(ok.numpy(), dtype=bool).copy())
+
+
+def _vec(mi, cls, a: np.ndarray):
+    return cls(*(mi.Float(a[k]) for k in range(3)))
+
+
+def light_part(rs, camera, cp: CameraPass, lights, boundary_radius: int = DEFAULT_BOUNDARY_RADIUS) -> CoarseBuffers:
+    """The lights' coarse buffers over a camera pass: render_coarse's shadow rays and tests, its boundary
+    mask, and the edge pass's per-light receiver test (fine_points: _light_test without shadow rays)."""
+    mi = mitsuba()
+    import drjit as dr
+
+    t0 = time.perf_counter()
+    size = cp.width * cp.height
+    shape = (cp.height, cp.width)
+    p, n, hit = _vec(mi, mi.Point3f, cp.p32), _vec(mi, mi.Vector3f, cp.n32), mi.Bool(cp.hit.ravel())
+    masks = [_light_test(mi, dr, rs, light, p, n, hit) for light in lights]
+    fine = cp.fine
+    fine_tests = []
+    if fine is not None and cp.fine_p32 is not None:
+        fp, fn, fo = _vec(mi, mi.Point3f, cp.fine_p32), _vec(mi, mi.Vector3f, cp.fine_n32), mi.Bool(cp.fine_ok)
+        fine_tests = [_light_test(mi, dr, rs, light, fp, fn, fo, shadow_rays=False) for light in lights]
+    dr.eval(*[m for ms in masks for m in ms], *[m for ms in fine_tests for m in ms[1:]])
+    dr.sync_thread()
+    t1 = time.perf_counter()
+    light_bufs = []
+    for vis, fac, inl in masks:
+        vis_np, fac_np, inl_np = (np.array(_mask_numpy(m, size)).reshape(shape) for m in (vis, fac, inl))
+        lit = vis_np & fac_np & inl_np
+        light_bufs.append(LightBuffers(vis_np, fac_np, inl_np, boundary_mask(lit, cp.hit, cp.depth, boundary_radius)))
+    if fine is not None:
+        if fine_tests:
+            n_rays, fsize = fine.rays, len(cp.fine_ok)
+            keep = cp.fine_ok[:n_rays]
+            rec = [(_mask_numpy(fac, fsize)[:n_rays] & _mask_numpy(inl, fsize)[:n_rays])[keep]
+                   for _, fac, inl in fine_tests]
+        else:
+            rec = [np.zeros(0, bool)] * len(lights)
+        fine = replace(fine, receiver=rec)
+    t2 = time.perf_counter()
+    return CoarseBuffers(camera, cp.width, cp.height, cp.hit, cp.position, cp.normal, cp.depth, cp.prim_id,
+                         light_bufs, {"camera_cached_ms": cp.trace_ms, "trace": (t1 - t0) * 1e3,
+                                      "convert": (t2 - t1) * 1e3, "total": (t2 - t0) * 1e3}, fine)
+
+
+def camera_key(camera, long_side: int, boundary_radius: int) -> tuple:
+    """Every camera parameter the camera pass reads, exactly (bytes of the float64 values)."""
+    vec = tuple(np.asarray(getattr(camera, k), dtype=np.float64).tobytes() for k in ("position", "forward", "up", "right"))
+    return vec + (float(camera.fov_y_deg), float(camera.near), float(camera.far), tuple(int(v) for v in camera.resolution),
+                  float(camera.tan_half_fov_y), float(camera.aspect), int(long_side), int(boundary_radius))
+
+
+class CoarseCache:
+    """Bounded LRU of camera passes, keyed per tenant and scene entry (held weakly)."""
+
+    def __init__(self, max_cameras: int = MAX_CAMERAS):
+        self.max_cameras = int(max_cameras)
+        self._d: OrderedDict = OrderedDict()
+        self._lock = threading.Lock()
+        self.hits = 0
+        self.misses = 0
+        self.receiver_hits = 0
+        self.receiver_misses = 0
+
+    def clear(self) -> None:
+        with self._lock:
+            self._d.clear()
+
+    def __len__(self) -> int:
+        return len(self._d)
+
+    def camera_pass(self, tenant, entry, camera, long_side: int, boundary_radius: int) -> CameraPass:
+        key = (tenant, id(entry)) + camera_key(camera, long_side, boundary_radius)
+        with self._lock:
+            got = self._d.get(key)
+            if got is not None and got[0]() is entry:  # the same live entry object (an id can be reused)
+                self._d.move_to_end(key)
+                self.hits += 1
+                return got[1]
+        cp = camera_pass(entry.rays, camera, long_side)
+        with self._lock:
+            self.misses += 1
+            self._d[key] = (weakref.ref(entry), cp)
+            self._d.move_to_end(key)
+            while len(self._d) > self.max_cameras:
+                self._d.popitem(last=False)
+            for k in [k for k, (ref, _) in self._d.items() if ref() is None]:  # entries of dropped scenes
+                del self._d[k]
+        return cp
+
+    def receivers(self, cp: CameraPass, compute, camera, buffers, mask, bounds, fine_receivers):
+        """service.solve.receiver_points(camera, buffers, mask, bounds, fine_receivers) of this camera pass,
+        memoized per (mask, fine receivers): a function of those and of the camera pass alone."""
+        fr = None if fine_receivers is None else np.packbits(np.asarray(fine_receivers, bool)).tobytes()
+        key = (np.packbits(mask).tobytes(), fr, None if fine_receivers is None else len(fine_receivers))
+        with cp.lock:
+            got = cp.receivers.get(key)
+            if got is not None:
+                cp.receivers.move_to_end(key)
+                self.receiver_hits += 1
+                return got
+        out = compute(camera, buffers, mask, bounds, fine_receivers)
+        _readonly(*out)
+        with cp.lock:
+            self.receiver_misses += 1
+            cp.receivers[key] = out
+            while len(cp.receivers) > MAX_RECEIVER_MASKS:
+                cp.receivers.popitem(last=False)
+        return out
+
+
+COARSE = CoarseCache()
+
+
+def cached_coarse_pass(entry, rig: dict, tenant, cache: CoarseCache | None = None,
+                       boundary_radius: int = DEFAULT_BOUNDARY_RADIUS):
+    """service.pipeline.coarse_pass with the camera part from `cache` (default: the process's): (resolved
+    rig, buffers); the buffers carry `receivers_memo` for service.solve.light_problems."""
+    from .rigs import resolve_rig
+
+    cache = COARSE if cache is None else cache
+    resolved = resolve_rig(rig, entry.loaded)
+    cp = cache.camera_pass(tenant, entry, resolved.camera, resolved.coarse_long_side, boundary_radius)
+    buffers = light_part(entry.rays, resolved.camera, cp, resolved.lights, boundary_radius)
+    buffers.receivers_memo = lambda compute, *a: cache.receivers(cp, compute, *a)
+    return resolved, buffers
