@@ -34,12 +34,22 @@ def warp_for(method: str, allow_log: bool) -> str:
 
 
 def face_shares(total: int, misclassified: list[float], probe: int) -> list[int]:
-    """Texels per face: split_budget by need, floored at FLOOR_SHARE of an equal share, then scaled so the
-    faces hold no more than `total`."""
-    t = np.array(split_budget(total, misclassified, probe), dtype=np.float64)
-    t = np.maximum(t, FLOOR_SHARE * total / max(len(t), 1))
-    t *= total / t.sum()
-    return [int(x) for x in t]
+    """Texels per face: split_budget by need (T_i ~ d_i^(2/3)), except that a face whose share would fall below
+    FLOOR_SHARE of an equal share gets exactly that floor and the rest is split by need among the others."""
+    n = len(misclassified)
+    floor = int(FLOOR_SHARE * total / max(n, 1))
+    fixed: set[int] = set()
+    while True:
+        free = [i for i in range(n) if i not in fixed]
+        rest = total - floor * len(fixed)
+        sub = split_budget(rest, [misclassified[i] for i in free], probe) if free else []
+        low = {i for i, t in zip(free, sub) if t < floor}
+        if not low:
+            out = [floor] * n
+            for i, t in zip(free, sub):
+                out[i] = t
+            return out
+        fixed |= low
 
 
 def _objective(err: dict) -> float:

@@ -67,7 +67,31 @@ error of P below that of a standard shadow map"), which this model agrees with; 
 (3.65e6 vs 1.99e6) look swapped in the source. Only the minima are tested. The s-direction warp keeps its centre
 at x = 0 (symmetric about the light's y axis, exact for φ = 0; slightly conservative otherwise). Note these R's are the whole-frustum factors (one map
 per frustum), not the per-face factors of eqs. 87-89 (R^side_un,t = (a - 1)/sin 2θ): those describe
-face partitioning (FP), which this function does not model.
+face partitioning (FP), modelled by the methods "fp", "fp+p" and "fp+log" below.
+
+Face partitioning (Lloyd's Algorithm III, §4.3; methods "fp", "fp+p", "fp+log")
+------------------------------------------------------------------------------
+Along every light ray the bound δ_b is attained on one face of the view frustum: the entry face when the light
+is behind the eye plane (light travelling forward, l_z > 0 here), the exit face when it is in front (eq. 54; at
+l_z = 0 both give the same, the entry faces are taken). FP gives each such face (outward normal n with n.l < 0,
+resp. > 0; faces edge-on to the light hold no ray) its own map, so on the face's own points δ_b = 2 sin θ d_e
+(eq. 55, directional light, as above). Per face, in the light image plane:
+- end faces (near, far): uniform (Lloyd: "parameterize end faces uniformly"): δ_l = the extents W_lx, W_ly of
+  the minimum-area rectangle of the face's projection (a fitted map; axis-aligned boxes would double S for a
+  square seen over its diagonal);
+- side faces: d_e is linear on the face and 0 at the eye (the face's apex), so in the light plane d_e = k y with y
+  measured along the gradient of d_e from the eye's projection (Lloyd's per-face frame, Fig. 5, where the face
+  is y in [y0, y1] with d_e/n_e = y/y0); the warps have their centre of projection at the eye's projection,
+  a = 0 (Lloyd: "side faces with LogPSM (a = 0)"; Table 3's FP+P uses the perspective part of that map):
+      fp      uniform            δ_l,t = y1 - y0,          δ_l,s = x extent
+      fp+p    perspective a = 0  δ_l,t = (y1 - y0) y²/(y0 y1) (eq. 97),  δ_l,s = (q1 - q0) y, q = x/y (eq. 96)
+      fp+log  LogP a = 0         δ_l,t = y ln(y1/y0) (eq. 102),           δ_l,s as fp+p (eq. 78)
+- R_s, R_t = max over the face's points of δ_l/δ_b (eq. 47), S = Σ_faces R_s R_t cos²θ (eq. 70, summed over the
+  partitions as for ZP), "maps" = the number of faces with a map.
+Closed forms this gives (a = f/n): overhead (γ = 90°) one face (the top) with S cos²θ = (a - 1)/(2 tan θ) for
+fp+p and ln a/(2 tan θ) for fp+log, Table 3's FP+P and FP+Log minima 865 and 5.98; light behind the viewer
+(γ = 0) the near face (S cos²θ = 1) plus four side faces of (a - 1)/2 (fp+p) or ln a/2 (fp+log) each:
+2a - 1 = 1999 and 2 ln a + 1 = 14.8, Table 3's maxima "2000" and 14.8.
 """
 from __future__ import annotations
 
@@ -75,6 +99,7 @@ import math
 
 import numpy as np
 
+from .fitting import min_area_rectangle
 from .warp import eta_shaping
 # Lloyd et al. 2007 eq. 120 (η -> n'), defined once in solvers.warp and re-exported here: the
 # baselines (LiSPSM/LogPSM) and this analysis call the very same function. The seed prints eq. 120
@@ -86,6 +111,7 @@ from .warp import eta_shaping
 from .warp import n_prime_from_eta  # noqa: F401  (public: analysis.n_prime_from_eta)
 
 METHODS = ("uniform", "perspective", "log")
+FP_METHODS = ("fp", "fp+p", "fp+log")  # face partitioning (Lloyd Algorithm III): uniform, P, LogP side faces
 FACE_SAMPLES = 49  # samples per edge of each frustum face (vertices and edges included)
 
 
@@ -187,14 +213,15 @@ def analyze(f_over_n: float, theta_deg: float, gamma_deg: float, method: str, pa
             azimuth_deg: float = 0.0) -> dict:
     """{"R_s", "R_t", "S"}: Lloyd's critical resolution factors (the largest over the partitions) and
     the storage factor summed over k equal-ratio z-partitions, S without the 1/cos²θ factor (Table 3).
+    Methods "fp", "fp+p", "fp+log": face partitioning (module doc), partitions 1, plus "maps" (faces with a map).
 
     f_over_n > 1 (the view frustum's far/near ratio), 0 < theta_deg < 90 (half field of view),
     0 <= gamma_deg <= 180 (angle between the light and view directions; 90 = overhead), method in
     {"uniform", "perspective", "log"}, partitions >= 1; azimuth_deg: the side the light comes from
     (0 = above the frustum, 45 = over its edge). Every γ in [0, 180] gives finite values.
     """
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    if method not in METHODS + FP_METHODS:
+        raise ValueError(f"method must be one of {', '.join(METHODS + FP_METHODS)}, got {method!r}")
     if not (math.isfinite(f_over_n) and f_over_n > 1):
         raise ValueError(f"f_over_n must be a finite number > 1, got {f_over_n!r}")
     if not (0 < theta_deg < 90):
@@ -207,9 +234,94 @@ def analyze(f_over_n: float, theta_deg: float, gamma_deg: float, method: str, pa
     if not math.isfinite(azimuth_deg):
         raise ValueError(f"azimuth_deg must be finite, got {azimuth_deg!r}")
     theta, gamma, azimuth = math.radians(theta_deg), math.radians(gamma_deg), math.radians(azimuth_deg)
+    if method in FP_METHODS:
+        if k != 1:
+            raise ValueError(f"partitions: face partitioning ({method}) is one partition per frustum face, "
+                             f"give partitions 1, got {partitions!r}")
+        return _face_partitioned(f_over_n, theta, gamma, azimuth, method)
     R_s = R_t = S = 0.0
     for i in range(k):  # eqs. 80-82: n_i = n (f/n)^((i-1)/k), f_i = n (f/n)^(i/k), with n = 1
         n_i, f_i = f_over_n ** (i / k), f_over_n ** ((i + 1) / k)
         rs, rt, s = _one_frustum(n_i, f_i, theta, gamma, method, theta_deg, gamma_deg, azimuth)
         R_s, R_t, S = max(R_s, rs), max(R_t, rt), S + s
     return {"R_s": R_s, "R_t": R_t, "S": S}
+
+
+def _frustum_face_normals(tan_t: float) -> list[np.ndarray]:
+    """Outward unit normals of _FACES (near, far, then the sides), eye at the origin looking down +z."""
+    c = _frustum_corners(1.0, 2.0, tan_t)
+    centre = c.mean(0)
+    out = []
+    for a, b, cc, d in _FACES:
+        nrm = np.cross(c[b] - c[a], c[d] - c[a])
+        nrm /= np.linalg.norm(nrm)
+        out.append(nrm if nrm @ (c[a] - centre) > 0 else -nrm)
+    return out
+
+
+def _face_partitioned(f_over_n: float, theta: float, gamma: float, azimuth: float, method: str) -> dict:
+    """analyze() for face partitioning (module doc): one map per frustum face that bounds the light rays."""
+    tan_t = math.tan(theta)
+    n, f = 1.0, float(f_over_n)
+    corners = _frustum_corners(n, f, tan_t)
+    up = np.array([math.sin(azimuth), math.cos(azimuth), 0.0])
+    x_axis = np.array([math.cos(azimuth), -math.sin(azimuth), 0.0])
+    l_dir = -math.sin(gamma) * up + math.cos(gamma) * np.array([0.0, 0.0, 1.0])
+    y_axis = np.cross(l_dir, x_axis)  # a light-plane frame (end faces are uniform: any frame fits a square)
+    entry = l_dir[2] >= -1e-12  # eq. 54: light behind the eye plane (or in it) -> entry faces, else exit faces
+    R_s = R_t = S = 0.0
+    maps = 0
+    for fi, nrm in enumerate(_frustum_face_normals(tan_t)):
+        c = float(nrm @ l_dir)
+        if (c > -1e-9) if entry else (c < 1e-9):
+            continue  # not a face the light rays' bound lies on (or edge-on to the light)
+        pts = _surface_samples(corners, FACE_SAMPLES)[fi * FACE_SAMPLES ** 2:(fi + 1) * FACE_SAMPLES ** 2]
+        P2 = np.column_stack([pts @ x_axis, pts @ y_axis])
+        d_e = pts[:, 2]
+        delta_b = 2.0 * math.sin(theta) * d_e  # eq. 55 on the face itself (the face attains the ray's min)
+        side = fi >= 2
+        if side and method != "fp":
+            g, *_ = np.linalg.lstsq(P2, d_e, rcond=None)  # d_e = g.(x, y) exactly: 0 at the eye's projection
+            gy = g / np.linalg.norm(g)
+            y = P2 @ gy
+            x = P2 @ np.array([-gy[1], gy[0]])
+            y0, y1 = float(y.min()), float(y.max())
+            q = x / y
+            dl_s = (float(q.max()) - float(q.min())) * y  # eqs. 75/96 with a = 0
+            if method == "fp+p":
+                dl_t = (y1 - y0) * y ** 2 / (y0 * y1)  # eq. 97, a = 0
+            else:
+                dl_t = y * math.log(y1 / y0)  # eq. 102, a = 0
+        else:  # uniform: end faces always (Lloyd), side faces too for plain FP
+            if side:  # plain FP: the side face's own frame (the d_e gradient), as the warped faces use
+                g, *_ = np.linalg.lstsq(P2, d_e, rcond=None)
+                gy = g / np.linalg.norm(g)
+                P2 = np.column_stack([P2 @ np.array([-gy[1], gy[0]]), P2 @ gy])
+                ext = P2.max(0) - P2.min(0)
+            else:  # an end face: the minimum-area rectangle of its projection (a fitted uniform map)
+                _, lo, hi = min_area_rectangle(P2)
+                ext = np.asarray(hi) - np.asarray(lo)
+            dl_s, dl_t = np.full(len(pts), ext[0]), np.full(len(pts), ext[1])
+        rs, rt = float(np.max(dl_s / delta_b)), float(np.max(dl_t / delta_b))  # eq. 47
+        R_s, R_t, S = max(R_s, rs), max(R_t, rt), S + rs * rt * math.cos(theta) ** 2  # eq. 70, summed
+        maps += 1
+    return {"R_s": R_s, "R_t": R_t, "S": S, "maps": maps}
+
+
+def direction_stats(f_over_n: float, theta_deg: float, method: str, n_gamma: int = 91, n_azimuth: int = 10) -> dict:
+    """Table 3's columns over all directional-light directions: min, max and mean S (the mean over the sphere of
+    directions: weight sin γ, azimuth uniform, by symmetry over [0, 45°]), and the mean number of maps (for FP).
+    Midpoint rules in γ and azimuth (n_gamma x n_azimuth points); min and max include γ = 0, 90, 180."""
+    g_mid = (np.arange(n_gamma) + 0.5) * 180.0 / n_gamma
+    a_mid = (np.arange(n_azimuth) + 0.5) * 45.0 / n_azimuth
+    vals, maps, wts = [], [], []
+    for g in g_mid:
+        for a in a_mid:
+            r = analyze(f_over_n, theta_deg, float(g), method, azimuth_deg=float(a))
+            vals.append(r["S"])
+            maps.append(r.get("maps", 1))
+            wts.append(math.sin(math.radians(g)))
+    ext = [analyze(f_over_n, theta_deg, g, method, azimuth_deg=a)["S"] for g in (0.0, 90.0, 180.0) for a in (0.0, 45.0)]
+    w = np.asarray(wts) / np.sum(wts)
+    return {"min": float(min(min(vals), min(ext))), "max": float(max(max(vals), max(ext))),
+            "mean": float(np.asarray(vals) @ w), "mean_maps": float(np.asarray(maps, dtype=float) @ w)}

@@ -219,6 +219,29 @@ def partition_maps(camera: Camera, light, receivers: np.ndarray, casters_bounds,
     maps, parts = [], []
     for face, idx in assign_receivers(light.position, receivers).items():
         res = resolutions[face] if isinstance(resolutions, dict) else resolutions
-        maps.append(fit_face(camera, light.position, face, views[face], receivers[idx], near, far, res, warp))
+        fit = with_border_receivers(views[face], receivers, idx)
+        maps.append(fit_face(camera, light.position, face, views[face], fit, near, far, res, warp))
         parts.append(receivers[idx])
     return maps, parts
+
+
+BORDER_REACH = 1.25  # face coordinate |a|, |b| up to which a neighbour face's receivers pull the fit to the border
+
+
+def with_border_receivers(view: np.ndarray, receivers: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """A face's receivers plus, for the neighbouring faces' receivers just across its border (|a|, |b| <=
+    BORDER_REACH), their points clamped onto the border: the receivers are samples (coarse pixels), and the
+    full-resolution pixels between the last sample on this side of the border and the first on the other side
+    are this face's, so its fit must reach the border wherever the receivers cross it (the cube's faces always
+    do)."""
+    ab, d = face_coords(view, receivers)
+    v = to_view(view, receivers)
+    mine = np.zeros(len(receivers), dtype=bool)
+    mine[idx] = True
+    near_border = ~mine & (v[:, 2] < 0) & (np.abs(ab) <= BORDER_REACH).all(1)
+    if not near_border.any():
+        return receivers[idx]
+    c = np.clip(ab[near_border], -1.0, 1.0) * d[near_border, None]
+    local = np.column_stack([c, -d[near_border], np.ones(len(c))])
+    world = local @ np.linalg.inv(view).T
+    return np.vstack([receivers[idx], world[:, :3]])

@@ -149,3 +149,42 @@ def test_cli_analyze_json():
     bad = subprocess.run([str(exe), "analyze", "--f-over-n", "1000", "--theta-deg", "30", "--gamma-deg", "200",
                           "--method", "log"], capture_output=True, text=True)
     assert bad.returncode == 2 and "--gamma-deg" in bad.stderr
+
+
+# Table 3's face-partitioning rows (f/n = 1000, θ = 30°, S without 1/cos²θ): min, max, mean, mean #SMs.
+# FP+P max is printed "2000": the model's closed form at γ = 0 is 2 f/n - 1 = 1999 (three significant figures).
+TABLE3_FP = [("fp+p", 865, 2000, 1490, 3.6), ("fp+log", 5.98, 14.8, 10.9, 3.6)]
+
+
+@pytest.mark.parametrize("method, s_min, s_max, s_mean, maps", TABLE3_FP)
+def test_table3_face_partitioning_rows(method, s_min, s_max, s_mean, maps):
+    from shadowopt.solvers.analysis import direction_stats
+
+    st = direction_stats(1000, 30, method, n_gamma=61, n_azimuth=6)
+    assert st["min"] == pytest.approx(s_min, rel=0.005)
+    assert st["max"] == pytest.approx(s_max, rel=0.005)
+    # the mean over the sphere of directions by a 61 x 6 midpoint rule: 1499 and 10.96 against 1490 and 10.9
+    assert st["mean"] == pytest.approx(s_mean, rel=0.015)
+    assert round(st["mean_maps"], 1) == maps
+
+
+def test_face_partitioning_closed_forms():
+    # overhead: the top face alone, Table 3's minima (a - 1)/(2 tan θ) and ln a/(2 tan θ); light behind the viewer:
+    # the near face (S = 1) plus four side faces of (a - 1)/2 (P) or ln a/2 (LogP) each
+    for a, th in ((1000.0, 30.0), (50.0, 45.0)):
+        d = 2 * math.tan(math.radians(th))
+        up_p, up_log = analyze(a, th, 90, "fp+p"), analyze(a, th, 90, "fp+log")
+        assert up_p["maps"] == up_log["maps"] == 1
+        assert up_p["S"] == pytest.approx((a - 1) / d, rel=1e-9)
+        assert up_log["S"] == pytest.approx(math.log(a) / d, rel=1e-9)
+        for g in (0.0, 180.0):  # behind the viewer: entry faces; in front: exit faces (eq. 54)
+            assert analyze(a, th, g, "fp+p")["S"] == pytest.approx(2 * a - 1, rel=1e-9)
+            assert analyze(a, th, g, "fp+log")["S"] == pytest.approx(2 * math.log(a) + 1, rel=1e-9)
+            assert analyze(a, th, g, "fp+log")["maps"] == 5
+        # FP without a warp is the uniform map per face: overhead, the standard map's minimum
+        assert analyze(a, th, 90, "fp")["S"] == pytest.approx(a * (a - 1) / d, rel=1e-9)
+
+
+def test_face_partitioning_takes_one_partition():
+    with pytest.raises(ValueError, match="partitions"):
+        analyze(1000, 30, 45, "fp+log", 5)

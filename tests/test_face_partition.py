@@ -1,0 +1,127 @@
+"""Point lights by face partitioning (Lloyd et al. 2007 FP, FP+P, FP+LogP): solvers.face_partition's geometry and
+the service's choice against the cube, checked against independent truths (the cube-map face rule, ray-traced
+evaluation, light rays through the receivers)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shadowopt.service.evaluation import evaluate_solution
+from shadowopt.service.point_faces import face_shares
+from shadowopt.service.solution_check import validate_solution
+from shadowopt.service.solve import maps_from_solution, solve
+from shadowopt.solvers.cameras import Camera
+from shadowopt.solvers.face_partition import FACES, assign_receivers, face_frusta, fit_face
+from shadowopt.solvers.light_frames import CUBE_FACES
+from testkit import box, plane, scene_entry_of
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return scene_entry_of([plane(60), box([-0.2, 0, -0.2], [0.2, 0.3, 0.2]), box([-1, 0, 8], [1, 3, 10]),
+                           box([3, 0, 20], [5, 6, 23])])
+
+
+def rig(light_pos, camera, mode="auto", side=256):
+    return {"camera": {"resolution": (320, 180), "fov_y_deg": 60, **camera},
+            "lights": [{"type": "point", "position": light_pos}],
+            "shadow": {"resolution": (side, side), "cascades": 1, "point_light_maps": mode}, "coarse_long_side": 120}
+
+
+def test_receivers_go_to_the_face_whose_frustum_holds_them():
+    rng = np.random.default_rng(3)
+    light = np.array([1.0, 2.0, -3.0])
+    pts = light + rng.normal(size=(4000, 3)) * rng.uniform(0.01, 50, size=(4000, 1))
+    faces = assign_receivers(light, pts)
+    got = np.concatenate(list(faces.values()))
+    assert sorted(got.tolist()) == list(range(len(pts)))  # a partition: every receiver in exactly one face
+    views, _, _ = face_frusta(light, pts, pts[:8])
+    for face, idx in faces.items():
+        v = pts[idx] @ views[face][:3, :3].T + views[face][:3, 3]
+        d = -v[:, 2]
+        # the OpenGL cube-map face's 90-degree frustum: in front of the light, |x|, |y| <= depth
+        assert (d > 0).all() and (np.abs(v[:, :2]) <= d[:, None] * (1 + 1e-12)).all(), face
+        fwd = np.array(CUBE_FACES[face][0], float)
+        assert ((pts[idx] - light) @ fwd >= np.abs(pts[idx] - light).max(1) * (1 - 1e-12)).all()
+
+
+def test_a_receiver_plane_seen_through_one_face_gets_exactly_one_map(scene):
+    """Camera looking down at the ground under a point light 5 m up, 60 degree view from 3 m: every visible
+    receiver's direction from the light is dominated by -y, so one map (the -y face), fitted to them."""
+    r = rig((0.0, 5.0, 0.0), {"position": (0.0, 3.0, 0.0), "forward": (0.0, -1.0, 0.02), "near": 0.1, "far": 50})
+    sol = solve(scene, r, "focused")
+    light = sol["lights"][0]
+    fp = light["face_partitioning"]
+    assert [f["face"] for f in fp["faces"]] == ["-y"]
+    assert fp["chosen"] == "face_partitioning" and fp["variant"] == "FP"
+    assert [c["face"] for c in light["cascades"]] == ["-y"]
+    # the fitted face covers the receivers within a smaller angle than the 90-degree face: its objective is lower
+    assert fp["objective"] < fp["returned_objective_otherwise"]
+    validate_solution(sol, light_kinds=["point"])
+    assert [m.face for m in maps_from_solution(sol)[0]] == ["-y"]
+    ev = evaluate_solution(scene, r, sol, depth="ideal")
+    assert ev["outside_pixels"] == 0
+
+
+@pytest.mark.parametrize("method", ["focused", "lispsm"])
+def test_face_partition_covers_every_receiver_ray_traced(scene, method):
+    """A point light inside the view among boxes: forced face partitioning (FP, FP+P) leaves no ray-traced
+    receiver pixel outside its map, and evaluate reads the per-face maps back from the solution."""
+    r = rig((0.5, 2.0, 6.0), {"position": (0, 1.7, 0), "forward": (0, -0.15, 1.0), "near": 0.1, "far": 300},
+            mode="face_partition")
+    sol = solve(scene, r, method)
+    light = sol["lights"][0]
+    fp = light["face_partitioning"]
+    assert fp["chosen"] == "face_partitioning" and len(fp["faces"]) >= 3
+    assert [c["face"] for c in light["cascades"]] == [f["face"] for f in fp["faces"]]
+    assert [list(c["resolution"]) for c in light["cascades"]] == [f["resolution"] for f in fp["faces"]]
+    assert sum(c["resolution"][0] * c["resolution"][1] for c in light["cascades"]) <= fp["total_texels"]
+    ev = evaluate_solution(scene, r, sol, depth="ideal")
+    assert ev["receiver_pixels"] > 1000 and ev["outside_pixels"] == 0
+
+
+def test_the_cube_option_keeps_the_cube(scene):
+    r = rig((0.5, 2.0, 6.0), {"position": (0, 1.7, 0), "forward": (0, -0.15, 1.0), "near": 0.1, "far": 300},
+            mode="cube")
+    light = solve(scene, r, "focused")["lights"][0]
+    assert "face_partitioning" not in light
+    assert all(c["resolution"] == [256, 256] for c in light["cascades"])
+
+
+@pytest.mark.parametrize("warp", ["perspective", "log"])
+def test_a_warped_face_map_puts_each_receiver_on_its_own_light_ray(warp):
+    """Independent of the fit's algebra: the texel ray through a receiver's map coordinates (the map's inverse,
+    as the ground truth casts it) passes through the receiver and through the light, its depth range holds the
+    receiver, and depth grows along the ray from the light to the receiver."""
+    cam = Camera.look((0.0, 1.7, 0.0), (0.0, -0.2, 1.0), fov_y_deg=60.0, near=0.1, far=200.0, resolution=(1280, 720))
+    rng = np.random.default_rng(1)
+    pts = np.column_stack([rng.uniform(-8, 8, 3000), np.zeros(3000), rng.uniform(4, 60, 3000)])
+    light = np.array([0.0, 30.0, 30.0])
+    views, near, far = face_frusta(light, pts, pts[:8])
+    idx = assign_receivers(light, pts)["-y"]
+    smap = fit_face(cam, light, "-y", views["-y"], pts[idx], near, far, (512, 512), warp)
+    assert smap.warp_kind == warp and smap.n_prime > 0
+    s, t, z, w = smap.map_coords(pts[idx])
+    assert (w > 0).all() and (s >= 0).all() and (s <= 1).all() and (t >= 0).all() and (t <= 1).all()
+    assert (z > -1).all() and (z < 1).all()
+    a, b = smap.texel_rays(s, t)
+    ray = (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True)
+    off = pts[idx] - a
+    dist = np.linalg.norm(off - (off * ray).sum(1, keepdims=True) * ray, axis=1)
+    assert dist.max() < 1e-6 * np.linalg.norm(pts[idx] - light, axis=1).max()
+    to_light = light - a
+    assert (np.linalg.norm(to_light - (to_light * ray).sum(1, keepdims=True) * ray, axis=1) < 1e-5).all()
+    half = light + 0.5 * (pts[idx] - light)
+    assert (smap.map_coords(half)[2] < z).all()
+
+
+def test_face_shares_split_by_need_with_a_floor_and_the_total():
+    shares = face_shares(1_000_000, [100.0, 0.0, 800.0], 333_333)
+    assert sum(shares) <= 1_000_000 and sum(shares) > 999_990
+    assert shares[2] > shares[0] > shares[1] > 0
+    assert shares[1] == int(0.25 * 1_000_000 / 3)  # the floor: a quarter of an equal share
+    # the others by need: Chong 2003's L2 Lagrange allocation, T ~ d^(2/3)
+    assert shares[2] / shares[0] == pytest.approx(8.0 ** (2 / 3), rel=1e-4)
+    # equal need -> equal shares
+    assert len(set(face_shares(600, [5.0, 5.0, 5.0], 200))) == 1
+    assert FACES == tuple(CUBE_FACES)
