@@ -13,6 +13,13 @@ Per solve: the texels returned, the lights with no map, the cube faces dropped, 
 measured against ray-traced shadows (service.evaluation, depth "solution": each map's engine depth block) over
 all lights at the rig's screen. The target: 0 texels for lights and cascades without visible receivers, and the
 rig split's misclassified pixels no more than the per-light budget's.
+
+Part two (section budget-point-faces): a point light alone, inside the view (half the rig's height above the
+look point) and outside it (behind the camera), solved with method lispsm and texel_budget `map_side`^2
+(fixed_resolution) three ways: the six-face cube (shadow.point_light_maps cube: faces without receivers dropped,
+the others at T/6 each), the service's choice (auto: Lloyd et al. 2007 face partitioning, FP or FP+P, at the kept
+cube's total texels when its predicted objective is lower), and auto with output.allow_log_warp (FP+LogP tried
+too). Measured misclassified pixels (ray-traced, depth "solution") at equal total texels.
 """
 from __future__ import annotations
 
@@ -79,11 +86,101 @@ def bench_budget(validate_rig, scenes=None, screen=(320, 180), map_side: int = 1
             rows.append(row)
         cache.clear()
     table = _table(rows, skipped, B)
+    pf_rows = point_faces_rows(validate_rig, found, screen, map_side, log)
+    pf_table = _point_faces_table(pf_rows, skipped, map_side * map_side)
     result = {"benchmark": "budget", "machine": machine(), "total_texels": B, "screen": list(screen),
-              "rows": rows, "skipped": skipped, "table": table}
+              "rows": rows, "skipped": skipped, "table": table + "\n\n" + pf_table, "point_faces": pf_rows}
     if write:
         write_section("budget", table, f"shadowopt bench budget --map {map_side}")
+        write_section("budget-point-faces", pf_table, f"shadowopt bench budget --map {map_side}")
     return result
+
+
+POINT_MODES = (("cube", "cube", False), ("auto", "auto", False), ("auto_log", "auto", True))
+
+
+def point_faces_rows(validate_rig, found: dict, screen, map_side: int, log=None) -> list[dict]:
+    """Part two (module doc): per corpus rig, a point light inside and one outside the view, cube vs face
+    partitioning at equal total texels, measured misclassified pixels."""
+    from ..evaluation import evaluate_solution
+    from ..rigs import resolve_rig
+    from ..scenes import SceneCache
+    from ..solve import solve
+
+    rows, cache = [], SceneCache()
+    for name, (path, spec) in found.items():
+        entry = cache.get(path)
+        for rig_name, part in spec.get("rigs", {}).items():
+            base = {"camera": {**part["camera"], "resolution": list(screen)},
+                    "lights": [{"type": "directional", "direction": list(SUN)}]}
+            camera = resolve_rig(validate_rig(base), entry.loaded).camera
+            inside = _lights(entry, camera)[3]["position"]
+            lo, hi = entry.loaded.geometry.bounds()
+            h = float(min(np.linalg.norm(hi - lo) * 0.1, 50.0))
+            behind = (camera.position - camera.forward * h + np.array([0.0, 0.5 * h, 0.0])).tolist()
+            for where, pos in (("inside", inside), ("outside", behind)):
+                row = {"scene": name, "rig_name": rig_name, "light": where, "position": pos}
+                for key, mode, allow_log in POINT_MODES:
+                    rig = validate_rig({**base, "lights": [{"type": "point", "position": pos}],
+                                        "shadow": {"texel_budget": map_side * map_side, "cascades": 1,
+                                                   "fixed_resolution": True, "point_light_maps": mode},
+                                        "output": {"allow_log_warp": allow_log}})
+                    t0 = time.perf_counter()
+                    sol = solve(entry, rig, "lispsm")
+                    ms = (time.perf_counter() - t0) * 1e3
+                    light = sol["lights"][0]
+                    if light["shadow"] == "none":
+                        row[key] = {"maps": 0, "texels": 0, "misclassified": None, "chosen": "none", "solve_ms": ms}
+                        continue
+                    ev = evaluate_solution(entry, rig, sol, depth="solution")
+                    ev = ev["lights"][0] if "lights" in ev else ev
+                    fp = light.get("face_partitioning") or {}
+                    row[key] = {"maps": len(light["cascades"]),
+                                "faces": [c.get("face") for c in light["cascades"]],
+                                "resolutions": [c["resolution"] for c in light["cascades"]],
+                                "texels": sum(c["resolution"][0] * c["resolution"][1] for c in light["cascades"]),
+                                "misclassified": int(ev["misclassified_pixels"]),
+                                "outside": int(ev.get("outside_pixels", 0)),
+                                "objective": light["predicted_error"]["objective"],
+                                "chosen": fp.get("chosen", "cube"), "variant": fp.get("variant"),
+                                "variants_objective": fp.get("variants_objective"), "solve_ms": ms}
+                if log:
+                    log(f"{name}/{rig_name} point {where}: " + ", ".join(
+                        f"{k} {row[k]['misclassified']} ({row[k]['chosen']})" for k, _, _ in POINT_MODES))
+                rows.append(row)
+        cache.clear()
+    return rows
+
+
+def _point_faces_table(rows, skipped, T) -> str:
+    lines = [f"A point light alone, inside the view and behind the camera; method lispsm, texel_budget {T:,} "
+             f"(the cube: faces without receivers dropped, the others {T // 6:,} texels each; face partitioning at "
+             f"the kept cube's total). Misclassified: measured against ray-traced shadows, depth solution.", "",
+             "| scene / rig | light | cube: faces, texels | misclassified | auto: returned (variant), texels "
+             "| misclassified | auto + allow_log_warp: returned | misclassified |",
+             "|---|---|---|---:|---|---:|---|---:|"]
+
+    def ret(c):
+        return "no map" if c["chosen"] == "none" else (
+            f"FP ({c['variant']}) {c['maps']} maps" if c["chosen"] == "face_partitioning" else f"cube {c['maps']} faces")
+
+    for r in rows:
+        a, b, c = r["cube"], r["auto"], r["auto_log"]
+        lines.append(f"| {r['scene']} / {r['rig_name']} | {r['light']} | {a['maps']}, {a['texels']:,} | "
+                     f"{a['misclassified']} | {ret(b)}, {b['texels']:,} | **{b['misclassified']}** | {ret(c)} | "
+                     f"{c['misclassified']} |")
+    for name, why in skipped.items():
+        lines.append(f"| {name} | skipped: {why} |")
+    ok = [r for r in rows if r["cube"]["misclassified"] is not None]
+    if ok:
+        sa = sum(r["cube"]["misclassified"] for r in ok)
+        sb = sum(r["auto"]["misclassified"] for r in ok)
+        sc = sum(r["auto_log"]["misclassified"] for r in ok)
+        no_worse = sum(r["auto"]["misclassified"] <= r["cube"]["misclassified"] for r in ok)
+        lines.append(f"\nTotal misclassified: cube {sa}, auto {sb}, auto with the log warp {sc}; auto no worse than "
+                     f"the cube on {no_worse} of {len(ok)}; face partitioning chosen on "
+                     f"{sum(r['auto']['chosen'] == 'face_partitioning' for r in ok)} of {len(ok)}.")
+    return "\n".join(lines)
 
 
 def _table(rows, skipped, B) -> str:
