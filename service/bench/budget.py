@@ -156,13 +156,13 @@ def _point_faces_table(rows, skipped, T) -> str:
     lines = [f"A point light alone, inside the view and behind the camera; method lispsm, texel_budget {T:,} "
              f"(the cube: faces without receivers dropped, the others {T // 6:,} texels each; face partitioning at "
              f"the kept cube's total). Misclassified: measured against ray-traced shadows, depth solution.", "",
-             "| scene / rig | light | cube: faces, texels | misclassified | auto: returned (variant), texels "
+             "| scene / rig | light | cube: faces, texels | misclassified | auto: returned, texels "
              "| misclassified | auto + allow_log_warp: returned | misclassified |",
              "|---|---|---|---:|---|---:|---|---:|"]
 
     def ret(c):
         return "no map" if c["chosen"] == "none" else (
-            f"FP ({c['variant']}) {c['maps']} maps" if c["chosen"] == "face_partitioning" else f"cube {c['maps']} faces")
+            f"{c['variant']}, {c['maps']} maps" if c["chosen"] == "face_partitioning" else f"cube {c['maps']} faces")
 
     for r in rows:
         a, b, c = r["cube"], r["auto"], r["auto_log"]
