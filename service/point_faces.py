@@ -5,7 +5,7 @@ For a point light the service fits both: the maps the method returned (the six-f
 already dropped by service.need; or optimized's single cone map) and the face partition at the same total texels.
 The partition's texels are split across its faces by need with the rig's allocation (service.need.split_budget:
 Chong 2003's Lagrange allocation, T_i ~ d_i^(2/3), d_i from each face's predicted misclassified pixels at an equal
-share), each face kept at no less than a quarter of an equal share (a face with receivers but no shadow edge on
+share of the plain fit), each face kept at no less than a quarter of an equal share (a face with receivers but no shadow edge on
 screen still shades its receivers). The one with the lower predicted objective (solvers.metric's mean h, what the
 optimizer minimizes) is returned; the solution's `face_partitioning` block says which, and the faces and
 resolutions of the partition.
@@ -67,9 +67,11 @@ def choose(method: str, camera, prob, bounds, maps: list, allow_log: bool, maps_
     total = int(sum(m.resolution[0] * m.resolution[1] for m in maps))
     ref_err, _ = maps_error(maps, prob.samples, origin)
     ref_obj = _objective(ref_err)
+    res, mis = face_resolutions(camera, light, prob, bounds, total, maps_error, origin)
     tried = []
     for warp in dict.fromkeys(("none", warp_for(method, allow_log))):  # FP, and FP+P / FP+LogP for warped methods
-        fp, parts, err, mis = partition(camera, light, prob, bounds, total, warp, maps_error, origin)
+        fp, parts = partition_maps(camera, light, prob.receivers, bounds, res, warp)
+        err, _ = maps_error(fp, prob.samples, origin)
         tried.append((_objective(err), warp, fp, parts, err, mis))
     best = min(tried, key=lambda c: c[0])
     fp_obj, warp, fp, parts, fp_err, mis = best
@@ -99,16 +101,13 @@ def choose(method: str, camera, prob, bounds, maps: list, allow_log: bool, maps_
     return [_with_bias(m, p, light) for m, p in zip(fp, parts)], block
 
 
-def partition(camera, light, prob, bounds, total: int, warp: str, maps_error, origin):
-    """(maps, fitted receivers per map, predicted error, per-face predicted misclassified at the probe) of the
-    face partition with `warp` at `total` texels: probe every face at an equal share, split by need, refit."""
+def face_resolutions(camera, light, prob, bounds, total: int, maps_error, origin) -> tuple[dict, list[float]]:
+    """({face: (side, side)}, per-face predicted misclassified at the probe): every face probed with the plain fit
+    (FP) at an equal share of `total`, then the texels split by need (face_shares); both variants use them."""
     n = len(assign_receivers(light.position, prob.receivers))
     side = max(MIN_SIDE, math.isqrt(total // n))
-    fp, parts = partition_maps(camera, light, prob.receivers, bounds, (side, side), warp)
+    fp, _ = partition_maps(camera, light, prob.receivers, bounds, (side, side), "none")
     _, per_face = maps_error(fp, prob.samples, origin)
     mis = [float(e.get("misclassified_pixels") or 0.0) for e in per_face]
     shares = face_shares(total, mis, side * side)
-    res = {m.face: (max(MIN_SIDE, math.isqrt(t)),) * 2 for m, t in zip(fp, shares)}
-    fp, parts = partition_maps(camera, light, prob.receivers, bounds, res, warp)
-    err, _ = maps_error(fp, prob.samples, origin)
-    return fp, parts, err, mis
+    return {m.face: (max(MIN_SIDE, math.isqrt(t)),) * 2 for m, t in zip(fp, shares)}, mis

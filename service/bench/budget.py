@@ -157,8 +157,8 @@ def _point_faces_table(rows, skipped, T) -> str:
              f"(the cube: faces without receivers dropped, the others {T // 6:,} texels each; face partitioning at "
              f"the kept cube's total). Misclassified: measured against ray-traced shadows, depth solution.", "",
              "| scene / rig | light | cube: faces, texels | misclassified | auto: returned, texels "
-             "| misclassified | auto + allow_log_warp: returned | misclassified |",
-             "|---|---|---|---:|---|---:|---|---:|"]
+             "| misclassified | auto + allow_log_warp: returned | misclassified | solve ms cube / auto |",
+             "|---|---|---|---:|---|---:|---|---:|---:|"]
 
     def ret(c):
         return "no map" if c["chosen"] == "none" else (
@@ -168,7 +168,7 @@ def _point_faces_table(rows, skipped, T) -> str:
         a, b, c = r["cube"], r["auto"], r["auto_log"]
         lines.append(f"| {r['scene']} / {r['rig_name']} | {r['light']} | {a['maps']}, {a['texels']:,} | "
                      f"{a['misclassified']} | {ret(b)}, {b['texels']:,} | **{b['misclassified']}** | {ret(c)} | "
-                     f"{c['misclassified']} |")
+                     f"{c['misclassified']} | {a['solve_ms']:.0f} / {b['solve_ms']:.0f} |")
     for name, why in skipped.items():
         lines.append(f"| {name} | skipped: {why} |")
     ok = [r for r in rows if r["cube"]["misclassified"] is not None]
@@ -177,6 +177,9 @@ def _point_faces_table(rows, skipped, T) -> str:
         sb = sum(r["auto"]["misclassified"] for r in ok)
         sc = sum(r["auto_log"]["misclassified"] for r in ok)
         no_worse = sum(r["auto"]["misclassified"] <= r["cube"]["misclassified"] for r in ok)
+        ms = sorted(r["auto"]["solve_ms"] / max(r["cube"]["solve_ms"], 1e-9) for r in ok)
+        lines.append(f"\nSolve time of auto (the cube, FP and the warped FP fitted and scored) over the cube's: median "
+                     f"{ms[len(ms) // 2]:.1f}x (one run each, under the machine's load at the time).")
         lines.append(f"\nTotal misclassified: cube {sa}, auto {sb}, auto with the log warp {sc}; auto no worse than "
                      f"the cube on {no_worse} of {len(ok)}; face partitioning chosen on "
                      f"{sum(r['auto']['chosen'] == 'face_partitioning' for r in ok)} of {len(ok)}.")
