@@ -249,6 +249,16 @@ def boundary_mask(lit: np.ndarray, hit: np.ndarray, depth: np.ndarray, radius: i
     return edge
 
 
+def camera_hits(mi, dr, rs: RayScene, camera: Camera, width: int, height: int):
+    """One camera ray per coarse pixel: hit mask, hit points relative to rs.origin, normals turned towards
+    the camera, view depth and primitive id (Dr.Jit arrays, not yet evaluated)."""
+    ray, fwd = _camera_rays(mi, dr, camera, width, height, rs.origin)
+    pi, hit, t, p, n = _surface_hits(mi, dr, rs, ray, fwd, camera)
+    depth = dr.select(hit, t * dr.dot(ray.d, fwd), dr.inf)
+    prim = dr.gather(mi.UInt32, rs.face_prim, pi.prim_index, hit)
+    return hit, p, n, depth, prim
+
+
 def render_coarse(rs: RayScene, camera: Camera, lights: list[Light], long_side: int = DEFAULT_LONG_SIDE,
                   boundary_radius: int = DEFAULT_BOUNDARY_RADIUS, fine_pass: bool = True) -> CoarseBuffers:
     """Cast one camera ray per coarse pixel and one shadow ray per hit and light, then the edge pass
@@ -258,10 +268,7 @@ def render_coarse(rs: RayScene, camera: Camera, lights: list[Light], long_side: 
 
     t0 = time.perf_counter()
     width, height = camera.coarse_resolution(long_side)
-    ray, fwd = _camera_rays(mi, dr, camera, width, height, rs.origin)
-    pi, hit, t, p, n = _surface_hits(mi, dr, rs, ray, fwd, camera)
-    depth = dr.select(hit, t * dr.dot(ray.d, fwd), dr.inf)
-    prim = dr.gather(mi.UInt32, rs.face_prim, pi.prim_index, hit)
+    hit, p, n, depth, prim = camera_hits(mi, dr, rs, camera, width, height)
     masks = [_light_test(mi, dr, rs, light, p, n, hit) for light in lights]
     flat = [hit, p, n, depth, prim] + [m for ms in masks for m in ms]
     dr.eval(*flat)

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..renderers.coarse import (DEFAULT_BOUNDARY_RADIUS, CoarseBuffers, FinePoints, LightBuffers, boundary_mask,
-                                fine_points, _camera_rays, _light_test, _mask_numpy, _surface_hits, _vec_to_numpy)
+                                camera_hits, fine_points, _light_test, _mask_numpy, _surface_hits, _vec_to_numpy)
 from ..renderers.mitsuba_setup import mitsuba
 
 MAX_CAMERAS = 16  # camera entries kept (each a few MB at the 180 px default)
@@ -67,10 +67,7 @@ def camera_pass(rs, camera, long_side: int) -> CameraPass:
 
     t0 = time.perf_counter()
     width, height = camera.coarse_resolution(long_side)
-    ray, fwd = _camera_rays(mi, dr, camera, width, height, rs.origin)
-    pi, hit, t, p, n = _surface_hits(mi, dr, rs, ray, fwd, camera)
-    depth = dr.select(hit, t * dr.dot(ray.d, fwd), dr.inf)
-    prim = dr.gather(mi.UInt32, rs.face_prim, pi.prim_index, hit)
+    hit, p, n, depth, prim = camera_hits(mi, dr, rs, camera, width, height)
     dr.eval(hit, p, n, depth, prim)
     shape = (height, width)
     size = width * height

@@ -46,45 +46,54 @@ def _lights(entry, camera) -> list[dict]:
             {"type": "point", "position": (look + up * h * 0.5).tolist()}]
 
 
+def _corpus_rigs(validate_rig, found: dict, screen):
+    """Each corpus scene rig once: (scene, rig name, scene entry, the rig with the bench's sun, its camera)."""
+    from ..rigs import resolve_rig
+    from ..scenes import SceneCache
+
+    cache = SceneCache()
+    try:
+        for name, (path, spec) in found.items():
+            entry = cache.get(path)
+            for rig_name, part in spec.get("rigs", {}).items():
+                base = {"camera": {**part["camera"], "resolution": list(screen)},
+                        "lights": [{"type": "directional", "direction": list(SUN)}]}
+                yield name, rig_name, entry, base, resolve_rig(validate_rig(base), entry.loaded).camera
+    finally:
+        cache.clear()  # the scenes' memory back before the next part
+
+
 def bench_budget(validate_rig, scenes=None, screen=(320, 180), map_side: int = 1024, write: bool = True,
                  log=None) -> dict:
     from ..evaluation import evaluate_solution
-    from ..rigs import resolve_rig
-    from ..scenes import SceneCache
     from ..solve import solve
 
     found, skipped = corpus_scenes(scenes.split(",") if isinstance(scenes, str) else scenes)
     B = 4 * map_side * map_side
-    rows, cache = [], SceneCache()
-    for name, (path, spec) in found.items():
-        entry = cache.get(path)
-        for rig_name, part in spec.get("rigs", {}).items():
-            base = {"camera": {**part["camera"], "resolution": list(screen)},
-                    "lights": [{"type": "directional", "direction": list(SUN)}]}
-            camera = resolve_rig(validate_rig(base), entry.loaded).camera
-            lights = _lights(entry, camera)
-            row = {"scene": name, "rig_name": rig_name}
-            for scope, budget in (("light", B // 4), ("rig", B)):
-                rig = validate_rig({**base, "lights": lights,
-                                    "shadow": {"texel_budget": budget, "budget_scope": scope, "cascades": 1,
-                                               "fixed_resolution": True}})
-                t0 = time.perf_counter()
-                sol = solve(entry, rig, "focused")
-                ms = (time.perf_counter() - t0) * 1e3
-                ev = evaluate_solution(entry, rig, sol, depth="solution")
-                per = ev["lights"] if "lights" in ev else [ev]
-                row[scope] = {
-                    "texels": sum(c["resolution"][0] * c["resolution"][1] for l in sol["lights"] for c in l["cascades"]),
-                    "no_map": [k for k, l in enumerate(sol["lights"]) if l["shadow"] == "none"],
-                    "dropped": sum(len(l.get("notes") or []) for l in sol["lights"]),
-                    "misclassified": int(sum(x["misclassified_pixels"] for x in per)),
-                    "per_light_misclassified": [int(x["misclassified_pixels"]) for x in per],
-                    "solve_ms": ms}
-            if log:
-                log(f"{name}/{rig_name}: per light {row['light']['texels']:,} texels, {row['light']['misclassified']} "
-                    f"misclassified; rig {row['rig']['texels']:,}, {row['rig']['misclassified']}")
-            rows.append(row)
-        cache.clear()
+    rows = []
+    for name, rig_name, entry, base, camera in _corpus_rigs(validate_rig, found, screen):
+        lights = _lights(entry, camera)
+        row = {"scene": name, "rig_name": rig_name}
+        for scope, budget in (("light", B // 4), ("rig", B)):
+            rig = validate_rig({**base, "lights": lights,
+                                "shadow": {"texel_budget": budget, "budget_scope": scope, "cascades": 1,
+                                           "fixed_resolution": True}})
+            t0 = time.perf_counter()
+            sol = solve(entry, rig, "focused")
+            ms = (time.perf_counter() - t0) * 1e3
+            ev = evaluate_solution(entry, rig, sol, depth="solution")
+            per = ev["lights"] if "lights" in ev else [ev]
+            row[scope] = {
+                "texels": sum(c["resolution"][0] * c["resolution"][1] for l in sol["lights"] for c in l["cascades"]),
+                "no_map": [k for k, l in enumerate(sol["lights"]) if l["shadow"] == "none"],
+                "dropped": sum(len(l.get("notes") or []) for l in sol["lights"]),
+                "misclassified": int(sum(x["misclassified_pixels"] for x in per)),
+                "per_light_misclassified": [int(x["misclassified_pixels"]) for x in per],
+                "solve_ms": ms}
+        if log:
+            log(f"{name}/{rig_name}: per light {row['light']['texels']:,} texels, {row['light']['misclassified']} "
+                f"misclassified; rig {row['rig']['texels']:,}, {row['rig']['misclassified']}")
+        rows.append(row)
     table = _table(rows, skipped, B)
     pf_rows = point_faces_rows(validate_rig, found, screen, map_side, log)
     pf_table = _point_faces_table(pf_rows, skipped, map_side * map_side)
@@ -103,52 +112,44 @@ def point_faces_rows(validate_rig, found: dict, screen, map_side: int, log=None)
     """Part two (module doc): per corpus rig, a point light inside and one outside the view, cube vs face
     partitioning at equal total texels, measured misclassified pixels."""
     from ..evaluation import evaluate_solution
-    from ..rigs import resolve_rig
-    from ..scenes import SceneCache
     from ..solve import solve
 
-    rows, cache = [], SceneCache()
-    for name, (path, spec) in found.items():
-        entry = cache.get(path)
-        for rig_name, part in spec.get("rigs", {}).items():
-            base = {"camera": {**part["camera"], "resolution": list(screen)},
-                    "lights": [{"type": "directional", "direction": list(SUN)}]}
-            camera = resolve_rig(validate_rig(base), entry.loaded).camera
-            inside = _lights(entry, camera)[3]["position"]
-            lo, hi = entry.loaded.geometry.bounds()
-            h = float(min(np.linalg.norm(hi - lo) * 0.1, 50.0))
-            behind = (camera.position - camera.forward * h + np.array([0.0, 0.5 * h, 0.0])).tolist()
-            for where, pos in (("inside", inside), ("outside", behind)):
-                row = {"scene": name, "rig_name": rig_name, "light": where, "position": pos}
-                for key, mode, allow_log in POINT_MODES:
-                    rig = validate_rig({**base, "lights": [{"type": "point", "position": pos}],
-                                        "shadow": {"texel_budget": map_side * map_side, "cascades": 1,
-                                                   "fixed_resolution": True, "point_light_maps": mode},
-                                        "output": {"allow_log_warp": allow_log}})
-                    t0 = time.perf_counter()
-                    sol = solve(entry, rig, "lispsm")
-                    ms = (time.perf_counter() - t0) * 1e3
-                    light = sol["lights"][0]
-                    if light["shadow"] == "none":
-                        row[key] = {"maps": 0, "texels": 0, "misclassified": None, "chosen": "none", "solve_ms": ms}
-                        continue
-                    ev = evaluate_solution(entry, rig, sol, depth="solution")
-                    ev = ev["lights"][0] if "lights" in ev else ev
-                    fp = light.get("face_partitioning") or {}
-                    row[key] = {"maps": len(light["cascades"]),
-                                "faces": [c.get("face") for c in light["cascades"]],
-                                "resolutions": [c["resolution"] for c in light["cascades"]],
-                                "texels": sum(c["resolution"][0] * c["resolution"][1] for c in light["cascades"]),
-                                "misclassified": int(ev["misclassified_pixels"]),
-                                "outside": int(ev.get("outside_pixels", 0)),
-                                "objective": light["predicted_error"]["objective"],
-                                "chosen": fp.get("chosen", "cube"), "variant": fp.get("variant"),
-                                "variants_objective": fp.get("variants_objective"), "solve_ms": ms}
-                if log:
-                    log(f"{name}/{rig_name} point {where}: " + ", ".join(
-                        f"{k} {row[k]['misclassified']} ({row[k]['chosen']})" for k, _, _ in POINT_MODES))
-                rows.append(row)
-        cache.clear()
+    rows = []
+    for name, rig_name, entry, base, camera in _corpus_rigs(validate_rig, found, screen):
+        inside = _lights(entry, camera)[3]["position"]
+        lo, hi = entry.loaded.geometry.bounds()
+        h = float(min(np.linalg.norm(hi - lo) * 0.1, 50.0))
+        behind = (camera.position - camera.forward * h + np.array([0.0, 0.5 * h, 0.0])).tolist()
+        for where, pos in (("inside", inside), ("outside", behind)):
+            row = {"scene": name, "rig_name": rig_name, "light": where, "position": pos}
+            for key, mode, allow_log in POINT_MODES:
+                rig = validate_rig({**base, "lights": [{"type": "point", "position": pos}],
+                                    "shadow": {"texel_budget": map_side * map_side, "cascades": 1,
+                                               "fixed_resolution": True, "point_light_maps": mode},
+                                    "output": {"allow_log_warp": allow_log}})
+                t0 = time.perf_counter()
+                sol = solve(entry, rig, "lispsm")
+                ms = (time.perf_counter() - t0) * 1e3
+                light = sol["lights"][0]
+                if light["shadow"] == "none":
+                    row[key] = {"maps": 0, "texels": 0, "misclassified": None, "chosen": "none", "solve_ms": ms}
+                    continue
+                ev = evaluate_solution(entry, rig, sol, depth="solution")
+                ev = ev["lights"][0] if "lights" in ev else ev
+                fp = light.get("face_partitioning") or {}
+                row[key] = {"maps": len(light["cascades"]),
+                            "faces": [c.get("face") for c in light["cascades"]],
+                            "resolutions": [c["resolution"] for c in light["cascades"]],
+                            "texels": sum(c["resolution"][0] * c["resolution"][1] for c in light["cascades"]),
+                            "misclassified": int(ev["misclassified_pixels"]),
+                            "outside": int(ev.get("outside_pixels", 0)),
+                            "objective": light["predicted_error"]["objective"],
+                            "chosen": fp.get("chosen", "cube"), "variant": fp.get("variant"),
+                            "variants_objective": fp.get("variants_objective"), "solve_ms": ms}
+            if log:
+                log(f"{name}/{rig_name} point {where}: " + ", ".join(
+                    f"{k} {row[k]['misclassified']} ({row[k]['chosen']})" for k, _, _ in POINT_MODES))
+            rows.append(row)
     return rows
 
 
