@@ -290,7 +290,8 @@ def cmd_analyze(args) -> int:
     if args.json:
         print(json.dumps(res, indent=2))
     else:
-        print(f"R_s = {res['R_s']:.4g}, R_t = {res['R_t']:.4g}, S = {res['S']:.4g}")
+        print(f"R_s = {res['R_s']:.4g}, R_t = {res['R_t']:.4g}, S = {res['S']:.4g}"
+              + (f", maps = {res['maps']:g}" if "maps" in res else ""))
     return 0
 
 
@@ -552,8 +553,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--f-over-n", type=float, required=True)
     sp.add_argument("--theta-deg", type=float, required=True, help="half field of view of the view frustum")
     sp.add_argument("--gamma-deg", type=float, required=True, help="angle between light and view direction (90 = overhead)")
-    sp.add_argument("--method", choices=["uniform", "perspective", "log"], required=True)
-    sp.add_argument("--partitions", type=int, default=1, help="equal-ratio z-partitions")
+    sp.add_argument("--method", choices=["uniform", "perspective", "log", "fp", "fp+p", "fp+log"], required=True,
+                    help="a warp per z-partition, or face partitioning (fp, fp+p, fp+log; Lloyd et al. 2007)")
+    sp.add_argument("--partitions", type=int, default=1, help="equal-ratio z-partitions (1 with face partitioning)")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_analyze)
 

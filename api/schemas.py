@@ -458,7 +458,9 @@ class AnalyzeRequest(_Strict):
     theta_deg: Annotated[float, Field(gt=0, lt=90, allow_inf_nan=False)] = Field(description="half field of view")
     gamma_deg: Annotated[float, Field(ge=0, le=180, allow_inf_nan=False)] = Field(
         description="angle between light and view direction (90 = overhead)")
-    method: Literal["uniform", "perspective", "log"]
+    method: Literal["uniform", "perspective", "log", "fp", "fp+p", "fp+log"] = Field(description=(
+        "the warp of one map per z-partition (uniform, perspective, log), or face partitioning (Lloyd et al. 2007: "
+        "fp, fp+p, fp+log: one map per face of the view frustum the light sees, partitions 1)"))
     partitions: Annotated[int, Field(ge=1, le=64)] = 1
     azimuth_deg: Annotated[float, Field(ge=-360, le=360, allow_inf_nan=False)] = 0.0
 
@@ -467,6 +469,7 @@ class Analysis(BaseModel):
     R_s: float
     R_t: float
     S: float
+    maps: float | None = Field(None, description="face partitioning: the faces that get a map")
 
 
 class BatchConfiguration(_Strict):

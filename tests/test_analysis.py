@@ -149,6 +149,9 @@ def test_cli_analyze_json():
     bad = subprocess.run([str(exe), "analyze", "--f-over-n", "1000", "--theta-deg", "30", "--gamma-deg", "200",
                           "--method", "log"], capture_output=True, text=True)
     assert bad.returncode == 2 and "--gamma-deg" in bad.stderr
+    fp = subprocess.run([str(exe), "analyze", "--f-over-n", "1000", "--theta-deg", "30", "--gamma-deg", "90",
+                         "--method", "fp+p"], capture_output=True, text=True)
+    assert fp.returncode == 0 and fp.stdout.strip().endswith("S = 865.2, maps = 1"), fp.stdout + fp.stderr
 
 
 # Table 3's face-partitioning rows (f/n = 1000, θ = 30°, S without 1/cos²θ): min, max, mean, mean #SMs.

@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import io
 import json
+import math
 import time
 
 import httpx
@@ -224,6 +225,15 @@ def test_compare_and_analyze(api, scene):
         assert a.status_code == 200 and a.json()["S"] == pytest.approx(s, rel=2e-3), (method, a.text)
     err = error_of(api.post("/v1/analyze", json={"f_over_n": 0.5, "theta_deg": 30, "gamma_deg": 90, "method": "log"}), 422)
     assert err["field"] == "f_over_n"
+    # face partitioning with the light overhead: (f/n - 1)/(2 tan theta) = 865.2 (FP+P), ln(f/n)/(2 tan theta) = 5.98
+    # (FP+Log), Table 3's FP minima; the light sees one face of the frustum
+    for method, s in (("fp+p", 999 / (2 * math.tan(math.radians(30)))), ("fp+log", math.log(1000) / (2 * math.tan(math.radians(30))))):
+        a = api.post("/v1/analyze", json={"f_over_n": 1000, "theta_deg": 30, "gamma_deg": 90, "method": method})
+        assert a.status_code == 200 and a.json()["S"] == pytest.approx(s, rel=1e-6), (method, a.text)
+        assert a.json()["maps"] == 1
+    err = error_of(api.post("/v1/analyze", json={"f_over_n": 1000, "theta_deg": 30, "gamma_deg": 90, "method": "fp",
+                                                 "partitions": 2}), 422)
+    assert "partitions" in err["message"]
 
 
 def test_batch_round_trip_explicit(api, scene):
