@@ -17,7 +17,7 @@ export DRJIT_LIBLLVM_PATH ?= $(firstword $(wildcard /usr/lib/*-linux-gnu/libLLVM
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: setup serve test bench demo clean
+.PHONY: setup serve test bench demo clean mutate
 
 setup: $(STAMP)
 
@@ -41,6 +41,12 @@ serve: setup
 
 test: setup
 	$(PY) -m pytest -q
+
+# Sampled mutation testing with cosmic-ray's operators (tests/mutation/run.py; the sample, the module -> tests map
+# and the time budget in configs/mutation.json): scores per folder into TESTING.md, survivors into
+# tests/mutation/survivors.md. MUTATE_ARGS="--budget 600 --per-folder 5" or "--only ID ..." to re-run mutants.
+mutate: setup
+	$(PY) tests/mutation/run.py $(MUTATE_ARGS)
 
 bench: setup
 	$(VENV)/bin/shadowopt bench coarse
