@@ -332,6 +332,23 @@ def fine_factor(camera: Camera, width: int) -> int:
     return int(min(FINE_MAX, max(2, np.ceil(max(camera.resolution) / max(width, 1)))))
 
 
+def fine_ray_directions(mi, camera: Camera, vj: np.ndarray, vi: np.ndarray, f: int, w: int, h: int):
+    """(padded ray count, Dr.Jit directions) of the edge pass's rays through fine-grid corners (vj, vi) of a
+    w x h coarse buffer refined f times."""
+    size = 1 << int(np.ceil(np.log2(max(len(vj), 1024))))
+    th = camera.tan_half_fov_y
+    tw = th * camera.aspect
+    x = (vi / f * (2.0 / w) - 1.0) * tw  # coarse-pixel units 0 .. w (the grid's corners): the convention of
+    y = (1.0 - vj / f * (2.0 / h)) * th  # Camera.ray_directions at pixel corners
+    fw, rt, up = camera.forward, camera.right, camera.up
+    # fw + x right + y up and its norm per component, the operations (and their order) of the (n, 3) form
+    # fw + x[:, None] * right + y[:, None] * up; d / np.linalg.norm(d, axis=1): the same bits, ~5x faster
+    comp = [fw[k] + x * rt[k] + y * up[k] for k in range(3)]
+    norm = np.sqrt(comp[0] * comp[0] + comp[1] * comp[1] + comp[2] * comp[2])
+    # padded to `size` by repeating the first rays (np.resize), traced and dropped
+    return size, mi.Vector3f(*(mi.Float(np.resize((c / norm).astype(np.float32), size)) for c in comp))
+
+
 def fine_points(rs: RayScene, camera: Camera, lights: list[Light], hit: np.ndarray, depth: np.ndarray,
                 factor: int | None = None) -> FinePoints:
     """The edge pass: one ray through every corner of a `factor`-times finer grid over the coarse
@@ -355,18 +372,7 @@ def fine_points(rs: RayScene, camera: Camera, lights: list[Light], hit: np.ndarr
     if n == 0:
         return FinePoints(f, np.zeros((0, 3)), np.zeros((0, 3), np.float32), np.zeros(0), [np.zeros(0, bool)] * len(lights),
                           0, grid.shape, np.zeros(0, np.int64), np.zeros(0, np.int64))
-    size = 1 << int(np.ceil(np.log2(max(n, 1024))))
-    th = camera.tan_half_fov_y
-    tw = th * camera.aspect
-    x = (vi / f * (2.0 / w) - 1.0) * tw  # coarse-pixel units 0 .. w (the grid's corners): the convention of
-    y = (1.0 - vj / f * (2.0 / h)) * th  # Camera.ray_directions at pixel corners
-    fw, rt, up = camera.forward, camera.right, camera.up
-    # fw + x right + y up and its norm per component, the operations (and their order) of the (n, 3) form
-    # fw + x[:, None] * right + y[:, None] * up; d / np.linalg.norm(d, axis=1): the same bits, ~5x faster
-    comp = [fw[k] + x * rt[k] + y * up[k] for k in range(3)]
-    norm = np.sqrt(comp[0] * comp[0] + comp[1] * comp[1] + comp[2] * comp[2])
-    # padded to `size` by repeating the first rays (np.resize), traced and dropped
-    d = mi.Vector3f(*(mi.Float(np.resize((c / norm).astype(np.float32), size)) for c in comp))
+    size, d = fine_ray_directions(mi, camera, vj, vi, f, w, h)
     o = _opaque3(mi, dr, mi.Point3f, camera.position - rs.origin)
     fwd = _opaque3(mi, dr, mi.Vector3f, camera.forward)
     ray = mi.Ray3f(o, d)

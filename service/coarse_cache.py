@@ -23,7 +23,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..renderers.coarse import (DEFAULT_BOUNDARY_RADIUS, CoarseBuffers, FinePoints, LightBuffers, boundary_mask,
-                                camera_hits, fine_points, _light_test, _mask_numpy, _surface_hits, _vec_to_numpy)
+                                camera_hits, fine_points, fine_ray_directions, _light_test, _mask_numpy, _surface_hits, _vec_to_numpy)
 from ..renderers.mitsuba_setup import mitsuba
 
 MAX_CAMERAS = 16  # camera entries kept (each a few MB at the 180 px default)
@@ -98,16 +98,7 @@ def _fine_rays(mi, dr, rs, camera, fine: FinePoints, shape):
     h, w = shape
     f = fine.factor
     vj, vi = np.divmod(fine.traced, fine.grid_shape[1])
-    n = len(vj)
-    size = 1 << int(np.ceil(np.log2(max(n, 1024))))
-    th = camera.tan_half_fov_y
-    tw = th * camera.aspect
-    x = (vi / f * (2.0 / w) - 1.0) * tw
-    y = (1.0 - vj / f * (2.0 / h)) * th
-    fw, rt, up = camera.forward, camera.right, camera.up
-    comp = [fw[k] + x * rt[k] + y * up[k] for k in range(3)]
-    norm = np.sqrt(comp[0] * comp[0] + comp[1] * comp[1] + comp[2] * comp[2])
-    d = mi.Vector3f(*(mi.Float(np.resize((c / norm).astype(np.float32), size)) for c in comp))
+    _, d = fine_ray_directions(mi, camera, vj, vi, f, w, h)
     from ..renderers.coarse import _opaque3
 
     o = _opaque3(mi, dr, mi.Point3f, camera.position - rs.origin)
