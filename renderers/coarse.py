@@ -259,6 +259,18 @@ def camera_hits(mi, dr, rs: RayScene, camera: Camera, width: int, height: int):
     return hit, p, n, depth, prim
 
 
+def light_buffers(masks, hit: np.ndarray, depth: np.ndarray, boundary_radius: int) -> list[LightBuffers]:
+    """Each light's (visible, facing, in light) Dr.Jit masks as NumPy buffers of the coarse shape, with the
+    shadow-boundary mask of the lit pixels."""
+    shape, size = hit.shape, hit.size
+    out = []
+    for vis, fac, inl in masks:
+        vis_np, fac_np, inl_np = (np.array(_mask_numpy(m, size)).reshape(shape) for m in (vis, fac, inl))
+        out.append(LightBuffers(vis_np, fac_np, inl_np,
+                                boundary_mask(vis_np & fac_np & inl_np, hit, depth, boundary_radius)))
+    return out
+
+
 def render_coarse(rs: RayScene, camera: Camera, lights: list[Light], long_side: int = DEFAULT_LONG_SIDE,
                   boundary_radius: int = DEFAULT_BOUNDARY_RADIUS, fine_pass: bool = True) -> CoarseBuffers:
     """Cast one camera ray per coarse pixel and one shadow ray per hit and light, then the edge pass
@@ -283,12 +295,7 @@ def render_coarse(rs: RayScene, camera: Camera, lights: list[Light], long_side: 
     nrm[~hit_np] = 0.0
     depth_np = np.array(depth.numpy(), dtype=np.float32).reshape(shape)
     prim_np = np.where(hit_np, prim.numpy().astype(np.int64).reshape(shape), -1).astype(np.int32)
-    light_bufs = []
-    for vis, fac, inl in masks:
-        vis_np, fac_np, inl_np = (np.array(_mask_numpy(m, size)).reshape(shape) for m in (vis, fac, inl))
-        lit = vis_np & fac_np & inl_np
-        light_bufs.append(LightBuffers(vis_np, fac_np, inl_np,
-                                       boundary_mask(lit, hit_np, depth_np, boundary_radius)))
+    light_bufs = light_buffers(masks, hit_np, depth_np, boundary_radius)
     t2 = time.perf_counter()
     fine = fine_points(rs, camera, lights, hit_np, depth_np) if fine_pass else None
     t3 = time.perf_counter()

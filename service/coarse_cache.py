@@ -22,8 +22,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..renderers.coarse import (DEFAULT_BOUNDARY_RADIUS, CoarseBuffers, FinePoints, LightBuffers, boundary_mask,
-                                camera_hits, fine_points, fine_ray_directions, _light_test, _mask_numpy, _surface_hits, _vec_to_numpy)
+from ..renderers.coarse import (DEFAULT_BOUNDARY_RADIUS, CoarseBuffers, FinePoints, camera_hits, fine_points,
+                                fine_ray_directions, light_buffers, _light_test, _mask_numpy, _surface_hits)
 from ..renderers.mitsuba_setup import mitsuba
 
 MAX_CAMERAS = 16  # camera entries kept (each a few MB at the 180 px default)
@@ -120,8 +120,6 @@ def light_part(rs, camera, cp: CameraPass, lights, boundary_radius: int = DEFAUL
     import drjit as dr
 
     t0 = time.perf_counter()
-    size = cp.width * cp.height
-    shape = (cp.height, cp.width)
     p, n, hit = _vec(mi, mi.Point3f, cp.p32), _vec(mi, mi.Vector3f, cp.n32), mi.Bool(cp.hit.ravel())
     masks = [_light_test(mi, dr, rs, light, p, n, hit) for light in lights]
     fine = cp.fine
@@ -132,11 +130,7 @@ def light_part(rs, camera, cp: CameraPass, lights, boundary_radius: int = DEFAUL
     dr.eval(*[m for ms in masks for m in ms], *[m for ms in fine_tests for m in ms[1:]])
     dr.sync_thread()
     t1 = time.perf_counter()
-    light_bufs = []
-    for vis, fac, inl in masks:
-        vis_np, fac_np, inl_np = (np.array(_mask_numpy(m, size)).reshape(shape) for m in (vis, fac, inl))
-        lit = vis_np & fac_np & inl_np
-        light_bufs.append(LightBuffers(vis_np, fac_np, inl_np, boundary_mask(lit, cp.hit, cp.depth, boundary_radius)))
+    light_bufs = light_buffers(masks, cp.hit, cp.depth, boundary_radius)
     if fine is not None:
         if fine_tests:
             n_rays, fsize = fine.rays, len(cp.fine_ok)

@@ -222,9 +222,9 @@ def light_problems(resolved: ResolvedRig, buffers: CoarseBuffers, bounds) -> lis
         samples = select_samples(resolved.camera, light, buffers.position, buffers.normal, buffers.hit,
                                  lb.facing, lb.boundary, lb.in_light)
         mask = buffers.hit & lb.facing & lb.in_light
+        args = (resolved.camera, buffers, mask, bounds, fine.receiver[li] if fine is not None else None)
         memo = getattr(buffers, "receivers_memo", None)  # service.coarse_cache: per receiver mask, exact
-        recv, slack = (memo or (lambda f, *a: f(*a)))(receiver_points, resolved.camera, buffers, mask, bounds,
-                                                      fine.receiver[li] if fine is not None else None)
+        recv, slack = memo(receiver_points, *args) if memo is not None else receiver_points(*args)
         out.append(LightProblem(light, samples, recv, slack, sample_rows(samples, mask)))
     return out
 

@@ -259,6 +259,14 @@ def _frustum_face_normals(tan_t: float) -> list[np.ndarray]:
     return out
 
 
+def _side_face_frame(P2: np.ndarray, d_e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) of a side face's light-plane points in Lloyd's per-face frame (Fig. 5): y along the gradient of the
+    eye distance d_e, which is linear on the face and 0 at the eye's projection (d_e = g.(x, y) exactly)."""
+    g, *_ = np.linalg.lstsq(P2, d_e, rcond=None)
+    gy = g / np.linalg.norm(g)
+    return P2 @ np.array([-gy[1], gy[0]]), P2 @ gy
+
+
 def _face_partitioned(f_over_n: float, theta: float, gamma: float, azimuth: float, method: str) -> dict:
     """analyze() for face partitioning (module doc): one map per frustum face that bounds the light rays."""
     tan_t = math.tan(theta)
@@ -280,11 +288,9 @@ def _face_partitioned(f_over_n: float, theta: float, gamma: float, azimuth: floa
         d_e = pts[:, 2]
         delta_b = 2.0 * math.sin(theta) * d_e  # eq. 55 on the face itself (the face attains the ray's min)
         side = fi >= 2
+        if side:
+            x, y = _side_face_frame(P2, d_e)
         if side and method != "fp":
-            g, *_ = np.linalg.lstsq(P2, d_e, rcond=None)  # d_e = g.(x, y) exactly: 0 at the eye's projection
-            gy = g / np.linalg.norm(g)
-            y = P2 @ gy
-            x = P2 @ np.array([-gy[1], gy[0]])
             y0, y1 = float(y.min()), float(y.max())
             q = x / y
             dl_s = (float(q.max()) - float(q.min())) * y  # eqs. 75/96 with a = 0
@@ -294,10 +300,7 @@ def _face_partitioned(f_over_n: float, theta: float, gamma: float, azimuth: floa
                 dl_t = y * math.log(y1 / y0)  # eq. 102, a = 0
         else:  # uniform: end faces always (Lloyd), side faces too for plain FP
             if side:  # plain FP: the side face's own frame (the d_e gradient), as the warped faces use
-                g, *_ = np.linalg.lstsq(P2, d_e, rcond=None)
-                gy = g / np.linalg.norm(g)
-                P2 = np.column_stack([P2 @ np.array([-gy[1], gy[0]]), P2 @ gy])
-                ext = P2.max(0) - P2.min(0)
+                ext = np.array([x.max() - x.min(), y.max() - y.min()])
             else:  # an end face: the minimum-area rectangle of its projection (a fitted uniform map)
                 _, lo, hi = min_area_rectangle(P2)
                 ext = np.asarray(hi) - np.asarray(lo)
