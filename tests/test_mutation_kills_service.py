@@ -124,3 +124,213 @@ def test_the_mode_is_compared_by_value(tmp_path):
     assert not ok and "outside the asset root" in why
     with pytest.raises(ValueError, match="restricted modes"):
         resolve_asset_path("x.usda", anchor, fresh("local"))
+
+
+# --- api/server.py: the bearer-token tenant and the rate limit, in process -------------------------------
+
+TOKENS = {"alice": "alice-token-0001", "bob": "bob-token-0002"}
+
+
+class FakeClock:
+    def __init__(self):
+        self.now = 5000.0
+
+    def monotonic(self):
+        return self.now
+
+
+def _app(tmp_path, monkeypatch, **settings):
+    """The real app (create_app) without its lifespan (no store): the tenant dependency answers before any
+    route body runs, so 401 / 429 are its own; a request it lets through gets past it (any other status)."""
+    from types import SimpleNamespace
+
+    from fastapi.testclient import TestClient
+
+    import shadowopt.api.server as server
+    from shadowopt.api.settings import Settings
+
+    clock = FakeClock()
+    monkeypatch.setattr(server, "time", SimpleNamespace(monotonic=clock.monotonic, time=__import__("time").time,
+                                                        perf_counter=__import__("time").perf_counter,
+                                                        strftime=__import__("time").strftime,
+                                                        gmtime=__import__("time").gmtime))
+    s = Settings(data_dir=str(tmp_path / "data"), **settings)
+    return TestClient(server.create_app(s), raise_server_exceptions=False), clock
+
+
+def _get(client, token=None):
+    return client.get("/v1/scenes/00000000", headers={"Authorization": f"Bearer {token}"} if token else {})
+
+
+def test_tenant_for_names_the_token_owner_and_nobody_else():
+    from shadowopt.api.server import LOCAL_TENANT, Service
+    from shadowopt.api.settings import Settings
+
+    svc = Service(Settings(tokens=dict(TOKENS)))
+    assert [svc.tenant_for(t) for t in TOKENS.values()] == list(TOKENS)  # each token -> its own name
+    for bad in (None, "", "alice-token-000", "alice-token-00011", "bob-token-0001", "ALICE-TOKEN-0001"):
+        assert svc.tenant_for(bad) is None, bad
+    free = Service(Settings())  # no tokens configured: every request is the local tenant, token or not
+    assert {free.tenant_for(t) for t in (None, "", "anything-at-all")} == {LOCAL_TENANT}
+
+
+def test_the_dependency_refuses_missing_and_unknown_tokens_with_401(tmp_path, monkeypatch):
+    client, _ = _app(tmp_path, monkeypatch, tokens=dict(TOKENS), rate_limit_per_s=0.0)
+    for token, message in ((None, "missing bearer token"), ("nobody-token-9", "unknown bearer token")):
+        r = _get(client, token)
+        assert r.status_code == 401 and r.headers["www-authenticate"] == "Bearer"
+        err = r.json()["error"]
+        assert (err["code"], err["message"], err["field"]) == ("unauthorized", message, "Authorization")
+    for token in TOKENS.values():
+        assert _get(client, token).status_code not in (401, 429)
+
+
+@pytest.mark.parametrize("rate, want", [(4.0, 1), (0.4, 3), (0.5, 2), (1 / 7, 7)])
+def test_retry_after_is_the_whole_seconds_until_a_token_is_back(tmp_path, monkeypatch, rate, want):
+    # burst 1: the first request takes the token, the second (same instant) waits 1/rate s; the header is
+    # that wait rounded up to whole seconds, at least 1 (RFC 9110's Retry-After is whole seconds)
+    client, clock = _app(tmp_path, monkeypatch, tokens=dict(TOKENS), rate_limit_per_s=rate, rate_limit_burst=1)
+    assert _get(client, TOKENS["alice"]).status_code not in (401, 429)
+    r = _get(client, TOKENS["alice"])
+    assert r.status_code == 429 and r.json()["error"]["code"] == "rate_limited"
+    assert r.headers["retry-after"] == str(want)
+    assert _get(client, TOKENS["bob"]).status_code not in (401, 429)  # bob's bucket is his own
+    clock.now += want  # after the advertised wait the request passes
+    assert _get(client, TOKENS["alice"]).status_code not in (401, 429)
+
+
+# --- service/coarse_cache.py: the camera-pass cache's key, LRU and the receivers memo (fake passes) --------
+
+class _Entry:
+    """A stand-in scene entry (the cache holds it weakly and passes .rays to camera_pass)."""
+
+    def __init__(self, name):
+        self.rays = name
+
+
+@pytest.fixture
+def traced(monkeypatch):
+    """coarse_cache.camera_pass replaced by a recorder: each call is one trace, a new pass object."""
+    from types import SimpleNamespace
+
+    from shadowopt.service import coarse_cache
+
+    calls = []
+
+    def fake(rays, camera, long_side):
+        calls.append((rays, long_side))
+        return SimpleNamespace(n=len(calls))
+
+    monkeypatch.setattr(coarse_cache, "camera_pass", fake)
+    return calls
+
+
+def _cam(**kw):
+    from shadowopt.solvers.cameras import Camera
+
+    args = dict(position=(1.0, 2.0, 3.0), forward=(0.0, -0.2, 1.0), up=(0.0, 1.0, 0.0), fov_y_deg=60.0,
+                near=0.1, far=500.0, resolution=(640, 360))
+    args.update(kw)
+    return Camera.look(**args)
+
+
+def test_camera_cache_hits_only_the_same_tenant_entry_camera_and_sizes(traced):
+    import numpy as np
+
+    from shadowopt.service.coarse_cache import CoarseCache
+
+    cache = CoarseCache(max_cameras=64)
+    entry, other = _Entry("e"), _Entry("o")
+    first = cache.camera_pass("t", entry, _cam(), 96, 1)
+    assert cache.camera_pass("t", entry, _cam(), 96, 1) is first  # an equal camera built again: a hit
+    assert (cache.hits, cache.misses, len(traced)) == (1, 1, 1)
+    x = np.nextafter(1.0, 2.0)  # one ulp: the key is exact
+    variants = [("u", entry, _cam(), 96, 1), ("t", other, _cam(), 96, 1), ("t", entry, _cam(), 97, 1),
+                ("t", entry, _cam(), 96, 2), ("t", entry, _cam(position=(x, 2.0, 3.0)), 96, 1),
+                ("t", entry, _cam(forward=(0.0, -0.21, 1.0)), 96, 1), ("t", entry, _cam(up=(0.1, 1.0, 0.0)), 96, 1),
+                ("t", entry, _cam(fov_y_deg=61.0), 96, 1), ("t", entry, _cam(near=0.2), 96, 1),
+                ("t", entry, _cam(far=400.0), 96, 1), ("t", entry, _cam(resolution=(640, 480)), 96, 1),
+                ("t", entry, _cam(resolution=(320, 180)), 96, 1)]
+    passes = [cache.camera_pass(*v) for v in variants]
+    assert cache.misses == 1 + len(variants) and cache.hits == 1 and len(traced) == 1 + len(variants)
+    assert len({id(p) for p in passes + [first]}) == len(variants) + 1
+    assert traced[1] == ("e", 96) and traced[2] == ("o", 96) and traced[3] == ("e", 97)  # the entry's own rays
+    for v, p in zip(variants, passes):  # and each is a hit the second time
+        assert cache.camera_pass(*v) is p
+    assert cache.hits == 1 + len(variants)
+
+
+def test_camera_cache_is_least_recently_used(traced):
+    from shadowopt.service.coarse_cache import CoarseCache
+
+    cache = CoarseCache(max_cameras=2)
+    e = _Entry("e")
+    a, b, c = _cam(near=0.1), _cam(near=0.2), _cam(near=0.3)
+    seq = [(a, "miss"), (b, "miss"), (a, "hit"), (c, "miss"),  # c evicts b, the least recently used
+           (a, "hit"), (c, "hit"), (b, "miss"), (a, "miss"), (b, "hit")]
+    for cam, want in seq:
+        h = cache.hits
+        cache.camera_pass("t", e, cam, 96, 1)
+        assert ("hit" if cache.hits > h else "miss") == want
+        assert len(cache) <= 2
+
+
+def test_a_dropped_scene_entry_leaves_the_cache(traced):
+    import gc
+
+    from shadowopt.service.coarse_cache import CoarseCache
+
+    cache = CoarseCache(max_cameras=8)
+    gone, kept = _Entry("g"), _Entry("k")
+    cache.camera_pass("t", gone, _cam(), 96, 1)
+    cache.camera_pass("t", kept, _cam(), 96, 1)
+    del gone
+    gc.collect()
+    cache.camera_pass("t", kept, _cam(near=0.5), 96, 1)  # the next miss sweeps dead entries
+    assert len(cache) == 2
+    assert cache.camera_pass("t", kept, _cam(), 96, 1) is not None and cache.hits == 1
+
+
+def test_receivers_memo_counts_hits_and_misses_exactly_and_keeps_eight_masks():
+    import threading
+    from collections import OrderedDict
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from shadowopt.service.coarse_cache import MAX_RECEIVER_MASKS, CoarseCache
+
+    cache = CoarseCache()
+    # a pass whose camera-only receiver part is already made (service.solve.receiver_prep: not called here)
+    cp = SimpleNamespace(lock=threading.Lock(), receivers=OrderedDict(), receiver_prep=object())
+    computed = []
+
+    def compute(camera, buffers, mask, bounds, fine, **prep):
+        computed.append((mask.copy(), None if fine is None else list(fine)))
+        return np.arange(3.0) + len(computed), np.zeros(3)
+
+    m1 = np.zeros((4, 4), bool)
+    m2 = m1.copy()
+    m2[1, 2] = True
+    got = cache.receivers(cp, compute, None, None, m1, None, None)
+    assert cache.receivers(cp, compute, None, None, m1.copy(), None, None) is got  # equal mask: the memo
+    assert not got[0].flags.writeable and not got[1].flags.writeable  # shared: read-only
+    cache.receivers(cp, compute, None, None, m2, None, None)
+    cache.receivers(cp, compute, None, None, m1, None, [True, False])
+    cache.receivers(cp, compute, None, None, m1, None, [True, False, False])  # same packed bits, other length
+    cache.receivers(cp, compute, None, None, m1, None, [True, False])
+    assert (cache.receiver_hits, cache.receiver_misses, len(computed)) == (2, 4, 4)
+    for k in range(MAX_RECEIVER_MASKS + 1):  # more distinct masks than kept: the oldest go first
+        m = np.zeros((4, 4), bool)
+        m.flat[k] = True
+        m.flat[15] = True
+        cache.receivers(cp, compute, None, None, m, None, None)
+    assert len(cp.receivers) == MAX_RECEIVER_MASKS and cache.receiver_misses == 4 + MAX_RECEIVER_MASKS + 1
+    n = len(computed)
+    cache.receivers(cp, compute, None, None, m, None, None)  # the newest is kept
+    assert len(computed) == n
+    m_first = np.zeros((4, 4), bool)
+    m_first.flat[0] = True
+    m_first.flat[15] = True
+    cache.receivers(cp, compute, None, None, m_first, None, None)  # the oldest of the nine was dropped
+    assert len(computed) == n + 1
