@@ -59,32 +59,46 @@ class FinePoints:
         vj, vi = np.divmod(self.flat, self.grid_shape[1])
         return vi / self.factor, vj / self.factor
 
-    def edges(self, receiver: np.ndarray, continuity: float = DEPTH_CONTINUITY) -> tuple[np.ndarray, np.ndarray]:
+    def neighbours(self) -> np.ndarray:
+        """(4, M) int64: each hit's 4-neighbours in the fine grid (right, left, down, up) as hit indices;
+        -1 a traced corner that missed, -2 a corner not traced or off the grid. Depends on the camera
+        alone (service.coarse_cache keeps it with the camera pass)."""
+        H, W = self.grid_shape
+        idx = np.full(H * W, -2, dtype=np.int64)
+        idx[self.traced] = -1
+        idx[self.flat] = np.arange(len(self.flat))
+        f = self.flat
+        col = f % W
+        out = np.empty((4, len(f)), dtype=np.int64)
+        for s, (step, ok) in enumerate(((1, col < W - 1), (-1, col > 0), (W, f + W < H * W), (-W, f - W >= 0))):
+            out[s] = np.where(ok, idx[np.where(ok, f + step, 0)], -2)
+        return out
+
+    def edges(self, receiver: np.ndarray, continuity: float = DEPTH_CONTINUITY,
+              neighbours: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Per hit, (edge, slack): edge = a receiver with a 4-neighbour in the fine grid that was traced
         and is not a receiver, or is one at a view depth more than `continuity` away (corners not
         traced lie inside coarse pixels without a geometric edge: not an edge); slack = the largest
         view-depth change to a receiver 4-neighbour (full-resolution pixels between fine rays have depths
-        within it: cascade overlap, as service.solve.depth_slack for the coarse pixels). 0 for non-receivers."""
-        H, W = self.grid_shape
-        state = np.ones(H * W, dtype=np.int8)  # 1: not traced
-        state[self.traced] = 0
-        state[self.flat[receiver]] = 2
-        dgrid = np.zeros(H * W, dtype=np.float64)
-        dgrid[self.flat[receiver]] = self.depth[receiver]
-        f = self.flat[receiver]
-        d = self.depth[receiver]
-        col = f % W
-        out = np.zeros(len(f), dtype=bool)
-        slack = np.zeros(len(f))
-        for step, ok in ((1, col < W - 1), (-1, col > 0), (W, f + W < H * W), (-W, f - W >= 0)):
-            g = np.where(ok, f + step, f)
-            st = state[g]
-            dd = np.abs(dgrid[g] - d)
-            rec = ok & (st == 2)
-            out |= ok & ((st == 0) | (rec & (dd > continuity * np.minimum(dgrid[g], d))))
+        within it: cascade overlap, as service.solve.depth_slack for the coarse pixels). 0 for non-receivers.
+        `neighbours`: self.neighbours(), when kept."""
+        nb = self.neighbours() if neighbours is None else neighbours
+        receiver = np.asarray(receiver, dtype=bool)
+        ri = np.nonzero(receiver)[0]
+        d = self.depth[ri]
+        out = np.zeros(len(ri), dtype=bool)
+        slack = np.zeros(len(ri))
+        for s in range(4):
+            j = nb[s, ri]
+            hit = j >= 0
+            jj = np.where(hit, j, 0)
+            rec = hit & receiver[jj]  # a receiver neighbour
+            dn = self.depth[jj]
+            dd = np.abs(dn - d)
+            out |= (j == -1) | (hit & ~receiver[jj]) | (rec & (dd > continuity * np.minimum(dn, d)))
             slack = np.where(rec, np.maximum(slack, dd), slack)
         edge, full_slack = np.zeros(len(receiver), dtype=bool), np.zeros(len(receiver))
-        edge[receiver], full_slack[receiver] = out, slack
+        edge[ri], full_slack[ri] = out, slack
         return edge, full_slack
 
 

@@ -1,8 +1,10 @@
 """The coarse pass split in its camera part and its light part, with the camera part cached in the
 server process: when only the light changes (the inspector's sun slider, a sun sweep over one camera),
-the camera rays, their hits, normals and view depths, the edge pass's fine rays (renderers.coarse) and
-the receivers of a receiver mask (service.solve.receiver_points) are the same, and only the shadow rays,
-the facing tests and the shadow-boundary mask are traced again.
+the camera rays, their hits, normals and view depths, the edge pass's fine rays (renderers.coarse),
+receiver_points' camera-only part (service.solve.receiver_prep: edge cells, cell table, tangent-plane
+reach of every pixel) and the receivers of a receiver mask (service.solve.receiver_points) are the same,
+and only the shadow rays, the facing tests, the shadow-boundary mask and the new mask's receivers are
+computed again.
 
 Exact, not an approximation: the light part runs renderers.coarse's own kernels (_light_test) on the
 camera part's Dr.Jit values as they were computed (float32, before any conversion), so the buffers equal
@@ -50,6 +52,7 @@ class CameraPass:
     fine_ok: np.ndarray | None
     trace_ms: float = 0.0
     receivers: OrderedDict = field(default_factory=OrderedDict)  # mask key -> (points, slack)
+    receiver_prep: object = None  # service.solve.ReceiverPrep: receiver_points' camera-only part, made on first use
     lock: threading.Lock = field(default_factory=threading.Lock)
 
 
@@ -193,7 +196,9 @@ class CoarseCache:
 
     def receivers(self, cp: CameraPass, compute, camera, buffers, mask, bounds, fine_receivers):
         """service.solve.receiver_points(camera, buffers, mask, bounds, fine_receivers) of this camera pass,
-        memoized per (mask, fine receivers): a function of those and of the camera pass alone."""
+        memoized per (mask, fine receivers): a function of those and of the camera pass alone. A miss
+        computes only the mask's share: the camera-only part (service.solve.receiver_prep) is kept with
+        the camera pass."""
         fr = None if fine_receivers is None else np.packbits(np.asarray(fine_receivers, bool)).tobytes()
         key = (np.packbits(mask).tobytes(), fr, None if fine_receivers is None else len(fine_receivers))
         with cp.lock:
@@ -202,7 +207,12 @@ class CoarseCache:
                 cp.receivers.move_to_end(key)
                 self.receiver_hits += 1
                 return got
-        out = compute(camera, buffers, mask, bounds, fine_receivers)
+        prep = cp.receiver_prep
+        if prep is None:  # once per camera pass (two threads may both make it: the same values)
+            from .solve import receiver_prep
+
+            prep = cp.receiver_prep = receiver_prep(camera, buffers)
+        out = compute(camera, buffers, mask, bounds, fine_receivers, prep=prep)
         _readonly(*out)
         with cp.lock:
             self.receiver_misses += 1

@@ -51,7 +51,8 @@ FINE_REACH_DEPTH_FACTOR = 1.25  # the same for the edge pass's one-fine-step rea
 
 
 def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds=None,
-                    fine_receivers: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    fine_receivers: np.ndarray | None = None,
+                    prep: "ReceiverPrep | None" = None) -> tuple[np.ndarray, np.ndarray]:
     """The receivers the camera sees, (points, view-depth slack): the coarse hits in `mask` (first, in
     row-major order: sample_rows), the edge pass's hits that are receivers (`buffers.fine`,
     renderers.coarse.fine_points, where `fine_receivers` is True: rays through a finer grid over the
@@ -61,7 +62,11 @@ def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds=Non
     EDGE_REACH coarse pixels away meet the pixel's tangent plane, kept within REACH_DEPTH_FACTOR of the
     hit's distance (the pixel's footprint at its own depth where the plane is grazing or behind).
     Never the far plane or the scene's bounds (`bounds` is unused, kept for callers). Without an edge
-    pass (buffers.fine None) every mask edge pixel is extrapolated."""
+    pass (buffers.fine None) every mask edge pixel is extrapolated.
+
+    `prep`: receiver_prep(camera, buffers), what of this depends on the camera's buffers alone (kept per
+    camera by service.coarse_cache, so a sun move computes only the mask's share); the same values, bit
+    for bit (tests/test_solve_latency_cache.py)."""
     pts = buffers.position[mask]
     slack = depth_slack(buffers.depth, mask)[mask]
     if not mask.any():
@@ -75,43 +80,50 @@ def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds=Non
     if fine is not None:
         from ..renderers.coarse import edge_cells
 
-        edge &= ~edge_cells(buffers.hit, buffers.depth)
+        edge &= ~(prep.edge_cells if prep is not None else edge_cells(buffers.hit, buffers.depth))
     if use_fine:
-        fine_edge, fine_slack = fine.edges(fine_receivers)
+        fine_edge, fine_slack = fine.edges(fine_receivers, neighbours=prep.fine_neighbours if prep is not None else None)
         # the edge pass's receivers on its own edges and on the screen's border: those inside a
         # continuous fine patch lie between them (fewer points for every fit)
-        vj, vi = np.divmod(fine.flat, fine.grid_shape[1])
-        border = (vi == 0) | (vj == 0) | (vi == fine.grid_shape[1] - 1) | (vj == fine.grid_shape[0] - 1)
+        border = prep.fine_border if prep is not None else fine_border(fine)
         keep = fine_edge | (border & fine_receivers)
         parts.append(fine.position[keep])
         slacks.append(fine_slack[keep])
-        cell_pts, cell_slack = cell_frusta(camera, buffers, fine, fine_receivers)
+        cell_pts, cell_slack = cell_frusta(camera, buffers, fine, fine_receivers,
+                                           table=prep.cells if prep is not None else None)
         parts.append(cell_pts)
         slacks.append(cell_slack)
     rows, cols = np.nonzero(edge)
     if len(rows):
-        parts.append(tangent_reach(camera, buffers, cols + 0.5, rows + 0.5, buffers.position[rows, cols],
-                                   buffers.normal[rows, cols], EDGE_REACH))
+        if prep is not None:  # tangent_reach is a function of each pixel alone: its rows, computed ahead
+            parts.append(prep.coarse_reach[prep.coarse_row[rows * buffers.width + cols]].reshape(-1, 3))
+        else:
+            parts.append(tangent_reach(camera, buffers, cols + 0.5, rows + 0.5, buffers.position[rows, cols],
+                                       buffers.normal[rows, cols], EDGE_REACH))
         slacks.append(_reach_slack(camera, parts[-1], buffers.depth[rows, cols]))
     if use_fine and fine_edge.any():
         # the edge pass's own edges: its receivers next to a non-receiver or a depth jump, reached one
         # fine step (the full-resolution pixels between two fine rays) along their planes
-        u, v = fine.uv()
+        u, v = prep.fine_uv if prep is not None else fine.uv()
         parts.append(tangent_reach(camera, buffers, u[fine_edge], v[fine_edge], fine.position[fine_edge],
                                    fine.normal[fine_edge], 1.0 / fine.factor, FINE_REACH_DEPTH_FACTOR))
         slacks.append(_reach_slack(camera, parts[-1], fine.depth[fine_edge]))
     return np.vstack(parts), np.concatenate(slacks)
 
 
-def cell_frusta(camera, buffers: CoarseBuffers, fine, fine_receivers: np.ndarray,
-                continuity: float = DEPTH_CONTINUITY) -> tuple[np.ndarray, np.ndarray]:
-    """(2 K, 3) points and their view-depth slack: for each coarse cell the edge pass traced that has a
-    receiver among its fine hits and a discontinuity there (a traced corner that missed or is not a
-    receiver, or hits whose view depths span more than `continuity`), the corners of the cell's view
-    frustum (its four corner rays) at the smallest and the largest view depth of its fine hits. A sliver
-    thinner than a fine step between those rays (never traced) lies in that frustum when its depth is
-    within the hits' range; the frustum is convex and every fit is projective, so containing the eight
-    corners contains it (a corner ray shared by such cells: once, over the union of their ranges). Slack: the depth range (every cascade meeting it fits the corners)."""
+@dataclass
+class CellTable:
+    """cell_frusta's part that needs no receiver test: each (fine hit, edge cell it is a corner of) pair,
+    the cells with a traced corner that missed, and each cell's smallest and largest fine-hit view depth."""
+
+    cell: np.ndarray  # (K,) flat coarse cell index
+    hit: np.ndarray  # (K,) index of the fine hit (FinePoints arrays)
+    missed: np.ndarray  # (h w,) bool
+    dmin: np.ndarray  # (h w,) float64, inf where no fine hit
+    dmax: np.ndarray
+
+
+def cell_table(buffers: CoarseBuffers, fine) -> CellTable:
     from ..renderers.coarse import edge_cells
 
     f = fine.factor
@@ -119,14 +131,13 @@ def cell_frusta(camera, buffers: CoarseBuffers, fine, fine_receivers: np.ndarray
     W = fine.grid_shape[1]
     cells = edge_cells(buffers.hit, buffers.depth).ravel()
     n_cells = h * w
-    has_rec = np.zeros(n_cells, dtype=bool)
-    has_other = np.zeros(n_cells, dtype=bool)
+    missed_cell = np.zeros(n_cells, dtype=bool)
     dmin = np.full(n_cells, np.inf)
     dmax = np.full(n_cells, -np.inf)
     hit_flat = np.zeros(fine.grid_shape[0] * W, dtype=bool)
     hit_flat[fine.flat] = True
     missed = fine.traced[~hit_flat[fine.traced]]
-    rec = np.asarray(fine_receivers, dtype=bool)
+    cell_parts, hit_parts = [], []
     for flat, kind in ((fine.flat, 0), (missed, 1)):
         vj, vi = np.divmod(flat, W)
         for dj in (0, 1):
@@ -141,19 +152,39 @@ def cell_frusta(camera, buffers: CoarseBuffers, fine, fine_receivers: np.ndarray
                 ok &= cells[c]
                 c = c[ok]
                 if kind == 1:
-                    has_other[c] = True
+                    missed_cell[c] = True
                     continue
-                r = rec[ok]
-                has_rec[c[r]] = True
-                has_other[c[~r]] = True
+                cell_parts.append(c)
+                hit_parts.append(np.nonzero(ok)[0])
                 d = fine.depth[ok]
                 np.minimum.at(dmin, c, d)
                 np.maximum.at(dmax, c, d)
+    return CellTable(np.concatenate(cell_parts), np.concatenate(hit_parts), missed_cell, dmin, dmax)
+
+
+def cell_frusta(camera, buffers: CoarseBuffers, fine, fine_receivers: np.ndarray,
+                continuity: float = DEPTH_CONTINUITY, table: CellTable | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(2 K, 3) points and their view-depth slack: for each coarse cell the edge pass traced that has a
+    receiver among its fine hits and a discontinuity there (a traced corner that missed or is not a
+    receiver, or hits whose view depths span more than `continuity`), the corners of the cell's view
+    frustum (its four corner rays) at the smallest and the largest view depth of its fine hits. A sliver
+    thinner than a fine step between those rays (never traced) lies in that frustum when its depth is
+    within the hits' range; the frustum is convex and every fit is projective, so containing the eight
+    corners contains it (a corner ray shared by such cells: once, over the union of their ranges). Slack: the depth range (every cascade meeting it fits the corners).
+    `table`: cell_table(buffers, fine), which depends on the camera alone."""
+    t = cell_table(buffers, fine) if table is None else table
+    h, w = buffers.height, buffers.width
+    rec = np.asarray(fine_receivers, dtype=bool)[t.hit]
+    has_rec = np.zeros(h * w, dtype=bool)
+    has_rec[t.cell[rec]] = True
+    has_other = t.missed.copy()
+    has_other[t.cell[~rec]] = True
+    dmin, dmax = t.dmin, t.dmax
     sel = np.nonzero(has_rec & (has_other | (dmax > dmin * (1.0 + continuity))))[0]
     if not len(sel):
         return np.zeros((0, 3)), np.zeros(0)
     cj, ci = np.divmod(sel, w)
-    # each corner ray once (neighbouring cells share corners), over the union of its cells' depth ranges
+    # each corner ray once (neighbouring cells share corners), over the union of their cells' depth ranges
     corner = ((cj[:, None] + np.array([0, 0, 1, 1])) * (w + 1) + ci[:, None] + np.array([0, 1, 0, 1])).ravel()
     lo_d, hi_d = np.repeat(dmin[sel], 4), np.repeat(dmax[sel], 4)
     ids, inv = np.unique(corner, return_inverse=True)
@@ -171,29 +202,76 @@ def cell_frusta(camera, buffers: CoarseBuffers, fine, fine_receivers: np.ndarray
     return pts, np.tile(far - near, 2)
 
 
+def fine_border(fine) -> np.ndarray:
+    """(M,) bool: the edge pass's hits on its grid's outer rows and columns (the screen's border)."""
+    vj, vi = np.divmod(fine.flat, fine.grid_shape[1])
+    return (vi == 0) | (vj == 0) | (vi == fine.grid_shape[1] - 1) | (vj == fine.grid_shape[0] - 1)
+
+
+@dataclass
+class ReceiverPrep:
+    """What receiver_points uses of the camera's buffers alone (no light, no receiver mask), computed once
+    per camera pass by service.coarse_cache: the edge cells, the fine grid's border hits, screen
+    positions and 4-neighbours, cell_frusta's CellTable, and tangent_reach of every coarse pixel that can be a mask edge
+    pixel it extrapolates (a hit outside the edge cells; every hit without an edge pass): tangent_reach is a
+    function of each pixel alone, so the rows receiver_points picks are the bits it would compute."""
+
+    edge_cells: np.ndarray
+    coarse_row: np.ndarray  # (h w,) row of coarse_reach per flat pixel, -1 where none
+    coarse_reach: np.ndarray  # (R, 4, 3)
+    fine_border: np.ndarray | None = None
+    fine_uv: tuple | None = None
+    cells: CellTable | None = None
+    fine_neighbours: np.ndarray | None = None  # renderers.coarse.FinePoints.neighbours
+
+
+def receiver_prep(camera, buffers: CoarseBuffers) -> ReceiverPrep:
+    from ..renderers.coarse import edge_cells
+
+    cells = edge_cells(buffers.hit, buffers.depth)
+    fine = getattr(buffers, "fine", None)
+    cand = buffers.hit & ~cells if fine is not None else buffers.hit
+    rows, cols = np.nonzero(cand)
+    row = np.full(buffers.height * buffers.width, -1, dtype=np.int64)
+    row[rows * buffers.width + cols] = np.arange(len(rows))
+    reach = tangent_reach(camera, buffers, cols + 0.5, rows + 0.5, buffers.position[rows, cols],
+                          buffers.normal[rows, cols], EDGE_REACH).reshape(len(rows), 4, 3)
+    if fine is None:
+        return ReceiverPrep(cells, row, reach)
+    return ReceiverPrep(cells, row, reach, fine_border(fine), fine.uv(), cell_table(buffers, fine), fine.neighbours())
+
+
 def tangent_reach(camera, buffers: CoarseBuffers, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np.ndarray,
                   reach: float, factor: float = REACH_DEPTH_FACTOR) -> np.ndarray:
     """(4 E, 3): where the rays through the screen points (u +- reach, v +- reach) (coarse-pixel units,
     u right, v down) meet the tangent planes of the hits p (normals n), the distance along each ray kept
     within `factor` of the hit's distance (the hit's distance itself where the plane is
-    parallel or behind: the footprint at that depth). On a plane the full-resolution receivers within
-    `reach` of the screen point lie in the hull of these four points."""
+    parallel or behind). On a plane the full-resolution receivers within
+    `reach` of the screen point lie in the hull of these four points.
+    Per component: the operations, in their order, of the (E, 4, 3) form d = forward + x right + y up,
+    d / |d|, s = n.(p - o) / n.d, o + s d (np.linalg.norm and np.sum over 3 components add left to right):
+    the same bits, fewer passes over memory (tests/test_solve_latency_cache.py checks them)."""
     n = np.asarray(n, dtype=np.float64)
-    dist = np.linalg.norm(p - camera.position, axis=1)
+    o = camera.position
+    q = [p[:, k] - o[k] for k in range(3)]
+    dist = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2])
     th = camera.tan_half_fov_y
     tw = th * camera.aspect
     a = np.array([-reach, -reach, reach, reach])
     b = np.array([-reach, reach, -reach, reach])
     x = ((u[:, None] + a) * (2.0 / buffers.width) - 1.0) * tw  # (E, 4): Camera.ray_directions' convention
     y = (1.0 - (v[:, None] + b) * (2.0 / buffers.height)) * th
-    d = camera.forward + x[..., None] * camera.right + y[..., None] * camera.up
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    nd = np.sum(n[:, None] * d, axis=-1)
+    fw, rt, up = camera.forward, camera.right, camera.up
+    d = [fw[k] + x * rt[k] + y * up[k] for k in range(3)]
+    norm = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    d = [c / norm for c in d]
+    nk = [n[:, k, None] for k in range(3)]
+    nd = nk[0] * d[0] + nk[1] * d[1] + nk[2] * d[2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        s = np.sum(n * (p - camera.position), axis=1)[:, None] / nd  # ray-plane distance
+        s = (n[:, 0] * q[0] + n[:, 1] * q[1] + n[:, 2] * q[2])[:, None] / nd  # ray-plane distance
     ok = np.isfinite(s) & (s > 0)
     s = np.where(ok, np.clip(s, dist[:, None] / factor, dist[:, None] * factor), dist[:, None])
-    return (camera.position + s[..., None] * d).reshape(-1, 3)
+    return np.stack([o[k] + s * d[k] for k in range(3)], axis=-1).reshape(-1, 3)
 
 
 def _reach_slack(camera, reached: np.ndarray, source_depth: np.ndarray) -> np.ndarray:
