@@ -18,7 +18,9 @@ IN.npz: `vertices` (V, 3) float32 (already re-centred: every matrix below acts o
                "clip": "opengl" | "d3d" | "vulkan" | "reversed_z",       # how the light pass is rasterized
                "state": "gl" | "d3d11" | "vulkan",                       # the light pass's rasterizer state block
                "keep_maps": bool (optional),                             # also return the stored depth maps
-               "to_light": [x, y, z],                                    # unit vector towards the sun
+               "to_light": [x, y, z] | [x, y, z, 1],                     # towards the sun | a local light's position
+               "lookup": "cascades" | "local" (optional),                # shadowVisibility | localShadowVisibility
+               "faces": bool (optional),                                 # the maps are a point light's faces
                "maps": [{"view_matrix": M, "view_projection": M, "texture_matrix": M,
                          "resolution": [w, h], "split": [a, b], "blend_band": [a, b] | null,
                          "depth": {"mode": "hardware" | "linear", "constant", "slope", "normal_offset",
@@ -61,7 +63,7 @@ GL_FLOAT = 0x1406
 GL_TEXTURE_DEPTH_SIZE = 0x884A
 GL_LOWER_LEFT, GL_UPPER_LEFT = 0x8CA1, 0x8CA2
 GL_NEGATIVE_ONE_TO_ONE, GL_ZERO_TO_ONE = 0x935E, 0x935F
-MAX_CASCADES = 4  # the listing's array size
+MAX_CASCADES = 6  # the listing's array size (4 cascades or 6 cube faces)
 # glClipControl(origin, depth) per convention (OpenGL 4.5 §13.7): Direct3D's clip z in [0, w] and row 0 at
 # NDC y = +1 (upper left); Vulkan's z in [0, w] with its y already pointing down (lower-left row order).
 CLIP_CONTROL = {"opengl": (GL_LOWER_LEFT, GL_NEGATIVE_ONE_TO_ONE), "d3d": (GL_UPPER_LEFT, GL_ZERO_TO_ONE),
@@ -91,7 +93,7 @@ in float i_viewDepth;
 layout(location = 0) out vec4 o_shadow;
 layout(location = 1) out vec4 o_world;
 void main() {{
-    o_shadow = vec4(shadowVisibility(i_world, i_normal, i_viewDepth), i_viewDepth, 1.0, 1.0);
+    o_shadow = vec4({entry}(i_world, i_normal, i_viewDepth), i_viewDepth, 1.0, 1.0);
     o_world = vec4(i_world, 1.0);
 }}
 """
@@ -105,7 +107,7 @@ struct PSIn {{
 struct PSOut {{ float4 shadow : SV_Target0; float4 world : SV_Target1; }};
 PSOut main(PSIn i) {{
     PSOut o;
-    o.shadow = float4(ShadowVisibility(i.world, i.normal, i.viewDepth), i.viewDepth, 1.0, 1.0);
+    o.shadow = float4({entry}(i.world, i.normal, i.viewDepth), i.viewDepth, 1.0, 1.0);
     o.world = float4(i.world, 1.0);
     return o;
 }}
@@ -276,8 +278,10 @@ def _gl_mat(m: np.ndarray) -> bytes:
     return np.ascontiguousarray(np.asarray(m, dtype=np.float32).T).tobytes()
 
 
-def pack_uniforms(maps: list[dict], to_light, reversed_z: bool) -> bytes:
-    """The document's `ShadowMaps` block (std140 GLSL = HLSL cbuffer packing: only mat4 / vec4 members)."""
+def pack_uniforms(maps: list[dict], to_light, reversed_z: bool, faces: bool = False) -> bytes:
+    """The document's `ShadowMaps` block (std140 GLSL = HLSL cbuffer packing: only mat4 / vec4 members).
+    to_light: the unit vector towards a directional light (w = 0), or [x, y, z, 1] a local light's position;
+    faces: the maps are a point light's cube faces (uParams.z = 1)."""
     k = len(maps)
     if not 1 <= k <= MAX_CASCADES:
         raise ValueError(f"the listing takes 1 to {MAX_CASCADES} maps, got {k}")
@@ -290,14 +294,14 @@ def pack_uniforms(maps: list[dict], to_light, reversed_z: bool) -> bytes:
         tex[i], view[i] = _mat(m["texture_matrix"]), _mat(m["view_matrix"])
         d = m["depth"]
         depth[i] = [d["constant"], d["slope"], d["normal_offset"], 1.0 if d["mode"] == "linear" else 0.0]
-        linear[i, :2] = [d.get("near", 0.0), d.get("far", 1.0)]
+        linear[i] = [d.get("near", 0.0), d.get("far", 1.0), *m["resolution"]]
         a, b = m["split"]
         band = m.get("blend_band") or [b, b]
         cascade[i] = [a, b, band[0], band[1]]
     parts = [_gl_mat(x) for x in tex] + [_gl_mat(x) for x in view]
     parts += [np.asarray(x, dtype=np.float32).tobytes() for x in (depth, linear, cascade)]
-    parts.append(np.array([*to_light, 0.0], dtype=np.float32).tobytes())
-    parts.append(np.array([k, 1.0 if reversed_z else 0.0, 0.0, 0.0], dtype=np.float32).tobytes())
+    parts.append(np.array([*to_light, 0.0][:4], dtype=np.float32).tobytes())
+    parts.append(np.array([k, 1.0 if reversed_z else 0.0, 1.0 if faces else 0.0, 0.0], dtype=np.float32).tobytes())
     return b"".join(parts)
 
 
@@ -449,12 +453,16 @@ class Harness:
         return c, p
 
 
-def _shaders(h: Harness, lang: str, src: dict):
-    """(light-pass vertex, {mode: light-pass fragment or None}, camera fragment) in GLSL 330."""
+def _shaders(h: Harness, lang: str, src: dict, lookup: str = "cascades"):
+    """(light-pass vertex, {mode: light-pass fragment or None}, camera fragment) in GLSL 330. lookup: "cascades"
+    calls the document's shadowVisibility, "local" its shadow-lookup-local piece's localShadowVisibility."""
+    code = src["shadow-lookup"] + ("\n" + src["shadow-lookup-local"] if lookup == "local" else "")
     if lang == "glsl":
+        entry = "localShadowVisibility" if lookup == "local" else "shadowVisibility"
         return (src["light-pass-vertex"], {"hardware": src["light-pass-hardware"], "linear": src["light-pass-linear"]},
-                CAMERA_FRAGMENT_GLSL.format(lookup=src["shadow-lookup"]))
-    key = ("hlsl-sources",)
+                CAMERA_FRAGMENT_GLSL.format(lookup=code, entry=entry))
+    key = ("hlsl-sources", lookup)
+    entry = "LocalShadowVisibility" if lookup == "local" else "ShadowVisibility"
     if key not in h.programs:
         vary = ("v_lightDistance",)
         h.programs[key] = (
@@ -462,7 +470,7 @@ def _shaders(h: Harness, lang: str, src: dict):
             # Direct3D's depth-only pass binds no pixel shader; OpenGL links one without a fragment stage.
             {"hardware": None,
              "linear": hlsl_to_glsl(src["light-pass-linear"], "frag", "LightPassLinearPS", inputs=vary)},
-            hlsl_to_glsl(CAMERA_FRAGMENT_HLSL.format(lookup=src["shadow-lookup"]), "frag", "main",
+            hlsl_to_glsl(CAMERA_FRAGMENT_HLSL.format(lookup=code, entry=entry), "frag", "main",
                          inputs=("i_world", "i_normal", "i_viewDepth")))
     return h.programs[key]
 
@@ -474,20 +482,23 @@ def run(vertices, faces, spec: dict) -> dict:
         cam = spec["camera"]
         for job in spec["jobs"]:
             lang, clip = job["language"], job["clip"]
-            light_v, light_f, cam_f = _shaders(h, lang, spec["sources"][lang])
+            lookup = job.get("lookup", "cascades")
+            light_v, light_f, cam_f = _shaders(h, lang, spec["sources"][lang], lookup)
             state = (job["state"], spec["sources"]["c"][f"light-pass-state-{job['state']}"])
             layers = []
             for m in job["maps"]:
                 mode = m["depth"]["mode"]
                 layers.append(h.light_pass(h.program((lang, "light", mode), light_v, light_f[mode]), m, clip, state))
-            shapes = {a.shape for a in layers}
-            if len(shapes) != 1:
-                raise ValueError(f"the listing's texture array needs one resolution for all maps, got {shapes}")
-            (mh, mw), = shapes
-            arr = h.ctx.texture_array((mw, mh, len(layers)), 1, np.stack(layers).tobytes(), dtype="f4")
+            # the array as large as the largest map; map k in its first rows and columns (the document's rule)
+            mh, mw = max(a.shape[0] for a in layers), max(a.shape[1] for a in layers)
+            stack = np.ones((len(layers), mh, mw), dtype=np.float32)
+            for i, a in enumerate(layers):
+                stack[i, :a.shape[0], :a.shape[1]] = a
+            arr = h.ctx.texture_array((mw, mh, len(layers)), 1, stack.tobytes(), dtype="f4")
             arr.filter = (h.mgl.NEAREST, h.mgl.NEAREST)
-            prog = h.program((lang, "camera"), CAMERA_VERTEX, cam_f)
-            c, p = h.camera_pass(prog, cam, arr, pack_uniforms(job["maps"], job["to_light"], clip == "reversed_z"))
+            prog = h.program((lang, "camera", lookup), CAMERA_VERTEX, cam_f)
+            c, p = h.camera_pass(prog, cam, arr, pack_uniforms(job["maps"], job["to_light"], clip == "reversed_z",
+                                                               bool(job.get("faces"))))
             arr.release()
             out[f"shadow_{job['name']}"] = c[..., 0]
             if job.get("keep_maps"):

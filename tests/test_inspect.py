@@ -21,7 +21,8 @@ def test_page_shaders_are_the_documents_listings():
     (so the page is a live test of the listing), and the page's script asks for every one of them."""
     doc = listings()["glsl"]
     files = {p.stem: p.read_text() for p in (STATIC / "shaders").glob("*.glsl")}
-    assert set(files) == set(doc) == {"light-pass-vertex", "light-pass-hardware", "light-pass-linear", "shadow-lookup"}
+    assert set(files) == set(doc) == {"light-pass-vertex", "light-pass-hardware", "light-pass-linear", "shadow-lookup",
+                                     "shadow-lookup-local"}
     for piece, text in doc.items():
         assert files[piece] == text, f"api/static/inspect/shaders/{piece}.glsl differs from the document's listing"
     script = (STATIC / "inspect.js").read_text()

@@ -69,10 +69,12 @@ def page(browser, server):
 
 
 def _solved(page, count: int) -> None:
-    """Wait until `count` optimize answers have been drawn and nothing more is queued."""
+    """Wait until `count` optimize answers have been drawn and nothing more is queued. Counted in answers
+    (stats.drawnResponses), not in drawn frames: a split view's optimize has two answers and one frame, so
+    after it the frame count (stats.latencies) stays behind the answer count and waiting on it never ended."""
     page.wait_for_function(f"""() => {{ const s = window.inspector.state;
         return s.stats.optimizeResponses >= {count} && !s.inFlight && !s.pending && s.stats.lastLatencyMs !== null
-               && s.stats.latencies.length >= {count}; }}""", timeout=60000)
+               && s.stats.drawnResponses >= {count}; }}""", timeout=60000)
 
 
 def _classes(page) -> np.ndarray:

@@ -5,15 +5,19 @@
 
 const $ = (id) => document.getElementById(id);
 const TOKEN_KEY = "shadowopt-token";
-const CASCADE_COLOURS = [[0.9, 0.3, 0.3], [0.3, 0.8, 0.3], [0.3, 0.5, 1.0], [0.95, 0.8, 0.2]];
+// cascades (or a point light's faces) 1-6
+const CASCADE_COLOURS = [[0.9, 0.3, 0.3], [0.3, 0.8, 0.3], [0.3, 0.5, 1.0], [0.95, 0.8, 0.2], [0.8, 0.3, 0.9],
+                         [0.2, 0.85, 0.85]];
 // renderers/heatmap.py's errors mode (Okabe and Ito 2008 colours).
 const WRONGLY_SHADOWED = [213, 94, 0], WRONGLY_LIT = [0, 114, 178];
 
 const state = {
   scenes: [], sceneId: null, info: null, geometry: null, solution: null, renderSolution: null,
   evaluation: null, orbit: null, seq: 0, inFlight: false, pending: false, evalSeq: 0,
+  // drawnResponses: optimizeResponses as of the last frame drawn with nothing queued (a split view's optimize
+  // has two responses and one frame, so latencies.length counts frames, not responses)
   stats: { optimizeRequests: 0, optimizeResponses: 0, renders: 0, lastInputAt: null, lastLatencyMs: null,
-           lastOptimizeMs: null, lastRenderMs: null, latencies: [] },
+           lastOptimizeMs: null, lastRenderMs: null, latencies: [], drawnResponses: 0 },
 };
 
 // --- the service --------------------------------------------------------------------------------
@@ -152,8 +156,8 @@ function rig() {
   const lightSel = $("light").value;
   const light = lightSel === "sliders" ? { type: "directional", direction: sunDirection() } : { usd_path: lightSel };
   const c = $("cascades").value, budget = +$("budget").value;
-  // a given count of cascades: one size for every map (the listing's array texture holds one), the budget
-  // shared equally; "auto": the service sizes the maps from the budget
+  // a given count of cascades: one size for every map, the budget shared equally; "auto": the service sizes
+  // each map from the budget (drawn each at its own resolution in the largest map's array)
   const side = Math.floor(Math.sqrt(budget / (c === "auto" ? 1 : +c)));
   const shadow = c === "auto" ? { texel_budget: budget, cascades: "auto" } : { resolution: [side, side], cascades: +c };
   return { camera, lights: [light], shadow,
@@ -206,8 +210,10 @@ async function optimize() {
       state.stats.lastRenderMs = performance.now() - tr;
       showSolution();
       status(`${state.info.filename}: ${sol.method}, ${sol.lights[0].cascades.length} map(s)`);
+      const answered = state.stats.optimizeResponses;  // the answers this frame draws
       afterFrame(() => {
         if (!state.pending && state.stats.lastInputAt !== null) {
+          state.stats.drawnResponses = Math.max(state.stats.drawnResponses, answered);
           const ms = performance.now() - state.stats.lastInputAt;
           state.stats.lastLatencyMs = ms;
           state.stats.latencies.push(ms);
@@ -460,28 +466,36 @@ void main() {
     gl_Position = uCamViewProj * vec4(inPosition, 1.0);
 }
 `;
-const cameraFragment = (lookup) => `${ES_HEADER}
+const cameraFragment = (lookup, local) => `${ES_HEADER}
 ${lookup}
+${local}
 uniform int uView;          // 0 shaded, 1 cascade colours, 2 shadowed / lit classification
 uniform vec3 uCamPos;       // re-centred
-uniform vec3 uCascadeColours[4];
+uniform vec3 uCascadeColours[6];
+uniform vec4 uSpot;         // a spot light: xyz its axis (unit, where it shines), w cos(cone_deg); else w = -2
 in vec3 vWorld;
 in float vViewDepth;
 out vec4 oColor;
 void main() {
     vec3 N = normalize(cross(dFdx(vWorld), dFdy(vWorld)));   // the triangle's geometric normal
     if (dot(N, uCamPos - vWorld) < 0.0) N = -N;               // on the side the camera sees
-    vec3 L = uToLight.xyz;
-    bool facing = dot(N, L) > 0.0;
-    float vis = facing && uParams.x > 0.5 ? shadowVisibility(vWorld, N, vViewDepth) : 0.0;
+    vec3 L = uToLight.w > 0.5 ? normalize(uToLight.xyz - vWorld) : uToLight.xyz;   // per point for a local light
+    bool inCone = dot(-L, uSpot.xyz) >= uSpot.w;              // the evaluator's receivers: in the spot's cone
+    bool facing = dot(N, L) > 0.0 && inCone;
+    float vis = facing && uParams.x > 0.5 ? localShadowVisibility(vWorld, N, vViewDepth) : 0.0;
     if (uView == 2) { oColor = vec4(vis, facing ? 1.0 : 0.0, 1.0, 1.0); return; }
     float lambert = max(dot(N, L), 0.0);
     vec3 albedo = vec3(0.78, 0.76, 0.72);
     vec3 c = albedo * (0.22 + 0.78 * lambert * (uParams.x > 0.5 ? vis : 1.0));
     if (uView == 1 && uParams.x > 0.5) {
         int last = int(uParams.x) - 1, k = 0;
-        while (k < last && vViewDepth > uCascade[k].y) k++;   // the lookup's cascade selection
-        c = mix(c, uCascadeColours[k], 0.3);
+        if (uParams.z > 0.5) {                                // cube faces: the first face holding the point
+            bool inside = false;
+            for (k = 0; k <= last; k++) { shadowMapVisibility(k, vWorld, N, inside); if (inside) break; }
+        } else {
+            while (k < last && vViewDepth > uCascade[k].y) k++;   // the lookup's cascade selection
+        }
+        if (k <= last) c = mix(c, uCascadeColours[k], 0.3);
     }
     oColor = vec4(pow(c, vec3(1.0 / 2.2)), 1.0);
 }
@@ -493,10 +507,11 @@ void main() { vec2 p = vec2(gl_VertexID & 1, gl_VertexID >> 1) * 2.0; vUV = p; g
 const QUAD_FRAGMENT = `${ES_HEADER}
 uniform sampler2DArray uShadowMap;
 uniform int uLayer;
+uniform ivec2 uSize;        // the map's own resolution (the array is the largest map's size)
 in vec2 vUV;
 out vec4 oColor;
 void main() {
-    ivec2 size = textureSize(uShadowMap, 0).xy;
+    ivec2 size = uSize;
     float d = texelFetch(uShadowMap, ivec3(min(ivec2(vUV * vec2(size)), size - 1), uLayer), 0).r;
     oColor = vec4(d, d, d, 1.0);
 }
@@ -519,12 +534,13 @@ class Renderer {
 
   async init() {
     const get = async (n) => (await fetch(`/inspect/static/shaders/${n}.glsl`)).text();
-    const [vert, hard, lin, lookup] = await Promise.all(["light-pass-vertex", "light-pass-hardware",
-                                                          "light-pass-linear", "shadow-lookup"].map(get));
+    const [vert, hard, lin, lookup, local] = await Promise.all(["light-pass-vertex", "light-pass-hardware",
+                                                                 "light-pass-linear", "shadow-lookup",
+                                                                 "shadow-lookup-local"].map(get));
     this.lookupSource = lookup;
     this.progs = {
       hardware: this.program(toES(vert), toES(hard)), linear: this.program(toES(vert), toES(lin)),
-      camera: this.program(CAMERA_VERTEX, cameraFragment(lookup)), quad: this.program(QUAD_VERTEX, QUAD_FRAGMENT),
+      camera: this.program(CAMERA_VERTEX, cameraFragment(lookup, local)), quad: this.program(QUAD_VERTEX, QUAD_FRAGMENT),
     };
     const gl = this.gl;
     this.ubo = gl.createBuffer();
@@ -680,12 +696,14 @@ class Renderer {
     if (light && (!light.cascades || !light.cascades.length)) {
       note.push(`no shadow map: ${light.reason || "the light reaches no receiver the camera sees"}`);
     }
-    if (light && light.type === "directional" && light.cascades && light.cascades.length) {
+    const lit = sol && sol.resolved && sol.resolved.lights[0];  // the light as solved (world frame)
+    let spot = [0, 0, 0, -2];  // no cone
+    if (light && light.cascades && light.cascades.length && lit) {
       const maps = light.cascades;
       const clip = sol.convention.reversed_z ? "reversed_z" : sol.convention.api;
       const reversedZ = !!sol.convention.reversed_z;
-      const [mw, mh] = maps[0].resolution;
-      if (maps.some((m) => m.resolution[0] !== mw || m.resolution[1] !== mh)) note.push("maps of different sizes: the listing's array holds one");
+      // the document's array: as large as the largest map, map k in its first rows and columns
+      const mw = Math.max(...maps.map((m) => m.resolution[0])), mh = Math.max(...maps.map((m) => m.resolution[1]));
       if (maps.some((m) => m.warp && m.warp.kind === "log")) note.push("a log-warped map: the listing's light pass has no log warp");
       const key = `${mw}x${mh}x${maps.length}`;
       if (key !== sl.key) {
@@ -705,16 +723,23 @@ class Renderer {
         block.set(mul(m.texture_matrix, T), o.uTexMatrix + 16 * k);
         block.set(mul(m.view_matrix, T), o.uLightView + 16 * k);
         block.set([blk.constant, blk.slope, blk.normal_offset || 0, d.mode === "linear" ? 1 : 0], o.uDepth + 4 * k);
-        block.set([d.linear.near, d.linear.far, 0, 0], o.uLinear + 4 * k);
+        block.set([d.linear.near, d.linear.far, m.resolution[0], m.resolution[1]], o.uLinear + 4 * k);
         const band = m.blend_band || [m.split[1], m.split[1]];
         block.set([m.split[0], m.split[1], band[0], band[1]], o.uCascade + 4 * k);
       });
-      block.set([...unit(sol.resolved.lights[0].direction).map((v) => -v), 0], o.uToLight);
-      block.set([maps.length, reversedZ ? 1 : 0, 0, 0], o.uParams);
+      // shadow-lookup-local: a spot or point light's position (re-centred) with w = 1; cube faces: uParams.z = 1
+      if (lit.type === "directional") block.set([...unit(lit.direction).map((v) => -v), 0], o.uToLight);
+      else block.set([...sub(lit.position, T.slice(12, 15)), 1], o.uToLight);
+      if (lit.type === "spot") spot = [...unit(lit.direction), Math.cos(lit.cone_deg * Math.PI / 180)];
+      const faces = maps.some((m) => m.face);
+      block.set([maps.length, reversedZ ? 1 : 0, faces ? 1 : 0, 0], o.uParams);
       nMaps = maps.length;
+      sl.sizes = maps.map((m) => m.resolution);
+    } else if (lit && lit.type !== "directional") {  // no map (shadow "none"): the light unshadowed
+      block.set([...sub(lit.position, T.slice(12, 15)), 1], this.offsets.uToLight);
+      if (lit.type === "spot") spot = [...unit(lit.direction), Math.cos(lit.cone_deg * Math.PI / 180)];
     } else {
-      if (light && light.type !== "directional") note.push("the picture shows directional lights' maps only");
-      block.set([...unit(sunDirection()).map((v) => -v), 0], this.offsets.uToLight);  // unshadowed
+      block.set([...unit(lit ? lit.direction : sunDirection()).map((v) => -v), 0], this.offsets.uToLight);  // unshadowed
     }
     if (!sl.tex) {  // nothing to sample yet: a 1-texel array keeps the sampler complete
       sl.tex = gl.createTexture();
@@ -739,6 +764,7 @@ class Renderer {
     gl.uniformMatrix4fv(gl.getUniformLocation(prog, "uCamView"), false, cm.view);
     gl.uniform3fv(gl.getUniformLocation(prog, "uCamPos"), cm.position);
     gl.uniform3fv(gl.getUniformLocation(prog, "uCascadeColours"), CASCADE_COLOURS.flat());
+    gl.uniform4fv(gl.getUniformLocation(prog, "uSpot"), spot);
     gl.uniform1i(gl.getUniformLocation(prog, "uView"), { shaded: 0, cascades: 1, classification: 2 }[$("view").value]);
     gl.enable(gl.DEPTH_TEST);
     gl.depthFunc(gl.LESS);
@@ -773,6 +799,7 @@ class Renderer {
     const empty = state.renderSolution && state.renderSolution.convention.reversed_z ? 0.0 : 1.0;
     for (let k = 0; k < n; k++) {
       gl.uniform1i(gl.getUniformLocation(this.progs.quad, "uLayer"), k);
+      gl.uniform2i(gl.getUniformLocation(this.progs.quad, "uSize"), ...this.slots[0].sizes[k]);
       gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
       gl.readPixels(0, 0, side, side, gl.RGBA, gl.FLOAT, px);
       let lo = Infinity, hi = -Infinity;
