@@ -62,9 +62,12 @@ def make_work(work: Path) -> None:
         shutil.rmtree(work)
     work.mkdir(parents=True)
     ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
-    for name in FOLDERS + ("tests",):
-        shutil.copytree(ROOT / name, work / name, ignore=ignore)
-    shutil.copy2(ROOT / "pyproject.toml", work / "pyproject.toml")
+    for name in FOLDERS + ("tests", "docs"):
+        if (ROOT / name).is_dir():
+            shutil.copytree(ROOT / name, work / name, ignore=ignore)
+    for f in ROOT.iterdir():  # pyproject.toml, and the documents some tests read (BENCHMARKS.md, README.md ...)
+        if f.is_file() and not f.name.startswith("."):
+            shutil.copy2(f, work / f.name)
     shim = work / "_import" / "shadowopt"
     shim.mkdir(parents=True)
     (shim / "__init__.py").write_text("")
