@@ -104,9 +104,7 @@ def receiver_points(camera, buffers: CoarseBuffers, mask: np.ndarray, bounds=Non
     if use_fine and fine_edge.any():
         # the edge pass's own edges: its receivers next to a non-receiver or a depth jump, reached one
         # fine step (the full-resolution pixels between two fine rays) along their planes
-        u, v = prep.fine_uv if prep is not None else fine.uv()
-        parts.append(tangent_reach(camera, buffers, u[fine_edge], v[fine_edge], fine.position[fine_edge],
-                                   fine.normal[fine_edge], 1.0 / fine.factor, FINE_REACH_DEPTH_FACTOR))
+        parts.append(_fine_reach(camera, buffers, fine, np.nonzero(fine_edge)[0], prep))
         slacks.append(_reach_slack(camera, parts[-1], fine.depth[fine_edge]))
     return np.vstack(parts), np.concatenate(slacks)
 
@@ -202,6 +200,40 @@ def cell_frusta(camera, buffers: CoarseBuffers, fine, fine_receivers: np.ndarray
     return pts, np.tile(far - near, 2)
 
 
+def _fine_reach(camera, buffers: CoarseBuffers, fine, idx: np.ndarray, prep: "ReceiverPrep | None" = None) -> np.ndarray:
+    """(4 len(idx), 3): tangent_reach of the edge pass's hits idx, one fine step (prep's rows where it has them)."""
+    def reach(i):
+        u, v = fine.uv()
+        return tangent_reach(camera, buffers, u[i], v[i], fine.position[i], fine.normal[i], 1.0 / fine.factor,
+                             FINE_REACH_DEPTH_FACTOR)
+
+    if prep is None:
+        return reach(idx)
+    row = prep.fine_row[idx]
+    have = row >= 0
+    if have.all():
+        return prep.fine_reach[row].reshape(-1, 3)
+    out = np.empty((len(idx), 4, 3))
+    out[have] = prep.fine_reach[row[have]]
+    out[~have] = reach(idx[~have]).reshape(-1, 4, 3)
+    return out.reshape(-1, 3)
+
+
+def fine_reach_candidates(fine, neighbours: np.ndarray, continuity: float = DEPTH_CONTINUITY) -> np.ndarray:
+    """(M,) bool: the edge pass's hits where a directional light's receiver region can end (FinePoints.edges):
+    next to a traced corner that missed, a hit with another normal (facing can differ) or a depth jump. A spot
+    light's cone can end anywhere: _fine_reach computes the others when they are asked for."""
+    out = np.zeros(len(fine.flat), dtype=bool)
+    for s in range(4):
+        j = neighbours[s]
+        hit = j >= 0
+        jj = np.where(hit, j, 0)
+        dn = fine.depth[jj]
+        out |= (j == -1) | (hit & np.any(fine.normal[jj] != fine.normal, axis=1)) | \
+            (hit & (np.abs(dn - fine.depth) > continuity * np.minimum(dn, fine.depth)))
+    return out
+
+
 def fine_border(fine) -> np.ndarray:
     """(M,) bool: the edge pass's hits on its grid's outer rows and columns (the screen's border)."""
     vj, vi = np.divmod(fine.flat, fine.grid_shape[1])
@@ -211,18 +243,20 @@ def fine_border(fine) -> np.ndarray:
 @dataclass
 class ReceiverPrep:
     """What receiver_points uses of the camera's buffers alone (no light, no receiver mask), computed once
-    per camera pass by service.coarse_cache: the edge cells, the fine grid's border hits, screen
-    positions and 4-neighbours, cell_frusta's CellTable, and tangent_reach of every coarse pixel that can be a mask edge
-    pixel it extrapolates (a hit outside the edge cells; every hit without an edge pass): tangent_reach is a
-    function of each pixel alone, so the rows receiver_points picks are the bits it would compute."""
+    per camera pass by service.coarse_cache: the edge cells, the fine grid's border hits and 4-neighbours,
+    cell_frusta's CellTable, tangent_reach of every coarse pixel that can be a mask edge pixel it extrapolates
+    (a hit outside the edge cells; every hit without an edge pass) and of the fine hits where a directional
+    light's receivers can end (fine_reach_candidates): tangent_reach is a function of each point alone, so the
+    rows receiver_points picks are the bits it would compute."""
 
     edge_cells: np.ndarray
     coarse_row: np.ndarray  # (h w,) row of coarse_reach per flat pixel, -1 where none
     coarse_reach: np.ndarray  # (R, 4, 3)
     fine_border: np.ndarray | None = None
-    fine_uv: tuple | None = None
     cells: CellTable | None = None
     fine_neighbours: np.ndarray | None = None  # renderers.coarse.FinePoints.neighbours
+    fine_row: np.ndarray | None = None  # (M,) row of fine_reach per fine hit (fine_reach_candidates), -1 where none
+    fine_reach: np.ndarray | None = None  # (C, 4, 3) tangent_reach one fine step
 
 
 def receiver_prep(camera, buffers: CoarseBuffers) -> ReceiverPrep:
@@ -238,7 +272,12 @@ def receiver_prep(camera, buffers: CoarseBuffers) -> ReceiverPrep:
                           buffers.normal[rows, cols], EDGE_REACH).reshape(len(rows), 4, 3)
     if fine is None:
         return ReceiverPrep(cells, row, reach)
-    return ReceiverPrep(cells, row, reach, fine_border(fine), fine.uv(), cell_table(buffers, fine), fine.neighbours())
+    nb = fine.neighbours()
+    cand = np.nonzero(fine_reach_candidates(fine, nb))[0]
+    fine_row = np.full(len(fine.flat), -1, dtype=np.int64)
+    fine_row[cand] = np.arange(len(cand))
+    return ReceiverPrep(cells, row, reach, fine_border(fine), cell_table(buffers, fine), nb, fine_row,
+                        _fine_reach(camera, buffers, fine, cand).reshape(len(cand), 4, 3))
 
 
 def tangent_reach(camera, buffers: CoarseBuffers, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np.ndarray,

@@ -150,6 +150,10 @@ def test_cached_receivers_equal_the_plain_ones_over_sun_moves(demo, monkeypatch)
                 assert len(r.receivers) > len(r.samples) > 0
                 for k in ("receivers", "receiver_slack", "sample_rows"):
                     assert np.array_equal(getattr(g, k), getattr(r, k)), (coarse, light, k)
+            if light["type"] == "spot":  # a cone ends where no directional light's receivers can: computed then
+                prep = next(iter(c._d.values()))[1].receiver_prep
+                edge, _ = buf.fine.edges(buf.fine.receiver[0])
+                assert (edge & (prep.fine_row < 0)).sum() > 0 and (edge & (prep.fine_row >= 0)).sum() > 0
         assert (c.misses, c.hits) == (1, len(lights) - 1) and c.receiver_misses == len(lights)
     assert len(made) == 2  # the camera-only part once per camera pass
 
