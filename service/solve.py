@@ -483,7 +483,7 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
     if previous is not None:  # only its solver's x is read; a malformed field is a SolutionError naming it
         previous = validate_solution(previous, "previous", n_lights=len(rig["lights"]), maps=False,
                                      code="invalid_previous")
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.thread_time()
 
     def budget_left():  # the search time left of the whole solve's budget
         if time_budget_ms is None:
@@ -502,6 +502,7 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
     per_light = []
     solvers_json = []
     probs = light_problems(resolved, buffers, (lo, hi))
+    t_receivers = time.perf_counter()
     split = rig_budget_split(resolved, buffers, probs, (lo, hi)) if shadow.get("budget_scope") == "rig" else None
     for li, prob in enumerate(probs):
         need = light_need(buffers, li)
@@ -587,7 +588,9 @@ def _solve(entry: SceneEntry, rig: dict, method: str, solver: str | None, time_b
         if auto is not None:
             per_light[-1]["auto_cascades"] = auto
     t2 = time.perf_counter()
-    timings = {"coarse": (t1 - t0) * 1e3, "optimize": (t2 - t1) * 1e3, "total": (t2 - t0) * 1e3}
+    # receivers: of optimize, the lights' samples and receivers (light_problems); total_cpu: this thread's CPU
+    timings = {"coarse": (t1 - t0) * 1e3, "optimize": (t2 - t1) * 1e3, "receivers": (t_receivers - t1) * 1e3,
+               "total": (t2 - t0) * 1e3, "total_cpu": (time.thread_time() - c0) * 1e3}
     settings = {"method": method, "solver": solver or (DEFAULT_SOLVER if method in ("optimized", "path") else None),
                 "time_budget_ms": time_budget_ms, "coarse_long_side": resolved.coarse_long_side,
                 "shadow": _jsonable(shadow)}

@@ -9,6 +9,11 @@ them; the page keeps one optimize in flight and sends the newest sun when it ret
 page's own: performance.now() from the last input event to two animation frames after the render of the
 answer to it (the frame is on screen then), `state.stats.latencies`. Beside it, the optimize round trip
 seen by the page and the server's `timings_ms.total`, and the load average (the machine is shared).
+
+The server's part is broken down from the answers (timings_ms: coarse pass, receivers, total and the solving
+thread's CPU time; the solver report: its time and the search's), and, with the browser closed, the page's own
+requests are sent again to the same server (httpx, one at a time): the server's latency without the browser
+sharing the cores. Under load the CPU time is the steadier number.
 """
 from __future__ import annotations
 
@@ -70,16 +75,20 @@ def bench_inspect(moves: int = 12, drags: int = 4, screen: str = "640x360", writ
                         page.fill("#azimuth", str(-150 + 7 * warm))
                         _wait_latencies(page, n)
                     single, drag, trip, server, page_part, coarse_ms = [], [], [], [], [], []
+                    parts, asked = {k: [] for k in SERVER_PARTS}, []
                     for i in range(moves):
                         n = page.evaluate("window.inspector.state.stats.latencies.length")
                         page.fill("#azimuth", str(-120 + 17 * i))
                         _wait_latencies(page, n)
-                        s = page.evaluate("[window.inspector.state.stats, window.inspector.state.solution.timings_ms]")
+                        s = page.evaluate(PAGE_STATE)
                         single.append(s[0]["lastLatencyMs"])
                         trip.append(s[0]["lastOptimizeMs"])
                         server.append(s[1]["total"])
                         coarse_ms.append(s[1]["coarse"])
                         page_part.append(s[0]["lastLatencyMs"] - s[0]["lastOptimizeMs"])
+                        for k, v in server_parts(s[1], s[2]).items():
+                            parts[k].append(v)
+                        asked.append(s[3])
                     for i in range(drags):
                         n = page.evaluate("window.inspector.state.stats.latencies.length")
                         page.evaluate(f"""async () => {{ const el = document.getElementById('azimuth');
@@ -94,13 +103,20 @@ def bench_inspect(moves: int = 12, drags: int = 4, screen: str = "640x360", writ
                            "round_trip_p50_ms": percentile(sorted(trip), 50),
                            "server_p50_ms": percentile(sorted(server), 50),
                            "server_coarse_p50_ms": percentile(sorted(coarse_ms), 50),
-                           "page_p50_ms": percentile(sorted(page_part), 50)}
+                           "page_p50_ms": percentile(sorted(page_part), 50),
+                           "server_parts_p50_ms": {k: _p50(v) for k, v in parts.items()},
+                           "search_budget_ms": asked[0]["time_budget_ms"] if asked else None, "asked": asked}
                     rows.append(row)
                     log(f"inspect: {row}")
                 browser.close()
+            replay_load = [os.getloadavg()[0]]
+            for row in rows:  # the browser closed: the page's requests again, the server alone
+                row["alone"] = replay(base, token, row.pop("asked"))
+                replay_load.append(os.getloadavg()[0])
+                log(f"inspect, server alone: {row['method']} {row['coarse_long_side']} px: {row['alone']}")
         finally:
             stop_server(proc)
-    table = inspect_table(rows, screen, renderer, load_avg)
+    table = inspect_table(rows, screen, renderer, load_avg, replay_load)
     commit = git_commit()
     table += f" Code: the working tree at commit {commit}." if commit else ""
     if write:
@@ -110,7 +126,57 @@ def bench_inspect(moves: int = 12, drags: int = 4, screen: str = "640x360", writ
     return {"rows": rows, "table": table, "renderer": renderer, "load_avg": load_avg}
 
 
-def inspect_table(rows: list[dict], screen: str, renderer: str, load_avg: list[float]) -> str:
+# the page's stats, the answer's timings and solver report, and the request it sent (inspect.js optimize())
+PAGE_STATE = """() => { const s = window.inspector.state;
+    return [s.stats, s.solution.timings_ms, s.solution.solver || null,
+            { scene_id: s.sceneId, method: s.solution.method, rig: s.solution.rig,
+              time_budget_ms: +document.getElementById('time-budget').value }]; }"""
+SERVER_PARTS = ("coarse", "receivers", "solver", "search", "rest", "cpu")
+
+
+def _p50(v):
+    v = [x for x in v if x is not None]
+    return percentile(sorted(v), 50) if v else None
+
+
+def server_parts(timings: dict, solver: dict | None) -> dict:
+    """One answer's server time in parts (ms): the coarse pass and the receivers and samples (timings_ms), the
+    solver's maps (method optimized: the baselines' fits, the search and the final fit; solver.time_ms), of it
+    the search (each cascade's result.time_ms), the rest (the final metric, need, the response) and the solving
+    thread's CPU time (timings_ms.total_cpu). None where the answer has no such field."""
+    total, coarse, rec = timings.get("total"), timings.get("coarse"), timings.get("receivers")
+    maps_ms = float(solver["time_ms"]) if solver and "time_ms" in solver else None
+    search = (sum(float((c.get("result") or {}).get("time_ms", 0.0)) for c in solver.get("cascades", []))
+              if maps_ms is not None else None)
+    rest = total - coarse - rec - maps_ms if None not in (total, coarse, rec, maps_ms) else None
+    return {"coarse": coarse, "receivers": rec, "solver": maps_ms, "search": search, "rest": rest,
+            "cpu": timings.get("total_cpu")}
+
+
+def replay(base: str, token: str, asked: list[dict]) -> dict:
+    """The page's requests (scene, method, rig, search budget) sent again one at a time (httpx): p50 round trip,
+    server setup and CPU ms, and the search's evaluations. The first one again first, not counted."""
+    import httpx
+
+    trip, total, cpu, nfev = [], [], [], []
+    with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=60) as c:
+        for i, body in enumerate(asked[:1] + asked):
+            t0 = time.perf_counter()
+            r = c.post("/v1/optimize", json=body)
+            dt = (time.perf_counter() - t0) * 1e3
+            r.raise_for_status()
+            sol = r.json()
+            if i:
+                trip.append(dt)
+                total.append(sol["timings_ms"]["total"])
+                cpu.append(sol["timings_ms"].get("total_cpu"))
+                nfev.append((sol.get("solver") or {}).get("nfev"))
+    return {"round_trip_p50_ms": _p50(trip), "server_p50_ms": _p50(total), "cpu_p50_ms": _p50(cpu),
+            "nfev_p50": _p50(nfev)}
+
+
+def inspect_table(rows: list[dict], screen: str, renderer: str, load_avg: list[float],
+                  replay_load: list[float] | None = None) -> str:
     lines = ["| method | coarse buffer | single move p50 ms | p95 ms | after a drag p50 ms | max ms | "
              "optimize round trip p50 ms | server setup p50 ms | of it coarse pass p50 ms | page: draw + 2 frames p50 ms | <= 150 ms (single p50) |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -132,4 +198,26 @@ def inspect_table(rows: list[dict], screen: str, renderer: str, load_avg: list[f
                  f"Load average (1 min) during the run: {min(load_avg):.1f}-{max(load_avg):.1f} on "
                  f"{os.cpu_count()} cores (the browser, the server and other work share them): the server's "
                  f"part is the solve under that load (section `load` measures the same solve's latency on its own).")
+
+    def f(v, nd=0):
+        return "" if v is None else f"{v:.{nd}f}"
+
+    lines += ["", "**Server, per sun move** (p50 ms over the single moves above, from the answers' `timings_ms` and "
+              "solver report; then the same requests sent again with the browser closed, one at a time):", "",
+              "| method | coarse buffer | search budget | server setup | coarse pass | receivers + samples | "
+              "solver: fits, search, final fit | of it search | rest: metric, response | server CPU | "
+              "alone: round trip | alone: server setup | alone: server CPU | search evaluations |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        p, a = r.get("server_parts_p50_ms") or {}, r.get("alone") or {}
+        lines.append(f"| {r['method']} | {r['coarse_long_side']} px | {f(r.get('search_budget_ms'))} | "
+                     f"{f(r['server_p50_ms'])} | {f(p.get('coarse'), 1)} | {f(p.get('receivers'), 1)} | "
+                     f"{f(p.get('solver'))} | {f(p.get('search'))} | {f(p.get('rest'))} | {f(p.get('cpu'))} | "
+                     f"{f(a.get('round_trip_p50_ms'))} | {f(a.get('server_p50_ms'))} | {f(a.get('cpu_p50_ms'))} | "
+                     f"{f(a.get('nfev_p50'))} |")
+    if replay_load:
+        lines += ["", f"Load average (1 min) while the requests were sent again: {min(replay_load):.1f}-"
+                      f"{max(replay_load):.1f}. The search budget counts from the start of the solve (the coarse "
+                      f"pass included): the search gets what the fixed parts leave of it; 7 evaluations are the "
+                      f"search's start points alone (no step taken)."]
     return "\n".join(lines)
