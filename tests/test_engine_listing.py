@@ -237,8 +237,22 @@ def test_the_light_pass_stores_what_evaluate_emulates():
 _LOCAL: dict = {}
 
 
+def _solve_local(entry, rig: dict, conventions, point_light_maps: str) -> dict:
+    """solve_for_listing's result with shadow.point_light_maps set (solve_for_listing sets `shadow` itself)."""
+    from shadowopt.service.solve import maps_from_solution, solve
+
+    shadow = {"resolution": [MAP, MAP], "cascades": 1, "point_light_maps": point_light_maps}
+    sols = {}
+    for conv in dict.fromkeys(["opengl", *conventions]):
+        api, rz = E.CONVENTIONS[conv]
+        sols[conv] = solve(entry, validate_rig(dict(rig, shadow=shadow, output={
+            "convention": api, "layout": "column_major", "reversed_z": rz})), "optimized")
+    return {"solutions": sols, "maps": maps_from_solution(sols["opengl"])[0],
+            "rig": validate_rig(dict(rig, shadow=shadow))}
+
+
 def _local_light(tmp_path_factory, name: str, sources=None, conventions=tuple(E.CONVENTIONS), modes=MODES,
-                 languages=LANGUAGES, depth_override=None):
+                 languages=LANGUAGES, depth_override=None, point_light_maps=None):
     """A spot or point light of tests/lights_scene.py (the demo scene with both) through the document's
     shadow-lookup-local piece in OpenGL: {"evaluate": {mode: misclassified}, "listing": {job: wrong pixels},
     "maps": [resolution, ...], "faces": [...], "receivers"}. The lookup gets the light's position with w = 1
@@ -254,8 +268,9 @@ def _local_light(tmp_path_factory, name: str, sources=None, conventions=tuple(E.
         _LOCAL["path"] = write_lights_scene(tmp_path_factory.mktemp("lights"))
     entry = scene_entry(_LOCAL["path"])
     rig = {"camera": {"usd_path": "/World/Camera", "resolution": list(SCREEN)}, "lights": [{"usd_path": name}]}
-    solved = E.solve_for_listing(validate_rig, entry, rig, 1, MAP, depth_override=depth_override,
-                                 conventions=conventions)
+    solved = (E.solve_for_listing(validate_rig, entry, rig, 1, MAP, depth_override=depth_override,
+                                  conventions=conventions) if point_light_maps is None
+              else _solve_local(entry, rig, conventions, point_light_maps))
     light = resolve_rig(solved["rig"], entry.loaded).lights[0]
     rs = entry.rays
     camera = screen_camera(resolve_rig(solved["rig"], entry.loaded).camera, SCREEN)
@@ -282,19 +297,22 @@ def _local_light(tmp_path_factory, name: str, sources=None, conventions=tuple(E.
             "type": solved["solutions"]["opengl"]["lights"][0]["type"]}
 
 
-@pytest.mark.parametrize("light", ["/World/Spot", "/World/Bulb"])
+@pytest.mark.parametrize("light", ["/World/Spot", "/World/Bulb", "/World/Bulb:cube"])
 def test_local_light_listing_matches_evaluate_depth(tmp_path_factory, light):
-    """A spot light's map and a point light's faces (face-partitioned here: faces of different sizes in one
-    array, each at its own resolution), drawn with shadow-lookup-local in every convention and language: their
+    """A spot light's map and a point light's faces (auto chooses face partitioning here: faces of different sizes
+    in one array, each at its own resolution; ":cube" forces the cube's faces), drawn with shadow-lookup-local in
+    every convention and language: their
     wrong pixels against ray-traced shadows are evaluate --depth's to 2% (+ 20 px; measured: equal), tighter than
     the directional listings' 1.25x, so that the broken lookups below fail it clearly."""
-    r = _local_light(tmp_path_factory, light)
-    print(f"{light}: maps {r['maps']} faces {r['faces']}, {r['receivers']} receivers ({r['shadowed']} shadowed), "
+    light, _, maps = light.partition(":")
+    r = _local_light(tmp_path_factory, light, point_light_maps=maps or None)
+    print(f"{light} {maps or 'auto'}: maps {r['maps']} faces {r['faces']}, {r['receivers']} receivers ({r['shadowed']} shadowed), "
           f"evaluate {r['evaluate']}, listing {({k: v['wrong'] for k, v in r['listing'].items()})}")
     assert r["type"] == ("spot" if light.endswith("Spot") else "point")
     assert r["receivers"] > 10_000 and r["shadowed"] > 0.005 * r["receivers"]
-    if r["type"] == "point":
-        assert all(r["faces"]) and len({tuple(m) for m in r["maps"]}) >= 2  # faces of different sizes
+    if r["type"] == "point":  # auto: face partitioning here, faces of different sizes; cube: one size
+        sizes = {tuple(m) for m in r["maps"]}
+        assert all(r["faces"]) and (len(sizes) == 1 if maps else len(sizes) >= 2), r["maps"]
     bad = []
     for name, v in r["listing"].items():
         ev = r["evaluate"][name.rsplit("_", 1)[1]]

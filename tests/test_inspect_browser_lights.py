@@ -88,6 +88,23 @@ def test_point_light_faces_agree_with_evaluate(page, server, shots):
     page.select_option("#view", "shaded")
 
 
+def test_point_light_cube_faces_agree_with_evaluate(page, server, shots):
+    """shadow.point_light_maps "cube" from the page's picker: the cube's faces (one size, each a 90 degree
+    frustum), served by the first face holding the point as evaluate takes it."""
+    _choose(page, "#point-maps", "cube")
+    light = page.evaluate("window.inspector.state.renderSolution.lights[0]")
+    maps = light["cascades"]
+    assert page.evaluate("window.inspector.state.solution.rig.shadow.point_light_maps") == "cube"
+    assert light["type"] == "point" and len(maps) >= 2 and all(m.get("face") for m in maps)
+    assert len({tuple(m["resolution"]) for m in maps}) == 1 and "face_partitioning" not in light
+    agree, receivers, shadowed, ev = _agreement(page, server)
+    print(f"point, cube: {len(maps)} faces {[m['face'] for m in maps]} of {maps[0]['resolution']}: {agree:.4%} of "
+          f"{receivers} receiver pixels agree with evaluate ({shadowed} map-shadowed)")
+    assert shadowed > 0.005 * receivers and agree >= 0.99
+    page.screenshot(path=str(shots / "lights-2b-point-cube.png"))
+    _choose(page, "#point-maps", "auto")
+
+
 def test_auto_cascades_of_different_sizes_agree_with_evaluate(page, server, shots):
     """cascades "auto": the service sizes each cascade from the budget; each is drawn at its own resolution
     (the array is the largest map's size, each map in its first rows and columns)."""

@@ -160,6 +160,7 @@ function rig() {
   // each map from the budget (drawn each at its own resolution in the largest map's array)
   const side = Math.floor(Math.sqrt(budget / (c === "auto" ? 1 : +c)));
   const shadow = c === "auto" ? { texel_budget: budget, cascades: "auto" } : { resolution: [side, side], cascades: +c };
+  if ($("point-maps").value !== "auto") shadow.point_light_maps = $("point-maps").value;  // a point light's maps
   return { camera, lights: [light], shadow,
            coarse_long_side: +$("coarse").value };
 }
@@ -901,7 +902,8 @@ function wire() {
     if (f) upload(f).catch((err) => status(err.message, true));
   });
   for (const id of ["azimuth", "elevation"]) $(id).addEventListener("input", () => { $("light").value = "sliders"; sunChanged(); });
-  for (const id of ["camera", "resolution", "cascades", "budget", "method", "preset", "light", "time-budget", "coarse"]) {
+  for (const id of ["camera", "resolution", "cascades", "budget", "method", "preset", "light", "time-budget", "coarse",
+                    "point-maps"]) {
     $(id).addEventListener("change", () => { renderer.render(); drawOverlay(); requestOptimize(); });
   }
   $("view").addEventListener("change", () => renderer.render());
