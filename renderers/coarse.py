@@ -220,7 +220,9 @@ def _light_test(mi, dr, rs: RayScene, light: Light, p, n, active, shadow_rays: b
     # Offset the origin to the light's side of the surface (Mitsuba's spawn_ray rule, scaled).
     eps = (1.0 + dr.max(dr.abs(p))) * SHADOW_RAY_EPSILON
     o = p + n * dr.select(facing, eps, -eps)
-    ray = mi.Ray3f(o, to_light, dist * (1.0 - 1e-5))
+    ray = mi.Ray3f(o, to_light)
+    # Bounded at the light: Mitsuba 3's three-argument Ray3f(o, d, x) reads x as the ray's time, not maxt.
+    ray.maxt = dist * (1.0 - 1e-5)
     # Only surfaces facing the light cast a shadow ray: one facing away is in its own shadow (its
     # shadow ray would cross its own surface), which saves about half the rays of a typical view.
     occluded = rs.scene.ray_test(ray, active & facing) if shadow_rays else mi.Bool(False)
