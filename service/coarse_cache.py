@@ -52,7 +52,8 @@ class CameraPass:
     fine_ok: np.ndarray | None
     trace_ms: float = 0.0
     receivers: OrderedDict = field(default_factory=OrderedDict)  # mask key -> (points, slack)
-    receiver_prep: object = None  # service.solve.ReceiverPrep: receiver_points' camera-only part, made on first use
+    receiver_prep: object = None  # service.solve.ReceiverPrep: receiver_points' camera-only part, made on a second mask
+    receiver_misses: int = 0
     lock: threading.Lock = field(default_factory=threading.Lock)
 
 
@@ -208,10 +209,11 @@ class CoarseCache:
                 self.receiver_hits += 1
                 return got
         prep = cp.receiver_prep
-        if prep is None:  # once per camera pass (two threads may both make it: the same values)
-            from .solve import receiver_prep
+        if prep is None and cp.receiver_misses:  # a second mask (a light moved): once per camera pass (two
+            from .solve import receiver_prep  # threads may both make it: the same values)
 
             prep = cp.receiver_prep = receiver_prep(camera, buffers)
+        cp.receiver_misses += 1  # a camera seen once (an orbit or fly step) never pays for the prep
         out = compute(camera, buffers, mask, bounds, fine_receivers, prep=prep)
         _readonly(*out)
         with cp.lock:

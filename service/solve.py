@@ -224,13 +224,14 @@ def fine_reach_candidates(fine, neighbours: np.ndarray, continuity: float = DEPT
     next to a traced corner that missed, a hit with another normal (facing can differ) or a depth jump. A spot
     light's cone can end anywhere: _fine_reach computes the others when they are asked for."""
     out = np.zeros(len(fine.flat), dtype=bool)
+    nrm = [np.ascontiguousarray(fine.normal[:, k]) for k in range(3)]
     for s in range(4):
         j = neighbours[s]
         hit = j >= 0
         jj = np.where(hit, j, 0)
         dn = fine.depth[jj]
-        out |= (j == -1) | (hit & np.any(fine.normal[jj] != fine.normal, axis=1)) | \
-            (hit & (np.abs(dn - fine.depth) > continuity * np.minimum(dn, fine.depth)))
+        other = (nrm[0][jj] != nrm[0]) | (nrm[1][jj] != nrm[1]) | (nrm[2][jj] != nrm[2])
+        out |= (j == -1) | (hit & (other | (np.abs(dn - fine.depth) > continuity * np.minimum(dn, fine.depth))))
     return out
 
 
