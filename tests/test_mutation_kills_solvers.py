@@ -5,6 +5,8 @@ closed form, a finite difference), never the implementation's own intermediate v
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -80,3 +82,133 @@ def test_warped_moments_drop_samples_behind_the_projection_centre():
     assert G[:3] == pytest.approx(want, rel=1e-5)
     assert G[3] == pytest.approx(w[front].sum(), rel=1e-12)
     assert G[4] == pytest.approx(w[~front].sum(), rel=1e-12)
+
+
+# ---------------------------------------------------------------- samples: full-resolution pixels per sample
+def test_coarse_samples_stand_for_the_whole_screen_in_full_resolution_pixels():
+    """Each coarse sample stands for (W H) / (w h) full-resolution pixels, so when every coarse pixel is a
+    sample their pixels sum to the rig's W x H, whatever the coarse size and the aspect.
+    (kills select_samples' `W * H / (w h)` -> `W / H / (w h)`)"""
+    from shadowopt.solvers.lights import SpotLight
+    from shadowopt.solvers.samples import select_samples
+
+    light = SpotLight.make([0, 10, 10], [0, -1, 0], 60)
+    for res, (hgt, wdt) in (((640, 480), (3, 4)), ((1920, 1080), (9, 16)), ((1000, 1000), (5, 5))):
+        cam = Camera.look_at([0, 2, 0], [0, 0, 20], resolution=res)
+        pos = np.zeros((hgt, wdt, 3))
+        pos[..., 0] = np.linspace(-1, 1, wdt)[None, :]
+        pos[..., 2] = np.linspace(8, 12, hgt)[:, None]
+        nrm = np.broadcast_to([0.0, 1.0, 0.0], pos.shape).astype(np.float32)
+        ones = np.ones((hgt, wdt), bool)
+        s = select_samples(cam, light, pos, nrm, ones, ones, ones)
+        assert len(s) == hgt * wdt
+        assert float(np.sum(s.pixels)) == pytest.approx(res[0] * res[1], rel=1e-12)
+        half = np.zeros((hgt, wdt), bool)
+        half[:, : wdt // 2] = True  # the boundary samples alone: their share of the screen
+        s = select_samples(cam, light, pos, nrm, ones, ones, half)
+        assert float(np.sum(s.pixels)) == pytest.approx(res[0] * res[1] * half.sum() / half.size, rel=1e-12)
+
+
+# ---------------------------------------------------------------- fitting: the map-space margin
+def test_texel_margin_closed_form_and_the_floor_for_degenerate_boxes():
+    """texel_margin grows a box so that it takes n - 2 m of an axis's n texels: the padded extent is
+    size n / (n - 2 m), centred on the box; a dimension thinner than `floor` is first grown to `floor`
+    about its centre (so a point becomes a box of floor n / (n - 2 m)).
+    (kills the floor term's `/ 2` -> `/ 3`)"""
+    from shadowopt.solvers.fitting import texel_margin
+
+    lo = np.array([0.0, 1.0, -3.0])
+    hi = np.array([4.0, 1.0, -2.9999999])  # y a point, z thinner than the floor
+    n, m, floor = np.array([512.0, 256.0, 100.0]), 2.0, 0.5
+    lo2, hi2 = texel_margin(lo, hi, n, m, floor)
+    size = np.maximum(hi - lo, floor)
+    assert hi2 - lo2 == pytest.approx(size * n / (n - 2 * m), rel=1e-9)
+    assert (lo2 + hi2) / 2 == pytest.approx((lo + hi) / 2, rel=1e-12, abs=1e-12)
+    # no margin: exactly the floor around the point
+    lo3, hi3 = texel_margin(lo, hi, n, 0.0, floor)
+    assert hi3[1] - lo3[1] == pytest.approx(floor, rel=1e-9)
+    assert lo3[1] == pytest.approx(1.0 - floor / 2, rel=1e-9)
+
+
+def test_split_search_without_samples_returns_the_practical_splits():
+    """With no samples there is nothing to score: optimize_splits returns the k - 1 inner practical splits
+    (λ = 0.5: the mean of Lloyd et al.'s log split z_n (z_f/z_n)^(i/k) and the uniform one) over the receivers'
+    view-depth range, without evaluating anything.
+    (kills the early return's `[1:-1]` -> `[1:not 1]`, which returned no splits)"""
+    from shadowopt.solvers.split_search import optimize_splits
+
+    cam = Camera.look([0, 2, 0], [0, 0, 1], near=0.1, far=300, resolution=(640, 480))
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    rec = np.array([[0.0, 0.0, 5.0], [1.0, 0.0, 80.0], [-2.0, 0.0, 30.0]])
+    _, samples = ground_samples(cam, grid=(16, 9))
+    none = samples.subset(np.zeros(len(samples), bool))
+    bounds = (np.array([-10.0, 0.0, 0.0]), np.array([10.0, 5.0, 100.0]))
+    zn, zf = 5.0, 80.0
+    want = [0.5 * zn * (zf / zn) ** (i / 3) + 0.5 * (zn + (zf - zn) * i / 3) for i in (1, 2)]
+    r = optimize_splits(cam, sun, none, rec, bounds, (256, 256), 3)
+    assert r.split_at == pytest.approx(want, rel=1e-9)
+    assert r.nfev == 0 and r.start == "practical"
+
+
+def test_split_search_under_a_budget_scores_the_samples_weighted_mean():
+    """Under a texel budget a candidate's value is still the samples' weighted mean h (plus the receivers'
+    term), each sample on the cascade serving its view depth: scaling every weight leaves the standard starts'
+    values unchanged, while giving the far samples ten times the weight of the near ones changes them.
+    (kills the per-cascade sample selection's `view_depth >= split[0]` -> `==`, which left the cascades empty)"""
+    from shadowopt.solvers.split_search import optimize_splits
+
+    cam = Camera.look([0, 2, 0], [0, -0.1, 1], near=0.1, far=300, resolution=(1280, 720))
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    pts, samples = ground_samples(cam, grid=(48, 27))
+
+    def starts(weight):  # a new Samples object: the arrays of one are never modified (its subsets are cached)
+        s = dataclasses.replace(samples, weight=np.asarray(weight, float), _device={}, _subsets={})
+        return optimize_splits(cam, sun, s, pts, bounds, (256, 256), 3, texel_budget=3 * 256 * 256, maxeval=1).starts
+
+    base = starts(np.ones(len(samples)))
+    assert starts(np.full(len(samples), 3.0)) == pytest.approx(base, rel=1e-9)
+    far = np.where(samples.view_depth > np.median(samples.view_depth), 10.0, 1.0)
+    moved = starts(far)
+    for kind in base:
+        assert abs(moved[kind] / base[kind] - 1) > 0.05, (kind, moved[kind], base[kind])
+
+
+# ---------------------------------------------------------------- light_frames: the usable-hint threshold
+def test_perpendicular_up_needs_more_than_1e_6_of_perpendicular_component():
+    """A hint is usable when its component perpendicular to `forward` is longer than 1e-6 (the light within
+    ~1e-6 rad of the view axis falls back to the camera's up): at exactly 1e-6 the next hint is taken, just
+    above it the hint itself. The perpendicular parts here are exact in binary floating point.
+    (kills `norm(u) > 1e-6` -> `>= 1e-6`)"""
+    from shadowopt.solvers.light_frames import perpendicular_up
+
+    f = np.array([0.0, 0.0, 1.0])
+    at = np.array([1e-6, 0.0, 1.0])  # h - (h.f) f = (1e-6, 0, 0): norm exactly 1e-6
+    assert np.linalg.norm(at - np.dot(at, f) * f) == 1e-6
+    assert perpendicular_up(f, at, [0.0, 1.0, 0.0]) == pytest.approx([0.0, 1.0, 0.0], abs=0)
+    above = np.array([2e-6, 0.0, 1.0])
+    assert perpendicular_up(f, above, [0.0, 1.0, 0.0]) == pytest.approx([1.0, 0.0, 0.0], abs=0)
+
+
+# ---------------------------------------------------------------- optimize: the finite difference across a jump
+def test_robust_difference_takes_the_side_without_the_jump():
+    """The optimizer's finite difference of a piecewise-smooth objective (its fit switches hull edges): the
+    central difference where both sides agree, else the one-sided difference with the smaller change, on
+    whichever side the jump is. f = 2 x + 3 y with a jump of 10 at x = 0.5 + h/2 (or x = 0.5 - h/2): the slope
+    (2, 3) is recovered from the smooth side.
+    (kills the side choice's `sum(dp * dp)` -> `sum(dp % dp)`, which always took the forward side)"""
+    from shadowopt.solvers.optimize import _robust_difference
+
+    h = 1e-3
+    x0 = np.array([0.5, 0.2])
+
+    def f(x, jump_at):
+        return np.array([2 * x[0] + 3 * x[1] + (10.0 if (x[0] - jump_at) * np.sign(jump_at - 0.5) > 0 else 0.0)])
+
+    for jump_at in (0.5 + h / 2, 0.5 - h / 2):
+        g = [_robust_difference(f(x0 - h * e, jump_at), f(x0, jump_at), f(x0 + h * e, jump_at), h)[0]
+             for e in np.eye(2)]
+        assert g == pytest.approx([2.0, 3.0], rel=1e-6)
+    h = 1e-4  # x^2 at 1: the sides agree to 1e-4, so the central difference, exact for a quadratic
+    smooth = _robust_difference(np.array([(1 - h) ** 2]), np.array([1.0]), np.array([(1 + h) ** 2]), h)
+    assert smooth[0] == pytest.approx(2.0, rel=1e-9)

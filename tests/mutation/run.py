@@ -339,6 +339,8 @@ def main(argv=None) -> int:
     ap.add_argument("--only", nargs="*", help="mutant IDs to (re-)run; merged into results.json")
     ap.add_argument("--resume", action="store_true", help="keep the folders' earlier results and skip the mutants "
                     "already run (extends a sample)")
+    ap.add_argument("--reverse", action="store_true", help="run the sample from its end (a second process on "
+                    "the same folders with --resume: each skips what the other has written)")
     ap.add_argument("--no-baseline", action="store_true", help="skip the unmutated run of each module's tests "
                     "(the timeouts then come from the last recorded baseline times)")
     ap.add_argument("--work", help="scratch copy (default out/mutation/work-<folders>)")
@@ -400,6 +402,8 @@ def main(argv=None) -> int:
     for rel in sorted(broken):
         print(f"baseline: the tests mapped to {rel} fail without any mutant: its mutants are not run", flush=True)
     chosen = [s for s in chosen if str(s.module_path) not in broken]
+    if args.reverse:
+        chosen.reverse()
     with locked():
         data = load_results()
         data["meta"].setdefault("baseline_s", {}).update(base_s)
@@ -410,6 +414,11 @@ def main(argv=None) -> int:
         if time.monotonic() - t0 > budget:
             print(f"budget of {budget:.0f} s reached: {len(chosen) - i} mutants not run", flush=True)
             break
+        if args.resume:
+            with locked():
+                now_done = {r["id"] for r in load_results()["results"] if r["outcome"] in ("killed", "survived")}
+            if mutation_id(spec) in now_done:  # another process on the same sample ran it meanwhile
+                continue
         rel = str(spec.module_path)
         timeout = args.timeout or mutant_timeout(base_s.get(rel))
         r = run_one(work, spec, cfg["modules"][rel], timeout)
