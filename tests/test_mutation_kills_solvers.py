@@ -212,3 +212,52 @@ def test_robust_difference_takes_the_side_without_the_jump():
     h = 1e-4  # x^2 at 1: the sides agree to 1e-4, so the central difference, exact for a quadratic
     smooth = _robust_difference(np.array([(1 - h) ** 2]), np.array([1.0]), np.array([(1 + h) ** 2]), h)
     assert smooth[0] == pytest.approx(2.0, rel=1e-9)
+
+
+# ---------------------------------------------------------------- baselines: each cascade fitted to its own slice
+def test_a_middle_cascade_is_fitted_to_its_slice_not_to_every_deeper_receiver():
+    """Only the last cascade takes every receiver past its near split (and the first every one before its far
+    split); a middle cascade's focused or LiSPSM map is fitted to its own depth slice, so on the ground under a
+    tilted sun no receiver two slices deeper falls inside it (map coordinates in [0, 1]^2, w > 0). 7 cascades:
+    the fifth is the one `len(z) / 2` names.
+    (kills _cascade_part's `i == len(z) - 2` -> `i == len(z) / 2`, which fitted cascade 4 of 7 to every
+    deeper receiver; for 3 cascades the two agree, for 2 and 4 they differ only beyond the far plane)"""
+    from shadowopt.solvers.baselines import baseline
+
+    cam = Camera.look([0, 2, 0], [0, -0.1, 1], near=0.1, far=300, resolution=(1280, 720))
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    pts, _ = ground_samples(cam, far=150.0)
+    depth = (pts - cam.position) @ cam.forward
+    for method in ("focused", "lispsm"):
+        maps = baseline(method, cam, sun, pts, bounds, (512, 512), cascades=7, splits="practical")
+        for k in range(len(maps) - 2):
+            deep = pts[depth > maps[k + 1].split[1]]
+            assert len(deep) > 10
+            s, t, _, w = maps[k].map_coords(deep)
+            inside = (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (w > 0)
+            assert not inside.any(), (method, k, float(inside.mean()))
+
+
+# ---------------------------------------------------------------- optimize: the affine fit named at run time
+def test_objective_affine_fit_named_by_a_runtime_string():
+    """The optimizer's affine fit is chosen by name, and names arrive at run time (request JSON, settings),
+    not as interned literals: Problem(affine=<"objective" built at run time>) evaluates exactly as the literal,
+    and its value is no worse than the axis-aligned box's (the "objective" fit minimises the weighted mean h
+    over parallelograms that include the flush rectangles; Chong & Gortler's h via solvers.metric).
+    (kills `self.affine == "objective"` -> `self.affine is "objective"`)"""
+    from shadowopt.solvers.optimize import Problem
+
+    cam = Camera.look_at([0, 2, 0], [0, 0, 30], near=0.1, far=200, resolution=(1280, 720))
+    pts, s = ground_samples(cam, grid=(48, 27))
+    sun = DirectionalLight.make([1, -1, 0])
+    bounds = (np.array([-150, 0, -150.0]), np.array([150, 10, 150.0]))
+    name = "".join(["objec", "tive"])
+    assert name == "objective" and name is not "objective"  # noqa: F632  (the point of the test)
+    lit = Problem(cam, sun, s, pts, bounds, (1024, 1024), affine="objective")
+    run = Problem(cam, sun, s, pts, bounds, (1024, 1024), affine=name)
+    box = Problem(cam, sun, s, pts, bounds, (1024, 1024), affine="axis")
+    for x in ([0.1, 1.0], [0.3, 2.0]):
+        x = np.array(x)
+        assert run.value(x) == lit.value(x)
+        assert run.value(x) <= box.value(x) * (1 + 1e-9)

@@ -357,9 +357,16 @@ def main(argv=None) -> int:
     if args.only:
         folders = sorted({folder_of(i.split(":")[0]) for i in args.only})
     tag = f"only-{os.getpid()}" if args.only else "-".join(folders)  # --only runs may overlap any other run
-    work = Path(args.work) if args.work else ROOT / "out" / "mutation" / f"work-{tag}"
+    work = (Path(args.work) if args.work else ROOT / "out" / "mutation" / f"work-{tag}").resolve()  # absolute:
+    # PYTHONPATH below must hold from inside it
     make_work(work)
     os.environ["PYTHONPATH"] = str(work / "_import")  # the tests import the mutated copy
+    probe = subprocess.run([sys.executable, "-c", "import shadowopt.solvers as m; print(m.__path__[0])"],
+                           cwd=work, capture_output=True, text=True)
+    if not probe.stdout.strip().startswith(str(work)):
+        print(f"the scratch copy is not what the tests import ({probe.stdout.strip() or probe.stderr[-300:]})",
+              file=sys.stderr)
+        return 2
     wanted = ({i.split(":")[0] for i in args.only} if args.only
               else {m for m in cfg["modules"] if folder_of(m) in folders})
     unknown = sorted(m for m in wanted if m not in cfg["modules"])
