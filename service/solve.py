@@ -361,6 +361,8 @@ def maps_error(maps: list[ShadowMap], samples: Samples, origin) -> tuple[dict, l
     total = error_stats(h, m, samples.weight, a)
     total["unserved_samples"] = int(np.sum(idx < 0))
     with_limit(total, samples, map_texels(maps))  # limit, ratio_to_limit: solvers.metric.texel_limit
+    if len(maps) == 1 and total["unserved_samples"] == 0:  # one map serving every sample: its stats are the light's
+        return total, [{k: v for k, v in total.items() if k != "unserved_samples"}]
     per_map = [with_limit(error_stats(h[idx == k], m[idx == k], samples.weight[idx == k], a[idx == k]),
                           samples.subset(idx == k), map_texels([smap])) for k, smap in enumerate(maps)]
     return total, per_map

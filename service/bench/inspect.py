@@ -107,7 +107,7 @@ def bench_inspect(moves: int = 12, drags: int = 4, screen: str = "640x360", writ
                            "server_parts_p50_ms": {k: _p50(v) for k, v in parts.items()},
                            "search_budget_ms": asked[0]["time_budget_ms"] if asked else None, "asked": asked}
                     rows.append(row)
-                    log(f"inspect: {row}")
+                    log(f"inspect: { {k: v for k, v in row.items() if k != 'asked'} }")
                 browser.close()
             replay_load = [os.getloadavg()[0]]
             for row in rows:  # the browser closed: the page's requests again, the server alone
