@@ -261,3 +261,35 @@ def test_objective_affine_fit_named_by_a_runtime_string():
         x = np.array(x)
         assert run.value(x) == lit.value(x)
         assert run.value(x) <= box.value(x) * (1 + 1e-9)
+
+
+# ---------------------------------------------------------------- optimize: Chong & Gortler 2007's line search
+def test_cg07_line_search_backtracks_downhill_when_every_fixed_step_overshoots():
+    """Chong & Gortler 2007 Algorithm 1: fixed steps along the negative gradient, and when none helps, the
+    smallest positive one halved. On f(x) = 1000 (x_0 - 0.01)^2 + x_1^2 from x = 0 every fixed step (3 deg and
+    up, x 4 in (phi, u) units) overshoots the minimum at x_0 = 0.01; halving 3 deg reaches f < f(0) / 10, and the
+    search keeps iterating towards the closed-form minimum f = 0.
+    (kills the backtracking start `min(a > 0)` -> `min(a != 0)`, i.e. -10 deg: steps uphill)"""
+    from shadowopt.solvers.optimize import _cg07_linesearch
+
+    class Quadratic:  # the problem's interface the line search uses
+        def __init__(self):
+            self.seen = []
+
+        def value(self, x):
+            v = 1000.0 * (x[0] - 0.01) ** 2 + x[1] ** 2
+            self.seen.append(v)
+            return v
+
+        def gradient(self, x):
+            return np.array([2000.0 * (x[0] - 0.01), 2.0 * x[1]])
+
+        def clip(self, x):
+            return np.clip(x, -10.0, 10.0)
+
+    prob = Quadratic()
+    f0 = prob.value(np.zeros(2))
+    assert all(prob.value(np.array([np.radians(a) * 4, 0.0])) > f0 for a in (3, 5, 50))  # every fixed step overshoots
+    it = _cg07_linesearch(prob, np.zeros(2), 8)
+    assert min(prob.seen) < f0 / 10
+    assert it >= 2
