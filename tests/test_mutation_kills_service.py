@@ -499,3 +499,115 @@ def test_a_light_needs_a_map_when_any_receiver_faces_it():
     assert Need(10, 10, 0, 0, 5, 1).needs_map is True  # only an edge-pass receiver
     assert Need(10, 10, 1, 1, 0, 0).needs_map is True and Need(10, 10, 6, 1, 0, 3).needs_map is True
     assert Need(10, 10, 4, 1, 0, 0).shadowed == 3
+
+
+# --- api/admission.py: admission counts against a model, the fair pool's invariants under random load -----
+
+def test_admission_matches_its_rules_on_random_admit_release_sequences():
+    from shadowopt.api.admission import Admission, Refused
+
+    rng = random.Random(9)
+    for _ in range(60):
+        m, q = rng.randrange(1, 6), rng.randrange(1, 4)
+        adm = Admission(m, q, 1, 1)
+        live: list = []
+        for _ in range(80):
+            if live and rng.random() < 0.4:
+                t = live.pop(rng.randrange(len(live)))
+                t.release()
+                t.release()  # a second release changes nothing
+            else:
+                who = rng.choice("abc")
+                mine = sum(t.tenant == who for t in live)
+                # the documented rules: quota first (429), then the server limit for a tenant with one in (503);
+                # a tenant with nothing in flight is always admitted
+                want = 429 if mine >= q else 503 if len(live) >= m and mine > 0 else None
+                try:
+                    live.append(adm.admit(who))
+                    got = None
+                except Refused as e:
+                    got = e.status
+                    assert e.code == {429: "tenant_quota", 503: "busy"}[e.status] and e.retry_after >= 1
+                assert got == want, (m, q, mine, len(live))
+            counts = {}
+            for t in live:
+                counts[t.tenant] = counts.get(t.tenant, 0) + 1
+            assert adm.inflight == len(live) and adm.by_tenant == counts  # no tenant kept at zero
+
+
+def test_fair_pool_invariants_hold_under_random_load():
+    from collections import Counter
+
+    from shadowopt.api.admission import FairPool
+
+    async def run(seed):
+        rng = random.Random(seed)
+        size = rng.randrange(1, 4)
+        pool = FairPool("p", size)
+        inside: Counter = Counter()
+        waiting = [0]
+        served = []
+        violations = []
+
+        async def req(tenant, hold):
+            waiting[0] += 1
+            await pool.acquire(tenant)
+            waiting[0] -= 1
+            inside[tenant] += 1
+            served.append(tenant)
+            try:
+                for _ in range(hold):
+                    check()
+                    await asyncio.sleep(0)
+            finally:
+                inside[tenant] -= 1
+                pool.release(tenant)
+
+        def check():
+            # each request is waiting, granted but not yet resumed, or inside: the pool's counts say the same
+            assert pool.busy + pool.waiting == waiting[0] + sum(inside.values())
+            assert sum(inside.values()) <= pool.busy <= size and sum(pool.held.values()) == pool.busy
+            assert all(n > 0 and n >= inside[t] for t, n in pool.held.items())
+
+        tasks = []
+        for _ in range(rng.randrange(5, 25)):
+            t = rng.choice("abc")
+            tasks.append(asyncio.ensure_future(req(t, rng.randrange(0, 4))))
+            if rng.random() < 0.5:
+                await asyncio.sleep(0)
+                check()
+        await asyncio.wait_for(asyncio.gather(*tasks), 20)
+        return pool, served, violations, len(tasks)
+
+    import asyncio
+
+    for seed in range(40):
+        pool, served, violations, n = asyncio.run(run(seed))
+        assert len(served) == n and not violations, (seed, violations)
+        assert (pool.busy, pool.waiting, pool.held) == (0, 0, {}), seed  # every slot given back, nobody waits
+
+
+def test_a_slot_kept_for_another_tenant_is_handed_out_when_its_activity_ages_out():
+    import asyncio
+    import time
+
+    from shadowopt.api.admission import FairPool
+
+    async def main():
+        pool = FairPool("p", 2, recent_s=1.0)
+        await pool.acquire("a")
+        t_b = time.monotonic()
+        await pool.acquire("b")  # b asked at t_b
+        second = asyncio.ensure_future(pool.acquire("a"))
+        await asyncio.sleep(0.6)
+        pool.release("b")  # a slot is free, but b was active 0.6 s ago: it stays kept for b
+        await asyncio.sleep(0.1)
+        kept = not second.done() and pool.busy == 1 and pool.waiting == 1
+        await asyncio.wait_for(second, 5)
+        return kept, time.monotonic() - t_b, pool
+
+    kept, after, pool = asyncio.run(main())
+    assert kept
+    # handed to a once b's last ask is recent_s old (1.0 s after it, not recent_s after the release)
+    assert 0.95 <= after < 1.45, after
+    assert pool.held == {"a": 2} and pool.busy == 2 and pool.waiting == 0
