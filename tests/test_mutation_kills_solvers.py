@@ -293,3 +293,25 @@ def test_cg07_line_search_backtracks_downhill_when_every_fixed_step_overshoots()
     it = _cg07_linesearch(prob, np.zeros(2), 8)
     assert min(prob.seen) < f0 / 10
     assert it >= 2
+
+
+# ---------------------------------------------------------------- optimized_maps: the receivers' score memo
+def test_receiver_terms_do_not_depend_on_an_earlier_call_with_fewer_receivers():
+    """receiver_terms scores at most n receivers (a seeded subset) and keeps the subset per receiver array
+    for speed only: the same numbers with or without the memo. Truth: the terms of all receivers
+    (n >= their count) on a fresh array, against the same call on a copy that was first scored with n = 50.
+    (kills the memo's `hit[2] == n` -> `hit[2] < n`, which served the 50-receiver subset to n = 5000)"""
+    from shadowopt.solvers.baselines import baseline
+    from shadowopt.solvers.optimized_maps import receiver_terms
+
+    cam = Camera.look([0, 2, 0], [0, -0.1, 1], near=0.1, far=300, resolution=(1280, 720))
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    pts, _ = ground_samples(cam, grid=(48, 27))
+    assert 50 < len(pts) < 5000
+    smap = baseline("focused", cam, sun, pts, bounds, (512, 512))[0]
+    want = receiver_terms(smap, pts.copy(), cam, sun, 5000)
+    other = pts.copy()
+    few = receiver_terms(smap, other, cam, sun, 50)
+    assert few != want  # a subset scores differently, so the check below can fail
+    assert receiver_terms(smap, other, cam, sun, 5000) == want
