@@ -315,3 +315,25 @@ def test_receiver_terms_do_not_depend_on_an_earlier_call_with_fewer_receivers():
     few = receiver_terms(smap, other, cam, sun, 50)
     assert few != want  # a subset scores differently, so the check below can fail
     assert receiver_terms(smap, other, cam, sun, 5000) == want
+
+
+# ---------------------------------------------------------------- optimize: the minimum-area parallelogram fit
+def test_parallelogram_fit_of_a_parallelogram_is_the_parallelogram_itself():
+    """affine="parallelogram": the minimum-area enclosing parallelogram (two pairs of parallel lines flush with
+    hull edges). For points that are a parallelogram (sides (2, 0) and (1, 1), area 2; its axis box is 3 x 1) the
+    map's region in q space, area prod(hi - lo) / |det C|, is exactly 2 and every point lies inside it.
+    (kills `if not np.isfinite(area)` -> `if not not ...`, which fell back to the axis box)"""
+    from shadowopt.solvers.optimize import _affine_fit
+
+    corners = np.array([[0.0, 0.0], [2.0, 0.0], [3.0, 1.0], [1.0, 1.0]])
+    rng = np.random.default_rng(5)
+    inner = rng.uniform(0, 1, (40, 2)) @ np.array([[2.0, 0.0], [1.0, 1.0]])  # points inside it
+    q = np.vstack([corners, inner])
+    for res in ((512, 512), (1024, 512)):
+        C, lo, hi = _affine_fit(q, "parallelogram", res)
+        A = C[:2, :2]
+        assert np.prod(hi - lo) / abs(np.linalg.det(A)) == pytest.approx(2.0, rel=1e-9)
+        r = q @ A.T
+        assert np.all((r >= lo - 1e-12) & (r <= hi + 1e-12))
+    C, lo, hi = _affine_fit(q, "axis", (512, 512))
+    assert np.prod(hi - lo) == pytest.approx(3.0, rel=1e-12)
