@@ -28,7 +28,7 @@ from ..renderers.coarse import (DEFAULT_BOUNDARY_RADIUS, CoarseBuffers, FinePoin
                                 fine_ray_directions, light_buffers, _light_test, _mask_numpy, _surface_hits)
 from ..renderers.mitsuba_setup import mitsuba
 
-MAX_CAMERAS = 16  # camera entries kept (each a few MB at the 180 px default)
+MAX_CAMERAS = 16  # camera entries kept (each ~8 MB at the 180 px default, ~4 MB more with a receiver prep, ~2-4 MB per receiver mask memo)
 MAX_RECEIVER_MASKS = 8  # receiver sets kept per camera entry (one per distinct receiver mask)
 
 

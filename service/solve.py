@@ -157,7 +157,8 @@ def cell_table(buffers: CoarseBuffers, fine) -> CellTable:
                 d = fine.depth[ok]
                 np.minimum.at(dmin, c, d)
                 np.maximum.at(dmax, c, d)
-    return CellTable(np.concatenate(cell_parts), np.concatenate(hit_parts), missed_cell, dmin, dmax)
+    return CellTable(np.concatenate(cell_parts).astype(np.int32), np.concatenate(hit_parts).astype(np.int32),
+                     missed_cell, dmin, dmax)
 
 
 def cell_frusta(camera, buffers: CoarseBuffers, fine, fine_receivers: np.ndarray,
@@ -267,15 +268,15 @@ def receiver_prep(camera, buffers: CoarseBuffers) -> ReceiverPrep:
     fine = getattr(buffers, "fine", None)
     cand = buffers.hit & ~cells if fine is not None else buffers.hit
     rows, cols = np.nonzero(cand)
-    row = np.full(buffers.height * buffers.width, -1, dtype=np.int64)
+    row = np.full(buffers.height * buffers.width, -1, dtype=np.int32)
     row[rows * buffers.width + cols] = np.arange(len(rows))
     reach = tangent_reach(camera, buffers, cols + 0.5, rows + 0.5, buffers.position[rows, cols],
                           buffers.normal[rows, cols], EDGE_REACH).reshape(len(rows), 4, 3)
     if fine is None:
         return ReceiverPrep(cells, row, reach)
-    nb = fine.neighbours()
+    nb = fine.neighbours().astype(np.int32)  # index arrays kept per camera: int32 (half the memory)
     cand = np.nonzero(fine_reach_candidates(fine, nb))[0]
-    fine_row = np.full(len(fine.flat), -1, dtype=np.int64)
+    fine_row = np.full(len(fine.flat), -1, dtype=np.int32)
     fine_row[cand] = np.arange(len(cand))
     return ReceiverPrep(cells, row, reach, fine_border(fine), cell_table(buffers, fine), nb, fine_row,
                         _fine_reach(camera, buffers, fine, cand).reshape(len(cand), 4, 3))
