@@ -595,6 +595,14 @@ def test_a_slot_kept_for_another_tenant_is_handed_out_when_its_activity_ages_out
 
     async def main():
         pool = FairPool("p", 2, recent_s=1.0)
+        wakes = [0]
+        wake = pool._wake
+
+        def counted():
+            wakes[0] += 1
+            wake()
+
+        pool._wake = counted
         await pool.acquire("a")
         t_b = time.monotonic()
         await pool.acquire("b")  # b asked at t_b
@@ -604,10 +612,100 @@ def test_a_slot_kept_for_another_tenant_is_handed_out_when_its_activity_ages_out
         await asyncio.sleep(0.1)
         kept = not second.done() and pool.busy == 1 and pool.waiting == 1
         await asyncio.wait_for(second, 5)
-        return kept, time.monotonic() - t_b, pool
+        return kept, time.monotonic() - t_b, pool, wakes
 
-    kept, after, pool = asyncio.run(main())
+    kept, after, pool, wakes = asyncio.run(main())
     assert kept
+    assert wakes[0] <= 2, wakes  # one timer for the age-out (not a poll every few milliseconds)
     # handed to a once b's last ask is recent_s old (1.0 s after it, not recent_s after the release)
     assert 0.95 <= after < 1.45, after
     assert pool.held == {"a": 2} and pool.busy == 2 and pool.waiting == 0
+
+
+# --- renderers/redaction.py: which folders are cut -------------------------------------------------------
+
+def test_only_the_temp_dir_is_hidden_one_level_below_root():
+    import tempfile
+
+    from shadowopt.renderers.redaction import PathRedactor
+
+    tmp = tempfile.gettempdir().rstrip("/")
+    # "/home" and "/srv" sort before "/tmp": a folder one level below / is never hidden, whatever its name
+    r = PathRedactor(hidden=["/home", "/srv", "/aaa", tmp])
+    assert r.text("see /home/alice/notes and /srv/x/y and /aaa/b/c") == "see /home/alice/notes and /srv/x/y and /aaa/b/c"
+    assert r.text(f"at {tmp}/abc/def") == "at def"
+    assert PathRedactor(hidden=["/home/alice"]).text("see /home/alice/notes") == "see notes"  # two levels: hidden
+
+
+def test_a_relative_root_is_matched_as_written_only_with_two_components_or_more():
+    from shadowopt.renderers.redaction import PathRedactor
+
+    assert PathRedactor(roots=["out/data"], hidden=[]).text("at out/data/x.usda") == "at x.usda"
+    # a one-word relative folder ("data") would cut the word wherever it appears: only its absolute form counts
+    assert PathRedactor(roots=["data"], hidden=[]).text("at data/y.usda") == "at data/y.usda"
+    assert PathRedactor(roots=["./data"], hidden=[]).text("at data/y.usda") == "at data/y.usda"
+
+
+# --- service/request_cost.py: the defaults are the schema's ------------------------------------------------
+
+def test_auto_cascades_cost_uses_the_schemas_default_max_cascades():
+    from shadowopt.api.schemas import ShadowSpec
+    from shadowopt.service.request_cost import _describe, maps_per_light
+
+    k = ShadowSpec.model_fields["max_cascades"].default  # the request's default, from the schema
+    fits = k * (k + 1) // 2  # auto tries 1..k cascades: k(k+1)/2 map fits
+    assert maps_per_light({"cascades": "auto"}) == fits == maps_per_light({"cascades": "auto", "max_cascades": k})
+    assert maps_per_light(ShadowSpec(cascades="auto")) == fits
+    assert maps_per_light({"cascades": "auto", "max_cascades": 3}) == 6 and maps_per_light({"cascades": 3}) == 3
+    text = _describe({"shadow": {"cascades": "auto"}, "lights": [{"type": "directional"}]})
+    assert f"max_cascades {k} ({fits} map fits)" in text
+
+
+# --- service/isolation.py: how a loader child's death is read -------------------------------------------
+
+def test_a_dead_loader_child_is_classified_by_signal_and_memory():
+    import math
+    import signal
+
+    from shadowopt.renderers.scene_data import SceneError
+    from shadowopt.service.isolation import CRASH_MEMORY_SHARE, _crashed
+
+    mem = 1 << 30
+
+    def code(exitcode, peak):
+        with pytest.raises(SceneError) as e:
+            _crashed(exitcode, peak, mem, "x.usda")
+        return e.value.code
+
+    near = math.ceil(CRASH_MEMORY_SHARE * mem)  # the least whole byte count at the share
+    assert code(-signal.SIGKILL, 0) == "memory_limit"  # the OOM killer
+    assert code(-signal.SIGXCPU, 0) == "load_timeout"
+    for sig in (signal.SIGABRT, signal.SIGSEGV, signal.SIGBUS, signal.SIGHUP, signal.SIGFPE):
+        assert code(-sig, near - 4096) == "corrupt", sig  # a crash far from the limit: a damaged file
+        assert code(-sig, near) == "memory_limit", sig  # std::bad_alloc aborts near the limit
+    assert code(1, 0) == "corrupt" and code(None, 0) == "corrupt" and code(None, mem) == "memory_limit"
+
+
+def test_near_the_memory_limit_is_the_documented_share_of_it(monkeypatch):
+    from shadowopt.service import isolation
+
+    monkeypatch.setattr(isolation, "_status", lambda pid="self": {"VmPeak": 800})
+    assert isolation._near(1000) is True and isolation._near(999) is True  # 800 >= 0.8 x 999
+    assert isolation._near(1001) is False and isolation._near(10_000) is False
+    monkeypatch.setattr(isolation, "_status", lambda pid="self": {})
+    assert isolation._near(1) is False  # nothing known: not near
+
+
+def test_a_loader_child_limits_itself_as_documented(monkeypatch):
+    import math
+    import resource
+
+    from shadowopt.service import isolation
+
+    calls = {}
+    monkeypatch.setattr(resource, "setrlimit", lambda which, lim: calls.__setitem__(which, lim))
+    isolation._limit_self(3 << 30, 2.3)
+    # RLIMIT_CPU = timeout x threads (rounded up) + the slack (a backstop), hard 5 s above; no core files
+    cpu = math.ceil(2.3 * isolation.CHILD_THREADS) + isolation.CPU_SLACK_S
+    assert calls == {resource.RLIMIT_CORE: (0, 0), resource.RLIMIT_AS: (3 << 30, 3 << 30),
+                     resource.RLIMIT_CPU: (cpu, cpu + 5)}
