@@ -337,3 +337,28 @@ def test_parallelogram_fit_of_a_parallelogram_is_the_parallelogram_itself():
         assert np.all((r >= lo - 1e-12) & (r <= hi + 1e-12))
     C, lo, hi = _affine_fit(q, "axis", (512, 512))
     assert np.prod(hi - lo) == pytest.approx(3.0, rel=1e-12)
+
+
+# ---------------------------------------------------------------- baselines: texel extents of an orthographic map
+def test_texel_extents_of_an_orthographic_map_are_its_width_per_unit():
+    """texel_extents: world metres per unit s and t, by central differences in the plane perpendicular to the
+    light. An overhead orthographic map of half-size hw is 2 hw metres per unit on both axes, exactly; the
+    difference step scales with the points' extent, so scenes of 2 km to 40 km agree with the closed form to
+    1e-8 (a step fixed near 1e-9 m leaves roundoff of ~2e-6 there).
+    (kills `extent = ... if len(pts) > 1 else 0` -> `len(pts) < 1`, which dropped the extent from the step)"""
+    from shadowopt.solvers.baselines import texel_extents
+    from shadowopt.solvers.shadow_map import ShadowMap
+
+    sun = DirectionalLight.make([0, -1, 0])
+    view = np.array([[1.0, 0, 0, 0], [0, 0, -1.0, 0], [0, 1.0, 0, -50.0], [0, 0, 0, 1.0]])  # looks down -y from y = 50
+    rng = np.random.default_rng(1)
+    for hw in (1000.0, 5000.0, 20000.0):
+        proj = np.diag([1 / hw, 1 / hw, -2 / 199.0, 1.0])
+        proj[2, 3] = -201 / 199.0
+        sm = ShadowMap(view, proj, (1024, 1024))
+        pts = np.column_stack([rng.uniform(-0.9 * hw, 0.9 * hw, 200), np.zeros(200), rng.uniform(-0.9 * hw, 0.9 * hw, 200)])
+        s, t, _, w = sm.map_coords(pts)
+        assert np.all((s > 0) & (s < 1) & (t > 0) & (t < 1) & (w > 0))
+        per_s, per_t = texel_extents(sm, pts, sun)
+        assert per_s == pytest.approx(np.full(200, 2 * hw), rel=1e-8)
+        assert per_t == pytest.approx(np.full(200, 2 * hw), rel=1e-8)
