@@ -362,3 +362,48 @@ def test_texel_extents_of_an_orthographic_map_are_its_width_per_unit():
         per_s, per_t = texel_extents(sm, pts, sun)
         assert per_s == pytest.approx(np.full(200, 2 * hw), rel=1e-8)
         assert per_t == pytest.approx(np.full(200, 2 * hw), rel=1e-8)
+
+
+# ---------------------------------------------------------------- path_optimize: the joint optimum's camera
+def test_joint_grid_is_seen_from_the_middle_frame():
+    """joint_grid optimizes one canonical part for several frames, on the union of their samples and
+    receivers, seen from the middle frame's camera (its splits and warp frame). So with three frames the first
+    frame's camera plays no part: moving it (same samples and receivers) leaves the grid unchanged, while
+    moving the middle frame's camera changes it.
+    (kills `frames[len(frames) // 2]` -> `frames[len(frames) >> 2]`, the first of three frames)"""
+    from shadowopt.solvers.path_optimize import FrameProblem, joint_grid
+
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    cams = [Camera.look([x, 2, 0], [0.1 * x, -0.1, 1], near=0.1, far=300, resolution=(640, 360)) for x in (-4.0, 0.0, 4.0)]
+    data = [ground_samples(c, far=120.0, grid=(32, 18)) for c in cams]
+    opts = {"resolution": (512, 512), "cascades": 1}
+
+    def frames(cameras):
+        return [FrameProblem(c, sun, s, p, bounds, dict(opts)) for c, (p, s) in zip(cameras, data)]
+
+    moved = Camera.look([30.0, 8, -20], [-0.5, -0.3, 1], near=0.1, far=300, resolution=(640, 360))
+    base = joint_grid(frames(cams), 0)
+    assert base is not None
+    first = joint_grid(frames([moved, cams[1], cams[2]]), 0)
+    middle = joint_grid(frames([cams[0], moved, cams[2]]), 0)
+    assert np.array_equal(first.view, base.view) and np.array_equal(first.G, base.G)
+    assert not (np.allclose(middle.view, base.view) and np.allclose(middle.G, base.G))
+
+
+# ---------------------------------------------------------------- optimize: the warped depth range
+def test_optimized_map_depth_range_is_set_by_the_receivers_amid_a_small_caster():
+    """The optimized map's depth range spans the receivers' and the casters' warped light depths z / w'
+    (Lloyd et al.'s warp: depth divides by w', constant along each light ray), padded by 1%: no wider, so no
+    depth precision is wasted. With one 4 x 3 x 4 m caster amid 100 m of ground receivers under a 45 degree
+    sun the receivers themselves set both ends: their clip depths reach within 3% of -1 and of 1.
+    (kills `zv = z / w'` -> `z * w'`, which squeezed the receivers into 0.4% of the depth range)"""
+    from shadowopt.solvers.optimize import minimize
+
+    cam = Camera.look_at([0, 2, 0], [0, 0, 30], near=0.1, far=200, resolution=(1280, 720))
+    pts, s = ground_samples(cam, grid=(48, 27))
+    caster = (np.array([-2.0, 0.0, 8.0]), np.array([2.0, 3.0, 12.0]))
+    r = minimize(cam, DirectionalLight.make([1, -1, 0]), s, pts, caster, (1024, 1024))
+    _, _, z, w = r.map.map_coords(pts)
+    assert np.all(w > 0) and np.all(np.abs(z) <= 1)
+    assert z.min() < -0.97 and z.max() > 0.97, (float(z.min()), float(z.max()))
