@@ -407,3 +407,34 @@ def test_optimized_map_depth_range_is_set_by_the_receivers_amid_a_small_caster()
     _, _, z, w = r.map.map_coords(pts)
     assert np.all(w > 0) and np.all(np.abs(z) <= 1)
     assert z.min() < -0.97 and z.max() > 0.97, (float(z.min()), float(z.max()))
+
+
+# ---------------------------------------------------------------- stable_csm: each cascade biased by its own receivers
+def test_stable_csm_cascade_bias_comes_from_its_own_depth_slice():
+    """stable_csm's maps do not depend on the receivers (world-fixed spheres and grid); only each cascade's
+    bias does, from the receivers in its view-depth slice (baselines' rule). Truth: cascade i's bias and depth
+    block equal those of the same call given only the receivers of slice i, with the camera far from the world
+    origin (position . forward = -60 m) so that depths measured from the wrong point pick other receivers.
+    (kills `depth = (receivers - camera.position) . forward` -> `receivers + camera.position`)"""
+    from shadowopt.solvers.stable_csm import stable_csm_maps
+
+    cam = Camera.look([0, 2, -60], [0, -0.1, 1], near=0.1, far=300, resolution=(1280, 720))
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    pts, _ = ground_samples(cam, far=150.0)
+    # some relief, so that the slices' receivers ask for different slope biases
+    pts = pts + np.column_stack([np.zeros(len(pts)), 0.02 * (pts[:, 2] + 60) * np.sin(pts[:, 0]), np.zeros(len(pts))])
+    maps = stable_csm_maps(cam, sun, pts, bounds, (1024, 1024), cascades=3)
+    depth = (pts - cam.position) @ cam.forward
+    differs = checked = 0
+    for i, m in enumerate(maps):
+        sel = (depth >= m.split[0]) & (depth <= m.split[1])
+        if not sel.any():  # a slice past the receivers: biased by all of them
+            continue
+        checked += 1
+        alone = stable_csm_maps(cam, sun, pts[sel], bounds, (1024, 1024), cascades=3)[i]
+        assert np.array_equal(alone.matrix, m.matrix)
+        assert alone.depth_bias == m.depth_bias and alone.depth == m.depth
+        other = stable_csm_maps(cam, sun, pts[~sel], bounds, (1024, 1024), cascades=3)[i]
+        differs += other.depth != m.depth or other.depth_bias != m.depth_bias
+    assert checked >= 2 and differs  # the bias does depend on which receivers, so the check above can fail
