@@ -29,8 +29,10 @@ from .load import DEMO_SCENE, free_port, git_commit, percentile, start_server, s
 
 TARGET_MS = 150.0
 CHROMIUM_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"]
-# (method, coarse buffer long side): the default, the closed-form baseline, a smaller coarse buffer
-CONFIGURATIONS = [("optimized", 180), ("uniform", 180), ("optimized", 96)]
+# (method, coarse buffer long side, the page's search budget ms): the page's default, the closed-form baseline, a
+# smaller coarse buffer, and the search budget field lower and higher (the same 12 suns: their predicted errors compare)
+CONFIGURATIONS = [("optimized", 180, 60), ("uniform", 180, 60), ("optimized", 96, 60), ("optimized", 180, 40),
+                  ("optimized", 180, 100)]
 
 
 def _wait_latencies(page, n: int, timeout_ms: float = 60000) -> None:
@@ -65,7 +67,9 @@ def bench_inspect(moves: int = 12, drags: int = 4, screen: str = "640x360", writ
                 page.uncheck("#auto-evaluate")
                 page.set_input_files("#file", str(DEMO_SCENE))
                 _wait_latencies(page, 0)
-                for method, coarse in CONFIGURATIONS:
+                for method, coarse, budget in CONFIGURATIONS:
+                    page.fill("#time-budget", str(budget))
+                    page.dispatch_event("#time-budget", "change")
                     page.select_option("#method", method)
                     page.select_option("#coarse", str(coarse))
                     n = page.evaluate("window.inspector.state.stats.latencies.length")
@@ -75,7 +79,7 @@ def bench_inspect(moves: int = 12, drags: int = 4, screen: str = "640x360", writ
                         page.fill("#azimuth", str(-150 + 7 * warm))
                         _wait_latencies(page, n)
                     single, drag, trip, server, page_part, coarse_ms = [], [], [], [], [], []
-                    parts, asked = {k: [] for k in SERVER_PARTS}, []
+                    parts, asked, objective, mean_m = {k: [] for k in SERVER_PARTS}, [], [], []
                     for i in range(moves):
                         n = page.evaluate("window.inspector.state.stats.latencies.length")
                         page.fill("#azimuth", str(-120 + 17 * i))
@@ -89,6 +93,8 @@ def bench_inspect(moves: int = 12, drags: int = 4, screen: str = "640x360", writ
                         for k, v in server_parts(s[1], s[2]).items():
                             parts[k].append(v)
                         asked.append(s[3])
+                        objective.append(s[4]["objective"])
+                        mean_m.append(s[4]["mean_m"])
                     for i in range(drags):
                         n = page.evaluate("window.inspector.state.stats.latencies.length")
                         page.evaluate(f"""async () => {{ const el = document.getElementById('azimuth');
@@ -105,7 +111,8 @@ def bench_inspect(moves: int = 12, drags: int = 4, screen: str = "640x360", writ
                            "server_coarse_p50_ms": percentile(sorted(coarse_ms), 50),
                            "page_p50_ms": percentile(sorted(page_part), 50),
                            "server_parts_p50_ms": {k: _p50(v) for k, v in parts.items()},
-                           "search_budget_ms": asked[0]["time_budget_ms"] if asked else None, "asked": asked}
+                           "search_budget_ms": asked[0]["time_budget_ms"] if asked else None, "asked": asked,
+                           "objective_mean": statistics.fmean(objective), "mean_m_mean": statistics.fmean(mean_m)}
                     rows.append(row)
                     log(f"inspect: { {k: v for k, v in row.items() if k != 'asked'} }")
                 browser.close()
@@ -130,7 +137,7 @@ def bench_inspect(moves: int = 12, drags: int = 4, screen: str = "640x360", writ
 PAGE_STATE = """() => { const s = window.inspector.state;
     return [s.stats, s.solution.timings_ms, s.solution.solver || null,
             { scene_id: s.sceneId, method: s.solution.method, rig: s.solution.rig,
-              time_budget_ms: +document.getElementById('time-budget').value }]; }"""
+              time_budget_ms: +document.getElementById('time-budget').value }, s.solution.lights[0].predicted_error]; }"""
 SERVER_PARTS = ("coarse", "receivers", "solver", "search", "rest", "cpu")
 
 
@@ -182,7 +189,8 @@ def inspect_table(rows: list[dict], screen: str, renderer: str, load_avg: list[f
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         ok = r["single_p50_ms"] is not None and r["single_p50_ms"] <= TARGET_MS
-        lines.append(f"| {r['method']} | {r['coarse_long_side']} px | **{r['single_p50_ms']:.0f}** | "
+        label = r["method"] + (f", search {r['search_budget_ms']:g} ms" if r.get("search_budget_ms") not in (None, 60) else "")
+        lines.append(f"| {label} | {r['coarse_long_side']} px | **{r['single_p50_ms']:.0f}** | "
                      f"{r['single_p95_ms']:.0f} | {r['drag_p50_ms']:.0f} | {r['drag_max_ms']:.0f} | "
                      f"{r['round_trip_p50_ms']:.0f} | {r['server_p50_ms']:.0f} | {r['server_coarse_p50_ms']:.1f} | "
                      f"{r['page_p50_ms']:.0f} | "
@@ -190,7 +198,7 @@ def inspect_table(rows: list[dict], screen: str, renderer: str, load_avg: list[f
     lines.append("")
     lines.append(f"New shadows on screen after the last sun-slider event, measured by the page (`/inspect`) in headless "
                  f"chromium ({renderer}), demo scene and camera at {screen}, 1 map from a 4 M texel budget, search "
-                 f"budget 60 ms. Single move: one input event, the next after the shadows are drawn; drag: 10 input "
+                 f"budget 60 ms (the page's default; another where the method says so). Single move: one input event, the next after the shadows are drawn; drag: 10 input "
                  f"events 16 ms apart (one optimize in flight, the newest sun sent when it returns). Includes the "
                  f"HTTP round trip, the solve, the light pass and camera pass in WebGL2 and two animation frames (page: the "
                  f"latency less the round trip). The server keeps the camera part of the coarse pass per tenant, scene "
@@ -206,15 +214,16 @@ def inspect_table(rows: list[dict], screen: str, renderer: str, load_avg: list[f
               "solver report; then the same requests sent again with the browser closed, one at a time):", "",
               "| method | coarse buffer | search budget | server setup | coarse pass | receivers + samples | "
               "solver: fits, search, final fit | of it search | rest: metric, response | server CPU | "
-              "alone: round trip | alone: server setup | alone: server CPU | search evaluations |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "alone: round trip | alone: server setup | alone: server CPU | search evaluations | "
+              "predicted objective (mean h), mean over the moves | mean_m, mean |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         p, a = r.get("server_parts_p50_ms") or {}, r.get("alone") or {}
         lines.append(f"| {r['method']} | {r['coarse_long_side']} px | {f(r.get('search_budget_ms'))} | "
                      f"{f(r['server_p50_ms'])} | {f(p.get('coarse'), 1)} | {f(p.get('receivers'), 1)} | "
                      f"{f(p.get('solver'))} | {f(p.get('search'))} | {f(p.get('rest'))} | {f(p.get('cpu'))} | "
                      f"{f(a.get('round_trip_p50_ms'))} | {f(a.get('server_p50_ms'))} | {f(a.get('cpu_p50_ms'))} | "
-                     f"{f(a.get('nfev_p50'))} |")
+                     f"{f(a.get('nfev_p50'))} | {f(r.get('objective_mean'), 2)} | {f(r.get('mean_m_mean'), 3)} |")
     if replay_load:
         lines += ["", f"Load average (1 min) while the requests were sent again: {min(replay_load):.1f}-"
                       f"{max(replay_load):.1f}. The search budget counts from the start of the solve (the coarse "
