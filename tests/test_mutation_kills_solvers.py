@@ -397,7 +397,8 @@ def test_optimized_map_depth_range_is_set_by_the_receivers_amid_a_small_caster()
     (Lloyd et al.'s warp: depth divides by w', constant along each light ray), padded by 1%: no wider, so no
     depth precision is wasted. With one 4 x 3 x 4 m caster amid 100 m of ground receivers under a 45 degree
     sun the receivers themselves set both ends: their clip depths reach within 3% of -1 and of 1.
-    (kills `zv = z / w'` -> `z * w'`, which squeezed the receivers into 0.4% of the depth range)"""
+    (kills `zv = z / w'` -> `z * w'`, which squeezed the receivers into 0.4% of the depth range, and the
+    scene corners' far end `zc_lo / w'` -> `zc_lo - w'`, which pushed the far plane out by w')"""
     from shadowopt.solvers.optimize import minimize
 
     cam = Camera.look_at([0, 2, 0], [0, 0, 30], near=0.1, far=200, resolution=(1280, 720))
