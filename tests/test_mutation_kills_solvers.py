@@ -439,3 +439,25 @@ def test_stable_csm_cascade_bias_comes_from_its_own_depth_slice():
         other = stable_csm_maps(cam, sun, pts[~sel], bounds, (1024, 1024), cascades=3)[i]
         differs += other.depth != m.depth or other.depth_bias != m.depth_bias
     assert checked >= 2 and differs  # the bias does depend on which receivers, so the check above can fail
+
+
+# ---------------------------------------------------------------- optimize: a point light's single-map cone
+def test_point_light_receivers_within_the_single_map_cone_get_one_tight_spot():
+    """single_map_spot: a point light whose receivers lie within SINGLE_MAP_CONE_DEG (70 deg) of one axis gets
+    one map, a spot on the receivers' mean direction with a cone just covering them. Receivers on a circle at
+    half-angle a about -y (plus the axis point): the cone covers a and exceeds it by at most 1 deg, for a = 20
+    and for a = 68.5, still one map.
+    (kills the cone margin `+ 1.0` -> `+ 2.0`, which wasted texels and sent a = 68.5 to the cube)"""
+    from shadowopt.solvers.lights import PointLight
+    from shadowopt.solvers.optimize import SINGLE_MAP_CONE_DEG, single_map_spot
+
+    light = PointLight.make([0.0, 10.0, 0.0])
+    phi = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    for a in (20.0, 68.5):
+        assert a < SINGLE_MAP_CONE_DEG
+        r = np.tan(np.radians(a)) * 10.0
+        ring = np.column_stack([r * np.cos(phi), np.zeros_like(phi), r * np.sin(phi)])
+        spot = single_map_spot(light, np.vstack([ring, [[0.0, 0.0, 0.0]]]))
+        assert spot is not None, a
+        assert spot.direction == pytest.approx([0.0, -1.0, 0.0], abs=1e-9)
+        assert a <= spot.cone_deg <= a + 1.0 + 1e-9
