@@ -461,3 +461,30 @@ def test_point_light_receivers_within_the_single_map_cone_get_one_tight_spot():
         assert spot is not None, a
         assert spot.direction == pytest.approx([0.0, -1.0, 0.0], abs=1e-9)
         assert a <= spot.cone_deg <= a + 1.0 + 1e-9
+
+
+def test_cg07_line_search_stops_at_a_stationary_point_without_evaluating():
+    """At a point where the gradient vanishes (or is not finite) there is no direction to search: the line
+    search stops after the first gradient, evaluates no step (every step would be 0 / 0 = NaN) and leaves x.
+    (kills `norm == 0 or not isfinite(norm)` -> `and`, which went on to evaluate 15 NaN points)"""
+    from shadowopt.solvers.optimize import _cg07_linesearch
+
+    class Bowl:
+        def __init__(self, grad):
+            self.seen, self.grad = [], grad
+
+        def value(self, x):
+            self.seen.append(np.array(x, float))
+            return float(np.sum((np.asarray(x) - 0.25) ** 2))
+
+        def gradient(self, x):
+            return np.array(self.grad(x), float)
+
+        def clip(self, x):
+            return np.clip(x, -10.0, 10.0)
+
+    for grad in (lambda x: 2 * (np.asarray(x) - 0.25), lambda x: [np.inf, 0.0], lambda x: [np.nan, 1.0]):
+        prob = Bowl(grad)
+        it = _cg07_linesearch(prob, np.array([0.25, 0.25]), 8)
+        assert it == 1
+        assert len(prob.seen) == 1 and np.all(np.isfinite(prob.seen[0]))  # only the start was evaluated
