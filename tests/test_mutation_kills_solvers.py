@@ -495,8 +495,8 @@ def test_min_depth_along_light_matches_a_brute_force_walk_of_the_ray():
     """analysis._min_depth_along_light: d_min of Lloyd et al. 2006 eqs. 45/54, the smallest view depth on the
     light's line through p inside the view frustum (n <= z <= f, |x|, |y| <= z tan theta). Truth: walk the line
     in 1e-3 m steps and take the least z of the points inside the frustum. Light directions that leave through
-    the near plane (d_min = n), a side plane, and the far plane.
-    (kills the near plane's normal (0, 0, -1) -> (0, 0, +1), which cut the line at p)"""
+    the near plane (d_min = n), a side plane, and the far plane. (Written for the near plane's normal mutant
+    (0, 0, -1) -> (0, 0, +1), which this does not kill: it is equivalent, see tests/mutation/equivalent.json.)"""
     from shadowopt.solvers.analysis import _min_depth_along_light
 
     n, f, tan_t = 1.0, 20.0, np.tan(np.radians(30.0))
