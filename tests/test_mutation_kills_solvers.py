@@ -514,3 +514,23 @@ def test_min_depth_along_light_matches_a_brute_force_walk_of_the_ray():
             assert got[i] == pytest.approx(want, abs=2e-3), (l, i)
     on_axis = np.array([[0.0, 0.0, 5.0], [0.0, 0.0, 15.0]])  # on the view axis, the line along it reaches z = n
     assert _min_depth_along_light(on_axis, np.array([0.0, 0.0, 1.0]), n, f, tan_t) == pytest.approx([n, n])
+
+
+# ---------------------------------------------------------------- stable_csm: the slice's bounding sphere
+def test_stable_csm_slice_sphere_encloses_the_slice_and_touches_a_corner():
+    """slice_sphere (Valient 2008): the bounding sphere of the view-frustum slice [z0, z1]. Truth: the slice's
+    eight corners from the camera's field of view (depth z, +-z tan(fov_x / 2) right, +-z tan(fov_y / 2) up) lie
+    inside it, and the farthest one lies on it (radius = the larger corner distance from the centre).
+    (kills k^2 = tan_y^2 (1 + aspect^2) -> tan_y^2 (0 + aspect^2), which forgot the vertical half-angle)"""
+    from shadowopt.solvers.stable_csm import slice_sphere
+
+    for fov, res, (z0, z1) in ((60.0, (1280, 720), (0.1, 10.0)), (45.0, (1920, 1080), (10.0, 40.0)),
+                              (90.0, (1000, 1000), (2.0, 2.5))):
+        cam = Camera.look([3.0, 2.0, -7.0], [0.2, -0.3, 1.0], fov_y_deg=fov, near=0.1, far=300, resolution=res)
+        ty = np.tan(np.radians(fov) / 2)
+        tx = ty * res[0] / res[1]
+        corners = np.array([cam.position + z * (cam.forward + sx * tx * cam.right + sy * ty * cam.up)
+                            for z in (z0, z1) for sx in (-1, 1) for sy in (-1, 1)])
+        centre, r = slice_sphere(cam, z0, z1)
+        dist = np.linalg.norm(corners - centre, axis=1)
+        assert dist.max() == pytest.approx(r, rel=1e-9)
