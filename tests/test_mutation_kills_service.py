@@ -709,3 +709,83 @@ def test_a_loader_child_limits_itself_as_documented(monkeypatch):
     cpu = math.ceil(2.3 * isolation.CHILD_THREADS) + isolation.CPU_SLACK_S
     assert calls == {resource.RLIMIT_CORE: (0, 0), resource.RLIMIT_AS: (3 << 30, 3 << 30),
                      resource.RLIMIT_CPU: (cpu, cpu + 5)}
+
+
+def test_the_pool_forgets_idle_tenants_seen_long_ago_and_only_those():
+    import asyncio
+    import time
+
+    from shadowopt.api.admission import FairPool
+
+    async def churn(pool, n):
+        for i in range(n):
+            await pool.acquire(f"t{i}")
+            pool.release(f"t{i}")  # every release dispatches (and, above 64 tenants, forgets)
+
+    async def main():
+        keep = FairPool("p", 2, recent_s=0.5)
+        await churn(keep, 70)
+        recent = len(keep._seen)  # all 70 asked well within recent_s: none may be forgotten yet
+        old = FairPool("p", 2, recent_s=0.05)
+        await churn(old, 70)
+        await asyncio.sleep(0.1)
+        await old.acquire("z")
+        old.release("z")  # dispatches: forgets the old ones (z asked a moment ago)
+        held = FairPool("p", 2, recent_s=0.05)
+        await held.acquire("holder")
+        await churn(held, 70)
+        await asyncio.sleep(0.1)
+        await held.acquire("z")
+        held.release("z")
+        return recent, old, held
+
+    t0 = time.monotonic()
+    recent, old, held = asyncio.run(main())
+    if time.monotonic() - t0 < 0.45:  # (the churn itself takes milliseconds)
+        assert recent == 70
+    assert set(old._seen) == {"z"}  # the 70 idle tenants, seen > recent_s ago, are dropped
+    assert "holder" in held._seen and held.held == {"holder": 1}  # a tenant holding a slot is kept
+
+
+def test_the_pool_rules_hold_whatever_the_monotonic_clocks_origin(monkeypatch):
+    # time.monotonic's origin is undefined (it may be small): "seen s ago" is now - seen, on a fake clock from 1.0
+    import asyncio
+    from types import SimpleNamespace
+
+    from shadowopt.api import admission
+    from shadowopt.api.admission import FairPool
+
+    clock = SimpleNamespace(t=1.0)
+    monkeypatch.setattr(admission, "time", SimpleNamespace(monotonic=lambda: clock.t))
+
+    async def main():
+        pool = FairPool("p", 2, recent_s=5.0)
+        for i in range(70):  # 70 tenants ask at t = 1 and leave
+            await pool.acquire(f"t{i}")
+            pool.release(f"t{i}")
+        clock.t = 100.0  # 99 s later: all of them idle for longer than recent_s
+        await pool.acquire("b")
+        second = asyncio.ensure_future(pool.acquire("b"))
+        await asyncio.sleep(0)
+        alone = second.done()  # no other tenant active: b may take both slots
+        pool.release("b")
+        pool.release("b")  # dispatches: the 70 are forgotten
+        forgotten = set(pool._seen) == {"b"}
+        # a tenant idle since t = 1, b and c active at t = 100: the slot kept for b ages out 5 s after b's ask
+        clock.t = 1.0
+        pool = FairPool("p", 2, recent_s=5.0)
+        await pool.acquire("idle")
+        pool.release("idle")
+        clock.t = 100.0
+        await pool.acquire("b")
+        await pool.acquire("c")
+        waiter = asyncio.ensure_future(pool.acquire("c"))
+        await asyncio.sleep(0)
+        pool.release("b")  # c may not take b's slot yet: b asked 0 s ago
+        delay = pool._timer.when() - asyncio.get_running_loop().time() if pool._timer else None
+        waiter.cancel()
+        return alone, forgotten, delay
+
+    alone, forgotten, delay = asyncio.run(main())
+    assert alone and forgotten
+    assert delay is not None and 4.0 < delay <= 5.0, delay
