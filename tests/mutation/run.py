@@ -339,6 +339,8 @@ def main(argv=None) -> int:
     ap.add_argument("--only", nargs="*", help="mutant IDs to (re-)run; merged into results.json")
     ap.add_argument("--resume", action="store_true", help="keep the folders' earlier results and skip the mutants "
                     "already run (extends a sample)")
+    ap.add_argument("--prune", action="store_true", help="with --resume: drop the folders' results that are not "
+                    "in this sample (e.g. --only re-runs of another sample's mutants), so the table scores this sample")
     ap.add_argument("--reverse", action="store_true", help="run the sample from its end (a second process on "
                     "the same folders with --resume: each skips what the other has written)")
     ap.add_argument("--no-baseline", action="store_true", help="skip the unmutated run of each module's tests "
@@ -391,9 +393,11 @@ def main(argv=None) -> int:
     else:
         per = {f: (args.per_folder if args.per_folder is not None else cfg["per_folder"].get(f, 0)) for f in folders}
         chosen = sample(by_folder, folders, per, seed)
+        in_sample = {mutation_id(s) for s in chosen}
         if args.resume:
             chosen = [s for s in chosen if mutation_id(s) not in done]
-            drop = lambda r: False  # noqa: E731
+            drop = ((lambda r: folder_of(r["file"]) in folders and r["id"] not in in_sample) if args.prune  # noqa: E731
+                    else (lambda r: False))
         else:
             drop = lambda r: folder_of(r["file"]) in folders  # noqa: E731
     t0 = time.monotonic()
