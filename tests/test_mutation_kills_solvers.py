@@ -534,3 +534,31 @@ def test_stable_csm_slice_sphere_encloses_the_slice_and_touches_a_corner():
         centre, r = slice_sphere(cam, z0, z1)
         dist = np.linalg.norm(corners - centre, axis=1)
         assert dist.max() == pytest.approx(r, rel=1e-9)
+
+
+def test_cg07_line_search_stops_when_no_step_improves():
+    """At the kink of f = 1000 |x_0 - 0.25| + |x_1| (a minimum with a non-zero gradient there) every fixed step
+    and every halving overshoots: no step lowers f by the 1e-4 relative the search asks for, so it stops after
+    the first iteration, having evaluated the start, the nine fixed steps and the six halvings, and x stays.
+    (kills the stop test `best >= fx (1 - 1e-4)` -> `best is fx (1 - 1e-4)`, which ran all eight iterations)"""
+    from shadowopt.solvers.optimize import CG07_ANGLES_DEG, _cg07_linesearch
+
+    class Vee:
+        def __init__(self):
+            self.seen = []
+
+        def value(self, x):
+            self.seen.append(np.array(x, float))
+            return float(1000.0 * abs(x[0] - 0.25) + abs(x[1]) + 1.0)
+
+        def gradient(self, x):
+            return np.array([1000.0 * np.sign(x[0] - 0.25 + 1e-300), np.sign(x[1])])
+
+        def clip(self, x):
+            return np.clip(x, -10.0, 10.0)
+
+    prob = Vee()
+    it = _cg07_linesearch(prob, np.array([0.25, 0.0]), 8)
+    assert it == 1
+    assert len(prob.seen) == 1 + len(CG07_ANGLES_DEG) + 6
+    assert min(float(prob.value(x)) for x in list(prob.seen)) == pytest.approx(1.0)
