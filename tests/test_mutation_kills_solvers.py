@@ -562,3 +562,18 @@ def test_cg07_line_search_stops_when_no_step_improves():
     assert it == 1
     assert len(prob.seen) == 1 + len(CG07_ANGLES_DEG) + 6
     assert min(float(prob.value(x)) for x in list(prob.seen)) == pytest.approx(1.0)
+
+
+# ---------------------------------------------------------------- baselines: a perspective light's near plane
+def test_perspective_light_near_plane_rule():
+    """_near_for (spot and point lights): 1e-4 of the far distance (at least 0.1 mm), pulled in to half the
+    nearest receiver's depth, never below 1e-7 of far. Closed forms: far 100 m with receivers at 5 and 20 m
+    keeps 1 cm; a receiver at 4 mm pulls it to 2 mm; one at 1e-9 m stops at the 1e-5 m floor; no receiver: 1 cm.
+    (kills `0.5 * d.min()` -> `-0.5 * d.min()`, which put every near plane on the 1e-7 floor)"""
+    from shadowopt.solvers.baselines import _near_for
+
+    assert _near_for(np.array([5.0, 20.0, np.inf, -3.0]), 100.0) == pytest.approx(0.01, rel=1e-12)
+    assert _near_for(np.array([0.004, 7.0]), 100.0) == pytest.approx(0.002, rel=1e-12)
+    assert _near_for(np.array([1e-9]), 100.0) == pytest.approx(1e-5, rel=1e-12)
+    assert _near_for(np.zeros(0), 100.0) == pytest.approx(0.01, rel=1e-12)
+    assert _near_for(np.array([1.0]), 0.5) == pytest.approx(1e-4, rel=1e-12)  # the 0.1 mm minimum
