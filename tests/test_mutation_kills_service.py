@@ -825,3 +825,19 @@ def test_the_partitions_warp_and_the_objective_it_is_judged_by():
     for bad in ({"objective": None}, {}, {"objective": float("nan")}, {"objective": math.inf},
                 {"objective": 1.0, "unserved_samples": 3}, {"objective": 1.0, "unserved_samples": 1}):
         assert _objective(bad) == math.inf, bad  # unknown, not finite, or leaving samples unserved: never chosen
+
+
+def test_the_spawner_runs_a_nested_call_in_place_instead_of_waiting_for_itself():
+    import threading
+
+    from shadowopt.service.isolation import _Spawner
+
+    s = _Spawner()
+    assert s.on_thread() is False  # no thread yet
+    assert s.call(s.on_thread) is True and s.on_thread() is False  # on its thread / from this one
+    out = []
+    t = threading.Thread(target=lambda: out.append(s.call(lambda: s.call(lambda: 42))), daemon=True)
+    t.start()
+    t.join(10)  # a nested call queued behind itself would never return
+    assert out == [42]
+    assert s.call(threading.current_thread).name == "shadowopt-spawner"
