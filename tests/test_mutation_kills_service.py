@@ -819,6 +819,7 @@ def test_the_partitions_warp_and_the_objective_it_is_judged_by():
     from shadowopt.service.point_faces import _objective, warp_for
 
     assert warp_for("focused", False) == warp_for("focused", True) == "none"  # FP
+    assert warp_for("".join(["focu", "sed"]), True) == "none"  # a method name read at run time: compared by value
     for method in ("lispsm", "logpsm", "optimized"):
         assert warp_for(method, False) == "perspective" and warp_for(method, True) == "log"  # FP+P, FP+LogP
     assert _objective({"objective": 2.5}) == 2.5 and _objective({"objective": 2.5, "unserved_samples": 0}) == 2.5
