@@ -577,3 +577,55 @@ def test_perspective_light_near_plane_rule():
     assert _near_for(np.array([1e-9]), 100.0) == pytest.approx(1e-5, rel=1e-12)
     assert _near_for(np.zeros(0), 100.0) == pytest.approx(0.01, rel=1e-12)
     assert _near_for(np.array([1.0]), 0.5) == pytest.approx(1e-4, rel=1e-12)  # the 0.1 mm minimum
+
+
+# ---------------------------------------------------------------- baselines: LogPSM's eta from the camera's half-angle
+def test_logpsm_eta_follows_lloyd_shaping_with_the_smaller_half_angle():
+    """The LogPSM baseline's warp strength is Lloyd et al. 2007 eq. 79's eta(gamma) with theta the camera's
+    smaller half field of view (30 deg for a 60 deg vertical fov at 16:9; 30 deg horizontal for a 9:16 portrait
+    camera of 2 atan(tan 30 deg * 16/9) vertical). gamma = 45 deg lies between gamma_b = theta and gamma_c, where
+    eta depends on theta. Truth: warp.eta_shaping at that theta, the angle between view and light in NumPy.
+    (kills theta = min(atan t_y, atan(t_y * aspect)) -> atan(t_y - aspect))"""
+    from shadowopt.solvers.baselines import baseline
+    from shadowopt.solvers.warp import eta_shaping
+
+    sun = DirectionalLight.make([0.0, -np.sin(np.radians(45)), np.cos(np.radians(45))])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    tall = float(np.degrees(2 * np.arctan(np.tan(np.radians(30)) * 16 / 9)))
+    for fov_y, res in ((60.0, (1280, 720)), (tall, (720, 1280))):
+        cam = Camera.look([0, 2, 0], [0, 0, 1], fov_y_deg=fov_y, near=0.1, far=300, resolution=res)
+        pts, _ = ground_samples(cam, far=150.0, grid=(48, 27))
+        m = baseline("logpsm", cam, sun, pts, bounds, (1024, 1024))[0]
+        gamma = float(np.degrees(np.arccos(np.clip(cam.forward @ sun.direction, -1, 1))))
+        assert gamma == pytest.approx(45.0, abs=1e-9)
+        assert m.eta == pytest.approx(eta_shaping(gamma, 30.0), rel=1e-9), (fov_y, m.eta)
+
+
+def test_texel_extents_with_the_light_along_the_x_axis():
+    """texel_extents measures in the plane perpendicular to the light with axes e1 = l x y (l x x when l is
+    along y): a light travelling exactly along +x is an ordinary case. An orthographic map looking along +x of
+    half-size 40 m is 80 m per unit on both axes.
+    (kills the along-y test `|l x y| < 1e-6` -> `< 1.000001`, which took l x x = 0 for every light and gave NaN)"""
+    from shadowopt.solvers.baselines import texel_extents
+    from shadowopt.solvers.light_frames import look_matrix
+    from shadowopt.solvers.shadow_map import ShadowMap
+
+    sun = DirectionalLight.make([1.0, 0.0, 0.0])
+    view = look_matrix(np.array([-100.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+    proj = np.diag([1 / 40.0, 1 / 40.0, -2 / 199.0, 1.0])
+    proj[2, 3] = -201 / 199.0
+    sm = ShadowMap(view, proj, (512, 512))
+    rng = np.random.default_rng(2)
+    pts = np.column_stack([rng.uniform(-20, 20, 50), rng.uniform(-30, 30, 50), rng.uniform(-30, 30, 50)])
+    per_s, per_t = texel_extents(sm, pts, sun)
+    assert per_s == pytest.approx(np.full(50, 80.0), rel=1e-8)
+    assert per_t == pytest.approx(np.full(50, 80.0), rel=1e-8)
+
+
+def test_split_result_json_keeps_microseconds():
+    """SplitResult.to_json: time_ms to the microsecond (3 decimals), the resolution every solver's time in the
+    responses has. (kills `round(time_ms, 3)` -> `round(time_ms, 2)`)"""
+    from shadowopt.solvers.split_search import SplitResult
+
+    r = SplitResult(np.array([3.0, 9.0]), 1.5, "log", {"log": 1.5}, 7, 12.3456)
+    assert r.to_json()["time_ms"] == 12.346
