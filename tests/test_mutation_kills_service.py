@@ -842,3 +842,15 @@ def test_the_spawner_runs_a_nested_call_in_place_instead_of_waiting_for_itself()
     t.join(10)  # a nested call queued behind itself would never return
     assert out == [42]
     assert s.call(threading.current_thread).name == "shadowopt-spawner"
+
+
+def test_map_texels_is_the_resolution_times_the_maps_or_the_budget():
+    from shadowopt.service.request_cost import map_texels
+
+    assert map_texels({"resolution": [1024, 512], "cascades": 3}) == 1024 * 512 * 3
+    assert map_texels({"resolution": [300, 200]}) == 60_000  # one cascade by default
+    assert map_texels({}) == 2048 * 2048  # no resolution given: the service default, 2048 x 2048
+    assert map_texels({"resolution": [1024, 512], "cascades": "auto", "max_cascades": 2}) == 1024 * 512 * 3
+    assert map_texels({"texel_budget": 1_000_000, "cascades": 3}) == 1_000_000  # a budget is the light's total
+    assert map_texels({"texel_budget": 1_000_000, "cascades": "auto", "max_cascades": 3}) == 6_000_000  # per try
+    assert isinstance(map_texels({"resolution": [7, 3], "cascades": 2}), int)
