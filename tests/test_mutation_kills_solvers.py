@@ -6,6 +6,7 @@ closed form, a finite difference), never the implementation's own intermediate v
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import numpy as np
 import pytest
@@ -134,7 +135,8 @@ def test_split_search_without_samples_returns_the_practical_splits():
     """With no samples there is nothing to score: optimize_splits returns the k - 1 inner practical splits
     (λ = 0.5: the mean of Lloyd et al.'s log split z_n (z_f/z_n)^(i/k) and the uniform one) over the receivers'
     view-depth range, without evaluating anything.
-    (kills the early return's `[1:-1]` -> `[1:not 1]`, which returned no splits)"""
+    (kills the early return's `[1:-1]` -> `[1:not 1]`, which returned no splits, and its time
+    `(t - t0) * 1e3` -> `(t - t0) - 1e3`, a negative time)"""
     from shadowopt.solvers.split_search import optimize_splits
 
     cam = Camera.look([0, 2, 0], [0, 0, 1], near=0.1, far=300, resolution=(640, 480))
@@ -145,9 +147,12 @@ def test_split_search_without_samples_returns_the_practical_splits():
     bounds = (np.array([-10.0, 0.0, 0.0]), np.array([10.0, 5.0, 100.0]))
     zn, zf = 5.0, 80.0
     want = [0.5 * zn * (zf / zn) ** (i / 3) + 0.5 * (zn + (zf - zn) * i / 3) for i in (1, 2)]
+    t0 = time.perf_counter()
     r = optimize_splits(cam, sun, none, rec, bounds, (256, 256), 3)
+    wall_ms = (time.perf_counter() - t0) * 1e3
     assert r.split_at == pytest.approx(want, rel=1e-9)
     assert r.nfev == 0 and r.start == "practical"
+    assert 0 <= r.time_ms <= wall_ms  # milliseconds, measured inside the call
 
 
 def test_split_search_under_a_budget_scores_the_samples_weighted_mean():
