@@ -634,3 +634,17 @@ def test_split_result_json_keeps_microseconds():
 
     r = SplitResult(np.array([3.0, 9.0]), 1.5, "log", {"log": 1.5}, 7, 12.3456)
     assert r.to_json()["time_ms"] == 12.346
+
+
+# ---------------------------------------------------------------- fitting: the depth range's margin
+def test_depth_range_grows_by_the_margin_of_the_span():
+    """fitting.depth_range: [min, max] of the distances grown by `margin` of the span on each side, the span at
+    least `floor` (default 1e-6 of the largest |d|). Closed forms: d in [10, 50], margin 0.01 -> [9.6, 50.4];
+    a flat set at 7 -> 7 -+ 0.01 * 7e-6; an explicit floor of 2 -> 7 -+ 0.02.
+    (kills `span = far - near` -> `far ** near`)"""
+    from shadowopt.solvers.fitting import depth_range
+
+    assert depth_range(np.array([10.0, 30.0, 50.0, np.nan]), 0.01) == pytest.approx((9.6, 50.4), rel=1e-12)
+    assert depth_range(np.array([-20.0, -5.0]), 0.1) == pytest.approx((-21.5, -3.5), rel=1e-12)
+    assert depth_range(np.array([7.0, 7.0]), 0.01) == pytest.approx((7.0 - 7e-8, 7.0 + 7e-8), rel=1e-15)
+    assert depth_range(np.array([7.0]), 0.01, 2.0) == pytest.approx((6.98, 7.02), rel=1e-12)
