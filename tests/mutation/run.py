@@ -305,7 +305,7 @@ def write_reports(data: dict) -> None:
     skipped = sum(n for rel, n in meta.get("annotation_skipped", {}).items() if rel in mapped)
     hdr = (f"`make mutate` results ({counted} mutants run of {sum(population.values())} in the mapped modules; "
            f"{skipped} more inside never-evaluated annotations skipped"
-           + (f"; {stale} results stale: their module changed since" if stale else "")
+           + (f"; stale, their module changed since they ran: {stale}" if stale else "")
            + f"). Latest runs: {desc}.")
     testing = ROOT / "TESTING.md"
     text = testing.read_text() if testing.exists() else f"# Testing\n\n{BEGIN}\n{END}\n"
