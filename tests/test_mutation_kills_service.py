@@ -854,3 +854,16 @@ def test_map_texels_is_the_resolution_times_the_maps_or_the_budget():
     assert map_texels({"texel_budget": 1_000_000, "cascades": 3}) == 1_000_000  # a budget is the light's total
     assert map_texels({"texel_budget": 1_000_000, "cascades": "auto", "max_cascades": 3}) == 6_000_000  # per try
     assert isinstance(map_texels({"resolution": [7, 3], "cascades": 2}), int)
+
+
+def test_the_memory_floor_message_states_the_same_amount_in_bytes_and_gib():
+    import re
+
+    from shadowopt.service.isolation import MEMORY_FLOOR_BYTES, LoadLimits
+
+    with pytest.raises(ValueError) as e:
+        LoadLimits(memory_bytes=MEMORY_FLOOR_BYTES - 1)
+    m = re.search(r"at least (\d+) \(([\d.]+) GiB", str(e.value))
+    assert m and int(m.group(1)) == MEMORY_FLOOR_BYTES
+    assert float(m.group(2)) * 2**30 == pytest.approx(MEMORY_FLOOR_BYTES, rel=1e-4)  # the two agree
+    assert LoadLimits(memory_bytes=MEMORY_FLOOR_BYTES).memory_bytes == MEMORY_FLOOR_BYTES  # the floor itself is allowed
