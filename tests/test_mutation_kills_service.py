@@ -867,3 +867,17 @@ def test_the_memory_floor_message_states_the_same_amount_in_bytes_and_gib():
     assert m and int(m.group(1)) == MEMORY_FLOOR_BYTES
     assert float(m.group(2)) * 2**30 == pytest.approx(MEMORY_FLOOR_BYTES, rel=1e-4)  # the two agree
     assert LoadLimits(memory_bytes=MEMORY_FLOOR_BYTES).memory_bytes == MEMORY_FLOOR_BYTES  # the floor itself is allowed
+
+
+def test_a_camera_pass_reports_its_own_trace_time_in_milliseconds():
+    import time
+
+    from shadowopt.service.coarse_cache import camera_pass
+    from testkit import box, plane, scene_entry_of
+
+    entry = scene_entry_of([plane(20.0), box((-1.0, 0.0, -1.0), (1.0, 2.0, 1.0))])
+    t0 = time.perf_counter()
+    cp = camera_pass(entry.rays, _cam(position=(0.0, 4.0, -8.0), forward=(0.0, -0.4, 1.0)), 32)
+    wall_ms = (time.perf_counter() - t0) * 1e3
+    assert 0.0 < cp.trace_ms <= wall_ms  # a part of the call's own wall time, in ms (the timings' camera_cached_ms)
+    assert cp.hit.any() and cp.hit.shape == (cp.height, cp.width)
