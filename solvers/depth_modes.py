@@ -155,8 +155,8 @@ def depth_block(smap: ShadowMap, receivers: np.ndarray, light, percentile: float
     near, far = linear_range(smap)
     blocks, spreads, ulps = {}, {}, float("inf")
     for mode in MODES:
-        q = requirement_scale(smap, mode, pts, light, near, far) if len(pts) else np.zeros(0)
-        q = q[np.isfinite(q) & (q > 0)]
+        q_all = requirement_scale(smap, mode, pts, light, near, far) if len(pts) else np.zeros(0)
+        q = q_all[np.isfinite(q_all) & (q_all > 0)]
         if len(q) == 0:  # no receiver inside: the requirement at the far end of the central ray
             with np.errstate(all="ignore"):
                 a, b = smap.texel_rays(np.array([0.5]), np.array([0.5]))
@@ -164,7 +164,7 @@ def depth_block(smap: ShadowMap, receivers: np.ndarray, light, percentile: float
             q = q[np.isfinite(q) & (q > 0)]
         if mode == "hardware" and len(pts):
             with np.errstate(all="ignore"):
-                qi = requirement_scale(smap, mode, pts, light, near, far)
+                qi = q_all  # per receiver, unfiltered
                 D = np.clip(hardware_depth(smap, pts), 0.0, 1.0)
                 steps = KC * qi / np.spacing(D.astype(np.float32)).astype(np.float64)
             steps = steps[np.isfinite(steps) & (steps > 0)]

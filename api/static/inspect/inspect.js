@@ -174,6 +174,7 @@ function output(preset) {
 // At most one optimize in flight; slider events while it runs are folded into one more request with the
 // newest values, sent when it returns (a trailing debounce: the last event is always served).
 function requestOptimize() {
+  clearTimeout(evalTimer);  // a measurement waits for the user to pause: it never competes with a solve
   state.stats.lastInputAt = performance.now();
   if (state.inFlight) { state.pending = true; return; }
   optimize();
@@ -241,7 +242,7 @@ async function postOptimize(body) {
 function afterFrame(fn) { requestAnimationFrame(() => requestAnimationFrame(fn)); }
 
 let evalTimer = null;
-function scheduleEvaluate(delay = 250) {
+function scheduleEvaluate(delay = 600) {
   clearTimeout(evalTimer);
   evalTimer = setTimeout(evaluate, delay);
 }
