@@ -881,3 +881,27 @@ def test_a_camera_pass_reports_its_own_trace_time_in_milliseconds():
     wall_ms = (time.perf_counter() - t0) * 1e3
     assert 0.0 < cp.trace_ms <= wall_ms  # a part of the call's own wall time, in ms (the timings' camera_cached_ms)
     assert cp.hit.any() and cp.hit.shape == (cp.height, cp.width)
+
+
+def test_the_light_parts_timings_are_milliseconds_that_add_up():
+    import time
+
+    from shadowopt.api import schemas as S
+    from shadowopt.api.server import rig_dict
+    from shadowopt.service.coarse_cache import CoarseCache, cached_coarse_pass
+    from testkit import box, plane, scene_entry_of
+
+    entry = scene_entry_of([plane(20.0), box((-1.0, 0.0, -1.0), (1.0, 2.0, 1.0))])
+    rig = rig_dict(S.OptimizeRequest(scene_id="x" * 12, rig={
+        "camera": {"position": [0.0, 6.0, -10.0], "target": [0.0, 0.0, 0.0], "resolution": [320, 180]},
+        "lights": [{"type": "directional", "direction": [0.3, -1.0, 0.2]}],
+        "shadow": {"resolution": [512, 512], "cascades": 1}, "coarse_long_side": 48}).rig)
+    cache = CoarseCache()
+    cached_coarse_pass(entry, rig, "t", cache)  # the camera pass
+    t0 = time.perf_counter()
+    _, buffers = cached_coarse_pass(entry, rig, "t", cache)  # a hit: only the light part runs
+    wall_ms = (time.perf_counter() - t0) * 1e3
+    t = buffers.timings_ms
+    assert cache.hits == 1 and t["trace"] > 0 and t["convert"] > 0
+    assert t["trace"] + t["convert"] == pytest.approx(t["total"], rel=1e-9, abs=1e-9)  # its parts, in ms
+    assert t["total"] <= wall_ms
