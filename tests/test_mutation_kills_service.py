@@ -905,3 +905,39 @@ def test_the_light_parts_timings_are_milliseconds_that_add_up():
     assert cache.hits == 1 and t["trace"] > 0 and t["convert"] > 0
     assert t["trace"] + t["convert"] == pytest.approx(t["total"], rel=1e-9, abs=1e-9)  # its parts, in ms
     assert t["total"] <= wall_ms
+
+
+def test_load_isolated_passes_the_loaders_own_defaults(monkeypatch):
+    import inspect
+
+    from shadowopt.renderers.usd_loader import load_scene
+    from shadowopt.service import isolation
+
+    seen = {}
+    monkeypatch.setattr(isolation, "run_isolated", lambda fn, args, **kw: seen.update(options=args[1]))
+    isolation.load_isolated("/nowhere/s.usda", limits=isolation.LoadLimits())
+    defaults = inspect.signature(load_scene).parameters
+    for name in ("time_code", "asset_root", "sandbox"):  # "load_scene(path, ...) in a spawned child"
+        assert seen["options"][name] == defaults[name].default, name
+
+
+def test_face_resolutions_split_the_texels_by_the_probed_need(monkeypatch):
+    from types import SimpleNamespace
+
+    from shadowopt.service import point_faces
+
+    faces = [SimpleNamespace(face=0), SimpleNamespace(face=3)]
+    monkeypatch.setattr(point_faces, "assign_receivers", lambda pos, rec: [[0], [1]])
+    monkeypatch.setattr(point_faces, "partition_maps", lambda *a: (faces, [[0], [1]]))
+    probes = []
+
+    def maps_error(fp, samples, origin):
+        probes.append(fp)
+        return {}, [{"misclassified_pixels": 8.0}, {"misclassified_pixels": 1.0}]
+
+    prob = SimpleNamespace(receivers=[0, 1], samples=None)
+    res, mis = point_faces.face_resolutions(None, SimpleNamespace(position=None), prob, None, 50_000, maps_error, None)
+    # shares 4 : 1 (d^(2/3) of 8 : 1) of 50,000 texels: 40,000 and 10,000 -> sides 200 and 100 (one less at most
+    # when a share rounds down)
+    assert mis == [8.0, 1.0] and len(probes) == 1
+    assert res[0][0] in (199, 200) and res[3][0] in (99, 100) and res[0][0] == res[0][1]
