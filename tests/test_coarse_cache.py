@@ -2,7 +2,6 @@
 re-solve after a light change must return what an uncached solve returns (render_coarse's buffers bit for
 bit, the same matrices), and another tenant or a changed scene must never be served a cached camera pass."""
 import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -17,14 +16,9 @@ from shadowopt.service.pipeline import coarse_pass
 from shadowopt.service.scenes import SceneCache
 from shadowopt.service.solve import solve
 
-from testkit import box, plane, scene_entry_of
+from testkit import box, plane, scene_entry_of, sun
 
 DEMO = Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda"
-
-
-def sun(az_deg, el_deg=50.0):
-    a, e = math.radians(az_deg), math.radians(el_deg)
-    return [-math.cos(e) * math.sin(a), -math.sin(e), -math.cos(e) * math.cos(a)]
 
 
 def demo_rig(az, coarse=96):  # the inspector's request (api/static/inspect/inspect.js rig())

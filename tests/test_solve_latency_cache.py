@@ -4,7 +4,6 @@ may change a number: the receivers and the solutions must be those of the plain 
 
 The references here are the plain forms the faster code replaced (written out in this file): tangent_reach's
 (E, 4, 3) broadcast and the edge pass's grid-state neighbour test."""
-import math
 from pathlib import Path
 
 import numpy as np
@@ -19,12 +18,9 @@ from shadowopt.service.pipeline import coarse_pass
 from shadowopt.service.scenes import SceneCache
 from shadowopt.service.solve import light_problems, solve, tangent_reach
 
+from testkit import sun
+
 DEMO = Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda"
-
-
-def sun(az_deg, el_deg=50.0):
-    a, e = math.radians(az_deg), math.radians(el_deg)
-    return [-math.cos(e) * math.sin(a), -math.sin(e), -math.cos(e) * math.cos(a)]
 
 
 def demo_rig(light, coarse=180):  # the inspector's request (api/static/inspect/inspect.js rig())

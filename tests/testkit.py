@@ -1,6 +1,8 @@
 """Small geometry builders shared by the tests (importable because pytest puts tests/ on the path)."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from shadowopt.renderers.scene_data import SceneGeometry
@@ -84,3 +86,9 @@ def gl_depth(tmp_path, vertices, faces, matrix, resolution, clip_z, reversed_z=F
         pytest.skip(f"no EGL/OpenGL here: {p.stderr.strip().splitlines()[-1]}")
     assert p.returncode == 0, p.stderr
     return np.load(out)["depth"]
+
+
+def sun(az_deg, el_deg=50.0):
+    """A sun's direction of travel (towards the ground) from the inspector's azimuth and elevation sliders."""
+    a, e = math.radians(az_deg), math.radians(el_deg)
+    return [-math.cos(e) * math.sin(a), -math.sin(e), -math.cos(e) * math.cos(a)]

@@ -219,6 +219,14 @@ def table(results: list[dict], population: dict[str, int], header: str) -> str:
                     f"{(k / n if n else 0):.0%} | {lo:.0%}-{hi:.0%} |")
         for i, v in enumerate((pop, len(rs), k, s, eq)):
             tot[i] += v
+    security = json.loads((ROOT / "configs" / "mutation.json").read_text()).get("security_modules", [])
+    rs = [r for r in results if r["file"] in security and r["outcome"] in ("killed", "survived")]
+    if rs:  # the second bar: the resolver, auth, tenant checks and rate limits on their own
+        k = sum(r["outcome"] == "killed" for r in rs)
+        eq = sum(r["outcome"] == "survived" and bool(r.get("equivalent")) for r in rs)
+        lo, hi = wilson(k, len(rs) - eq)
+        rows.append(f"| of them resolver/auth/tenant/rate limit ({len(security)} modules) | | {len(rs)} | {k} | "
+                    f"{len(rs) - k - eq} | {eq} | {(k / (len(rs) - eq) if len(rs) > eq else 0):.0%} | {lo:.0%}-{hi:.0%} |")
     n = tot[1] - tot[4]
     lo, hi = wilson(tot[2], n)
     rows.append(f"| **all** | {tot[0]} | {tot[1]} | {tot[2]} | {tot[3]} | {tot[4]} | "
