@@ -175,6 +175,7 @@ function output(preset) {
 // newest values, sent when it returns (a trailing debounce: the last event is always served).
 function requestOptimize() {
   clearTimeout(evalTimer);  // a measurement waits for the user to pause: it never competes with a solve
+  if (renderer) clearTimeout(renderer.mapTimer);  // nor does the light-space view's read-back
   state.stats.lastInputAt = performance.now();
   if (state.inFlight) { state.pending = true; return; }
   optimize();
@@ -681,9 +682,10 @@ class Renderer {
     gl.disable(gl.SCISSOR_TEST);
     state.stats.renders++;
     $("render-note").textContent = [...new Set(note)].join("; ");
-    // the light-space view after the frame: its read-back waits for the GPU, the picture should not
+    // the light-space view when the sun rests: its read-back waits for the GPU (on a software GL, for the
+    // CPU the server's next solve needs), so the next input cancels it (requestOptimize)
     clearTimeout(this.mapTimer);
-    if (nMaps && this.ext.floatTarget) this.mapTimer = setTimeout(() => this.drawMaps(nMaps), 30);
+    if (nMaps && this.ext.floatTarget) this.mapTimer = setTimeout(() => this.drawMaps(nMaps), 250);
   }
 
   // The light passes of one solution into its slot's array texture, then the camera pass over the columns
