@@ -214,8 +214,8 @@ async function optimize() {
       showSolution();
       status(`${state.info.filename}: ${sol.method}, ${sol.lights[0].cascades.length} map(s)`);
       const answered = state.stats.optimizeResponses;  // the answers this frame draws
-      afterFrame(() => {
-        if (!state.pending && state.stats.lastInputAt !== null) {
+      afterFrame(() => {  // counted only when these shadows answer the last input (sent after it)
+        if (!state.pending && state.stats.lastInputAt !== null && t0 >= state.stats.lastInputAt) {
           state.stats.drawnResponses = Math.max(state.stats.drawnResponses, answered);
           const ms = performance.now() - state.stats.lastInputAt;
           state.stats.lastLatencyMs = ms;
