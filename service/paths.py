@@ -138,7 +138,7 @@ def _usd_frames(request: dict, base: dict, scene_path, reader) -> tuple[list[dic
     if reader is None:
         if scene_path is None:
             raise PathError("usd_camera", "a usd_camera path needs the scene")
-        from ..renderers.usd_loader import read_animation
+        from ..renderers.usd_animation import read_animation
 
         def reader(c, t, lp):
             return read_animation(scene_path, c, t, light_paths=lp)

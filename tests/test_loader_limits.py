@@ -19,9 +19,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shadowopt.renderers import usd_loader
+from shadowopt.renderers import implicit_prims, triangulation, usd_loader, usd_sandbox
 from shadowopt.renderers.scene_data import SceneError
-from shadowopt.renderers.usd_loader import SANDBOX_MAX_DEPTH, SANDBOX_MAX_LAYERS, ear_clip, load_scene
+from shadowopt.renderers.triangulation import ear_clip
+from shadowopt.renderers.usd_loader import load_scene
+from shadowopt.renderers.usd_sandbox import SANDBOX_MAX_DEPTH, SANDBOX_MAX_LAYERS
 from shadowopt.service import hostile_corpus as hc
 
 SECRET_CAMERA = "/BobSecretProject/BobsSecretCamera"
@@ -197,13 +199,13 @@ def test_layer_bytes_limit_counts_before_opening(data, watch, monkeypatch):
     folder.mkdir()
     (folder / "root.usda").write_text(ROOT_HDR.format(sub="./big.usda") + 'def Cube "Own" {\n}\n')
     (folder / "big.usda").write_text(POISON + " " * 5000)
-    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_LAYER_BYTES", 4096)
+    monkeypatch.setattr(usd_sandbox, "SANDBOX_MAX_LAYER_BYTES", 4096)
     w = watch(folder / "big.usda")
     with pytest.raises(SceneError) as e:
         load_scene(folder / "root.usda", asset_root=str(folder))
     assert e.value.code == "sandbox_limit" and "bytes limit 4096" in e.value.message and "big.usda" in e.value.message
     assert w.opened() == set()
-    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_LAYER_BYTES", 1 << 20)
+    monkeypatch.setattr(usd_sandbox, "SANDBOX_MAX_LAYER_BYTES", 1 << 20)
     sc = load_scene(folder / "root.usda", asset_root=str(folder))  # under the limit: read (and choked on)
     assert any("big.usda" in x and "parse error" in x for x in sc.warnings)
 
@@ -344,7 +346,7 @@ def test_the_last_checks_before_and_after_usd_opens_refuse_with_a_sandbox_code(t
 
     (tmp_path / "s.usda").write_text(CUBE.format(name="Own"))
     (tmp_path / "other.usda").write_text(CUBE.format(name="Other"))
-    walk = usd_loader._LayerWalk(str(tmp_path / "s.usda"), "sandbox", None, [], os.path.basename)
+    walk = usd_sandbox.LayerWalk(str(tmp_path / "s.usda"), "sandbox", None, [], os.path.basename)
     walk.verify_graph()  # a checked graph passes
     layer = walk.copies.get(walk.root) or walk.originals[walk.root]
     layer.subLayerPaths.append(str(tmp_path / "other.usda"))  # a dependency the walk never checked
@@ -397,7 +399,7 @@ def test_the_count_is_exact_at_the_limit(tmp_path):
     path = tmp_path / "mix.usda"
     path.write_text(hc.instanced_spheres(10))  # 10 spheres + a ground quad
     total = load_scene(path).geometry.triangle_count
-    assert total == 10 * usd_loader.implicit_triangle_count("Sphere") + 2
+    assert total == 10 * implicit_prims.implicit_triangle_count("Sphere") + 2
     assert load_scene(path, max_triangles=total).geometry.triangle_count == total
     with pytest.raises(SceneError) as e:
         load_scene(path, max_triangles=total - 1)
@@ -420,8 +422,8 @@ def test_implicit_triangle_counts_match_the_tessellation(tmp_path):
         s.DefinePrim(f"/{k}", k)
     s.GetRootLayer().Save()
     for k in kinds:
-        _, tris = usd_loader.implicit_mesh(s.GetPrimAtPath(f"/{k}"), Usd.TimeCode.Default())
-        assert len(tris) == usd_loader.implicit_triangle_count(k), k
+        _, tris = implicit_prims.implicit_mesh(s.GetPrimAtPath(f"/{k}"), Usd.TimeCode.Default())
+        assert len(tris) == implicit_prims.implicit_triangle_count(k), k
 
 
 def test_batch_workers_load_stored_scenes_under_the_servers_triangle_limit(tmp_path):
@@ -508,8 +510,8 @@ def test_big_concave_polygons_are_cut_into_a_valid_triangulation(shape, monkeypa
     """Both paths: cut along diagonals into pieces (the star) and earcut whole (the comb, which has no
     long diagonal); the spiral takes whichever the cut search finds."""
     pieces = []
-    real = usd_loader._earcut
-    monkeypatch.setattr(usd_loader, "_earcut", lambda p: pieces.append(len(p)) or real(p))
+    real = triangulation.earcut
+    monkeypatch.setattr(triangulation, "earcut", lambda p: pieces.append(len(p)) or real(p))
     n = 3000
     if shape == "star":
         a = 2 * np.pi * np.arange(n) / n
@@ -535,7 +537,7 @@ def test_big_concave_polygons_are_cut_into_a_valid_triangulation(shape, monkeypa
     if shape == "comb":
         assert pieces == [len(p2)]
     elif shape == "star":
-        assert len(pieces) > 1 and max(pieces) <= usd_loader._SPLIT_MIN and sum(pieces) == len(p2) + 2 * (len(pieces) - 1)
+        assert len(pieces) > 1 and max(pieces) <= triangulation.SPLIT_MIN and sum(pieces) == len(p2) + 2 * (len(pieces) - 1)
 
 
 # ------------------------------------------------------------------ 4. no server paths
@@ -626,7 +628,7 @@ def test_three_hundred_thousand_empty_xforms_are_refused_before_composing_in_sec
         load_scene(p, sandbox=True, max_triangles=5_000_000)
     dt = time.perf_counter() - t
     assert e.value.code == "too_many_prims"
-    assert f"prim spec limit {usd_loader.SANDBOX_MAX_PRIM_SPECS}" in e.value.message and "slow.usda" in e.value.message
+    assert f"prim spec limit {usd_sandbox.SANDBOX_MAX_PRIM_SPECS}" in e.value.message and "slow.usda" in e.value.message
     assert no_stage_open == []  # refused before Usd.Stage.Open
     assert dt < 10, dt  # 0.6 s measured (it was 20-24 s to a 201)
 
@@ -638,22 +640,22 @@ def test_a_binary_layer_with_too_many_specs_is_refused_before_it_is_read(tmp_pat
     src.write_text(_xforms(3000))
     crate = tmp_path / "x.usdc"
     Sdf.Layer.FindOrOpen(str(src)).Export(str(crate))
-    assert usd_loader._crate_spec_count(crate.read_bytes()) == 3000 + 5  # pseudo-root, mesh + its 3 properties
+    assert usd_sandbox.crate_spec_count(crate.read_bytes()) == 3000 + 5  # pseudo-root, mesh + its 3 properties
     opened = []
-    real = usd_loader._open_fresh
-    monkeypatch.setattr(usd_loader, "_open_fresh", lambda i: opened.append(i) or real(i))
-    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_CRATE_SPECS", 2000)
+    real = usd_sandbox.open_fresh
+    monkeypatch.setattr(usd_sandbox, "open_fresh", lambda i: opened.append(i) or real(i))
+    monkeypatch.setattr(usd_sandbox, "SANDBOX_MAX_CRATE_SPECS", 2000)
     with pytest.raises(SceneError) as e:
         load_scene(crate, sandbox=True)
     assert e.value.code == "too_many_prims" and "spec limit 2000" in e.value.message and "3005 specs" in e.value.message
     assert opened == [] and no_stage_open == []
-    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_CRATE_SPECS", 10_000)  # under it: the parsed count decides
-    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_PRIM_SPECS", 2000)
+    monkeypatch.setattr(usd_sandbox, "SANDBOX_MAX_CRATE_SPECS", 10_000)  # under it: the parsed count decides
+    monkeypatch.setattr(usd_sandbox, "SANDBOX_MAX_PRIM_SPECS", 2000)
     with pytest.raises(SceneError) as e:
         load_scene(crate, sandbox=True)
     assert e.value.code == "too_many_prims" and "prim spec limit 2000" in e.value.message
     assert no_stage_open == []
-    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_PRIM_SPECS", 4000)
+    monkeypatch.setattr(usd_sandbox, "SANDBOX_MAX_PRIM_SPECS", 4000)
     assert len(load_scene(crate, sandbox=True).geometry.prim_paths) == 1
     assert len(no_stage_open) == 1  # the recorder does see a composition
 
@@ -667,12 +669,12 @@ def test_the_keyword_bound_counts_no_less_than_the_prim_specs(tmp_path, monkeypa
     p.write_text(XFORMS_HDR + body + TRI)
     from pxr import Sdf
 
-    exact = usd_loader._scan_layer(Sdf.Layer.FindOrOpen(str(p)))[1]
+    exact = usd_sandbox.scan_layer(Sdf.Layer.FindOrOpen(str(p)))[1]
     assert exact == 7  # A, In, O, C, B, D, M
-    assert usd_loader._spec_bound(str(p), lambda pkg: {}) >= exact
-    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_PRIM_SPECS", 7)
+    assert usd_sandbox.spec_bound(str(p), lambda pkg: {}) >= exact
+    monkeypatch.setattr(usd_sandbox, "SANDBOX_MAX_PRIM_SPECS", 7)
     load_scene(p, sandbox=True)
-    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_PRIM_SPECS", 6)
+    monkeypatch.setattr(usd_sandbox, "SANDBOX_MAX_PRIM_SPECS", 6)
     with pytest.raises(SceneError) as e:
         load_scene(p, sandbox=True)
     assert e.value.code == "too_many_prims"
@@ -690,12 +692,12 @@ def test_composed_prims_are_counted_before_composing_and_during_the_traversal(tm
     with pytest.raises(SceneError) as e:
         load_scene(p, sandbox=True)
     assert e.value.code == "too_many_prims" and no_stage_open == []
-    assert f"composes more than {usd_loader.SANDBOX_MAX_PRIMS} prims" in e.value.message and "/R" in e.value.message
-    monkeypatch.setattr(usd_loader, "_count_composed_prims", lambda layer, limit: 0)
+    assert f"composes more than {usd_sandbox.SANDBOX_MAX_PRIMS} prims" in e.value.message and "/R" in e.value.message
+    monkeypatch.setattr(usd_loader, "count_composed_prims", lambda layer, limit: 0)
     with pytest.raises(SceneError) as e:
         load_scene(p, sandbox=True)
     assert e.value.code == "too_many_prims" and len(no_stage_open) == 1
-    assert f"has more than {usd_loader.SANDBOX_MAX_PRIMS} prims" in e.value.message
+    assert f"has more than {usd_sandbox.SANDBOX_MAX_PRIMS} prims" in e.value.message
     monkeypatch.undo()
     with pytest.raises(SceneError) as e:
         load_scene(p, max_prims=1000)  # unrestricted mode, limit given
@@ -716,7 +718,7 @@ def test_the_count_before_composing_includes_payloads_and_is_exact(tmp_path):
     stage = Usd.Stage.Open(str(tmp_path / "root.usda"))
     truth = sum(1 for _ in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimAllPrimsPredicate)))
     assert truth == 3 * 121 + 1
-    assert usd_loader._count_composed_prims(Sdf.Layer.FindOrOpen(str(tmp_path / "root.usda")), 10**6) == truth
+    assert usd_sandbox.count_composed_prims(Sdf.Layer.FindOrOpen(str(tmp_path / "root.usda")), 10**6) == truth
     load_scene(tmp_path / "root.usda", asset_root=str(tmp_path), max_prims=truth)
     with pytest.raises(SceneError) as e:
         load_scene(tmp_path / "root.usda", asset_root=str(tmp_path), max_prims=truth - 1)
@@ -731,10 +733,10 @@ def test_real_assets_pass_the_prim_budgets_with_margin(rel, monkeypatch):
     path = ASSETS / rel
     if not path.exists():
         pytest.skip(f"{rel} not present in ../shared/usd-assets")
-    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_PRIM_SPECS", usd_loader.SANDBOX_MAX_PRIM_SPECS // 5)
-    monkeypatch.setattr(usd_loader, "SANDBOX_MAX_CRATE_SPECS", usd_loader.SANDBOX_MAX_CRATE_SPECS // 5)
+    monkeypatch.setattr(usd_sandbox, "SANDBOX_MAX_PRIM_SPECS", usd_sandbox.SANDBOX_MAX_PRIM_SPECS // 5)
+    monkeypatch.setattr(usd_sandbox, "SANDBOX_MAX_CRATE_SPECS", usd_sandbox.SANDBOX_MAX_CRATE_SPECS // 5)
     scene = load_scene(path, asset_root=str(path.parent.parent if "intent" in rel else path.parent),
-                       max_prims=usd_loader.SANDBOX_MAX_PRIMS // 5)
+                       max_prims=usd_sandbox.SANDBOX_MAX_PRIMS // 5)
     assert len(scene.geometry.faces) > 0
 
 
@@ -784,7 +786,7 @@ def test_usd_errors_about_anonymous_layers_reach_messages_without_addresses(tmp_
     def boom(self, stage):
         ident = next(iter(self.copies))
         raise Tf.ErrorException(f"Duplicate item '{ident}' not allowed for field 'subLayers' on </>")
-    monkeypatch.setattr(usd_loader._LayerWalk, "verify_stage", boom)
+    monkeypatch.setattr(usd_sandbox.LayerWalk, "verify_stage", boom)
     with pytest.raises(SceneError) as e:
         load_scene(tmp_path / "r.usda", asset_root=str(tmp_path))
     assert "Duplicate item 'r.usda' not allowed" in e.value.message, e.value.message

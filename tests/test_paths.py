@@ -400,7 +400,7 @@ def Xform "World"
 def test_visibility_and_instancer_samples_count_as_moving_geometry(tmp_path):
     """A prim hidden at a time code and an instancer whose positions are sampled change what a frame sees; points
     with one sample and no default read the same at every time code and do not."""
-    from shadowopt.renderers.usd_loader import read_animation
+    from shadowopt.renderers.usd_animation import read_animation
 
     stage = tmp_path / "kinds.usda"
     stage.write_text(MOVING_KINDS.lstrip())

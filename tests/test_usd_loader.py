@@ -6,7 +6,8 @@ import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
 from shadowopt.renderers.scene_data import SceneError
-from shadowopt.renderers.usd_loader import ear_clip, load_scene, triangulate
+from shadowopt.renderers.triangulation import ear_clip, triangulate
+from shadowopt.renderers.usd_loader import load_scene
 
 
 def tri_area(p, t):
