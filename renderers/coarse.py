@@ -144,19 +144,19 @@ class CoarseBuffers:
         return written
 
 
-def _opaque3(mi, dr, cls, v):
+def opaque3(mi, dr, cls, v):
     """A 3-vector as an opaque Dr.Jit value: its numbers are kernel inputs, not baked literals."""
     return cls(*(dr.opaque(mi.Float, float(x)) for x in np.asarray(v).reshape(3)))
 
 
-def _camera_rays(mi, dr, camera: Camera, width: int, height: int, origin: np.ndarray):
+def camera_rays(mi, dr, camera: Camera, width: int, height: int, origin: np.ndarray):
     """Rays through coarse pixel centres (same convention as Camera.ray_directions)."""
     th = camera.tan_half_fov_y
     tw = th * camera.aspect
-    o = _opaque3(mi, dr, mi.Point3f, (camera.position - origin))
-    fwd = _opaque3(mi, dr, mi.Vector3f, camera.forward)
-    right = _opaque3(mi, dr, mi.Vector3f, (camera.right * tw))
-    up = _opaque3(mi, dr, mi.Vector3f, (camera.up * th))
+    o = opaque3(mi, dr, mi.Point3f, (camera.position - origin))
+    fwd = opaque3(mi, dr, mi.Vector3f, camera.forward)
+    right = opaque3(mi, dr, mi.Vector3f, (camera.right * tw))
+    up = opaque3(mi, dr, mi.Vector3f, (camera.up * th))
     idx = dr.arange(mi.UInt32, width * height)
     w_op = dr.opaque(mi.UInt32, width)
     j = idx // w_op
@@ -177,7 +177,7 @@ def _clipped_hits(mi, dr, pi, ray, fwd, camera: Camera):
     return pi.is_valid() & (depth >= near) & (depth <= far)
 
 
-def _surface_hits(mi, dr, rs: RayScene, ray, fwd, camera: Camera):
+def surface_hits(mi, dr, rs: RayScene, ray, fwd, camera: Camera):
     """The camera rays' first hits within [near, far] (`_clipped_hits`): (preliminary intersection,
     hit mask, ray distance t (0 where no hit), hit points, geometric normals turned towards the camera).
     One implementation for the coarse pass, its edge pass and the full-resolution evaluator."""
@@ -197,20 +197,20 @@ def _geometric_normal(mi, dr, rs: RayScene, prim, active):
     return dr.normalize(dr.cross(p[1] - p[0], p[2] - p[0]))
 
 
-def _light_test(mi, dr, rs: RayScene, light: Light, p, n, active, shadow_rays: bool = True):
+def light_test(mi, dr, rs: RayScene, light: Light, p, n, active, shadow_rays: bool = True):
     """Returns (visible, facing, in_light) Dr.Jit masks for one light. shadow_rays=False casts no
     shadow ray: `visible` is then `facing` (the receivers alone, renderers.coverage)."""
     if isinstance(light, DirectionalLight):
-        to_light = _opaque3(mi, dr, mi.Vector3f, (-light.direction))
+        to_light = opaque3(mi, dr, mi.Vector3f, (-light.direction))
         dist = mi.Float(dr.inf)
         in_light = mi.Bool(True)
     else:
-        lp = _opaque3(mi, dr, mi.Point3f, (light.position - rs.origin))
+        lp = opaque3(mi, dr, mi.Point3f, (light.position - rs.origin))
         v = lp - p
         dist = dr.norm(v)
         to_light = v / dist
         if isinstance(light, SpotLight):
-            axis = _opaque3(mi, dr, mi.Vector3f, light.direction)
+            axis = opaque3(mi, dr, mi.Vector3f, light.direction)
             cos_cone = dr.opaque(mi.Float, float(np.cos(np.radians(light.cone_deg))))
             in_light = dr.dot(-to_light, axis) >= cos_cone
         else:
@@ -268,8 +268,8 @@ def boundary_mask(lit: np.ndarray, hit: np.ndarray, depth: np.ndarray, radius: i
 def camera_hits(mi, dr, rs: RayScene, camera: Camera, width: int, height: int):
     """One camera ray per coarse pixel: hit mask, hit points relative to rs.origin, normals turned towards
     the camera, view depth and primitive id (Dr.Jit arrays, not yet evaluated)."""
-    ray, fwd = _camera_rays(mi, dr, camera, width, height, rs.origin)
-    pi, hit, t, p, n = _surface_hits(mi, dr, rs, ray, fwd, camera)
+    ray, fwd = camera_rays(mi, dr, camera, width, height, rs.origin)
+    pi, hit, t, p, n = surface_hits(mi, dr, rs, ray, fwd, camera)
     depth = dr.select(hit, t * dr.dot(ray.d, fwd), dr.inf)
     prim = dr.gather(mi.UInt32, rs.face_prim, pi.prim_index, hit)
     return hit, p, n, depth, prim
@@ -281,7 +281,7 @@ def light_buffers(masks, hit: np.ndarray, depth: np.ndarray, boundary_radius: in
     shape, size = hit.shape, hit.size
     out = []
     for vis, fac, inl in masks:
-        vis_np, fac_np, inl_np = (np.array(_mask_numpy(m, size)).reshape(shape) for m in (vis, fac, inl))
+        vis_np, fac_np, inl_np = (np.array(mask_numpy(m, size)).reshape(shape) for m in (vis, fac, inl))
         out.append(LightBuffers(vis_np, fac_np, inl_np,
                                 boundary_mask(vis_np & fac_np & inl_np, hit, depth, boundary_radius)))
     return out
@@ -297,14 +297,14 @@ def render_coarse(rs: RayScene, camera: Camera, lights: list[Light], long_side: 
     t0 = time.perf_counter()
     width, height = camera.coarse_resolution(long_side)
     hit, p, n, depth, prim = camera_hits(mi, dr, rs, camera, width, height)
-    masks = [_light_test(mi, dr, rs, light, p, n, hit) for light in lights]
+    masks = [light_test(mi, dr, rs, light, p, n, hit) for light in lights]
     flat = [hit, p, n, depth, prim] + [m for ms in masks for m in ms]
     dr.eval(*flat)
     dr.sync_thread()  # kernels run asynchronously: wait so that "trace" is the kernels' time
     t1 = time.perf_counter()
     shape = (height, width)
     size = width * height  # .numpy() below: np.array() of a Dr.Jit array is ~20x slower (the same values)
-    hit_np = np.array(_mask_numpy(hit, size)).reshape(shape)  # copies: owned, writable arrays as before
+    hit_np = np.array(mask_numpy(hit, size)).reshape(shape)  # copies: owned, writable arrays as before
     pos = _vec_to_numpy(p, np.float64).reshape(height, width, 3) + rs.origin
     pos[~hit_np] = np.nan
     nrm = _vec_to_numpy(n, np.float32).reshape(height, width, 3)
@@ -344,7 +344,7 @@ def edge_cells(hit: np.ndarray, depth: np.ndarray, continuity: float = DEPTH_CON
     return out
 
 
-def _mask_numpy(m, size: int) -> np.ndarray:
+def mask_numpy(m, size: int) -> np.ndarray:
     """A Dr.Jit mask as NumPy bool (a scalar mask, e.g. in_light of a directional light, broadcast)."""
     a = np.asarray(m.numpy(), dtype=bool).reshape(-1)
     return np.broadcast_to(a, (size,)) if a.size == 1 else a
@@ -377,7 +377,7 @@ def fine_points(rs: RayScene, camera: Camera, lights: list[Light], hit: np.ndarr
     """The edge pass: one ray through every corner of a `factor`-times finer grid over the coarse
     pixels of `edge_cells` (corners shared by neighbouring cells traced once; the screen's border is
     a corner line, so the outermost full-resolution pixels are bracketed), hit point, geometric normal
-    and, per light, the receiver test (facing and in the cone: coarse._light_test without shadow rays).
+    and, per light, the receiver test (facing and in the cone: coarse.light_test without shadow rays).
     Vectorized: one Dr.Jit launch, the ray count padded to a power of two (few kernel sizes: a quarter-octave ladder
     traced fewer padding rays but compiled a kernel for a new camera, measured)."""
     mi = mitsuba()
@@ -396,16 +396,16 @@ def fine_points(rs: RayScene, camera: Camera, lights: list[Light], hit: np.ndarr
         return FinePoints(f, np.zeros((0, 3)), np.zeros((0, 3), np.float32), np.zeros(0), [np.zeros(0, bool)] * len(lights),
                           0, grid.shape, np.zeros(0, np.int64), np.zeros(0, np.int64))
     size, d = fine_ray_directions(mi, camera, vj, vi, f, w, h)
-    o = _opaque3(mi, dr, mi.Point3f, camera.position - rs.origin)
-    fwd = _opaque3(mi, dr, mi.Vector3f, camera.forward)
+    o = opaque3(mi, dr, mi.Point3f, camera.position - rs.origin)
+    fwd = opaque3(mi, dr, mi.Vector3f, camera.forward)
     ray = mi.Ray3f(o, d)
-    pi, ok, t, p, nrm = _surface_hits(mi, dr, rs, ray, fwd, camera)
-    tests = [_light_test(mi, dr, rs, light, p, nrm, ok, shadow_rays=False) for light in lights]
+    pi, ok, t, p, nrm = surface_hits(mi, dr, rs, ray, fwd, camera)
+    tests = [light_test(mi, dr, rs, light, p, nrm, ok, shadow_rays=False) for light in lights]
     dr.eval(ok, p, nrm, *[m for ms in tests for m in ms[1:]])
     keep = ok.numpy().astype(bool)[:n]  # .numpy(): np.array() of a Dr.Jit array is ~20x slower
     pos = p.numpy()[:, :n].T[keep].astype(np.float64) + rs.origin  # the hits only (not the padding)
     nn = nrm.numpy()[:, :n].T[keep]
     dep = (pos - camera.position) @ camera.forward
-    rec = [(_mask_numpy(fac, size)[:n] & _mask_numpy(inl, size)[:n])[keep] for _, fac, inl in tests]
+    rec = [(mask_numpy(fac, size)[:n] & mask_numpy(inl, size)[:n])[keep] for _, fac, inl in tests]
     traced = vj.astype(np.int64) * grid.shape[1] + vi
     return FinePoints(f, pos, nn, dep, rec, n, grid.shape, traced[keep], traced)

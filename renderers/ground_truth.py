@@ -8,7 +8,7 @@
    with the plane of the hit triangle (the triangle is what Embree found), so finite differences
    between neighbouring pixels are smooth. Receivers: hits whose camera-facing side faces the light
    (n . to_light > 0) and, for spot lights, inside the cone.
-2. Exact visibility: one shadow ray per receiver (`coarse._light_test`).
+2. Exact visibility: one shadow ray per receiver (`coarse.light_test`).
 3. Each map is "rendered" by casting one ray per texel centre along the light ray that texel is
    (`ShadowMap.texel_rays`: the segment between z_ndc = -1 and +1, i.e. clipped to the light's depth
    range as a rasterizer clips; warped and log parameterizations alike). The map stores
@@ -79,7 +79,7 @@ from ..solvers.lights import DirectionalLight, Light
 from ..solvers.jit import aligned
 from ..solvers.metric import DET_FLOOR, error_stats
 from ..solvers.shadow_map import ShadowMap, map_for_depth
-from .coarse import DEPTH_CONTINUITY, _camera_rays, _light_test, _surface_hits, boundary_mask
+from .coarse import DEPTH_CONTINUITY, boundary_mask, camera_rays, light_test, surface_hits
 from .mitsuba_setup import mitsuba
 from .ray_scene import RayScene
 
@@ -236,9 +236,9 @@ def render_screen(rs: RayScene, camera: Camera, light: Light, shadow_rays: bool 
     import drjit as dr
 
     width, height = camera.resolution
-    ray, fwd = _camera_rays(mi, dr, camera, width, height, rs.origin)
-    pi, hit, t, p, n = _surface_hits(mi, dr, rs, ray, fwd, camera)
-    vis, fac, inl = _light_test(mi, dr, rs, light, p, n, hit, shadow_rays)
+    ray, fwd = camera_rays(mi, dr, camera, width, height, rs.origin)
+    pi, hit, t, p, n = surface_hits(mi, dr, rs, ray, fwd, camera)
+    vis, fac, inl = light_test(mi, dr, rs, light, p, n, hit, shadow_rays)
     tri = pi.prim_index
     dr.eval(hit, tri, vis, fac, inl)
     shape = (height, width)

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..renderers.coarse import (DEFAULT_BOUNDARY_RADIUS, CoarseBuffers, FinePoints, camera_hits, fine_points,
-                                fine_ray_directions, light_buffers, _light_test, _mask_numpy, _surface_hits)
+                                fine_ray_directions, light_buffers, light_test, mask_numpy, surface_hits)
 from ..renderers.mitsuba_setup import mitsuba
 
 MAX_CAMERAS = 16  # camera entries kept (each ~8 MB at the 180 px default, ~4 MB more with a receiver prep, ~2-4 MB per receiver mask memo)
@@ -75,7 +75,7 @@ def camera_pass(rs, camera, long_side: int) -> CameraPass:
     dr.eval(hit, p, n, depth, prim)
     shape = (height, width)
     size = width * height
-    hit_np = np.array(_mask_numpy(hit, size)).reshape(shape)
+    hit_np = np.array(mask_numpy(hit, size)).reshape(shape)
     p32 = np.ascontiguousarray(p.numpy(), dtype=np.float32)
     n32 = np.ascontiguousarray(n.numpy(), dtype=np.float32)
     pos = p32.T.astype(np.float64).reshape(height, width, 3) + rs.origin  # render_coarse's conversion
@@ -103,11 +103,11 @@ def _fine_rays(mi, dr, rs, camera, fine: FinePoints, shape):
     f = fine.factor
     vj, vi = np.divmod(fine.traced, fine.grid_shape[1])
     _, d = fine_ray_directions(mi, camera, vj, vi, f, w, h)
-    from ..renderers.coarse import _opaque3
+    from ..renderers.coarse import opaque3
 
-    o = _opaque3(mi, dr, mi.Point3f, camera.position - rs.origin)
-    fwd = _opaque3(mi, dr, mi.Vector3f, camera.forward)
-    pi, ok, t, p, nrm = _surface_hits(mi, dr, rs, mi.Ray3f(o, d), fwd, camera)
+    o = opaque3(mi, dr, mi.Point3f, camera.position - rs.origin)
+    fwd = opaque3(mi, dr, mi.Vector3f, camera.forward)
+    pi, ok, t, p, nrm = surface_hits(mi, dr, rs, mi.Ray3f(o, d), fwd, camera)
     dr.eval(ok, p, nrm)
     return (np.ascontiguousarray(p.numpy(), dtype=np.float32), np.ascontiguousarray(nrm.numpy(), dtype=np.float32),
             np.asarray(ok.numpy(), dtype=bool).copy())
@@ -125,12 +125,12 @@ def light_part(rs, camera, cp: CameraPass, lights, boundary_radius: int = DEFAUL
 
     t0 = time.perf_counter()
     p, n, hit = _vec(mi, mi.Point3f, cp.p32), _vec(mi, mi.Vector3f, cp.n32), mi.Bool(cp.hit.ravel())
-    masks = [_light_test(mi, dr, rs, light, p, n, hit) for light in lights]
+    masks = [light_test(mi, dr, rs, light, p, n, hit) for light in lights]
     fine = cp.fine
     fine_tests = []
     if fine is not None and cp.fine_p32 is not None:
         fp, fn, fo = _vec(mi, mi.Point3f, cp.fine_p32), _vec(mi, mi.Vector3f, cp.fine_n32), mi.Bool(cp.fine_ok)
-        fine_tests = [_light_test(mi, dr, rs, light, fp, fn, fo, shadow_rays=False) for light in lights]
+        fine_tests = [light_test(mi, dr, rs, light, fp, fn, fo, shadow_rays=False) for light in lights]
     dr.eval(*[m for ms in masks for m in ms], *[m for ms in fine_tests for m in ms[1:]])
     dr.sync_thread()
     t1 = time.perf_counter()
@@ -139,7 +139,7 @@ def light_part(rs, camera, cp: CameraPass, lights, boundary_radius: int = DEFAUL
         if fine_tests:
             n_rays, fsize = fine.rays, len(cp.fine_ok)
             keep = cp.fine_ok[:n_rays]
-            rec = [(_mask_numpy(fac, fsize)[:n_rays] & _mask_numpy(inl, fsize)[:n_rays])[keep]
+            rec = [(mask_numpy(fac, fsize)[:n_rays] & mask_numpy(inl, fsize)[:n_rays])[keep]
                    for _, fac, inl in fine_tests]
         else:
             rec = [np.zeros(0, bool)] * len(lights)

@@ -1,6 +1,6 @@
 """The ground truth's exact visibility for spot and point lights, against an independent ray cast: NumPy
 Moller-Trumbore (1997) over the scene's triangles, from each receiver towards the light, counting only hits
-closer than the light. Found while drawing local lights in the inspector (issue 13): renderers.coarse._light_test
+closer than the light. Found while drawing local lights in the inspector (issue 13): renderers.coarse.light_test
 builds its shadow ray as `mi.Ray3f(o, to_light, dist * (1 - 1e-5))`, and Mitsuba 3's three-argument Ray3f
 takes the third argument as the ray's `time`, not `maxt`, so the ray runs on past the light and surfaces
 behind the light shadow the receivers. On tests/lights_scene.py at 480x270 that makes 18,818 of 85,646 point-light
