@@ -43,7 +43,7 @@ test: setup
 	$(PY) -m pytest -q
 
 # Sampled mutation testing with cosmic-ray's operators (tests/mutation/run.py; the sample, the module -> tests map
-# and the time budget in configs/mutation.json): scores per folder into TESTING.md, survivors into
+# and the time budget in tests/mutation/config.json): scores per folder into TESTING.md, survivors into
 # tests/mutation/survivors.md. MUTATE_ARGS="--budget 600 --per-folder 5" or "--only ID ..." to re-run mutants.
 mutate: setup
 	$(PY) tests/mutation/run.py $(MUTATE_ARGS)

@@ -1122,7 +1122,7 @@ class _NoBar:
 
 
 def _stream(runner: BatchRunner, store: Store, batch_id: str, total: int, out_path, show: bool) -> None:
-    from ..api.progress import progress_bar
+    from .progress import progress_bar
 
     bar = progress_bar(total, "batch", unit="config", enabled=show) or _NoBar()
     out = open(out_path, "w") if out_path else None

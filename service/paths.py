@@ -330,7 +330,7 @@ def run_path(scene_path, frames: list[dict], *, method: str = "optimized", coher
     A coherent path runs as `workers` coherent chunks in parallel (chunk_starts: one fresh start per chunk;
     a path shorter than MIN_CHUNK_FRAMES per worker stays one chunk). Returns a summary {state, total,
     done, failed, errors, seconds}."""
-    from ..api.progress import progress_bar
+    from .progress import progress_bar
     from ..renderers.scene_data import SceneError
 
     if not os.path.isfile(scene_path):

@@ -5,7 +5,7 @@ directory (out/mutation/work-<folders>), an import shim there (`_import/shadowop
 first on PYTHONPATH so the tests import the mutated copy instead of the editable install, and cosmic-ray's
 `mutate_and_test` mutates, runs the mapped tests and restores each file in that copy.
 
-configs/mutation.json maps each module to the test files that cover it (only those run per mutant) and, for a
+tests/mutation/config.json maps each module to the test files that cover it (only those run per mutant) and, for a
 big module, the definitions to mutate ("only"). The mutants are sampled per folder with a fixed seed (each folder
 its own random stream, so `--folders` does not change a folder's sample, and a larger `--per-folder` extends the
 smaller sample). Mutations inside annotations of a module with `from __future__ import annotations` that nothing
@@ -13,10 +13,11 @@ evaluates (no pydantic / FastAPI / get_type_hints in it) are skipped: they canno
 tests run unmutated first: a failing set is reported and its mutants skipped; the time it took sets the mutant's
 timeout, max(60 s, 4 x baseline), also given to pytest-timeout (a hang counts as killed, as in cosmic-ray).
 
-    python tests/mutation/run.py                            # every folder, the sample in configs/mutation.json
+    python tests/mutation/run.py                            # every folder, the sample in tests/mutation/config.json
     python tests/mutation/run.py --folders solvers --per-folder 70 --resume
     python tests/mutation/run.py --budget 600 --per-folder 5
     python tests/mutation/run.py --only ID [ID ...]         # re-run given mutants (IDs as in results.json)
+    python tests/mutation/run.py --list                     # the sample and each mutant's tests; runs nothing
 
 Two runs over different folders can go at the same time (each its own --work copy): every result is merged into
 tests/mutation/results.json by mutant ID under an fcntl lock as soon as it is known, and the reports
@@ -48,6 +49,7 @@ from cosmic_ray.work_item import TestOutcome, WorkerOutcome
 ROOT = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results.json"
+CONFIG = HERE / "config.json"  # the sample, the module -> tests map, the budget, the security row
 LOCK = ROOT / "out" / "mutation" / "results.lock"
 FOLDERS = ("api", "service", "renderers", "solvers", "configs")
 BEGIN, END = "<!-- mutation:begin -->", "<!-- mutation:end -->"
@@ -219,7 +221,7 @@ def table(results: list[dict], population: dict[str, int], header: str) -> str:
                     f"{(k / n if n else 0):.0%} | {lo:.0%}-{hi:.0%} |")
         for i, v in enumerate((pop, len(rs), k, s, eq)):
             tot[i] += v
-    security = json.loads((ROOT / "configs" / "mutation.json").read_text()).get("security_modules", [])
+    security = json.loads(CONFIG.read_text()).get("security_modules", [])
     rs = [r for r in results if r["file"] in security and r["outcome"] in ("killed", "survived")]
     if rs:  # the second bar: the resolver, auth, tenant checks and rate limits on their own
         k = sum(r["outcome"] == "killed" for r in rs)
@@ -280,7 +282,7 @@ def write_reports(data: dict) -> None:
     equivalent = json.loads((HERE / "equivalent.json").read_text()) if (HERE / "equivalent.json").exists() else {}
     results, meta = data["results"], data["meta"]
     population = {}
-    mapped = json.loads((ROOT / "configs" / "mutation.json").read_text())["modules"]
+    mapped = json.loads(CONFIG.read_text())["modules"]
     for rel, n in meta.get("population", {}).items():
         if rel in mapped:
             population[folder_of(rel)] = population.get(folder_of(rel), 0) + n
@@ -337,7 +339,7 @@ def sample(by_folder: dict[str, list], folders, per_folder: dict[str, int], seed
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--config", default=str(ROOT / "configs" / "mutation.json"))
+    ap.add_argument("--config", default=str(CONFIG))
     ap.add_argument("--folders", nargs="+", choices=FOLDERS, help="only these top folders (default: all mapped)")
     ap.add_argument("--seed", type=int)
     ap.add_argument("--per-folder", type=int, help="mutants sampled per folder (overrides the config)")
@@ -355,6 +357,8 @@ def main(argv=None) -> int:
                     "(the timeouts then come from the last recorded baseline times)")
     ap.add_argument("--work", help="scratch copy (default out/mutation/work-<folders>)")
     ap.add_argument("--report", action="store_true", help="only recompute the reports from results.json")
+    ap.add_argument("--list", action="store_true", help="only list the sampled mutants (ID, line, definition) "
+                    "and the test files each would run; runs nothing and writes no result")
     args = ap.parse_args(argv)
     if args.report:
         merge([])
@@ -408,6 +412,15 @@ def main(argv=None) -> int:
                     else (lambda r: False))
         else:
             drop = lambda r: folder_of(r["file"]) in folders  # noqa: E731
+    if args.list:
+        for spec in chosen:
+            rel = str(spec.module_path)
+            print(f"{mutation_id(spec)} (line {spec.start_pos[0]}, {spec.definition_name}): "
+                  f"{' '.join(cfg['modules'][rel]['tests'])}")
+        print(f"{len(chosen)} mutants (seed {seed}; folders {','.join(folders)})")
+        if not args.work:
+            shutil.rmtree(work, ignore_errors=True)
+        return 0
     t0 = time.monotonic()
     run = {"key": f"{os.getpid()}@{time.time():.0f}", "kind": "only" if args.only else "sample",
            "folders": folders, "seed": seed, "when": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 
 LOG_INTERVAL_S = 10.0  # seconds between two progress lines when stderr is not a terminal
 
@@ -71,12 +72,25 @@ class _LogLines:
         self._maybe_print(force=True)
 
 
+class NullBar:
+    """The bar's interface doing nothing but count: what a caller uses when progress_bar gives None."""
+
+    n = 0
+
+    def update(self, k: int = 1) -> None:
+        self.n += k
+
+    def set_postfix(self, **kw) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
 def progress_bar(total: int, desc: str, unit: str = "conf", enabled: bool | str = True, stream=None,
                  interval_s: float = LOG_INTERVAL_S, clock=None):
     """A bar with tqdm's `n`, `total`, `update(k)`, `set_postfix_str`, `set_postfix` and `close`, or None
     when off (or, on a terminal, when tqdm is not installed)."""
-    import time
-
     stream = sys.stderr if stream is None else stream
     mode = progress_mode(enabled, stream)
     if mode == "off":
@@ -84,7 +98,7 @@ def progress_bar(total: int, desc: str, unit: str = "conf", enabled: bool | str 
     if mode == "log":
         return _LogLines(total, desc, unit, stream, interval_s, clock or time.monotonic)
     try:
-        from tqdm import tqdm
+        from tqdm import tqdm  # lazy: optional (the server extra); the client-only install draws no bar
     except ImportError:
         return None
     return tqdm(total=total, desc=desc, unit=unit, file=stream, dynamic_ncols=True)
