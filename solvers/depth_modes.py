@@ -23,7 +23,8 @@ SlopeScaledDepthBias with MaxDepthSlope and DepthBiasClamp; Vulkan depthBiasSlop
 each light-pass fragment stores D + min(k DZ, m), DZ = max(|dD/dx|, |dD/dy|) the change of the
 caster's stored depth per texel step, which is tau tan(psi) dD/dd at the caster and so follows a
 warped map's texel size by itself. k = "slope_scaled" = BIAS_SLOPE_TEXELS (ks), m = "slope_clamp" =
-TAN_PSI_MAX k Q (in stored units). The receiver-side "slope" is 0; normal_offset is 0.
+TAN_PSI_MAX k Q (in stored units). The receiver-side "slope" is 0; normal_offset is 0. with_bias sets
+both on a map: the rule's texel-unit depth_bias (recommended_bias) and this `depth` block.
 
 Mode: hardware, unless
 - the map is log-warped (t' = c0 log(c1 t + c2) is not a projective map, so its light pass is a
