@@ -4,7 +4,7 @@
 the shadow rays, the maps' rendering or the metric: full-resolution primary rays only
 (`ground_truth.render_screen(..., shadow_rays=False)`), receivers = hits whose camera-facing side faces
 the light (and inside a spot's cone), the serving map chosen as the evaluator chooses it
-(`ground_truth._serving_maps`: the cascade for the view depth, or the first cube face containing the
+(`solvers.shadow_map.serving_maps`: the cascade for the view depth, or the first cube face containing the
 point), and a receiver is outside when that map does not contain it (clip w <= 0, s or t outside
 [0, 1], z_ndc outside [-1, 1]) or no map serves it. Cheap enough to check many suns at 1920x1080.
 
@@ -17,8 +17,8 @@ import numpy as np
 
 from ..solvers.cameras import Camera
 from ..solvers.lights import Light
-from ..solvers.shadow_map import ShadowMap
-from .ground_truth import _serving_maps, render_screen
+from ..solvers.shadow_map import ShadowMap, serving_maps
+from .ground_truth import render_screen
 from .ray_scene import RayScene
 
 
@@ -29,7 +29,7 @@ def outside_mask(screen, maps: list[ShadowMap]) -> np.ndarray:
     if not rec.any():
         return out
     pos, depth = screen.position[rec], screen.depth[rec]
-    idx = _serving_maps(maps, pos, depth)
+    idx = serving_maps(maps, pos, depth)
     outside = idx < 0
     for k, smap in enumerate(maps):
         sel = idx == k

@@ -646,19 +646,6 @@ def _device_engine_lookup(mi, dr, rs: RayScene, light: Light, smap: ShadowMap, s
     return shadowed.numpy().astype(bool), inside.numpy().astype(bool), u.numpy(), vv.numpy()
 
 
-def _serving_maps(maps: list[ShadowMap], positions: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    if not maps:
-        return np.full(len(depth), -1, dtype=np.int64)
-    if maps[0].face is None:
-        return map_for_depth(maps, depth)
-    idx = np.full(len(depth), -1, dtype=np.int64)
-    for k in range(len(maps) - 1, -1, -1):
-        s, t, z, w = maps[k].map_coords(positions)
-        inside = (w > 0) & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (z >= -1) & (z <= 1)
-        idx[inside] = k
-    return idx
-
-
 def _to_light(light: Light, positions: np.ndarray) -> np.ndarray:
     if isinstance(light, DirectionalLight):
         return np.broadcast_to(-light.direction, positions.shape)

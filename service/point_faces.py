@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from ..solvers.baselines import _with_bias
+from ..solvers.depth_modes import with_bias
 from ..solvers.face_partition import assign_receivers, partition_maps
 from .need import split_budget
 
@@ -98,7 +98,7 @@ def choose(method: str, camera, prob, bounds, maps: list, allow_log: bool, maps_
         block["log_warp"] = "FP+LogP not tried: output.allow_log_warp is false"
     if chosen != "face_partitioning":
         return maps, block
-    return [_with_bias(m, p, light) for m, p in zip(fp, parts)], block
+    return [with_bias(m, p, light) for m, p in zip(fp, parts)], block
 
 
 def face_resolutions(camera, light, prob, bounds, total: int, maps_error, origin) -> tuple[dict, list[float]]:

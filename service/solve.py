@@ -754,7 +754,7 @@ def snap_maps(maps: list[ShadowMap], prob: LightProblem) -> None:
     (solvers.fitting.snap_to_texels); warped and perspective maps are left as they are, each with the
     reason in `snap_note` (the solution's `texel_snap_note`), so a request for snapping is never
     ignored silently."""
-    from ..solvers.baselines import _with_bias
+    from ..solvers.depth_modes import with_bias
     from ..solvers.fitting import snap_to_texels
 
     for smap in maps:
@@ -768,7 +768,7 @@ def snap_maps(maps: list[ShadowMap], prob: LightProblem) -> None:
         smap.projection = P
         smap.snapped = True
         if len(prob.receivers):
-            _with_bias(smap, prob.receivers, prob.light)
+            with_bias(smap, prob.receivers, prob.light)
 
 
 def _snap_refusal(smap: ShadowMap, light) -> str | None:
@@ -860,7 +860,7 @@ def smaller_resolution(maps: list[ShadowMap], prob: LightProblem, origin, target
     p95_m / target (P95_TEXEL_EXPONENT), rounded up to a multiple of ENGINE_SIZE_STEP (never above the given
     size), the depth bias refitted to the new texels; the scale is raised until the target is met again.
     Returns (maps, note) with the maps changed in place, or (maps, None) when nothing smaller meets it."""
-    from ..solvers.baselines import _with_bias
+    from ..solvers.depth_modes import with_bias
 
     err, _ = maps_error(maps, prob.samples, origin)
     p95, before = err["p95_m"], map_texels(maps)
@@ -875,7 +875,7 @@ def smaller_resolution(maps: list[ShadowMap], prob: LightProblem, origin, target
             break
         for m, r in zip(maps, sizes):
             m.resolution = r
-            _with_bias(m, prob.receivers, prob.light)
+            with_bias(m, prob.receivers, prob.light)
         e2, _ = maps_error(maps, prob.samples, origin)
         if e2["p95_m"] <= target:
             after = map_texels(maps)
@@ -886,7 +886,7 @@ def smaller_resolution(maps: list[ShadowMap], prob: LightProblem, origin, target
         s *= 1.15
     for m, r in zip(maps, given):  # nothing smaller met the target: the given sizes
         m.resolution = r
-        _with_bias(m, prob.receivers, prob.light)
+        with_bias(m, prob.receivers, prob.light)
     return maps, None
 
 

@@ -140,7 +140,7 @@ def _surface_samples(corners: np.ndarray, m: int) -> np.ndarray:
     return np.concatenate(pts)
 
 
-def _min_depth_along_light(p: np.ndarray, l: np.ndarray, n: float, f: float, tan_t: float) -> np.ndarray:
+def min_depth_along_light(p: np.ndarray, l: np.ndarray, n: float, f: float, tan_t: float) -> np.ndarray:
     """d_min of eqs. 45/54: the smallest view depth on the light ray through p inside the frustum.
 
     Liang-Barsky clip of p + μ l against the frustum's six half-spaces a·x <= b; d_e = z is linear in
@@ -182,7 +182,7 @@ def _one_frustum(n: float, f: float, theta: float, gamma: float, method: str, th
     x, y = pts @ x_axis, pts @ y_axis
     x0, x1, y0, y1 = float(x.min()), float(x.max()), float(y.min()), float(y.max())
     W_lx, W_ly = x1 - x0, y1 - y0
-    d_min = _min_depth_along_light(pts, l_dir, n, f, tan_t)
+    d_min = min_depth_along_light(pts, l_dir, n, f, tan_t)
     delta_b = 2.0 * math.sin(theta) * d_min  # eq. 55 with W_e = 2 n_e tan θ, directional light
 
     n_prime = math.inf

@@ -57,7 +57,7 @@ times the 95th percentile of the texel size (the longer side of a texel in the p
 to the light, from the map's own Jacobian) over the map's receivers (`texel_world_size`).
 A map with no receiver inside (an empty cube face) uses the size at the far end of its central ray.
 What an engine applies instead (no per-texel τ): each map's `depth` block (solvers.depth_modes.depth_block,
-set with depth_bias by _with_bias): hardware or linear stored depth with a constant and slope bias in
+set with depth_bias by solvers.depth_modes.with_bias): hardware or linear stored depth with a constant and slope bias in
 stored units covering this rule's requirement at the 95th percentile of the map's receivers.
 
 Fallbacks (documented, never an exception): no receivers -> fit to the scene bounds (for any
@@ -74,110 +74,25 @@ import numpy as np
 
 from .cameras import Camera
 from .cascades import allocate, critical_factors, pixel_world_size, receiver_depth_range, split_depths
-from .fitting import (box_corners, depth_range, extent_floor, frustum, light_plane_hull, min_area_rectangle, ortho, padded,
-                      rotation_z, texel_margin, to_view)
-from .light_frames import CUBE_FACES, cube_face_views, directional_view, look_matrix, perpendicular_up, spot_view
+from .depth_modes import with_bias
+from .fitting import (PAD_TEXELS, box_corners, depth_range, extent_floor, frustum, light_plane_hull, min_area_rectangle,
+                      ortho, padded, perspective_near, rotation_z, texel_margin, to_view)
+from .light_frames import cube_face_views, directional_view, spot_view
 from .lights import DirectionalLight, PointLight, SpotLight
 from .samples import seeded_rows
-from .shadow_map import LogWarp, ShadowMap
-from .warp import MAX_N_OVER_DEPTH, NO_WARP_SIN, eta_from_n_prime, eta_shaping, gamma_deg, lispsm_n, log_warp, n_prime_from_eta, warp_matrix
+from .shadow_map import ShadowMap
+from .texel_size import texel_extents
+from .warp import (MAX_N_OVER_DEPTH, NO_WARP_SIN, eta_from_n_prime, eta_shaping, gamma_deg, lispsm_n, log_warp,
+                   n_prime_from_eta, padded_log, warp_matrix)
 
 METHODS = ("uniform", "focused", "lispsm", "logpsm")
-PAD_TEXELS = 1.0  # map-space margin: texels kept outside the fitted receivers on each side, after the warp (fitting.texel_margin)
 PAD = 0.005  # the former world-space fraction, kept for importers (solvers.optimize's spot fit); the baselines pad in texels
-BIAS_CONSTANT_TEXELS = 1.5
-BIAS_SLOPE_TEXELS = 1.0
 SPOT_AS_CUBE_DEG = 80.0
 FLAT_BODY = 1e-4  # no warp when the receivers' extent along the warp axis is below this x the split's depth range
-
-
-# ------------------------------------------------------------------ frames (solvers.light_frames)
-_perpendicular_up = perpendicular_up  # kept for importers of the old private name
-__all__ = ["METHODS", "baseline", "texel_extents", "recommended_bias", "directional_view", "look_matrix", "CUBE_FACES"]
+__all__ = ["METHODS", "baseline", "fit_baseline"]
 
 
 # ------------------------------------------------------------------ helpers
-def _light_dirs(light, pts: np.ndarray) -> np.ndarray:
-    if isinstance(light, DirectionalLight):
-        return np.broadcast_to(light.direction, pts.shape)
-    v = pts - light.position
-    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
-
-
-def texel_extents(smap: ShadowMap, pts: np.ndarray, light) -> tuple[np.ndarray, np.ndarray]:
-    """Per point: world metres per unit s and per unit t of the map, measured in the plane through
-    the point perpendicular to the light ray (the columns of the inverse of d(s, t)/d(world), by
-    central differences, so warped and log maps are measured as they are). Points outside the map
-    (or behind its centre of projection) get NaN."""
-    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
-    if len(pts) == 0:
-        return np.zeros(0), np.zeros(0)
-    ldir = _light_dirs(light, pts)
-    e1 = np.cross(ldir, [0.0, 1.0, 0.0])
-    bad = np.linalg.norm(e1, axis=1) < 1e-6
-    e1[bad] = np.cross(ldir[bad], [1.0, 0.0, 0.0])
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(ldir, e1)
-    c = pts.mean(0)
-    extent = float(np.abs(pts - c).max()) if len(pts) > 1 else 0.0
-    eps = max(1e-6 * extent, 1e-10 * float(np.abs(pts).max()), 1e-9)
-    with np.errstate(all="ignore"):
-        s0, t0, z0, w0 = smap.map_coords(pts)
-        cols = []
-        for e in (e1, e2):
-            sp, tp, _, _ = smap.map_coords(pts + eps * e)
-            sm, tm, _, _ = smap.map_coords(pts - eps * e)
-            cols.append(np.stack([(sp - sm), (tp - tm)], axis=-1) / (2 * eps))
-        J = np.stack(cols, axis=-1)  # (N, 2, 2): d(s, t)/d(e1, e2)
-        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        # inverse columns: d(e1, e2)/ds = (J11, -J10)/det, d(e1, e2)/dt = (-J01, J00)/det
-        per_s = np.hypot(J[:, 1, 1], J[:, 1, 0]) / np.abs(det)
-        per_t = np.hypot(J[:, 0, 1], J[:, 0, 0]) / np.abs(det)
-        inside = (w0 > 0) & (s0 >= -1e-6) & (s0 <= 1 + 1e-6) & (t0 >= -1e-6) & (t0 <= 1 + 1e-6)
-    ok = inside & np.isfinite(per_s) & np.isfinite(per_t) & (det != 0)
-    return np.where(ok, per_s, np.nan), np.where(ok, per_t, np.nan)
-
-
-def _texel_world_size(smap: ShadowMap, pts: np.ndarray, light) -> float:
-    """95th percentile over the points inside the map of the world size of one texel (its longer
-    side, perpendicular to the light); 0 when no point is inside."""
-    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
-    if len(pts) > 512:  # a percentile of a random sample
-        pts = pts[seeded_rows(len(pts), 512)]
-    per_s, per_t = texel_extents(smap, pts, light)
-    size = np.maximum(per_s / smap.resolution[0], per_t / smap.resolution[1])
-    size = size[np.isfinite(size)]
-    if len(size):
-        return float(np.percentile(size, 95))
-    # No receiver inside this map (an empty cube face, no visible receiver): the texel size at the
-    # far end of the map's central light ray, a conservative value for whatever it may receive.
-    with np.errstate(all="ignore"):
-        near_pt, far_pt = smap.texel_rays(np.array([0.5]), np.array([0.5]))
-        per_s, per_t = texel_extents(smap, 0.999 * far_pt + 0.001 * near_pt, light)
-        size = np.maximum(per_s / smap.resolution[0], per_t / smap.resolution[1])
-    return float(size[0]) if len(size) and np.isfinite(size[0]) else 0.0
-
-
-def recommended_bias(texel_world_size: float) -> dict:
-    """The bias in texel units (constant_texels, slope_texels: scaled by the serving texel's world size
-    at each receiver, as a hardware slope-scaled or normal-offset bias is), plus, for engines that can
-    only set a fixed bias in metres, {constant, slope} = those units times the map's 95th-percentile
-    texel world size (informative: the evaluator's rule uses the texel units; see the module doc)."""
-    return {"constant_texels": BIAS_CONSTANT_TEXELS, "slope_texels": BIAS_SLOPE_TEXELS,
-            "texel_world_size": texel_world_size, "fixed_constant_m": BIAS_CONSTANT_TEXELS * texel_world_size,
-            "fixed_slope_m": BIAS_SLOPE_TEXELS * texel_world_size}
-
-
-def _with_bias(smap: ShadowMap, receivers: np.ndarray, light) -> ShadowMap:
-    """The idealized texel-unit bias (depth_bias) and the engine's depth block (solvers.depth_modes:
-    hardware or linear stored depth, with a constant and slope bias in stored units)."""
-    from .depth_modes import depth_block
-
-    smap.depth_bias = recommended_bias(_texel_world_size(smap, receivers, light))
-    smap.depth = depth_block(smap, receivers, light)
-    return smap
-
-
 def _min_extent(points: np.ndarray) -> float:
     if len(points) == 0:
         return 1e-3
@@ -274,40 +189,19 @@ def _directional_map(method: str, camera: Camera, light: DirectionalLight, recei
         smap = ShadowMap(view, proj, tuple(resolution), light_depth=ld, warp_kind="perspective",
                          eta=eta if eta is not None else 0.0, n_prime=float(warp_n))
         if use_log:
-            smap.log_warp = _padded_log(log_warp(y1 - y0, warp_n), resolution[1])
+            smap.log_warp = padded_log(log_warp(y1 - y0, warp_n), resolution[1])
             smap.warp_kind = "log"
     return smap
 
 
-def _padded_log(lw: LogWarp, texels: int) -> LogWarp:
-    """The log warp's t' padded after itself by PAD_TEXELS texels: t'' = (t' + p) / (1 + 2p),
-    p = margin / (n - 2 margin), which is again c0'' log(c1'' t + c2''), c0'' = c0 / (1 + 2p) and
-    c1'', c2'' = e^(p / c0) (c1, c2)."""
-    p = PAD_TEXELS / max(texels - 2.0 * PAD_TEXELS, 1.0)
-    k = math.exp(p / lw.c0)
-    return LogWarp(lw.c0 / (1.0 + 2.0 * p), lw.c1 * k, lw.c2 * k)
-
-
 # ------------------------------------------------------------------ spot and point lights
-def _near_for(depths: np.ndarray, far: float) -> float:
-    """A perspective light's near plane: 1e-4 of the far distance (at least 0.1 mm), pulled in to
-    half the nearest receiver's depth so a receiver next to the light is never clipped (floor
-    1e-7 of far). Casters between the light and the near plane are lost (Lloyd §B4: put the near
-    plane close, trading depth precision)."""
-    near = max(far * 1e-4, 1e-4)
-    d = depths[np.isfinite(depths) & (depths > 0)]
-    if len(d):
-        near = min(near, 0.5 * float(d.min()))
-    return max(near, far * 1e-7)
-
-
 def _spot_map(method: str, light: SpotLight, camera: Camera, receivers: np.ndarray, corners: np.ndarray,
               resolution) -> ShadowMap:
     view = spot_view(light, camera)
     far_pts = receivers if len(receivers) else corners
     d_all = -to_view(view, far_pts)[:, 2]
     far = float(max(d_all.max(), 1e-3)) * 1.01
-    near = _near_for(d_all, far)
+    near = perspective_near(d_all, far)
     tan_c = math.tan(math.radians(min(light.cone_deg, SPOT_AS_CUBE_DEG)))
     if method == "uniform" or len(receivers) < 3:
         lo, hi = np.array([-tan_c, -tan_c]), np.array([tan_c, tan_c])
@@ -328,7 +222,7 @@ def _cube_maps(light, corners: np.ndarray, receivers: np.ndarray, resolution) ->
     pts = np.vstack([corners, receivers]) if len(receivers) else corners
     far = float(np.linalg.norm(pts - light.position, axis=1).max()) * 1.01 + 1e-3
     cheb = np.abs(receivers - light.position).max(1) if len(receivers) else np.zeros(0)
-    near = _near_for(cheb, far)
+    near = perspective_near(cheb, far)
     side = max(resolution)
     return [ShadowMap(view, frustum(-near, near, -near, near, near, far), (side, side), light_depth=(near, far), face=face)
             for face, view in cube_face_views(light.position).items()]
@@ -374,7 +268,7 @@ class Fitted:
     fit_points: list[tuple | None]  # per directional map: light_plane_hull of those receivers (hull, extremes)
 
     def biased(self, light) -> list[ShadowMap]:
-        return [_with_bias(m, p, light) for m, p in zip(self.maps, self.parts)]
+        return [with_bias(m, p, light) for m, p in zip(self.maps, self.parts)]
 
 
 def fit_baseline(method: str, camera: Camera, light, receivers: np.ndarray, casters_bounds=None,
@@ -382,7 +276,7 @@ def fit_baseline(method: str, camera: Camera, light, receivers: np.ndarray, cast
                  texel_budget: int | None = None, allow_log: bool = True,
                  receiver_slack: np.ndarray | None = None, split_at=None, hull_cache: dict | None = None) -> Fitted:
     """baseline() without the depth bias (the metric does not depend on it: a caller that scores
-    several candidates biases only the one it keeps, Fitted.biased or _with_bias on Fitted.parts)."""
+    several candidates biases only the one it keeps, Fitted.biased or depth_modes.with_bias on Fitted.parts)."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     receivers, slack, depth = _finite_receivers(camera, receivers, receiver_slack, hull_cache)

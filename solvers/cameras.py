@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 
-def _unit(v, name: str) -> np.ndarray:
+def unit_vector(v, name: str) -> np.ndarray:
     v = np.asarray(v, dtype=np.float64).reshape(3)
     n = float(np.linalg.norm(v))
     if not np.isfinite(n) or n == 0.0:
@@ -39,8 +39,8 @@ class Camera:
         pos = np.asarray(position, dtype=np.float64).reshape(3)
         if not np.all(np.isfinite(pos)):
             raise ValueError(f"camera position must be finite, got {pos.tolist()}")
-        fwd = _unit(forward, "camera forward")
-        up_v = _unit(up, "camera up")
+        fwd = unit_vector(forward, "camera forward")
+        up_v = unit_vector(up, "camera up")
         right = np.cross(fwd, up_v)
         if np.linalg.norm(right) < 1e-9:
             # Looking straight along `up`: pick any perpendicular up vector.

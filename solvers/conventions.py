@@ -37,6 +37,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .frames import engine_from_world, world_from_engine
+
 CONVENTIONS = ("opengl", "d3d", "vulkan")
 TEXTURE_ORIGINS = ("bottom-left", "top-left")
 DEFAULT_TEXTURE_ORIGIN = {"opengl": "bottom-left", "d3d": "top-left", "vulkan": "top-left"}
@@ -288,8 +290,6 @@ def engine_matrices(view: np.ndarray, proj_canonical: np.ndarray, engine: str) -
     view_e = U · F · V · E^-1, projection_e = C · P · F · U^-1 ("clip") or P · F · U^-1 ("opengl"),
     texture_e = S · C · P · V · E^-1 (E = solvers.frames.engine_from_world, F the view-space mirror of a
     left-handed view, U the unit scale of view space; the table's comment above)."""
-    from .frames import world_from_engine
-
     p = _preset(engine)
     conv, rev, layout = p["convention"], p["reversed_z"], p["layout"]
     mpu = float(p["metres_per_unit"])
@@ -319,8 +319,6 @@ def output_frame(output: dict, stage_to_world: np.ndarray | None = None) -> tupl
     """(world -> output-frame points 4x4, metres per unit of the solution's lengths) for an output spec:
     the world frame (identity, 1), the stage's own frame (output.frame "stage": inv(stage_to_world), and
     lengths still in metres, 1) or an engine preset's frame and unit (solvers.frames.engine_from_world)."""
-    from .frames import engine_from_world
-
     if output.get("engine"):
         p = _preset(output["engine"])
         return engine_from_world(p["axes"], p["metres_per_unit"]), float(p["metres_per_unit"])

@@ -23,7 +23,8 @@ SlopeScaledDepthBias with MaxDepthSlope and DepthBiasClamp; Vulkan depthBiasSlop
 each light-pass fragment stores D + min(k DZ, m), DZ = max(|dD/dx|, |dD/dy|) the change of the
 caster's stored depth per texel step, which is tau tan(psi) dD/dd at the caster and so follows a
 warped map's texel size by itself. k = "slope_scaled" = BIAS_SLOPE_TEXELS (ks), m = "slope_clamp" =
-TAN_PSI_MAX k Q (in stored units). The receiver-side "slope" is 0; normal_offset is 0.
+TAN_PSI_MAX k Q (in stored units). The receiver-side "slope" is 0; normal_offset is 0. with_bias sets
+both on a map: the rule's texel-unit depth_bias (recommended_bias) and this `depth` block.
 
 Mode: hardware, unless
 - the map is log-warped (t' = c0 log(c1 t + c2) is not a projective map, so its light pass is a
@@ -41,10 +42,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from .baselines import BIAS_SLOPE_TEXELS
+from .lights import DirectionalLight
 from .samples import seeded_rows
 from .shadow_map import ShadowMap
+from .texel_size import texel_extents, texel_world_size
 
+BIAS_CONSTANT_TEXELS = 1.5
+BIAS_SLOPE_TEXELS = 1.0
 MODES = ("hardware", "linear")
 PERCENTILE = 95.0  # of q_i = tau_i dD/dd_i over the map's receivers (module doc)
 SPREAD_PERCENTILES = (5.0, 95.0)  # spread = P95(q) / P5(q)
@@ -97,8 +101,6 @@ def stored_depth(smap: ShadowMap, mode: str, pts: np.ndarray, near: float | None
 
 def light_ray_dirs(light, pts: np.ndarray) -> np.ndarray:
     """Unit direction of the light ray through each point, away from the light."""
-    from .lights import DirectionalLight
-
     pts = np.asarray(pts, float).reshape(-1, 3)
     if isinstance(light, DirectionalLight):
         return np.broadcast_to(np.asarray(light.direction, float), pts.shape)
@@ -125,9 +127,7 @@ def depth_derivative(smap: ShadowMap, mode: str, pts: np.ndarray, dirs: np.ndarr
 
 def requirement_scale(smap: ShadowMap, mode: str, pts: np.ndarray, light, near=None, far=None) -> np.ndarray:
     """q_i = tau_i dD/dd_i per point (NaN outside the map): the stored-unit bias one texel-unit of the
-    idealized rule needs there (tau_i: baselines.texel_extents, the longer texel side)."""
-    from .baselines import texel_extents
-
+    idealized rule needs there (tau_i: texel_size.texel_extents, the longer texel side)."""
     pts = np.asarray(pts, float).reshape(-1, 3)
     per_s, per_t = texel_extents(smap, pts, light)
     tau = np.maximum(per_s / smap.resolution[0], per_t / smap.resolution[1])
@@ -144,8 +144,7 @@ def depth_block(smap: ShadowMap, receivers: np.ndarray, light, percentile: float
     """The map's `depth` block: {mode, reason, hardware: {constant, slope, normal_offset, slope_scaled,
     slope_clamp}, linear: {the same keys, near, far}, spread, percentile} (module doc; percentile
     default PERCENTILE)."""
-    from .baselines import BIAS_CONSTANT_TEXELS as KC
-
+    KC = BIAS_CONSTANT_TEXELS
     percentile = PERCENTILE if percentile is None else float(percentile)
 
     pts = np.asarray(receivers, float).reshape(-1, 3)
@@ -199,3 +198,21 @@ def depth_block(smap: ShadowMap, receivers: np.ndarray, light, percentile: float
     return {"mode": mode, "reason": reason, **blocks,
             "spread": {"hardware": hw, "linear": lin}, "percentile": float(percentile),
             "hardware_float32_steps": ulps if np.isfinite(ulps) else None}
+
+
+def recommended_bias(texel_world_size: float) -> dict:
+    """The bias in texel units (constant_texels, slope_texels: scaled by the serving texel's world size
+    at each receiver, as a hardware slope-scaled or normal-offset bias is), plus, for engines that can
+    only set a fixed bias in metres, {constant, slope} = those units times the map's 95th-percentile
+    texel world size (informative: the evaluator's rule uses the texel units; see solvers.baselines' module doc)."""
+    return {"constant_texels": BIAS_CONSTANT_TEXELS, "slope_texels": BIAS_SLOPE_TEXELS,
+            "texel_world_size": texel_world_size, "fixed_constant_m": BIAS_CONSTANT_TEXELS * texel_world_size,
+            "fixed_slope_m": BIAS_SLOPE_TEXELS * texel_world_size}
+
+
+def with_bias(smap: ShadowMap, receivers: np.ndarray, light) -> ShadowMap:
+    """The idealized texel-unit bias (depth_bias) and the engine's depth block (solvers.depth_modes:
+    hardware or linear stored depth, with a constant and slope bias in stored units)."""
+    smap.depth_bias = recommended_bias(texel_world_size(smap, receivers, light))
+    smap.depth = depth_block(smap, receivers, light)
+    return smap

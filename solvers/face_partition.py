@@ -40,10 +40,10 @@ import math
 import numpy as np
 
 from .cameras import Camera
-from .fitting import box_corners, frustum, min_area_rectangle, rotation_z, texel_margin, to_view
+from .fitting import box_corners, frustum, min_area_rectangle, perspective_near, rotation_z, texel_margin, to_view
 from .light_frames import CUBE_FACES, cube_face_views
 from .shadow_map import ShadowMap
-from .warp import MAX_N_OVER_DEPTH, NO_WARP_SIN, eta_shaping, gamma_deg, log_warp, n_prime_from_eta, warp_matrix
+from .warp import MAX_N_OVER_DEPTH, NO_WARP_SIN, eta_shaping, gamma_deg, log_warp, n_prime_from_eta, padded_log, warp_matrix
 
 FACES = tuple(CUBE_FACES)  # +x, -x, +y, -y, +z, -z
 WARPS = ("none", "perspective", "log")
@@ -53,13 +53,11 @@ MIN_EXTENT = 1e-6  # smallest fitted extent in face coordinates (a receiver set 
 
 def face_frusta(position: np.ndarray, receivers: np.ndarray, corners: np.ndarray) -> tuple[dict, float, float]:
     """({face: world -> face view}, near, far): the six 90-degree faces and their shared depth range."""
-    from .baselines import _near_for
-
     position = np.asarray(position, dtype=np.float64)
     pts = np.vstack([corners, receivers]) if len(receivers) else np.asarray(corners, dtype=np.float64)
     far = float(np.linalg.norm(pts - position, axis=1).max()) * 1.01 + 1e-3
     cheb = np.abs(receivers - position).max(1) if len(receivers) else np.zeros(0)
-    return cube_face_views(position), _near_for(cheb, far), far
+    return cube_face_views(position), perspective_near(cheb, far), far
 
 
 def assign_receivers(position: np.ndarray, receivers: np.ndarray) -> dict[str, np.ndarray]:
@@ -175,8 +173,6 @@ def fit_face(camera: Camera, position: np.ndarray, face: str, view: np.ndarray, 
              near: float, far: float, resolution, warp: str = "perspective") -> ShadowMap:
     """One face's map fitted to its receivers (module doc, step 6), warp in WARPS (the shaping can still turn
     it off: warp_kind says what was applied), without its depth bias."""
-    from .baselines import _padded_log
-
     if warp not in WARPS:
         raise ValueError(f"warp must be one of {', '.join(WARPS)}, got {warp!r}")
     res = (int(resolution[0]), int(resolution[1]))
@@ -202,7 +198,7 @@ def fit_face(camera: Camera, position: np.ndarray, face: str, view: np.ndarray, 
         smap = ShadowMap(v, proj, res, light_depth=(near, far), warp_kind="perspective", eta=eta,
                          n_prime=n_prime, face=face)
         if use_log:
-            smap.log_warp = _padded_log(log_warp(y1 - y0, n_prime), res[1])
+            smap.log_warp = padded_log(log_warp(y1 - y0, n_prime), res[1])
             smap.warp_kind = "log"
     smap.split = (0.0, float(camera.far))
     return smap

@@ -8,6 +8,8 @@ from functools import lru_cache
 import numpy as np
 from scipy.spatial import ConvexHull
 
+PAD_TEXELS = 1.0  # map-space margin: texels kept outside the fitted receivers on each side, after the warp (fitting.texel_margin)
+
 
 def _cross2(a, b) -> float:
     return float(a[0] * b[1] - a[1] * b[0])
@@ -137,6 +139,18 @@ def depth_range(d: np.ndarray, margin: float = 0.01, floor: float | None = None)
         floor = max(1e-6 * float(np.abs(d).max()), 1e-9)
     span = max(far - near, floor)
     return near - margin * span, far + margin * span
+
+
+def perspective_near(depths: np.ndarray, far: float) -> float:
+    """A perspective light's near plane: 1e-4 of the far distance (at least 0.1 mm), pulled in to
+    half the nearest receiver's depth so a receiver next to the light is never clipped (floor
+    1e-7 of far). Casters between the light and the near plane are lost (Lloyd §B4: put the near
+    plane close, trading depth precision)."""
+    near = max(far * 1e-4, 1e-4)
+    d = depths[np.isfinite(depths) & (depths > 0)]
+    if len(d):
+        near = min(near, 0.5 * float(d.min()))
+    return max(near, far * 1e-7)
 
 
 HULL_PREFILTER_POINTS = 1000  # below this, Qhull on every point is as fast as the prefilter

@@ -5,6 +5,8 @@ import glob
 import os
 import re
 
+import numpy as np
+
 _LLVM_CANDIDATES = ("/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1", "/usr/lib/x86_64-linux-gnu/libLLVM-19.so",
                     "/usr/lib/aarch64-linux-gnu/libLLVM.so.19.1", "/usr/lib/aarch64-linux-gnu/libLLVM-19.so")
 
@@ -40,7 +42,7 @@ def ensure_llvm() -> str:
 def llvm_ad():
     """The drjit.llvm.ad module (Float64, Array3f64, ...), with LLVM set up."""
     ensure_llvm()
-    import drjit.llvm.ad as ad
+    import drjit.llvm.ad as ad  # lazy: only after ensure_llvm has set DRJIT_LIBLLVM_PATH, which drjit reads on import
 
     return ad
 
@@ -49,8 +51,6 @@ def aligned(a, dtype) -> "object":
     """A contiguous copy of `a` in a 64-byte-aligned buffer. Dr.Jit may read NumPy memory in place,
     and the buffer's alignment is then part of the kernel: unaligned data would compile a new kernel
     for the same computation. Wrap every NumPy array handed to Dr.Jit in a hot path with this."""
-    import numpy as np
-
     a = np.asarray(a, dtype=dtype)
     flat = a.ravel()
     item = flat.itemsize

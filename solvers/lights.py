@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .cameras import _unit
+from .cameras import unit_vector
 
 
 @dataclass(frozen=True)
@@ -16,7 +16,7 @@ class DirectionalLight:
 
     @staticmethod
     def make(direction, usd_path=None) -> "DirectionalLight":
-        return DirectionalLight(_unit(direction, "light direction"), usd_path)
+        return DirectionalLight(unit_vector(direction, "light direction"), usd_path)
 
 
 @dataclass(frozen=True)
@@ -46,7 +46,7 @@ class SpotLight:
         p = PointLight.make(position).position
         if not (0.0 < float(cone_deg) <= 180.0):
             raise ValueError(f"cone_deg must be in (0, 180], got {cone_deg}")
-        return SpotLight(p, _unit(direction, "light direction"), float(cone_deg), usd_path)
+        return SpotLight(p, unit_vector(direction, "light direction"), float(cone_deg), usd_path)
 
 
 Light = DirectionalLight | PointLight | SpotLight

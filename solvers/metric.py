@@ -55,7 +55,7 @@ def serial_kernels():
     the pool comes back when the last user leaves). The metric's kernels are small (hundreds to a few
     thousand samples): Dr.Jit splits each over the pool, and the workers' wake-ups and spinning cost
     more than they save and compete with NumPy for the cores (a demo-scene solve: 62 -> 33 ms CPU)."""
-    import drjit as dr
+    import drjit as dr  # lazy: drjit reads DRJIT_LIBLLVM_PATH on import (solvers.jit.llvm_ad sets it)
 
     llvm_ad()
     with _serial_lock:
@@ -111,7 +111,7 @@ def footprint(P, resolution, log_warp, ds: DeviceSamples):
     log_warp: (c0, c1, c2) as Dr.Jit Float64 or None.
     """
     ad = llvm_ad()
-    import drjit as dr
+    import drjit as dr  # lazy: drjit reads DRJIT_LIBLLVM_PATH on import (solvers.jit.llvm_ad sets it)
 
     if not isinstance(resolution[0], ad.Float64):  # opaque: a new map size does not recompile
         resolution = (dr.opaque(ad.Float64, float(resolution[0])), dr.opaque(ad.Float64, float(resolution[1])))
@@ -142,7 +142,7 @@ def _clip_gradients(P, X):
     """The one projective gradient both kernels use: clip coordinates c_i = row_i . X + P_i3 of the
     points X, c_w kept above W_FLOOR (`valid` where it was), 1 / c_w^2, and the numerators of
     d(c_i / c_w)/dX = (row_i c_w - c_i row_w) / c_w^2 for i = 0 (s) and 1 (t)."""
-    import drjit as dr
+    import drjit as dr  # lazy: drjit reads DRJIT_LIBLLVM_PATH on import (solvers.jit.llvm_ad sets it)
 
     ad = llvm_ad()
     rows = [ad.Array3f64(P[4 * i], P[4 * i + 1], P[4 * i + 2]) for i in range(4)]
@@ -159,7 +159,7 @@ def warped_moments_kernel(P, ds: DeviceSamples):
     re-centred points): G = (J_q J_q^T)^-1, J_q = dq/dx per full-resolution pixel. For any affine map
     u = A q + b of those coordinates, J = A J_q and h = ||J^-1||_F^2 = tr(G (A^T A)^-1), so the weighted
     mean h of every affine part follows from these three sums (solvers.optimize's "objective" fit)."""
-    import drjit as dr
+    import drjit as dr  # lazy: drjit reads DRJIT_LIBLLVM_PATH on import (solvers.jit.llvm_ad sets it)
 
     _, _, valid, inv_w2, ns, nt = _clip_gradients(P, ds.X)
     gs = ns * inv_w2
@@ -176,7 +176,7 @@ def warped_moments_kernel(P, ds: DeviceSamples):
 
 def warped_moments(matrix: np.ndarray, ds: DeviceSamples) -> np.ndarray:
     """warped_moments_kernel of a recentred NumPy matrix as five floats (frozen kernels, replayed)."""
-    import drjit as dr
+    import drjit as dr  # lazy: drjit reads DRJIT_LIBLLVM_PATH on import (solvers.jit.llvm_ad sets it)
 
     if ds.count < 2:
         out = dr.concat(list(warped_moments_kernel(matrix_to_device(matrix), ds)))
@@ -187,14 +187,14 @@ def warped_moments(matrix: np.ndarray, ds: DeviceSamples) -> np.ndarray:
 
 
 def _moments_of_arrays(P16, res2, X, dx, dy, w):
-    import drjit as dr
+    import drjit as dr  # lazy: drjit reads DRJIT_LIBLLVM_PATH on import (solvers.jit.llvm_ad sets it)
 
     return dr.concat(list(warped_moments_kernel(_gathered(P16, res2)[0], SimpleNamespace(X=X, dx=dx, dy=dy, w=w))))
 
 
 def matrix_to_device(matrix: np.ndarray):
     ad = llvm_ad()
-    import drjit as dr
+    import drjit as dr  # lazy: drjit reads DRJIT_LIBLLVM_PATH on import (solvers.jit.llvm_ad sets it)
 
     return [dr.opaque(ad.Float64, float(v)) for v in np.asarray(matrix, dtype=np.float64).ravel()]
 
@@ -203,7 +203,7 @@ def log_to_device(smap: ShadowMap):
     if smap.log_warp is None:
         return None
     ad = llvm_ad()
-    import drjit as dr
+    import drjit as dr  # lazy: drjit reads DRJIT_LIBLLVM_PATH on import (solvers.jit.llvm_ad sets it)
 
     lw = smap.log_warp
     return tuple(dr.opaque(ad.Float64, float(v)) for v in (lw.c0, lw.c1, lw.c2))
@@ -211,7 +211,7 @@ def log_to_device(smap: ShadowMap):
 
 def per_sample(smap: ShadowMap, ds: DeviceSamples):
     """NumPy (h, m, valid) for one map over device samples."""
-    import drjit as dr
+    import drjit as dr  # lazy: drjit reads DRJIT_LIBLLVM_PATH on import (solvers.jit.llvm_ad sets it)
 
     M = recentre(smap.matrix, ds.origin)
     if smap.log_warp is None and ds.count >= 2:
@@ -386,7 +386,7 @@ def objective(P, resolution, log_warp, ds: DeviceSamples):
     """Weighted mean h as a Dr.Jit Float64 (differentiable with respect to P and log_warp); infinite
     when a weighted sample has no valid footprint (behind the projection's centre, a degenerate J),
     as objective_of() says for the prediction: a map cannot lower its score by losing samples."""
-    import drjit as dr
+    import drjit as dr  # lazy: drjit reads DRJIT_LIBLLVM_PATH on import (solvers.jit.llvm_ad sets it)
 
     h, _, valid = footprint(P, resolution, log_warp, ds)
     w = dr.select(valid, ds.w, 0.0)
@@ -414,7 +414,7 @@ def _replay(name: str, fn, matrix: np.ndarray, resolution, ds: DeviceSamples):
     res2 = _resolution_array(float(resolution[0]), float(resolution[1]))
     with _frozen["lock"]:
         if name not in _frozen:
-            import drjit as dr
+            import drjit as dr  # lazy: drjit reads DRJIT_LIBLLVM_PATH on import (solvers.jit.llvm_ad sets it)
 
             _frozen[name] = dr.freeze(fn, limit=8)
         return _frozen[name](P16, res2, ds.X, ds.dx, ds.dy, ds.w)
@@ -436,7 +436,7 @@ def _footprint_of_arrays(P16, res2, X, dx, dy, w):
 
 
 def _gathered(P16, res2):
-    import drjit as dr
+    import drjit as dr  # lazy: drjit reads DRJIT_LIBLLVM_PATH on import (solvers.jit.llvm_ad sets it)
 
     ad = llvm_ad()
     return ([dr.gather(ad.Float64, P16, i) for i in range(16)],

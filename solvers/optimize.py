@@ -4,7 +4,7 @@ Parameterization (Chong & Gortler 2007, directional light). The light position i
 infinity [l, 0], so rows 1, 2 and 4 of P annihilate it: the fourth (projective) row's normal is
 perpendicular to l, which leaves two projective degrees of freedom besides the six affine ones:
 - φ, the warp axis angle in the light's image plane (rotation about l; 0 = the view direction
-  projected into the image plane, LiSPSM's axis, solvers.baselines.directional_view);
+  projected into the image plane, LiSPSM's axis, solvers.light_frames.directional_view);
 - the warp strength u = log(1 + D/n'), n' the distance from the receivers' near end to the warp
   centre along the axis (LiSPSM's n is one choice) and D the receivers' depth along the axis.
   u = 0 is no warp (n' = ∞, the focused map), u > 0 a perspective warp (u ≈ D/n' for weak warps,
@@ -40,18 +40,21 @@ import math
 import time
 from dataclasses import dataclass, field
 
+import nlopt
 import numpy as np
 
-from .baselines import PAD, _padded_log, _with_bias, baseline, directional_view
+from .baselines import PAD, SPOT_AS_CUBE_DEG, baseline
 from .cameras import Camera
-from .fitting import (box_corners, convex_hull_2d, extent_floor, light_plane_hull, min_area_rectangle, ortho,
-                      padded, padded_range, rotation_z, to_view)
-from .lights import DirectionalLight, SpotLight
+from .depth_modes import with_bias
+from .fitting import (box_corners, convex_hull_2d, extent_floor, frustum, light_plane_hull, min_area_rectangle, ortho,
+                      padded, padded_range, perspective_near, rotation_z, to_view)
+from .light_frames import directional_view, look_matrix, spot_view
+from .lights import DirectionalLight, PointLight, SpotLight
 from .metric import (device_samples, log_to_device, matrix_to_device, objective, objective_value, recentre,
                      serial_kernels, warped_moments)
 from .samples import Samples
 from .shadow_map import ShadowMap
-from .warp import log_warp
+from .warp import log_warp, padded_log
 
 PHI_MAX = math.pi / 2
 # n' from D/1e4 before the receivers' near end (u = U_MAX) through no warp (u = 0) to D/1e4 beyond their
@@ -101,7 +104,7 @@ class _Budget(Exception):
     pass
 
 
-def _robust_difference(fm, f0, fp, h):
+def robust_difference(fm, f0, fp, h):
     """Central difference, or the one-sided one with the smaller change when the two sides disagree
     (the fit switches hull edges: the other side jumps)."""
     dp, dm = (fp - f0) / h, (f0 - fm) / h
@@ -158,13 +161,13 @@ def _objective_affine(hn, G: np.ndarray, resolution):
 
 
 def _affine_from_choice(q: np.ndarray, hn, choice, is_hull: bool):
-    """_affine_fit's (C, lo, hi) for the normals `choice` = (i, j) of hn = _hull_normals(q) (the
+    """affine_fit's (C, lo, hi) for the normals `choice` = (i, j) of hn = _hull_normals(q) (the
     minimum-area parallelogram when choice is None)."""
     if choice is None or hn is None:
-        return _affine_fit(q, "parallelogram", (1, 1), is_hull)
+        return affine_fit(q, "parallelogram", (1, 1), is_hull)
     n = hn[1]
     if max(choice) >= len(n):
-        return _affine_fit(q, "parallelogram", (1, 1), is_hull)
+        return affine_fit(q, "parallelogram", (1, 1), is_hull)
     a, b = n[choice[0]], n[choice[1]]
     C = np.eye(4)
     C[:2, :2] = [a if a[0] >= 0 else -a, b if b[1] >= 0 else -b]  # signs do not change h
@@ -177,7 +180,7 @@ def _padded_box(lo: list, hi: list, resolution, pad_t: bool = True) -> tuple[tup
     lie outside it on each side (padding in map space, after the warp: a world-space pad before the
     warp would be magnified at the dense end and would keep the warp centre away from the receivers),
     each side at least the extent floor. pad_t=False leaves t unpadded (the log family pads t after
-    its log step, baselines._padded_log, as the LogPSM baseline does)."""
+    its log step, warp.padded_log, as the LogPSM baseline does)."""
     floor = extent_floor(max(abs(v) for v in lo + hi))
     out = []
     for k in (0, 1):
@@ -207,7 +210,7 @@ def _ccw(hull: np.ndarray) -> np.ndarray:
     return hull if area2 >= 0 else hull[::-1]
 
 
-def _affine_fit(q: np.ndarray, how: str, resolution, is_hull: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def affine_fit(q: np.ndarray, how: str, resolution, is_hull: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The affine part, fitted in warped space to the points q (N, 2): a 4x4 C acting on warped
     homogeneous coordinates (x, y only) and the box [lo, hi] the map's s, t span after it.
     axis: the axis-aligned box (solvers.baselines._fit_warped); rectangle: the minimum-area rectangle
@@ -372,7 +375,7 @@ class Problem:
             C, lo, hi = _affine_from_choice(q, hn, choice, self.n_hull > 0)
             self.last_choice = choice
         else:
-            C, lo, hi = _affine_fit(q, self.affine, self.resolution, self.n_hull > 0)
+            C, lo, hi = affine_fit(q, self.affine, self.resolution, self.n_hull > 0)
         (s0, s1), (t0, t1) = _padded_box(lo.tolist(), hi.tolist(), self.resolution, pad_t=not self.log)
         span = max(far - near, 1e-9 * max(abs(near), abs(far), 1.0))
         proj = ortho(s0, s1, t0, t1, near - 0.01 * span, far + 0.01 * span) @ C @ W
@@ -419,11 +422,11 @@ class Problem:
         """LogPSM's log step for the perspective part with parameters x (Lloyd et al. 2007 eq. 78,
         solvers.warp.log_warp): a = n', W = D, the receivers' depth along the warp axis. The perspective
         part's t spans the receivers exactly (t_p = 0 at y0), and the PAD_TEXELS margin is added after the
-        log step (baselines._padded_log), so the strong warps' dense end keeps its rows (padding before
+        log step (warp.padded_log), so the strong warps' dense end keeps its rows (padding before
         the log left up to 18% of them unused)."""
         u = float(self.clip(x)[1])
         n_prime = self.fit(x)[3]
-        return _padded_log(log_warp(n_prime * math.expm1(u), n_prime), self.resolution[1])
+        return padded_log(log_warp(n_prime * math.expm1(u), n_prime), self.resolution[1])
 
     # -------------------------------------------------------------- objective and gradient
     def _check(self):
@@ -483,9 +486,9 @@ class Problem:
             for i in range(2):
                 e = np.zeros(2)
                 e[i] = FD_STEP
-                g[i] = _robust_difference(self.value(x - e), f, self.value(x + e), FD_STEP)
+                g[i] = robust_difference(self.value(x - e), f, self.value(x + e), FD_STEP)
             return f, g
-        import drjit as dr
+        import drjit as dr  # lazy: drjit reads DRJIT_LIBLLVM_PATH on import (solvers.jit.llvm_ad sets it)
 
         M = self.matrix(x)
         choice = self.last_choice if self.affine == "objective" else None  # the fit's choice held for dP/dx
@@ -501,7 +504,7 @@ class Problem:
         for i in range(2):
             e = np.zeros(2)
             e[i] = FIT_STEP
-            g[i] = float(np.sum(dfdM * _robust_difference(self.matrix(x - e, choice), M, self.matrix(x + e, choice),
+            g[i] = float(np.sum(dfdM * robust_difference(self.matrix(x - e, choice), M, self.matrix(x + e, choice),
                                                           FIT_STEP)))
         if not np.all(np.isfinite(g)):
             g = np.zeros(2)
@@ -525,8 +528,6 @@ class SpotProblem(Problem):
 
     def __init__(self, camera: Camera, light, samples: Samples, receivers: np.ndarray, casters_bounds, resolution,
                  deadline: float | None = None, affine: str = "parallelogram", **_):
-        from .light_frames import spot_view
-
         self.camera, self.light, self.resolution = camera, light, (int(resolution[0]), int(resolution[1]))
         receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
         fit = np.vstack([receivers, samples.position]) if len(samples) else receivers
@@ -546,10 +547,6 @@ class SpotProblem(Problem):
         self.n_hull = 0
 
     def fit(self, x):
-        from .baselines import _near_for
-        from .fitting import frustum
-        from .light_frames import look_matrix
-
         r0, u0, a0 = self.view0[0, :3], self.view0[1, :3], -self.view0[2, :3]
         axis = a0 + float(x[0]) * r0 + float(x[1]) * u0
         axis /= np.linalg.norm(axis)
@@ -562,9 +559,9 @@ class SpotProblem(Problem):
             return None
         dc = -to_view(view, self.corners)[:, 2]
         far = float(max(d.max(), dc[dc > 0].max() if (dc > 0).any() else 0.0, 1e-3)) * 1.01
-        near = _near_for(d, far)
+        near = perspective_near(d, far)
         q = v[:, :2] / d[:, None]
-        C, lo, hi = _affine_fit(q, self.affine, self.resolution)
+        C, lo, hi = affine_fit(q, self.affine, self.resolution)
         lo, hi = padded(lo, hi, PAD, 1e-6)
         A = np.eye(4)
         A[:2, :2] = np.diag(2.0 / (hi - lo)) @ C[:2, :2]
@@ -605,7 +602,7 @@ def start_maps(camera: Camera, light: DirectionalLight, receivers: np.ndarray, c
     return out
 
 
-def _start_x(prob: Problem, smap: ShadowMap) -> np.ndarray:
+def start_x(prob: Problem, smap: ShadowMap) -> np.ndarray:
     square = prob.resolution[0] == prob.resolution[1]
     if smap.n_prime is None or not math.isfinite(smap.n_prime):
         return np.array([_angle_of(smap.view, prob.view0, square), 0.0])
@@ -649,7 +646,7 @@ def minimize(camera: Camera, light: DirectionalLight | SpotLight, samples: Sampl
     else:
         bases = start_maps(camera, light, prob.fit_pts, casters_bounds, prob.resolution, starts)
     base_vals = {name: prob.eval_map(m) for name, m in bases.items()}
-    xs = {name: _start_x(prob, m) for name, m in bases.items()}
+    xs = {name: start_x(prob, m) for name, m in bases.items()}
     xp = prob.plane_x()
     if xp is not None:
         xs["plane"] = xp
@@ -666,12 +663,12 @@ def minimize(camera: Camera, light: DirectionalLight | SpotLight, samples: Sampl
     start = best_start
     if bname is not None and base_vals[bname] < f:  # a baseline map itself is best (fit details differ)
         # a copy: the caller's baseline map (start_maps_given) keeps its own split and bias
-        f, smap, xb, start = base_vals[bname], copy.deepcopy(bases[bname]), _start_x(prob, bases[bname]), bname
+        f, smap, xb, start = base_vals[bname], copy.deepcopy(bases[bname]), start_x(prob, bases[bname]), bname
         if success:
             message = f"converged; the {bname} baseline map is best"
     smap.split = (0.0, float(camera.far))
     if bias and len(receivers):
-        _with_bias(smap, np.asarray(receivers, float).reshape(-1, 3), light)
+        with_bias(smap, np.asarray(receivers, float).reshape(-1, 3), light)
     return OptimizeResult(np.asarray(xb, float), float(f), int(nit), prob.nfev, (time.perf_counter() - t0) * 1e3,
                           success, message, smap, start, {**base_vals, **{f"{k}@family": v for k, v in fam_vals.items()}},
                           prob.njev)
@@ -683,8 +680,6 @@ SINGLE_MAP_CONE_DEG = 70.0  # a point light's receivers within this half-angle o
 def single_map_spot(light, receivers: np.ndarray):
     """For a point light: a spot light with the receivers' mean direction as its axis and a cone just
     covering them, when that cone is at most SINGLE_MAP_CONE_DEG; else None."""
-    from .lights import PointLight
-
     if not isinstance(light, PointLight) or len(receivers) < 3:
         return None
     d = np.asarray(receivers, float).reshape(-1, 3) - light.position
@@ -702,8 +697,6 @@ def single_map_spot(light, receivers: np.ndarray):
 
 def optimizable(light) -> bool:
     """Lights with projective parameters to optimize: directional, and spots drawn as one map."""
-    from .baselines import SPOT_AS_CUBE_DEG
-
     return isinstance(light, DirectionalLight) or (isinstance(light, SpotLight) and light.cone_deg <= SPOT_AS_CUBE_DEG)
 
 
@@ -736,7 +729,7 @@ def _minimize_spot(camera, light, samples, receivers, casters_bounds, resolution
         smap, start = prob.map_for(xb), best_start
     smap.split = (0.0, float(camera.far))
     if bias and len(receivers):
-        _with_bias(smap, np.asarray(receivers, float).reshape(-1, 3), light)
+        with_bias(smap, np.asarray(receivers, float).reshape(-1, 3), light)
     return OptimizeResult(np.asarray(xb, float), float(f), int(nit), prob.nfev, (time.perf_counter() - t0) * 1e3,
                           success, message, smap, start, {"focused": base_val, **{f"{k}@family": v for k, v in fam_vals.items()}},
                           prob.njev)
@@ -760,11 +753,9 @@ def _run(method: str, prob: Problem, x: np.ndarray, maxiter: int) -> int:
     kind, name = method.split(":")
     lo, hi = prob.lower, prob.upper
     if method == "gradient:linesearch":  # beside φ = 0, the affine fit's symmetric tie (as below)
-        return _cg07_linesearch(prob, np.asarray(x, float) + [1e-3, 0.0], maxiter)
+        return cg07_linesearch(prob, np.asarray(x, float) + [1e-3, 0.0], maxiter)
     if kind == "gradient":
         return _torch(name, prob, x, maxiter, lo, hi)
-    import nlopt
-
     if name == "GN_DIRECT_L":
         n = _nlopt(nlopt.GN_DIRECT_L, prob, x, lo, hi, maxeval=max(4 * maxiter, 60))
         # a short local polish from the best point DIRECT found (its boxes resolve slowly)
@@ -775,8 +766,6 @@ def _run(method: str, prob: Problem, x: np.ndarray, maxiter: int) -> int:
 
 
 def _nlopt(algo, prob: Problem, x, lo, hi, maxeval: int, step: float = 0.2) -> int:
-    import nlopt
-
     opt = nlopt.opt(algo, 2)
     opt.set_lower_bounds(lo.tolist())
     opt.set_upper_bounds(hi.tolist())
@@ -804,7 +793,7 @@ def _nlopt(algo, prob: Problem, x, lo, hi, maxeval: int, step: float = 0.2) -> i
 
 
 def _torch(name: str, prob: Problem, x, maxiter: int, lo, hi) -> int:
-    import torch
+    import torch  # lazy: seconds to import (11 s measured under load), only the gradient:lbfgs/adam solvers use it
 
     scale = max(abs(prob.best[0]), 1e-300)
     # The baselines' φ = 0 is a symmetric tie of the affine fit (f jumps there): start just beside it.
@@ -844,7 +833,7 @@ def _torch(name: str, prob: Problem, x, maxiter: int, lo, hi) -> int:
     raise ValueError(f"method: unknown solver 'gradient:{name}' (known: {', '.join(METHODS)})")
 
 
-def _cg07_linesearch(prob: Problem, x: np.ndarray, maxiter: int) -> int:
+def cg07_linesearch(prob: Problem, x: np.ndarray, maxiter: int) -> int:
     """Chong & Gortler 2007 Algorithm 1: gradient, then a line search over fixed step sizes along the
     negative gradient (one backwards, for forced exploration), halving the smallest step when none of
     them helps, a few iterations."""

@@ -6,17 +6,19 @@ from __future__ import annotations
 
 import math
 import time
-from functools import lru_cache
 
 import numpy as np
 
-from .baselines import _with_bias, fit_baseline, texel_extents
+from .baselines import METHODS as BASELINES, fit_baseline
 from .cameras import Camera
-from .cascades import allocate_mean, map_gradients, mean_terms, pixel_world_size, with_receivers
+from .cascade_scores import cascade_terms, depth_shares, receiver_h, receiver_terms
+from .cascades import allocate_mean, mean_terms
+from .depth_modes import with_bias
 from .lights import DirectionalLight
-from .metric import serial_kernels
+from .metric import per_sample_maps, predicted_error, predicted_objective, serial_kernels
 from .optimize import DEFAULT_METHOD, METHODS, Problem, minimize, optimizable, single_map_spot
-from .samples import Samples, seeded_rows
+from .samples import Samples
+from .split_search import optimize_splits
 
 
 def _shared_hull(fitted, k: int, part: np.ndarray, sub: Samples, receivers: np.ndarray, sample_rows, sel_s, sel_r):
@@ -32,95 +34,6 @@ def _shared_hull(fitted, k: int, part: np.ndarray, sub: Samples, receivers: np.n
     if len(rows) and not (sel_r[rows].all() and np.array_equal(receivers[rows], sub.position)):
         return None
     return hull
-
-
-RECEIVER_SCORE_POINTS = 2000  # receivers kept to score a cascade that has no sample
-
-
-def receiver_h(smap, pts: np.ndarray, camera: Camera, light) -> float:
-    """Mean over receivers of Chong & Gortler's h = ||F||_F^2 (eq. 9) with each receiver treated as
-    facing the camera and the light (the cosine factors dropped, as solvers.cascades.critical_factors
-    does): ((metres per texel along s)^2 + (along t)^2) / (world size of a full-resolution pixel)^2.
-    Scores a cascade the samples do not reach (no shadow boundary in its depth range): there the
-    metric has no sample, so every candidate would score 0. inf when a receiver is outside the map."""
-    p, q = receiver_terms(smap, pts, camera, light)
-    return p / smap.resolution[0] ** 2 + q / smap.resolution[1] ** 2
-
-
-@lru_cache(maxsize=64)
-def _light_plane_axes(d: tuple) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit axes perpendicular to the light direction d (baselines.texel_extents' e1, e2)."""
-    d = np.asarray(d, float)
-    e1 = np.cross(d, [0.0, 1.0, 0.0])
-    if np.linalg.norm(e1) < 1e-6:
-        e1 = np.cross(d, [1.0, 0.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(d, e1)
-
-
-_SCORED: dict = {}  # id(pts) -> (pts, camera, n, subset, pixel sizes): the split search and the cascades'
-                    # candidates score many maps on the same receivers (speed only: the same numbers)
-
-
-def _scored_receivers(pts, camera, n: int):
-    """(subset, pixel_world_size there) of receiver_terms, kept for the last few receiver arrays."""
-    hit = _SCORED.get(id(pts))
-    if hit is not None and hit[0] is pts and hit[1] is camera and hit[2] == n:
-        return hit[3], hit[4]
-    sub = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
-    if len(sub) > n:
-        sub = sub[seeded_rows(len(sub), n)]
-    pix = pixel_world_size(camera, sub) if len(sub) else np.zeros(0)
-    if len(_SCORED) >= 32:
-        _SCORED.pop(next(iter(_SCORED)))
-    _SCORED[id(pts)] = (pts, camera, n, sub, pix)
-    return sub, pix
-
-
-def receiver_terms(smap, pts: np.ndarray, camera: Camera, light, n: int = RECEIVER_SCORE_POINTS) -> tuple[float, float]:
-    """(P, Q) of receiver_h: its mean h is P / width^2 + Q / height^2 (means over the receivers of
-    (metres per unit s / pixel size)^2 and likewise t, measured in the plane perpendicular to the light
-    as baselines.texel_extents does, from the map's analytic gradients; at most n receivers, a seeded
-    random subset; inf when one is outside the map)."""
-    pts, pix = _scored_receivers(pts, camera, n)
-    if not len(pts):
-        return 0.0, 0.0
-    if not isinstance(light, DirectionalLight):
-        per_s, per_t = texel_extents(smap, pts, light)
-    else:
-        e1, e2 = _light_plane_axes(tuple(float(v) for v in light.direction))
-        gs, gt, s, t, w = map_gradients(smap, pts)
-        j00, j01, j10, j11 = gs @ e1, gs @ e2, gt @ e1, gt @ e2
-        det = np.abs(j00 * j11 - j01 * j10)
-        eps = 1e-6
-        inside = (w > 0) & (s >= -eps) & (s <= 1 + eps) & (t >= -eps) & (t <= 1 + eps) & (det > 0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            per_s = np.where(inside, np.hypot(j11, j10) / det, np.nan)
-            per_t = np.where(inside, np.hypot(j01, j00) / det, np.nan)
-    p, q = (per_s / pix) ** 2, (per_t / pix) ** 2
-    if not (np.isfinite(p).all() and np.isfinite(q).all()):
-        return math.inf, math.inf
-    return float(np.mean(p)), float(np.mean(q))
-
-
-def cascade_terms(maps, subs, parts, camera, light, total_weight: float, shares=None,
-                  n_receivers: int = RECEIVER_SCORE_POINTS):
-    """Per cascade, (P, Q) for solvers.cascades.allocate_mean: the samples' terms (weights over the
-    light's total) plus the receivers' (cascades.with_receivers; `shares`: each cascade's share of
-    the receivers, default from len(parts))."""
-    P, Q, W, Pr, Qr = [], [], [], [], []
-    for smap, sub, pts in zip(maps, subs, parts):
-        p, q = mean_terms(smap, sub, camera.position) if len(sub) else (0.0, 0.0)
-        P.append(p / total_weight), Q.append(q / total_weight)
-        W.append(float(np.sum(sub.weight)) / total_weight if len(sub) else 0.0)
-        pr, qr = receiver_terms(smap, pts, camera, light, n_receivers)
-        Pr.append(pr), Qr.append(qr)
-    if shares is None:
-        n = np.array([len(p) for p in parts], float)
-        shares = n / max(n.sum(), 1.0)
-    if not all(math.isfinite(v) for v in P + Q + Pr + Qr):
-        return None  # a sample or receiver outside a map
-    return with_receivers(P, Q, W, Pr, Qr, shares)
 
 
 def _receiver_weights(maps, subs, parts, camera, light, total_weight: float, shares):
@@ -149,17 +62,6 @@ def _mean_h(smap, sub: Samples) -> float:
     sample has no valid footprint): to rank candidates before the allocation."""
     p, q = mean_terms(smap, sub)
     return (p / smap.resolution[0] ** 2 + q / smap.resolution[1] ** 2) / max(float(np.sum(sub.weight)), 1e-300)
-
-
-def _depth_shares(maps, depth: np.ndarray) -> np.ndarray:
-    """Each cascade's share of the receivers by view depth (map_for_depth's rule: the first cascade
-    whose [near, far] split holds the depth; `depth` sorted or not)."""
-    if not len(depth):
-        return np.full(len(maps), 1.0 / max(len(maps), 1))
-    d = depth if np.all(depth[:-1] <= depth[1:]) else np.sort(depth)
-    bounds = np.searchsorted(d, [m.split[1] for m in maps], side="right")
-    counts = np.diff(np.concatenate([[0], np.maximum.accumulate(bounds)]))
-    return counts / float(len(d))
 
 
 def _reallocate(maps, subs, parts, camera, light, budget, total_weight, shares, also=None) -> None:
@@ -193,9 +95,6 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
 
     `sample_rows`: per sample, the index of the receiver at the same position, when the samples are
     receivers (service.solve's are): the search then reuses the baselines' hull of each cascade."""
-    from .baselines import METHODS as BASELINES
-    from .metric import per_sample_maps, predicted_error, predicted_objective
-
     if solver not in METHODS:
         raise ValueError(f"solver: unknown solver {solver!r} (known: {', '.join(METHODS)})")
     t0 = time.perf_counter()
@@ -204,8 +103,6 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
     if splits == "optimized":
         splits = "practical"
         if isinstance(light, DirectionalLight) and int(cascades) > 1:
-            from .split_search import optimize_splits
-
             sr = optimize_splits(camera, light, samples, receivers, casters_bounds, resolution, int(cascades),
                                  texel_budget=texel_budget, receiver_slack=receiver_slack)
             split_at, split_info = sr.split_at, sr.to_json()
@@ -244,7 +141,7 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
     out_maps, info, kept = [], [], []
     subs = []
     total_w = max(float(np.sum(samples.weight)), 1e-300)
-    shares = _depth_shares(ref, depth)
+    shares = depth_shares(ref, depth)
     for rmap in ref:
         sel_s = (samples.view_depth >= rmap.split[0]) & (samples.view_depth <= rmap.split[1])
         subs.append((sel_s, samples if sel_s.all() else samples.subset(sel_s)))
@@ -356,7 +253,7 @@ def optimized_maps(camera: Camera, light, samples: Samples, receivers: np.ndarra
             if len(sub):
                 e["objective"] = float(predicted_objective([m], sub, camera.position))
     for m, pts in zip(out_maps, kept):
-        _with_bias(m, pts, light)
+        with_bias(m, pts, light)
     results = [e.get("result", {}) for e in info]
     solver_json = {"name": solver, "time_ms": round((time.perf_counter() - t0) * 1e3, 3),
                    "nit": int(sum(r.get("nit", 0) for r in results)), "nfev": int(sum(r.get("nfev", 0) for r in results)),

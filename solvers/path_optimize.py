@@ -50,12 +50,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .baselines import PAD_TEXELS, _with_bias
-from .fitting import box_corners, extent_floor, light_plane_hull, to_view
+from .cascade_scores import receiver_h
+from .depth_modes import with_bias
+from .fitting import PAD_TEXELS, box_corners, extent_floor, light_plane_hull, to_view
 from .lights import DirectionalLight
 from .metric import predicted_objective
+from .optimized_maps import optimized_maps
 from .samples import Samples
-from .shadow_map import ShadowMap
+from .shadow_map import ShadowMap, serving_maps
 
 LADDER_STEPS = 64  # scale levels per octave: one step is 2^(1/64) - 1 = 1.1% of the map's size per axis
 LEVEL_SLACK = 4  # steps a held level may exceed the tightest one before the level follows the receivers
@@ -309,8 +311,6 @@ class CascadeFit:
             return math.inf
         if len(self.sub):
             return float(predicted_objective([smap], self.sub, camera.position))
-        from .optimized_maps import receiver_h
-
         return float(receiver_h(smap, self.part, camera, light))
 
 
@@ -376,8 +376,6 @@ def path_maps(camera, light, samples: Samples, receivers: np.ndarray, casters_bo
     snapped grid (choose_grid). Returns (maps, solver_json) with solver_json["path"] = {"cascades": [the held
     grid per cascade and the decision]} for the next frame. A light with no light-plane projective map (spot,
     point) gets the per-frame optimized maps with the optimizer's own hysteresis (previous_x)."""
-    from .optimized_maps import optimized_maps
-
     t0 = time.perf_counter()
     hysteresis = HYSTERESIS if hysteresis is None else float(hysteresis)
     held = previous_grids(previous_state)
@@ -422,7 +420,7 @@ def path_maps(camera, light, samples: Samples, receivers: np.ndarray, casters_bo
             state.append({"decision": _finite_or_none(dec)})
             continue
         m.split = smap.split
-        _with_bias(m, cf.part, light)
+        with_bias(m, cf.part, light)
         out.append(m)
         dec["fresh"] = fresh.to_json() if fresh is not None else None  # the second pass's input (optimize_path)
         state.append({**g.to_json(), "decision": _finite_or_none(dec)})
@@ -544,7 +542,7 @@ def optimize_path(frames: list[FrameProblem], hysteresis: float | None = None,
     if best[4] == "segments":  # the bias of the maps returned (pass 1's have theirs), one per segment
         for i, fp in enumerate(frames):
             for c, m in enumerate(best[0][i]):
-                _with_bias(m, fits[i][c].part, fp.light)
+                with_bias(m, fits[i][c].part, fp.light)
         for c, r in enumerate(passes["segments"]["cascades"]):
             for a, b in r["segments"]:
                 hold_bias([best[0][i][c] for i in range(a, b + 1)])
@@ -571,8 +569,6 @@ def joint_grid(frames: list["FrameProblem"], c: int, resolution=None) -> Grid | 
     (optimized_maps) on the union of their samples and receivers, seen from the middle frame's camera (its
     splits and warp frame), so that its objective is the error summed over the frames. None when that map
     is not a light-plane projective map."""
-    from .optimized_maps import optimized_maps
-
     mid = frames[len(frames) // 2]
     samples = concat_samples([f.samples for f in frames])
     recs = [np.asarray(f.receivers, float).reshape(-1, 3) for f in frames]
@@ -775,11 +771,9 @@ def keyframes(result: PathResult, frames: list[FrameProblem], every: int) -> dic
             mi = interpolated_maps(result.maps[a], result.maps[b], (j - a) / (b - a))
             f = _objective(mi, fp)
             f0 = result.objective[j]
-            from ..renderers.ground_truth import _serving_maps
-
             rec = np.asarray(fp.receivers, float).reshape(-1, 3)
             depth = (rec - fp.camera.position) @ fp.camera.forward
-            idx = _serving_maps(mi, rec, depth)
+            idx = serving_maps(mi, rec, depth)
             outside = int(np.sum(idx < 0))
             for c, m in enumerate(mi):
                 sel = idx == c

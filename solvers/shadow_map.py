@@ -160,3 +160,18 @@ def map_for_depth(maps: list[ShadowMap], view_depth: np.ndarray) -> np.ndarray:
         lo, hi = maps[k].split
         idx[(view_depth >= lo) & (view_depth <= hi)] = k
     return idx
+
+
+def serving_maps(maps: list[ShadowMap], positions: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """Index of the map serving each point (-1: none): the cascade for its camera view depth (map_for_depth),
+    or, for cube faces, the first face whose map contains it."""
+    if not maps:
+        return np.full(len(depth), -1, dtype=np.int64)
+    if maps[0].face is None:
+        return map_for_depth(maps, depth)
+    idx = np.full(len(depth), -1, dtype=np.int64)
+    for k in range(len(maps) - 1, -1, -1):
+        s, t, z, w = maps[k].map_coords(positions)
+        inside = (w > 0) & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (z >= -1) & (z <= 1)
+        idx[inside] = k
+    return idx

@@ -18,12 +18,13 @@ import math
 import time
 from dataclasses import dataclass
 
+import nlopt
 import numpy as np
 
 from .baselines import fit_baseline
+from .cascade_scores import cascade_terms, depth_shares
 from .cascades import objective_mean, receiver_depth_range, split_depths
 from .metric import predicted_error
-from .optimized_maps import _depth_shares, cascade_terms
 from .samples import Samples, seeded_rows
 
 SEARCH_RECEIVERS = 500  # receivers kept for the search's map fits (the final maps fit all of them)
@@ -85,7 +86,7 @@ def optimize_splits(camera, light, samples: Samples, receivers: np.ndarray, cast
         for m in fitted.maps:
             sel = (samples.view_depth >= m.split[0]) & (samples.view_depth <= m.split[1])
             subs.append(samples.subset(sel))
-        terms = cascade_terms(fitted.maps, subs, fitted.parts, camera, light, total_w, _depth_shares(fitted.maps, depth),
+        terms = cascade_terms(fitted.maps, subs, fitted.parts, camera, light, total_w, depth_shares(fitted.maps, depth),
                               SEARCH_RECEIVER_TERMS)
         v = objective_mean(*terms, texel_budget) if terms is not None else math.inf
         return v if math.isfinite(v) else 1e300
@@ -100,8 +101,6 @@ def optimize_splits(camera, light, samples: Samples, receivers: np.ndarray, cast
     vals = {kind: f(s) for kind, s in starts.items()}
     best_kind = min(vals, key=vals.get)
     best = [vals[best_kind], starts[best_kind]]
-
-    import nlopt
 
     def g(s, grad):
         v = f(s)

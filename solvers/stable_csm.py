@@ -23,7 +23,7 @@ the bounds; from a camera outside them, the farthest corner's distance), rounded
 an engine's fixed "max shadow distance" setting, chosen as the level's size, so the splits and the
 spheres, hence the texel sizes, do not change while the camera moves or turns inside the scene. Every cascade has the same square
 resolution: `resolution`, or with a texel budget sqrt(budget / k) per side. Bias: the baselines' rule
-(baselines._with_bias over each cascade's receivers).
+(depth_modes.with_bias over each cascade's receivers).
 """
 from __future__ import annotations
 
@@ -33,6 +33,7 @@ import numpy as np
 
 from .cameras import Camera
 from .cascades import split_depths
+from .depth_modes import with_bias
 from .fitting import SNAP_STEPS_PER_OCTAVE, box_corners, depth_range, ortho, to_view
 from .light_frames import look_matrix, perpendicular_up
 from .lights import DirectionalLight
@@ -73,8 +74,6 @@ def stable_csm_maps(camera: Camera, light, receivers: np.ndarray, casters_bounds
                     cascades: int = 1, splits: str = "practical", split_lambda: float = 0.5,
                     texel_budget: int | None = None, receiver_slack=None, **_ignored) -> list[ShadowMap]:
     """The stable CSM maps of one directional light (module doc), biased like the baselines."""
-    from .baselines import _with_bias
-
     if not isinstance(light, DirectionalLight):
         raise ValueError("stable_csm: only directional lights have cascades (use focused for spot and point lights)")
     receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
@@ -113,5 +112,5 @@ def stable_csm_maps(camera: Camera, light, receivers: np.ndarray, casters_bounds
         smap.split = (0.0 if i == 0 else float(z[i]), float(camera.far if i == k - 1 else z[i + 1]))
         sel = (depth >= smap.split[0]) & (depth <= smap.split[1])
         part = receivers[sel] if sel.any() else receivers
-        maps.append(_with_bias(smap, part, light))
+        maps.append(with_bias(smap, part, light))
     return maps

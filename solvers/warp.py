@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from .fitting import PAD_TEXELS
 from .shadow_map import LogWarp
 
 NO_WARP_SIN = 0.02  # Filament: no warp when sin(light, view) < 0.02 (about 1 degree)
@@ -94,6 +95,15 @@ def log_warp(depth: float, n_prime: float) -> LogWarp:
     c0 = -1/log((y1+a)/(y0+a)), c1 = -(y1-y0)/(y1+a), c2 = 1, so that c1 t_p + c2 = (y0+a)/(y+a)
     and t = log((y+a)/a) / log((W+a)/a)."""
     return LogWarp(*logp_params(0.0, float(depth), float(n_prime)))
+
+
+def padded_log(lw: LogWarp, texels: int) -> LogWarp:
+    """The log warp's t' padded after itself by PAD_TEXELS texels: t'' = (t' + p) / (1 + 2p),
+    p = margin / (n - 2 margin), which is again c0'' log(c1'' t + c2''), c0'' = c0 / (1 + 2p) and
+    c1'', c2'' = e^(p / c0) (c1, c2)."""
+    p = PAD_TEXELS / max(texels - 2.0 * PAD_TEXELS, 1.0)
+    k = math.exp(p / lw.c0)
+    return LogWarp(lw.c0 / (1.0 + 2.0 * p), lw.c1 * k, lw.c2 * k)
 
 
 def gamma_deg(view_dir: np.ndarray, light_dir: np.ndarray) -> float:

@@ -12,9 +12,9 @@ import pytest
 from shadowopt.service.evaluation import evaluate_solution
 from shadowopt.service.scenes import SceneEntry
 from shadowopt.service.solve import maps_from_solution, solve
-from shadowopt.solvers.baselines import PAD_TEXELS, baseline
+from shadowopt.solvers.baselines import baseline
 from shadowopt.solvers.cameras import Camera
-from shadowopt.solvers.fitting import box_corners, min_area_rectangle
+from shadowopt.solvers.fitting import PAD_TEXELS, box_corners, min_area_rectangle
 from shadowopt.solvers.light_frames import directional_view, spot_view
 from shadowopt.solvers.lights import DirectionalLight, PointLight, SpotLight
 from shadowopt.solvers.metric import predicted_error

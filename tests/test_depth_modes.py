@@ -13,12 +13,14 @@ import pytest
 
 from shadowopt.renderers.ground_truth import engine_depth, engine_splits, evaluate, texel_world_size_at
 from shadowopt.solvers import depth_modes as DM
-from shadowopt.solvers.baselines import BIAS_CONSTANT_TEXELS as KC, BIAS_SLOPE_TEXELS as KS, baseline, texel_extents
+from shadowopt.solvers.baselines import baseline
 from shadowopt.solvers.cameras import Camera
+from shadowopt.solvers.depth_modes import BIAS_CONSTANT_TEXELS as KC, BIAS_SLOPE_TEXELS as KS
 from shadowopt.solvers.fitting import frustum
 from shadowopt.solvers.light_frames import look_matrix
 from shadowopt.solvers.lights import DirectionalLight, SpotLight
 from shadowopt.solvers.shadow_map import ShadowMap
+from shadowopt.solvers.texel_size import texel_extents
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO = REPO / "configs" / "demo_scene.usda"
@@ -106,7 +108,7 @@ def test_the_chosen_bias_covers_95_percent_of_the_receivers():
         near, far = block["linear"]["near"], block["linear"]["far"]
         g = (DM.stored_depth(smap, mode, pts + h * light.direction, near, far)
              - DM.stored_depth(smap, mode, pts - h * light.direction, near, far)) / (2 * h)
-        # with tau as baselines.texel_extents measures it (the definition the block uses), exactly 95%
+        # with tau as texel_size.texel_extents measures it (the definition the block uses), exactly 95%
         # (up to one receiver: the percentile interpolates); dD/dd by the finite difference, not the closed form
         covered = np.mean(KC * tau_jac * g <= block[mode]["constant"] * (1 + 1e-9))
         assert 0.95 - 1.5 / len(g) <= covered <= 0.96, (mode, covered)

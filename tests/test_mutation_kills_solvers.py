@@ -202,7 +202,7 @@ def test_robust_difference_takes_the_side_without_the_jump():
     whichever side the jump is. f = 2 x + 3 y with a jump of 10 at x = 0.5 + h/2 (or x = 0.5 - h/2): the slope
     (2, 3) is recovered from the smooth side.
     (kills the side choice's `sum(dp * dp)` -> `sum(dp % dp)`, which always took the forward side)"""
-    from shadowopt.solvers.optimize import _robust_difference
+    from shadowopt.solvers.optimize import robust_difference
 
     h = 1e-3
     x0 = np.array([0.5, 0.2])
@@ -211,11 +211,11 @@ def test_robust_difference_takes_the_side_without_the_jump():
         return np.array([2 * x[0] + 3 * x[1] + (10.0 if (x[0] - jump_at) * np.sign(jump_at - 0.5) > 0 else 0.0)])
 
     for jump_at in (0.5 + h / 2, 0.5 - h / 2):
-        g = [_robust_difference(f(x0 - h * e, jump_at), f(x0, jump_at), f(x0 + h * e, jump_at), h)[0]
+        g = [robust_difference(f(x0 - h * e, jump_at), f(x0, jump_at), f(x0 + h * e, jump_at), h)[0]
              for e in np.eye(2)]
         assert g == pytest.approx([2.0, 3.0], rel=1e-6)
     h = 1e-4  # x^2 at 1: the sides agree to 1e-4, so the central difference, exact for a quadratic
-    smooth = _robust_difference(np.array([(1 - h) ** 2]), np.array([1.0]), np.array([(1 + h) ** 2]), h)
+    smooth = robust_difference(np.array([(1 - h) ** 2]), np.array([1.0]), np.array([(1 + h) ** 2]), h)
     assert smooth[0] == pytest.approx(2.0, rel=1e-9)
 
 
@@ -275,7 +275,7 @@ def test_cg07_line_search_backtracks_downhill_when_every_fixed_step_overshoots()
     up, x 4 in (phi, u) units) overshoots the minimum at x_0 = 0.01; halving 3 deg reaches f < f(0) / 10, and the
     search keeps iterating towards the closed-form minimum f = 0.
     (kills the backtracking start `min(a > 0)` -> `min(a != 0)`, i.e. -10 deg: steps uphill)"""
-    from shadowopt.solvers.optimize import _cg07_linesearch
+    from shadowopt.solvers.optimize import cg07_linesearch
 
     class Quadratic:  # the problem's interface the line search uses
         def __init__(self):
@@ -295,7 +295,7 @@ def test_cg07_line_search_backtracks_downhill_when_every_fixed_step_overshoots()
     prob = Quadratic()
     f0 = prob.value(np.zeros(2))
     assert all(prob.value(np.array([np.radians(a) * 4, 0.0])) > f0 for a in (3, 5, 50))  # every fixed step overshoots
-    it = _cg07_linesearch(prob, np.zeros(2), 8)
+    it = cg07_linesearch(prob, np.zeros(2), 8)
     assert min(prob.seen) < f0 / 10
     assert it >= 2
 
@@ -307,7 +307,7 @@ def test_receiver_terms_do_not_depend_on_an_earlier_call_with_fewer_receivers():
     (n >= their count) on a fresh array, against the same call on a copy that was first scored with n = 50.
     (kills the memo's `hit[2] == n` -> `hit[2] < n`, which served the 50-receiver subset to n = 5000)"""
     from shadowopt.solvers.baselines import baseline
-    from shadowopt.solvers.optimized_maps import receiver_terms
+    from shadowopt.solvers.cascade_scores import receiver_terms
 
     cam = Camera.look([0, 2, 0], [0, -0.1, 1], near=0.1, far=300, resolution=(1280, 720))
     sun = DirectionalLight.make([-0.3, -0.8, 0.5])
@@ -328,19 +328,19 @@ def test_parallelogram_fit_of_a_parallelogram_is_the_parallelogram_itself():
     hull edges). For points that are a parallelogram (sides (2, 0) and (1, 1), area 2; its axis box is 3 x 1) the
     map's region in q space, area prod(hi - lo) / |det C|, is exactly 2 and every point lies inside it.
     (kills `if not np.isfinite(area)` -> `if not not ...`, which fell back to the axis box)"""
-    from shadowopt.solvers.optimize import _affine_fit
+    from shadowopt.solvers.optimize import affine_fit
 
     corners = np.array([[0.0, 0.0], [2.0, 0.0], [3.0, 1.0], [1.0, 1.0]])
     rng = np.random.default_rng(5)
     inner = rng.uniform(0, 1, (40, 2)) @ np.array([[2.0, 0.0], [1.0, 1.0]])  # points inside it
     q = np.vstack([corners, inner])
     for res in ((512, 512), (1024, 512)):
-        C, lo, hi = _affine_fit(q, "parallelogram", res)
+        C, lo, hi = affine_fit(q, "parallelogram", res)
         A = C[:2, :2]
         assert np.prod(hi - lo) / abs(np.linalg.det(A)) == pytest.approx(2.0, rel=1e-9)
         r = q @ A.T
         assert np.all((r >= lo - 1e-12) & (r <= hi + 1e-12))
-    C, lo, hi = _affine_fit(q, "axis", (512, 512))
+    C, lo, hi = affine_fit(q, "axis", (512, 512))
     assert np.prod(hi - lo) == pytest.approx(3.0, rel=1e-12)
 
 
@@ -351,7 +351,7 @@ def test_texel_extents_of_an_orthographic_map_are_its_width_per_unit():
     difference step scales with the points' extent, so scenes of 2 km to 40 km agree with the closed form to
     1e-8 (a step fixed near 1e-9 m leaves roundoff of ~2e-6 there).
     (kills `extent = ... if len(pts) > 1 else 0` -> `len(pts) < 1`, which dropped the extent from the step)"""
-    from shadowopt.solvers.baselines import texel_extents
+    from shadowopt.solvers.texel_size import texel_extents
     from shadowopt.solvers.shadow_map import ShadowMap
 
     sun = DirectionalLight.make([0, -1, 0])
@@ -472,7 +472,7 @@ def test_cg07_line_search_stops_at_a_stationary_point_without_evaluating():
     """At a point where the gradient vanishes (or is not finite) there is no direction to search: the line
     search stops after the first gradient, evaluates no step (every step would be 0 / 0 = NaN) and leaves x.
     (kills `norm == 0 or not isfinite(norm)` -> `and`, which went on to evaluate 15 NaN points)"""
-    from shadowopt.solvers.optimize import _cg07_linesearch
+    from shadowopt.solvers.optimize import cg07_linesearch
 
     class Bowl:
         def __init__(self, grad):
@@ -490,19 +490,19 @@ def test_cg07_line_search_stops_at_a_stationary_point_without_evaluating():
 
     for grad in (lambda x: 2 * (np.asarray(x) - 0.25), lambda x: [np.inf, 0.0], lambda x: [np.nan, 1.0]):
         prob = Bowl(grad)
-        it = _cg07_linesearch(prob, np.array([0.25, 0.25]), 8)
+        it = cg07_linesearch(prob, np.array([0.25, 0.25]), 8)
         assert it == 1
         assert len(prob.seen) == 1 and np.all(np.isfinite(prob.seen[0]))  # only the start was evaluated
 
 
 # ---------------------------------------------------------------- analysis: d_min along a light ray (Lloyd et al.)
 def test_min_depth_along_light_matches_a_brute_force_walk_of_the_ray():
-    """analysis._min_depth_along_light: d_min of Lloyd et al. 2006 eqs. 45/54, the smallest view depth on the
+    """analysis.min_depth_along_light: d_min of Lloyd et al. 2006 eqs. 45/54, the smallest view depth on the
     light's line through p inside the view frustum (n <= z <= f, |x|, |y| <= z tan theta). Truth: walk the line
     in 1e-3 m steps and take the least z of the points inside the frustum. Light directions that leave through
     the near plane (d_min = n), a side plane, and the far plane. (Written for the near plane's normal mutant
     (0, 0, -1) -> (0, 0, +1), which this does not kill: it is equivalent, see tests/mutation/equivalent.json.)"""
-    from shadowopt.solvers.analysis import _min_depth_along_light
+    from shadowopt.solvers.analysis import min_depth_along_light
 
     n, f, tan_t = 1.0, 20.0, np.tan(np.radians(30.0))
     rng = np.random.default_rng(11)
@@ -511,14 +511,14 @@ def test_min_depth_along_light_matches_a_brute_force_walk_of_the_ray():
     mu = np.arange(-60.0, 60.0, 1e-3)
     for l in ([0.0, 0.0, 1.0], [0.3, -0.4, 0.866], [0.0, -1.0, 0.0], [0.6, 0.0, -0.8]):
         l = np.asarray(l) / np.linalg.norm(l)
-        got = _min_depth_along_light(p, l, n, f, tan_t)
+        got = min_depth_along_light(p, l, n, f, tan_t)
         for i in range(len(p)):
             q = p[i] + mu[:, None] * l
             inside = (q[:, 2] >= n) & (q[:, 2] <= f) & (np.abs(q[:, 0]) <= q[:, 2] * tan_t) & (np.abs(q[:, 1]) <= q[:, 2] * tan_t)
             want = q[inside, 2].min()
             assert got[i] == pytest.approx(want, abs=2e-3), (l, i)
     on_axis = np.array([[0.0, 0.0, 5.0], [0.0, 0.0, 15.0]])  # on the view axis, the line along it reaches z = n
-    assert _min_depth_along_light(on_axis, np.array([0.0, 0.0, 1.0]), n, f, tan_t) == pytest.approx([n, n])
+    assert min_depth_along_light(on_axis, np.array([0.0, 0.0, 1.0]), n, f, tan_t) == pytest.approx([n, n])
 
 
 # ---------------------------------------------------------------- stable_csm: the slice's bounding sphere
@@ -546,7 +546,7 @@ def test_cg07_line_search_stops_when_no_step_improves():
     and every halving overshoots: no step lowers f by the 1e-4 relative the search asks for, so it stops after
     the first iteration, having evaluated the start, the nine fixed steps and the six halvings, and x stays.
     (kills the stop test `best >= fx (1 - 1e-4)` -> `best is fx (1 - 1e-4)`, which ran all eight iterations)"""
-    from shadowopt.solvers.optimize import CG07_ANGLES_DEG, _cg07_linesearch
+    from shadowopt.solvers.optimize import CG07_ANGLES_DEG, cg07_linesearch
 
     class Vee:
         def __init__(self):
@@ -563,7 +563,7 @@ def test_cg07_line_search_stops_when_no_step_improves():
             return np.clip(x, -10.0, 10.0)
 
     prob = Vee()
-    it = _cg07_linesearch(prob, np.array([0.25, 0.0]), 8)
+    it = cg07_linesearch(prob, np.array([0.25, 0.0]), 8)
     assert it == 1
     assert len(prob.seen) == 1 + len(CG07_ANGLES_DEG) + 6
     assert min(float(prob.value(x)) for x in list(prob.seen)) == pytest.approx(1.0)
@@ -571,17 +571,17 @@ def test_cg07_line_search_stops_when_no_step_improves():
 
 # ---------------------------------------------------------------- baselines: a perspective light's near plane
 def test_perspective_light_near_plane_rule():
-    """_near_for (spot and point lights): 1e-4 of the far distance (at least 0.1 mm), pulled in to half the
+    """perspective_near (spot and point lights): 1e-4 of the far distance (at least 0.1 mm), pulled in to half the
     nearest receiver's depth, never below 1e-7 of far. Closed forms: far 100 m with receivers at 5 and 20 m
     keeps 1 cm; a receiver at 4 mm pulls it to 2 mm; one at 1e-9 m stops at the 1e-5 m floor; no receiver: 1 cm.
     (kills `0.5 * d.min()` -> `-0.5 * d.min()`, which put every near plane on the 1e-7 floor)"""
-    from shadowopt.solvers.baselines import _near_for
+    from shadowopt.solvers.fitting import perspective_near
 
-    assert _near_for(np.array([5.0, 20.0, np.inf, -3.0]), 100.0) == pytest.approx(0.01, rel=1e-12)
-    assert _near_for(np.array([0.004, 7.0]), 100.0) == pytest.approx(0.002, rel=1e-12)
-    assert _near_for(np.array([1e-9]), 100.0) == pytest.approx(1e-5, rel=1e-12)
-    assert _near_for(np.zeros(0), 100.0) == pytest.approx(0.01, rel=1e-12)
-    assert _near_for(np.array([1.0]), 0.5) == pytest.approx(1e-4, rel=1e-12)  # the 0.1 mm minimum
+    assert perspective_near(np.array([5.0, 20.0, np.inf, -3.0]), 100.0) == pytest.approx(0.01, rel=1e-12)
+    assert perspective_near(np.array([0.004, 7.0]), 100.0) == pytest.approx(0.002, rel=1e-12)
+    assert perspective_near(np.array([1e-9]), 100.0) == pytest.approx(1e-5, rel=1e-12)
+    assert perspective_near(np.zeros(0), 100.0) == pytest.approx(0.01, rel=1e-12)
+    assert perspective_near(np.array([1.0]), 0.5) == pytest.approx(1e-4, rel=1e-12)  # the 0.1 mm minimum
 
 
 # ---------------------------------------------------------------- baselines: LogPSM's eta from the camera's half-angle
@@ -611,7 +611,7 @@ def test_texel_extents_with_the_light_along_the_x_axis():
     along y): a light travelling exactly along +x is an ordinary case. An orthographic map looking along +x of
     half-size 40 m is 80 m per unit on both axes.
     (kills the along-y test `|l x y| < 1e-6` -> `< 1.000001`, which took l x x = 0 for every light and gave NaN)"""
-    from shadowopt.solvers.baselines import texel_extents
+    from shadowopt.solvers.texel_size import texel_extents
     from shadowopt.solvers.light_frames import look_matrix
     from shadowopt.solvers.shadow_map import ShadowMap
 

@@ -16,7 +16,7 @@ from shadowopt.solvers.baselines import baseline
 from shadowopt.solvers.cameras import Camera
 from shadowopt.solvers.lights import DirectionalLight
 from shadowopt.solvers.metric import DeviceSamples, per_sample, predicted_error
-from shadowopt.solvers.optimize import METHODS, OptimizeResult, Problem, _start_x, minimize, start_maps
+from shadowopt.solvers.optimize import METHODS, OptimizeResult, Problem, minimize, start_maps, start_x
 from shadowopt.solvers.samples import Samples, pixel_derivatives
 from testkit import ground_samples
 
@@ -128,7 +128,7 @@ def test_family_contains_the_baselines(ground):
         for name, affine in (("focused", "rectangle"), ("lispsm", "axis"), ("logpsm-perspective", "axis")):
             prob = Problem(cam, L, s, pts, BOUNDS, RES, affine=affine)
             want = predicted_error([maps[name]], s)["objective"]
-            got = prob.value(_start_x(prob, maps[name]))
+            got = prob.value(start_x(prob, maps[name]))
             assert 0.85 * want <= got <= 1.02 * want, (light, name, got, want)
 
 

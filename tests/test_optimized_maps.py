@@ -92,11 +92,11 @@ def test_mean_terms_predict_the_metric_at_any_resolution():
 
 
 def test_receiver_terms_match_texel_extents():
-    # the analytic gradients give the same metres per unit s, t as baselines.texel_extents' central
+    # the analytic gradients give the same metres per unit s, t as texel_size.texel_extents' central
     # differences (perpendicular to the light), for warped and log maps
-    from shadowopt.solvers.baselines import texel_extents
+    from shadowopt.solvers.cascade_scores import receiver_terms
     from shadowopt.solvers.cascades import pixel_world_size
-    from shadowopt.solvers.optimized_maps import receiver_terms
+    from shadowopt.solvers.texel_size import texel_extents
 
     pts, _ = ground_samples(CAM)
     for method in ("focused", "lispsm", "logpsm"):

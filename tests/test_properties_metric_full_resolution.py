@@ -21,7 +21,7 @@ from shadowopt.renderers.ray_scene import build_ray_scene
 from shadowopt.renderers.scene_data import LoadedScene, SceneGeometry
 from shadowopt.service.scenes import SceneEntry
 from shadowopt.service.solve import solve
-from shadowopt.solvers.baselines import PAD_TEXELS
+from shadowopt.solvers.fitting import PAD_TEXELS
 from shadowopt.solvers.frames import stage_to_world
 
 HEIGHT, FOV_Y = 10.0, 50.0

@@ -28,7 +28,7 @@ def demo():
 def _world_map(entry, light, cam, side=512):
     """One orthographic map on a world-fixed light view covering the whole scene, biased as the baselines."""
     from shadowopt.renderers.ground_truth import render_screen
-    from shadowopt.solvers.baselines import _with_bias
+    from shadowopt.solvers.depth_modes import with_bias
     from shadowopt.solvers.fitting import box_corners, depth_range, ortho, to_view
     from shadowopt.solvers.shadow_map import ShadowMap
     from shadowopt.solvers.stable_csm import world_light_view
@@ -44,7 +44,7 @@ def _world_map(entry, light, cam, side=512):
                      light_depth=(near, far), warp_kind="none")
     smap.split = (0.0, cam.far)
     sb = render_screen(entry.rays, cam, light, shadow_rays=False)
-    return _with_bias(smap, sb.position[sb.hit & sb.facing], light), tau
+    return with_bias(smap, sb.position[sb.hit & sb.facing], light), tau
 
 
 def _shifted(smap, du: float, dv: float = 0.0):
