@@ -320,7 +320,9 @@ def cmd_compare(args) -> int:
 
 def cmd_batch(args) -> int:
     """Precompute many configurations (explicit, or a camera path crossed with light directions)."""
-    from ..service.batches import BatchError, expand_configurations, run_batch
+    from ..service.batch_request import expand_configurations
+    from ..service.local_jobs import run_batch
+    from ..service.request_fields import BatchError
     from ..service.solve import METHODS
 
     raw = _read_json(args.configs, "--configs")
@@ -364,7 +366,8 @@ def cmd_batch(args) -> int:
 
 def cmd_path(args) -> int:
     """Solve a camera path frame by frame (service.paths): poses/keyframes, or a USD camera at time codes."""
-    from ..service.paths import PathError, expand_path_with_notes, line_json, run_path
+    from ..service.local_jobs import run_path
+    from ..service.paths import PathError, expand_path_with_notes, line_json
     from ..service.solve import METHODS
     from .schemas import ConfigurationError, validate_configurations
 

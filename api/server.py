@@ -254,7 +254,7 @@ class Service:
 
     # lifecycle
     def start(self) -> None:
-        from ..service.batches import BatchRunner
+        from ..service.job_runner import BatchRunner
         from ..service.store import Store
 
         import_native_stack()
@@ -1127,7 +1127,8 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
             return await svc.in_slot(svc.admission.solve, ticket, queue_batch, svc, tenant, req, entry)
 
     def queue_batch(svc: Service, tenant: str, req: S.BatchRequest, entry) -> Response:
-        from ..service.batches import BatchError, expand_configurations, expansion_shape
+        from ..service.batch_request import expand_configurations, expansion_shape
+        from ..service.request_fields import BatchError
 
         body = req.model_dump(by_alias=True, exclude_none=True,
                               exclude={"scene_id", "method", "solver", "time_budget_ms"})
@@ -1436,7 +1437,7 @@ def status_json(svc: Service, tenant: str, b: dict) -> dict:
 def batch_hints(svc: Service, tenant: str, b: dict) -> dict:
     """service.batches.interpolation_hints over the results, read a page at a time and cut down to the
     fields the hints compare (a big batch never sits in memory whole); cached per finished batch."""
-    from ..service.batches import interpolation_hints
+    from ..service.interpolation_hints import interpolation_hints
 
     key = (tenant, b["batch_id"])
     with _HINTS_LOCK:

@@ -1,7 +1,7 @@
 """Child processes that die with the server, and USD loads of uploaded scenes in a child with limits.
 
 - `die_with_parent(parent_pid)` runs first in every process we spawn (the loader child here, the batch
-  pool's workers through service.batches._worker_init): a daemon thread polls os.getppid() every 0.5 s
+  pool's workers through service.job_workers.worker_init): a daemon thread polls os.getppid() every 0.5 s
   and os._exit()s once the parent is gone (the guarantee), and on Linux prctl(PR_SET_PDEATHSIG, SIGKILL)
   makes the kernel kill the child at once. PDEATHSIG fires when the *thread* that spawned the child
   exits, not the process, so every child we spawn is started from one long-lived thread (`SPAWNER`):

@@ -16,8 +16,11 @@ import numpy as np
 import pytest
 
 from shadowopt.api.cli import validate_rig
-from shadowopt.service.batches import (BatchError, BatchRunner, expand_configurations, expansion_shape,
-                                       interpolation_hints, sun_arc)
+from shadowopt.service.batch_request import expand_configurations, expansion_shape
+from shadowopt.service.interpolation import sun_arc
+from shadowopt.service.interpolation_hints import interpolation_hints
+from shadowopt.service.job_runner import BatchRunner
+from shadowopt.service.request_fields import BatchError
 from shadowopt.service.store import Store
 from storekit import add_upload
 
@@ -271,7 +274,7 @@ def test_a_batch_runs_to_done_in_index_order_and_a_bad_configuration_is_only_an_
 def test_a_passing_runner_failure_is_retried_not_turned_into_errors(pool, monkeypatch):
     """A run that fails as a whole (here: the first attempt raises, as a busy database would; a stand-in,
     the failure cannot be caused on demand) leaves its configurations pending and runs the batch again."""
-    import shadowopt.service.batches as B
+    import shadowopt.service.job_runner as B
 
     store, runner = pool
     sid, _ = add_upload(store, "alice", DEMO.read_bytes(), "demo_scene.usda")
@@ -295,7 +298,7 @@ def test_a_passing_runner_failure_is_retried_not_turned_into_errors(pool, monkey
 def test_a_small_batch_is_not_stuck_behind_a_big_one(pool, monkeypatch):
     """Batches take turns a slice at a time: a 2-configuration batch submitted while a long one runs
     finishes while the long one is still running."""
-    import shadowopt.service.batches as B
+    import shadowopt.service.job_runner as B
 
     store, runner = pool
     monkeypatch.setattr(B, "SLICE", 4)
@@ -338,7 +341,7 @@ def test_cancel_stops_a_batch_and_the_runner_goes_on(pool):
 
 RUNNER_SCRIPT = """
 import sys, time
-from shadowopt.service.batches import BatchRunner
+from shadowopt.service.job_runner import BatchRunner
 from shadowopt.service.store import Store
 if __name__ == "__main__":
     runner = BatchRunner(Store(sys.argv[1]), backend="local", workers=1)
@@ -523,11 +526,11 @@ def _kernel_threads() -> int:
 def test_pool_workers_run_dr_jit_on_their_share_of_the_cores():
     """Two workers on N cores: each runs Dr.Jit's kernels on N // 2 threads (its default is every core in every
     process: two workers ran twice as many spinning kernel threads as cores), asked of a real worker."""
-    from shadowopt.service.batches import _LocalBackend
+    from shadowopt.service.job_backends import LocalBackend
 
-    be = _LocalBackend(2)
+    be = LocalBackend(2)
     try:
-        got = be._ensure_pool().submit(_kernel_threads).result(timeout=120)
+        got = be.ensure_pool().submit(_kernel_threads).result(timeout=120)
     finally:
         be.close()
     assert got == max(1, (os.cpu_count() or 1) // 2)

@@ -241,11 +241,11 @@ def test_a_pool_worker_outlives_the_thread_that_started_it():
     submitting thread that ends does not take its worker with it."""
     import multiprocessing
 
-    from shadowopt.service.batches import _worker_init
+    from shadowopt.service.job_workers import worker_init
 
     assert isolation.DyingProcessPool.pdeathsig_safe()
     pool = isolation.DyingProcessPool(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                                      initializer=_worker_init, initargs=(None, 1, os.getpid(), True))
+                                      initializer=worker_init, initargs=(None, 1, os.getpid(), True))
     try:
         spawns = isolation.SPAWNER.spawns
         out = {}
@@ -271,11 +271,11 @@ def how_this_process_dies() -> dict:
 
 def test_pool_workers_use_the_parent_death_signal():
     """Asked of a real worker of the batch backend's pool, not read from the pool's arguments."""
-    from shadowopt.service.batches import _LocalBackend
+    from shadowopt.service.job_backends import LocalBackend
 
-    be = _LocalBackend(1)
+    be = LocalBackend(1)
     try:
-        got = be._ensure_pool().submit(how_this_process_dies).result(timeout=120)
+        got = be.ensure_pool().submit(how_this_process_dies).result(timeout=120)
     finally:
         be.close()
     assert got["ppid"] == os.getpid() and got["watchdog"], got

@@ -434,7 +434,7 @@ def test_batch_workers_load_stored_scenes_under_the_servers_triangle_limit(tmp_p
     from storekit import add_upload
 
     from shadowopt.api.cli import validate_rig
-    from shadowopt.service.batches import BatchRunner
+    from shadowopt.service.job_runner import BatchRunner
     from shadowopt.service.store import Store
 
     demo = Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda"

@@ -190,7 +190,7 @@ def test_a_frame_heavy_only_at_its_time_code_fails_alone_over_the_upload_load_me
 def test_a_frame_load_over_the_load_time_limit_fails_naming_it(tmp_path):
     """The batch worker's entry point (what the pool runs per frame) with a time limit of 0.5 s: the load of the
     spheres at t = 10 is stopped (load_timeout) and the outcome names the time code and the limit."""
-    from shadowopt.service.batches import solve_configuration
+    from shadowopt.service.job_workers import solve_configuration
 
     p = tmp_path / "balls.usda"
     p.write_text(stage(ball_crowd()))

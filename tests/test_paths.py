@@ -19,7 +19,7 @@ import pytest
 
 from serverkit import TOKENS, auth, running
 from shadowopt.api.schemas import validate_configurations
-from shadowopt.service.batches import BatchRunner
+from shadowopt.service.job_runner import BatchRunner
 from shadowopt.service.paths import PathError, expand_path, expand_path_with_notes
 from shadowopt.service.store import Store
 from storekit import add_upload
@@ -288,7 +288,7 @@ def test_rest_post_paths_streams_frames_in_order_and_the_client_yields_them(anim
 
 RUNNER_SCRIPT = """
 import sys, time
-from shadowopt.service.batches import BatchRunner
+from shadowopt.service.job_runner import BatchRunner
 from shadowopt.service.store import Store
 if __name__ == "__main__":
     runner = BatchRunner(Store(sys.argv[1]), backend="local", workers=1)
@@ -419,7 +419,7 @@ def _walk_frames(n: int) -> list[dict]:
 
 
 def test_chunk_starts_split_a_long_path_evenly_and_keep_a_short_one_whole():
-    from shadowopt.service.paths import MIN_CHUNK_FRAMES, chunk_starts
+    from shadowopt.service.job_kinds import MIN_CHUNK_FRAMES, chunk_starts
 
     assert chunk_starts(1000, 2) == [0, 500] and chunk_starts(1000, 3) == [0, 333, 666]
     assert chunk_starts(1000, None) == [0] and chunk_starts(1000, 1) == [0]
@@ -431,8 +431,8 @@ def test_chunk_starts_split_a_long_path_evenly_and_keep_a_short_one_whole():
 def test_a_path_in_tasks_of_several_frames_on_two_workers_has_each_frames_maps_bit_for_bit():
     """A path job (tasks of several frames, two workers, one Dr.Jit thread each) answers every frame with the
     maps and matrices this process computes for that frame alone, to the last bit."""
-    from shadowopt.service.batches import chunk_size
-    from shadowopt.service.paths import run_path
+    from shadowopt.service.job_kinds import chunk_size
+    from shadowopt.service.local_jobs import run_path
     from shadowopt.service.scenes import SCENES
     from shadowopt.service.solve import solve
 
@@ -451,7 +451,9 @@ def test_a_path_in_tasks_of_several_frames_on_two_workers_has_each_frames_maps_b
 def test_a_coherent_path_on_two_workers_is_two_coherent_chunks_each_starting_fresh():
     """--coherent with two workers: frames 0-19 and 20-39 each solved in order from a fresh start, every other
     frame given its predecessor's solution; each frame equals this process's own chain, bit for bit."""
-    from shadowopt.service.paths import chunk_starts, previous_of, run_path
+    from shadowopt.service.job_kinds import chunk_starts
+    from shadowopt.service.job_workers import previous_of
+    from shadowopt.service.local_jobs import run_path
     from shadowopt.service.scenes import SCENES
     from shadowopt.service.solve import solve
 
@@ -478,8 +480,8 @@ def test_method_path_in_a_path_job_solves_the_frames_together_as_solve_path_does
     """Method path over a path job (no --coherent): each run of up to WHOLE_PATH_FRAMES frames is solved together
     by service.solve.solve_path (segments holding their texel grid), so every line has the maps solve_path gives
     those frames in this process, and says which segment of the run it belongs to."""
-    from shadowopt.service.batches import WHOLE_PATH_FRAMES
-    from shadowopt.service.paths import run_path
+    from shadowopt.service.job_kinds import WHOLE_PATH_FRAMES
+    from shadowopt.service.local_jobs import run_path
     from shadowopt.service.scenes import SCENES
     from shadowopt.service.solve import solve_path
 

@@ -11,7 +11,8 @@ import sys
 import tempfile
 import time
 
-from ..batches import BatchRunner, expand_configurations
+from ..batch_request import expand_configurations
+from ..job_runner import BatchRunner
 from .suite import ROOT, machine, write_section
 
 SCENE = ROOT / "configs" / "demo_scene.usda"

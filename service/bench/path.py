@@ -47,12 +47,12 @@ def path_corpus() -> dict:
 
 def frame_cameras(path_spec: dict, base_camera: dict, frames: int | None = None) -> list[dict]:
     """The path's camera dicts per frame: the batches' camera_path expansion over the rig's camera."""
-    from ..batches import _camera_path
+    from ..interpolation import camera_path
 
     cp = dict(path_spec["camera_path"])
     if frames is not None and "keyframes" in cp:
         cp["samples"] = int(frames)
-    return _camera_path(cp, base_camera)
+    return camera_path(cp, base_camera)
 
 
 def _solve_method(method: str):

@@ -30,7 +30,7 @@ import sys
 import tempfile
 import time
 
-from ..batches import WHOLE_PATH_FRAMES
+from ..job_kinds import WHOLE_PATH_FRAMES
 from .suite import ROOT, machine, write_section
 
 SCENE = ROOT / "configs" / "demo_scene.usda"
@@ -115,8 +115,8 @@ def _run_path(runner, store, clock: _Clock, scene_id: str, frames: list[dict], m
 def measure(backend: str, workers: int, methods, short: list[dict], repeats: int, long: list[dict] | None,
             log=None) -> dict:
     """One fresh runner: a cold run, then per method `repeats` short runs (and the long path when given)."""
-    from .. import batches
-    from ..batches import BatchRunner
+    from .. import job_kinds
+    from ..job_runner import BatchRunner
     from ..store import Store
 
     log = log or (lambda m: None)
@@ -142,12 +142,12 @@ def measure(backend: str, workers: int, methods, short: list[dict], repeats: int
             if backend == "local" and long is not None and methods[0] != "path":
                 part = long[:CHUNK_COMPARE]  # tasks of several frames against one frame per task
                 rows["chunked"] = _run_path(runner, store, clock, scene_id, part, methods[0], workers)
-                saved = batches.CHUNK
-                batches.CHUNK = 1
+                saved = job_kinds.CHUNK
+                job_kinds.CHUNK = 1
                 try:
                     rows["chunk1"] = _run_path(runner, store, clock, scene_id, part, methods[0], workers)
                 finally:
-                    batches.CHUNK = saved
+                    job_kinds.CHUNK = saved
         finally:
             runner.shutdown()
             store.close()
@@ -183,9 +183,9 @@ def bench_throughput(validate_rig, frames: int = 1000, short_frames: int = 40, r
                 skipped["ray"] = "ray is not installed"
                 continue
             if not ray.is_initialized():  # one local instance with a CPU per worker, for every worker count
-                from ..batches import _llvm_path
+                from ..job_workers import llvm_path
 
-                llvm = _llvm_path()
+                llvm = llvm_path()
                 ray.init(num_cpus=max(workers), include_dashboard=False, log_to_driver=False,
                          object_store_memory=128 * 1024 * 1024,
                          runtime_env={"env_vars": {"DRJIT_LIBLLVM_PATH": llvm}} if llvm else None)
