@@ -16,6 +16,9 @@ from fastapi.responses import FileResponse, Response
 from fastapi.staticfiles import StaticFiles
 
 from . import schemas as S
+from ..service.scene_export import DEFAULT_TRIANGLE_BUDGET, MAX_TRIANGLE_BUDGET, scene_glb
+from .errors import AUTHED, ApiError, error_responses, solver_errors
+from .scene_loading import scene_entry_for
 
 STATIC = Path(__file__).resolve().parent / "static" / "inspect"
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda"
@@ -25,9 +28,6 @@ DEMO_RIG = Path(__file__).resolve().parents[1] / "configs" / "demo_rig.json"
 def add_inspect_routes(app: FastAPI, svc, Tenant) -> None:
     """The inspector's routes on `app` (svc: the server's Service; Tenant: its authenticated-tenant
     dependency)."""
-    from ..service.scene_export import DEFAULT_TRIANGLE_BUDGET, MAX_TRIANGLE_BUDGET
-    from .server import AUTHED, ApiError, error_responses, scene_entry_for, solver_errors
-
     router = APIRouter()
 
     @router.get("/v1/scenes/{scene_id}/geometry.glb", tags=["scenes"],
@@ -42,11 +42,9 @@ def add_inspect_routes(app: FastAPI, svc, Tenant) -> None:
                              max_triangles: Annotated[int, Query(ge=1000, le=MAX_TRIANGLE_BUDGET, description=(
                                  "the triangle budget: a scene with more is decimated (quadric edge collapse, "
                                  "Garland and Heckbert 1997) to at most this many"))] = DEFAULT_TRIANGLE_BUDGET):
-        from ..service.scene_export import scene_glb
-
         try:  # the glTF writer and the decimation are the requirements' trimesh and pyfqmr
-            import pyfqmr  # noqa: F401
-            import trimesh  # noqa: F401
+            import pyfqmr  # noqa: F401  # lazy: optional; a server without it answers 503, not an import error
+            import trimesh  # noqa: F401  # lazy: optional; a server without it answers 503, not an import error
         except ImportError as e:
             raise ApiError(503, "geometry_export_unavailable", f"this server cannot write glTF: {e.name} is not "
                            "installed (requirements.lock)") from e

@@ -59,9 +59,9 @@ def solutions(entry):
 
 
 def as_client_sees(obj):
-    """A solution as it reaches a client: the server's own JSON conversion (api.server.finite: non-finite
+    """A solution as it reaches a client: the server's own JSON conversion (api.responses.finite: non-finite
     numbers as null, NumPy values as Python numbers), serialised as the server does."""
-    from shadowopt.api.server import finite
+    from shadowopt.api.responses import finite
 
     return json.loads(json.dumps(finite(obj), allow_nan=False))
 

@@ -127,7 +127,7 @@ def test_the_mode_is_compared_by_value(tmp_path):
         resolve_asset_path("x.usda", anchor, fresh("local"))
 
 
-# --- api/server.py: the bearer-token tenant and the rate limit, in process -------------------------------
+# --- api/server.py, api/rate_limit.py, api/service_state.py: the bearer-token tenant and the rate limit, in process
 
 TOKENS = {"alice": "alice-token-0001", "bob": "bob-token-0002"}
 
@@ -147,14 +147,15 @@ def _app(tmp_path, monkeypatch, **settings):
 
     from fastapi.testclient import TestClient
 
+    import shadowopt.api.rate_limit as rate_limit
     import shadowopt.api.server as server
     from shadowopt.api.settings import Settings
 
     clock = FakeClock()
-    monkeypatch.setattr(server, "time", SimpleNamespace(monotonic=clock.monotonic, time=__import__("time").time,
-                                                        perf_counter=__import__("time").perf_counter,
-                                                        strftime=__import__("time").strftime,
-                                                        gmtime=__import__("time").gmtime))
+    monkeypatch.setattr(rate_limit, "time", SimpleNamespace(monotonic=clock.monotonic, time=__import__("time").time,
+                                                            perf_counter=__import__("time").perf_counter,
+                                                            strftime=__import__("time").strftime,
+                                                            gmtime=__import__("time").gmtime))
     s = Settings(data_dir=str(tmp_path / "data"), **settings)
     return TestClient(server.create_app(s), raise_server_exceptions=False), clock
 
@@ -164,7 +165,7 @@ def _get(client, token=None):
 
 
 def test_tenant_for_names_the_token_owner_and_nobody_else():
-    from shadowopt.api.server import LOCAL_TENANT, Service
+    from shadowopt.api.service_state import LOCAL_TENANT, Service
     from shadowopt.api.settings import Settings
 
     svc = Service(Settings(tokens=dict(TOKENS)))
@@ -887,7 +888,7 @@ def test_the_light_parts_timings_are_milliseconds_that_add_up():
     import time
 
     from shadowopt.api import schemas as S
-    from shadowopt.api.server import rig_dict
+    from shadowopt.api.routes_solve import rig_dict
     from shadowopt.service.coarse_cache import CoarseCache, cached_coarse_pass
     from testkit import box, plane, scene_entry_of
 

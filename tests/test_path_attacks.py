@@ -223,19 +223,21 @@ def test_the_animation_is_read_once_in_a_load_slot_not_a_solver_slot(tmp_path, m
     instancer grows past max_triangles at one time code is refused at the POST, naming it."""
     from starlette.testclient import TestClient
 
+    import shadowopt.api.routes_paths as routes_paths
     import shadowopt.api.server as server_mod
+    from shadowopt.api.service_state import LOCAL_TENANT
     from shadowopt.api.settings import Settings
 
     warm = tmp_path / "warm.usda"  # no camera: the warm-up loads it and solves nothing
     warm.write_text(stage().replace('def Camera "Cam"', 'def Xform "Cam"'))
     seen = []
-    real = server_mod.read_animation_for
+    real = routes_paths.read_animation_for
 
     def spy(svc, *args):
         seen.append((svc.admission.load.busy, svc.admission.solve.busy))
         return real(svc, *args)
 
-    monkeypatch.setattr(server_mod, "read_animation_for", spy)
+    monkeypatch.setattr(routes_paths, "read_animation_for", spy)
     app = server_mod.create_app(Settings(data_dir=str(tmp_path / "data"), warm_scenes=[str(warm)], max_triangles=1000))
     svc = app.state.service
     with TestClient(app) as client:
@@ -243,15 +245,15 @@ def test_the_animation_is_read_once_in_a_load_slot_not_a_solver_slot(tmp_path, m
         svc.runner.submit = lambda *a, **k: None  # the frames are not solved here: only the POST is looked at
         moving = tmp_path / "moving.usda"  # an operator's file (read in this process: the uploads' isolated read
         moving.write_text(stage(NAN_CASTER))  # is the same call in a child, measured on the real server above)
-        scene_id = svc.store.link_scene(server_mod.LOCAL_TENANT, moving)
+        scene_id = svc.store.link_scene(LOCAL_TENANT, moving)
         body = {"scene_id": scene_id, "rig": RIG, "usd_camera": "/World/Cam", "time": TIMES}
         first = client.post("/v1/paths", json=body)
         again = client.post("/v1/paths", json=body)
         other = client.post("/v1/paths", json={**body, "time": {"start": 0, "end": 10, "step": 2}})
         crowd = tmp_path / "crowd.usda"  # ground 2 + one cube 12 = 14 triangles at its default time, 2 + 100 x 12 at 10
         crowd.write_text(stage(cube_crowd(100)))
-        grown = client.post("/v1/paths", json={**body, "scene_id": svc.store.link_scene(server_mod.LOCAL_TENANT, crowd)})
-        calm = client.post("/v1/paths", json={**body, "scene_id": svc.store.link_scene(server_mod.LOCAL_TENANT, crowd),
+        grown = client.post("/v1/paths", json={**body, "scene_id": svc.store.link_scene(LOCAL_TENANT, crowd)})
+        calm = client.post("/v1/paths", json={**body, "scene_id": svc.store.link_scene(LOCAL_TENANT, crowd),
                                               "time": {"start": 0, "end": 9}})
     assert grown.status_code == 413, grown.text  # refused before any frame is queued, naming the time code
     err = grown.json()["error"]

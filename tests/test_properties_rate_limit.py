@@ -1,4 +1,4 @@
-"""The per-tenant rate limiter (api.server.RateLimiter) against the token bucket it documents: `rate` tokens a
+"""The per-tenant rate limiter (api.rate_limit.RateLimiter) against the token bucket it documents: `rate` tokens a
 second up to `burst`, one per request.
 
 Independent truth: from an empty bucket, after t idle seconds exactly min(burst, floor(rate t)) requests pass at
@@ -12,7 +12,7 @@ from types import SimpleNamespace
 
 import pytest
 
-import shadowopt.api.server as server
+import shadowopt.api.rate_limit as rate_limit
 
 RATE, BURST = 2.0, 3
 
@@ -28,8 +28,8 @@ class Clock:
 @pytest.fixture
 def limiter(monkeypatch):
     clock = Clock()
-    monkeypatch.setattr(server, "time", SimpleNamespace(monotonic=clock.monotonic))
-    return server.RateLimiter(RATE, BURST), clock
+    monkeypatch.setattr(rate_limit, "time", SimpleNamespace(monotonic=clock.monotonic))
+    return rate_limit.RateLimiter(RATE, BURST), clock
 
 
 def passes_in_a_row(lim, tenant: str, cap: int = 10_000) -> int:
@@ -61,5 +61,5 @@ def test_a_refused_request_is_told_when_a_token_is_back(limiter):
 
 
 def test_rate_zero_means_no_limit(limiter):
-    lim = server.RateLimiter(0.0, 1)
+    lim = rate_limit.RateLimiter(0.0, 1)
     assert passes_in_a_row(lim, "alice", cap=500) == 500

@@ -337,7 +337,9 @@ def test_redact_cuts_every_server_path_to_its_file_name(tmp_path):
     Python prefix and the temporary directory come out as file names."""
     import sys
 
-    from shadowopt.api.server import REDACT, ApiError, Service, redact, scene_error
+    from shadowopt.api.errors import ApiError, scene_error
+    from shadowopt.api.responses import REDACT, redact
+    from shadowopt.api.service_state import Service
     from shadowopt.api.settings import Settings
     from shadowopt.renderers.scene_data import SceneError
 

@@ -191,8 +191,7 @@ def test_a_bug_under_a_previous_solution_is_a_500_with_the_request_id_not_a_422(
     itself). A bug is now a 500 internal_error whose message carries the request id, and it is logged."""
     import asyncio
 
-    import shadowopt.api.server as server_mod
-    import shadowopt.service.solve as solve_mod
+    import shadowopt.api.routes_solve as routes_solve
     from shadowopt.api.server import create_app
 
     def buggy_solve(*args, **kwargs):
@@ -201,8 +200,8 @@ def test_a_bug_under_a_previous_solution_is_a_500_with_the_request_id_not_a_422(
     async def any_entry(svc, ticket, scene_id):
         return object()
 
-    monkeypatch.setattr(solve_mod, "solve", buggy_solve)  # bound when the routes are made
-    monkeypatch.setattr(server_mod, "scene_entry_for", any_entry)
+    monkeypatch.setattr(routes_solve, "solve", buggy_solve)
+    monkeypatch.setattr(routes_solve, "scene_entry_for", any_entry)
     app = create_app(Settings(data_dir=str(tmp_path / "d")))
 
     async def optimize():

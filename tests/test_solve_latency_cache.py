@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from shadowopt.api import schemas as S
-from shadowopt.api.server import rig_dict
+from shadowopt.api.routes_solve import rig_dict
 from shadowopt.renderers.coarse import DEPTH_CONTINUITY
 from shadowopt.service import coarse_cache, solve as solve_mod
 from shadowopt.service.coarse_cache import CoarseCache, cached_coarse_pass
