@@ -136,7 +136,7 @@ def test_sliver_between_fine_rays_inside_every_map():
     edge pass's fine rays (6 per coarse pixel, 1.8 px apart). Before service.solve.cell_frusta LiSPSM
     left 13 of its pixels outside the map (LogPSM 16, 4 cascades 27); the cell's frustum over its fine
     hits' depth range contains it."""
-    from shadowopt.service.bench.suite import corpus_scenes, hemisphere_directions
+    from shadowopt.service.bench.definitions import corpus_scenes, hemisphere_directions
     from shadowopt.service.scenes import SceneCache
 
     found, _ = corpus_scenes(["street_canyon"])

@@ -12,7 +12,8 @@ import tempfile
 import time
 
 from ..batches import BatchRunner, expand_configurations
-from .suite import ROOT, machine, write_section
+from .definitions import ROOT
+from .output import machine, write_section
 
 SCENE = ROOT / "configs" / "demo_scene.usda"
 

@@ -1,4 +1,4 @@
-"""The corpus protocol (Chong & Gortler 2007 §3, as `service.bench.suite.quality_scene` runs it) on the
+"""The corpus protocol (Chong & Gortler 2007 §3, as `service.bench.quality.quality_scene` runs it) on the
 HELD-OUT scenes (configs/heldout.json, built by renderers.heldout): scenes of kinds the development
 corpus does not have, which nobody tunes on, with suns from a seed other than the corpus's.
 
@@ -66,9 +66,9 @@ def _commit() -> str:
 
 
 def configurations(map_res, parts) -> dict:
-    """The corpus's configurations (service.bench.suite.quality_configs on configs/benchmarks.json's
+    """The corpus's configurations (service.bench.definitions.quality_configs on configs/benchmarks.json's
     `quality`), one map at `map_res`."""
-    from .suite import definitions, quality_configs
+    from .definitions import definitions, quality_configs
 
     q = definitions()["quality"]
     return quality_configs({**q, "map": list(map_res)}, parts)
@@ -134,7 +134,8 @@ def run(scenes=None, lights: int | None = None, seed: int | None = None, screen=
     """The corpus protocol on the held-out rigs; prints a block per scene rig as it finishes and returns
     {"scenes": {key: summary}, "table": markdown, ...}; writes the table to `results_md` when given."""
     from ...api.schemas import validate_rig
-    from .suite import hemisphere_directions, quality_scene
+    from .definitions import hemisphere_directions
+    from .quality import quality_scene
     from ..scenes import SceneCache
 
     d = heldout_definitions()
@@ -217,7 +218,7 @@ def tables(summaries: dict, proto: dict, settings: dict) -> str:
                 methods.append(m)
     out = [f"# Held-out check (configs/heldout.json, renderers/heldout.py)\n",
            f"Code: {settings['commit']}. Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. "
-           f"Protocol: service.bench.suite.quality_scene; {settings['lights']} suns uniform on the hemisphere above "
+           f"Protocol: service.bench.quality.quality_scene; {settings['lights']} suns uniform on the hemisphere above "
            f"{proto['min_elevation_deg']} deg (seed {settings['seed']}; the corpus uses 2), screen "
            f"{settings['screen'][0]}x{settings['screen'][1]}, one {settings['map'][0]}x{settings['map'][1]} map; "
            "misclassified pixels against exact ray-traced visibility. Best baseline: the best of "
