@@ -1,10 +1,14 @@
 """Outside pixels over the corpus: are the receivers the camera sees at full resolution inside the maps
 that serve them, for every corpus rig, sun, method and cascade count (renderers.coverage.outside_mask
-per configuration)."""
+per configuration). Used by tests/test_receivers.py (no benchmark section: a test helper)."""
 from __future__ import annotations
 
-from ...renderers.coverage import outside_mask
-from ...renderers.ground_truth import render_screen
+from shadowopt.renderers.coverage import outside_mask
+from shadowopt.renderers.ground_truth import render_screen
+from shadowopt.service.bench.definitions import corpus_scenes, hemisphere_directions
+from shadowopt.service.rigs import resolve_rig
+from shadowopt.service.scenes import SceneCache
+from shadowopt.service.solve import maps_from_solution, solve
 
 
 CASCADE_CONFIGS = {1: {"resolution": [400, 400], "cascades": 1},
@@ -18,11 +22,6 @@ def coverage_sweep(validate_rig, scenes=None, suns: int = 4, methods=("uniform",
     each solve sees that camera), sun (service.bench.definitions.hemisphere_directions, the corpus benchmark's
     seed), method and cascade count, one row {scene, screen, sun, method, cascades, outside_pixels,
     receiver_pixels}. `validate_rig`: api.schemas.validate_rig (as every bench takes it). `log` gets one line per (scene, screen) with the totals per method."""
-    from ..rigs import resolve_rig
-    from ..scenes import SceneCache
-    from ..solve import maps_from_solution, solve
-    from .definitions import corpus_scenes, hemisphere_directions
-
     found, _ = corpus_scenes(scenes)
     dirs = hemisphere_directions(suns, min_elevation_deg, seed)
     rows = []
