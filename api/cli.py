@@ -156,6 +156,12 @@ def cmd_bench(args) -> int:
             from ..service.bench.quality import bench_quality
 
             result = bench_quality(validate_rig, lights=args.lights, write=not args.no_write, parts=parts)
+    elif args.bench == "heldout":  # the corpus protocol on the held-out scenes (configs/heldout.json)
+        from ..service.bench.heldout import bench_heldout
+
+        result = bench_heldout(validate_rig, lights=args.lights, scenes=args.scenes, screen=args.screen,
+                               cascade_lights=args.cascade_lights, cascades=args.part != "single",
+                               reuse=bool(args.reuse), write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "batch":
         from ..service.bench.batches import bench_batch
 
@@ -569,7 +575,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
     sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch", "security", "engine", "path",
-                                       "throughput", "inspect", "budget"])
+                                       "throughput", "inspect", "budget", "heldout"])
     sp.add_argument("--frames", type=int, default=None, help="path: frames per path (default: configs/paths.json's samples); "
                     "throughput: frames of the long path (default 1000)")
     sp.add_argument("--paths", default=None, help="path: comma-separated path names from configs/paths.json")
