@@ -127,27 +127,41 @@ def cmd_coarse(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from ..service.bench import suite as benchmarks
-
     if args.bench == "coarse":
-        result = benchmarks.bench_coarse(validate_rig, runs=args.runs, scenes=args.scenes, write=not args.no_write)
+        from ..service.bench.coarse import bench_coarse
+
+        result = bench_coarse(validate_rig, runs=args.runs, scenes=args.scenes, write=not args.no_write)
     elif args.bench == "solvers":
+        from ..service.bench.solvers import bench_solvers, bench_solvers_corpus
+
         if args.corpus:
-            result = benchmarks.bench_solvers_corpus(validate_rig, lights=args.lights or 3, scenes=args.scenes,
-                                                     write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
+            result = bench_solvers_corpus(validate_rig, lights=args.lights or 3, scenes=args.scenes,
+                                          write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
         else:
-            result = benchmarks.bench_solvers(validate_rig, lights=args.lights or 5, write=not args.no_write)
+            result = bench_solvers(validate_rig, lights=args.lights or 5, write=not args.no_write)
     elif args.bench == "trust":
-        result = benchmarks.bench_trust(validate_rig, rigs=args.lights, write=not args.no_write)
+        from ..service.bench.trust import bench_trust
+
+        result = bench_trust(validate_rig, rigs=args.lights, write=not args.no_write)
     elif args.bench == "quality":
         parts = ("single", "cascades") if args.part == "all" else (args.part,)
         if args.corpus:
-            result = benchmarks.bench_quality_corpus(validate_rig, lights=args.lights, scenes=args.scenes, parts=parts,
-                                                     write=not args.no_write, reuse=args.reuse or False,
-                                                     screen=args.screen, cascade_lights=args.cascade_lights,
-                                                     hd_lights=args.hd_lights, log=lambda m: print(m, file=sys.stderr))
+            from ..service.bench.quality_corpus import bench_quality_corpus
+
+            result = bench_quality_corpus(validate_rig, lights=args.lights, scenes=args.scenes, parts=parts,
+                                          write=not args.no_write, reuse=args.reuse or False,
+                                          screen=args.screen, cascade_lights=args.cascade_lights,
+                                          hd_lights=args.hd_lights, log=lambda m: print(m, file=sys.stderr))
         else:
-            result = benchmarks.bench_quality(validate_rig, lights=args.lights, write=not args.no_write, parts=parts)
+            from ..service.bench.quality import bench_quality
+
+            result = bench_quality(validate_rig, lights=args.lights, write=not args.no_write, parts=parts)
+    elif args.bench == "heldout":  # the corpus protocol on the held-out scenes (configs/heldout.json)
+        from ..service.bench.heldout import bench_heldout
+
+        result = bench_heldout(validate_rig, lights=args.lights, scenes=args.scenes, screen=args.screen,
+                               cascade_lights=args.cascade_lights, cascades=args.part != "single",
+                               reuse=bool(args.reuse), write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "batch":
         from ..service.bench.batches import bench_batch
 
@@ -564,7 +578,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
     sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch", "security", "engine", "path",
-                                       "throughput", "inspect", "budget"])
+                                       "throughput", "inspect", "budget", "heldout"])
     sp.add_argument("--frames", type=int, default=None, help="path: frames per path (default: configs/paths.json's samples); "
                     "throughput: frames of the long path (default 1000)")
     sp.add_argument("--paths", default=None, help="path: comma-separated path names from configs/paths.json")

@@ -9,7 +9,7 @@ point), and a receiver is outside when that map does not contain it (clip w <= 0
 [0, 1], z_ndc outside [-1, 1]) or no map serves it. Cheap enough to check many suns at 1920x1080.
 
 The sweep over the corpus (rigs x suns x methods x cascade counts x screens) is
-`service.bench.coverage.coverage_sweep`.
+`tests/coverage_sweep.py`.
 """
 from __future__ import annotations
 

@@ -136,7 +136,7 @@ def test_bench_quality_json_small_run():
 
 
 def test_hemisphere_directions_point_down_above_the_elevation():
-    from shadowopt.service.bench.suite import hemisphere_directions
+    from shadowopt.service.bench.definitions import hemisphere_directions
 
     d = hemisphere_directions(500, 5.0, 1)
     assert np.allclose(np.linalg.norm(d, axis=1), 1.0)

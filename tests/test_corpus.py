@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from shadowopt.renderers import corpus
-from shadowopt.service.bench.suite import ROOT, corpus_definitions, corpus_scenes
+from shadowopt.service.bench.definitions import ROOT, corpus_definitions, corpus_scenes
 
 SPEC = corpus_definitions()["scenes"]
 MAX_GENERATED_TRIANGLES = 200_000
@@ -86,7 +86,7 @@ def test_corpus_scene_loads_and_its_rig_sees_receivers(name, cache_dir):
 
 
 def test_benchmark_scene_list_skips_absent_shared_assets(monkeypatch):
-    import shadowopt.service.bench.suite as b
+    import shadowopt.service.bench.definitions as b
 
     real = b.corpus_definitions()
     fake = {"scenes": {"missing": {"path": "../shared/usd-assets/not-there.usda", "rigs": {"r": {"camera": {}}}}}}
@@ -106,7 +106,7 @@ def test_corpus_config_is_valid_json_with_notes():
 def test_bench_quality_corpus_small_run_and_reuse(tmp_path):
     """The corpus benchmark end to end on one scene, one sun, a tiny screen: every number the tables
     print is there, and a second run with reuse takes the stored result instead of measuring."""
-    from shadowopt.service.bench.suite import bench_quality_corpus
+    from shadowopt.service.bench.quality_corpus import bench_quality_corpus
 
     kw = dict(lights=1, scenes="closeup", write=False, screen=[48, 48], store=tmp_path, hd_lights=1, hd_screen=[64, 36])
     first = bench_quality_corpus(_validate, **kw)
@@ -132,7 +132,7 @@ def test_bench_solvers_corpus_scores_against_the_best_solver(monkeypatch):
     """Each solver's objective over the lowest any solver reached on the same sun: the best solver of
     every sun scores exactly 1, nobody scores below 1, and `within` counts the suns inside 0.5%."""
     import shadowopt.solvers.optimize as opt
-    from shadowopt.service.bench.suite import bench_solvers_corpus
+    from shadowopt.service.bench.solvers import bench_solvers_corpus
 
     monkeypatch.setattr(opt, "METHODS", ("nlopt:LN_BOBYQA", "nlopt:LN_COBYLA"))
     out = bench_solvers_corpus(_validate, lights=2, scenes="closeup", write=False, screen=[64, 64])

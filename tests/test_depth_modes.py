@@ -317,7 +317,7 @@ def test_engine_modes_leave_no_receiver_outside_that_ideal_serves(scene, sun, me
     of the idealized rule (where the midpoint switch alone left hundreds outside), and the fallback to
     cascade k really happened."""
     from shadowopt.api.schemas import validate_rig
-    from shadowopt.service.bench.suite import corpus_scenes, hemisphere_directions
+    from shadowopt.service.bench.definitions import corpus_scenes, hemisphere_directions
     from shadowopt.service.rigs import resolve_rig
     from shadowopt.service.scenes import SceneCache
     from shadowopt.service.solve import maps_from_solution, solve

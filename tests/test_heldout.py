@@ -11,7 +11,7 @@ import pytest
 
 from shadowopt.renderers import corpus, heldout
 from shadowopt.service.bench import heldout as heldout_check
-from shadowopt.service.bench.suite import ROOT, corpus_definitions, definitions
+from shadowopt.service.bench.definitions import ROOT, corpus_definitions, definitions
 
 SPEC = heldout_check.heldout_definitions()
 SCENES = SPEC["scenes"]

@@ -212,7 +212,7 @@ def test_optimized_is_never_worse_than_any_baseline_on_random_suns():
     from pathlib import Path
 
     from shadowopt.api.cli import validate_rig
-    from shadowopt.service.bench.suite import hemisphere_directions
+    from shadowopt.service.bench.definitions import hemisphere_directions
     from shadowopt.service.pipeline import scene_entry
     from shadowopt.service.solve import solve
 

@@ -156,7 +156,8 @@ def test_four_cascades_on_the_interior_rig_against_ray_traced_visibility():
     # The corpus interior with 4 cascades broke (issue 10: 16x practical+LiSPSM); on two suns optimized (practical splits and optimized splits under
     # the budget) stays within 1.25x practical+LiSPSM + 50 pixels per sun.
     from shadowopt.api.cli import validate_rig
-    from shadowopt.service.bench import suite as B
+    from shadowopt.service.bench import definitions as B
+    from shadowopt.service.bench.quality import quality_scene
     from shadowopt.service.scenes import SceneCache
 
     configs = B.quality_configs(B.definitions()["quality"], ("cascades",))
@@ -165,7 +166,7 @@ def test_four_cascades_on_the_interior_rig_against_ray_traced_visibility():
     (path, spec), = B.corpus_scenes(["interior"])[0].values()
     entry = SceneCache().get(path)
     rig = next(iter(spec["rigs"].values()))
-    rec = B.quality_scene(validate_rig, entry, rig["camera"], [300, 300], dirs, configs)["misclassified"]["cascades"]
+    rec = quality_scene(validate_rig, entry, rig["camera"], [300, 300], dirs, configs)["misclassified"]["cascades"]
     ref = rec["practical+lispsm"]
     for name in ("optimized (practical splits, equal)", "optimized"):
         for r, o in zip(ref, rec[name]):

@@ -1,4 +1,4 @@
-"""The corpus benchmark's report (service.bench.quality_report, service.bench.suite._scene_stats) on tiny
+"""The corpus benchmark's report (service.bench.quality_report, service.bench.corpus_tables.scene_stats) on tiny
 synthetic records: the numbers it prints against independent computations (scipy's Spearman, a
 hand-computed geometric mean and median), records stored before a key existed show "-", and the
 speed-against-error plot is a real image."""
@@ -11,7 +11,8 @@ import pytest
 from scipy.stats import spearmanr
 
 from shadowopt.service.bench import quality_report as qr
-from shadowopt.service.bench.suite import _scene_stats, _tables_corpus, definitions
+from shadowopt.service.bench.corpus_tables import scene_stats as _scene_stats, tables_corpus as _tables_corpus
+from shadowopt.service.bench.definitions import definitions
 
 METHODS = ("uniform", "focused", "lispsm", "logpsm", "optimized")
 
@@ -159,7 +160,7 @@ def test_predicted_pixels_column_against_scipy_and_old_records_show_dashes():
 
 def test_fingerprint_changes_with_the_record_keys(tmp_path, monkeypatch):
     # a record stored without predicted_misclassified is measured again by --reuse
-    from shadowopt.service.bench import suite as b
+    from shadowopt.service.bench import quality_corpus as b
 
     f = tmp_path / "s.usda"
     f.write_text("#usda 1.0\n")

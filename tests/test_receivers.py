@@ -10,7 +10,6 @@ import pytest
 from shadowopt.api.cli import validate_rig
 from shadowopt.renderers.coarse import render_coarse
 from shadowopt.renderers.coverage import outside_mask, outside_pixels
-from shadowopt.service.bench.coverage import CASCADE_CONFIGS
 from shadowopt.renderers.ground_truth import evaluate_buffers, render_screen
 from shadowopt.renderers.ray_scene import build_ray_scene
 from shadowopt.renderers.scene_data import LoadedScene
@@ -20,6 +19,7 @@ from shadowopt.service.solve import light_problems, maps_from_solution, solve
 from shadowopt.solvers.baselines import baseline
 from shadowopt.solvers.fitting import min_area_rectangle, to_view
 from shadowopt.solvers.frames import stage_to_world
+from coverage_sweep import CASCADE_CONFIGS
 from testkit import box, merge
 
 METHODS = ("uniform", "focused", "lispsm", "logpsm", "optimized")
@@ -98,7 +98,7 @@ def test_corpus_rigs_leave_no_receiver_outside(scene):
     landed there); demo: a box edge inside the first coarse column at 750 px (a sliver at the screen's
     border). Every method, 1 map and 4 cascades, 2 suns, 750 x 750."""
     from shadowopt.api.schemas import validate_rig
-    from shadowopt.service.bench.coverage import coverage_sweep
+    from coverage_sweep import coverage_sweep
 
     rows = coverage_sweep(validate_rig, [scene], suns=2, screens=((750, 750),), log=None)
     assert len(rows) == 2 * 2 * len(METHODS)
@@ -136,7 +136,7 @@ def test_sliver_between_fine_rays_inside_every_map():
     edge pass's fine rays (6 per coarse pixel, 1.8 px apart). Before service.solve.cell_frusta LiSPSM
     left 13 of its pixels outside the map (LogPSM 16, 4 cascades 27); the cell's frustum over its fine
     hits' depth range contains it."""
-    from shadowopt.service.bench.suite import corpus_scenes, hemisphere_directions
+    from shadowopt.service.bench.definitions import corpus_scenes, hemisphere_directions
     from shadowopt.service.scenes import SceneCache
 
     found, _ = corpus_scenes(["street_canyon"])

@@ -98,7 +98,7 @@ def test_stable_csm_is_texel_snapped_and_covers_every_receiver_along_a_strafe(ca
     from shadowopt.api.schemas import validate_rig
     from shadowopt.renderers.stability import path_stability
     from shadowopt.service.bench.path import frame_cameras, path_corpus
-    from shadowopt.service.bench.suite import corpus_scenes
+    from shadowopt.service.bench.definitions import corpus_scenes
     from shadowopt.service.rigs import resolve_rig
     from shadowopt.service.scenes import SceneCache
     from shadowopt.service.solve import maps_from_solution, solve

@@ -13,7 +13,8 @@ import time
 
 from ..batch_request import expand_configurations
 from ..job_runner import BatchRunner
-from .suite import ROOT, machine, write_section
+from .definitions import ROOT
+from .output import machine, write_section
 
 SCENE = ROOT / "configs" / "demo_scene.usda"
 

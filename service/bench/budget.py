@@ -27,7 +27,8 @@ import time
 
 import numpy as np
 
-from .suite import corpus_scenes, machine, write_section
+from .definitions import corpus_scenes
+from .output import machine, write_section
 
 SUN = (-0.3, -0.8, 0.5)
 

@@ -83,7 +83,7 @@ def hlsl_tools() -> str | None:
 def scene_rigs(names=None, screen=None):
     """[(name, scene path, rig without shadow/output)]: McUsd with its own camera and sun (if present), and
     the corpus scenes of CORPUS_SUNS with their rigs' cameras."""
-    from .suite import corpus_scenes
+    from .definitions import corpus_scenes
 
     names = list(names) if names else ["mcusd", *CORPUS_SUNS]
     out, skipped = [], {}
@@ -290,7 +290,7 @@ def measure(validate_rig, name: str, path, rig: dict, cascades: int, map_res: in
 def bench_engine(validate_rig, scenes=None, write=True, map_res=2048, screen=None, log=None) -> dict:
     """`shadowopt bench engine`: McUsd at its camera's resolution (1 and 4 cascades) and the corpus scenes
     of CORPUS_SUNS at 1280x720; maps map_res^2."""
-    from .suite import write_section
+    from .output import write_section
 
     missing = hlsl_tools()
     languages = LANGUAGES if missing is None else ("glsl",)

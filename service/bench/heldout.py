@@ -1,4 +1,4 @@
-"""The corpus protocol (Chong & Gortler 2007 §3, as `service.bench.suite.quality_scene` runs it) on the
+"""The corpus protocol (Chong & Gortler 2007 §3, as `service.bench.quality.quality_scene` runs it) on the
 HELD-OUT scenes (configs/heldout.json, built by renderers.heldout): scenes of kinds the development
 corpus does not have, which nobody tunes on, with suns from a seed other than the corpus's.
 
@@ -12,21 +12,28 @@ LiSPSM, optimized with practical splits, optimized splits/allocation) and their 
 Each scene rig's raw measurements go to out/heldout/results/<scene>--<rig>.json (with the code's
 commit), the table to out/heldout/results.md. `reuse` takes a stored scene rig measured with the same
 settings instead of measuring again (so disjoint scene lists may run in separate processes and be
-merged by a last run).
+merged by a last run). `shadowopt bench heldout` prints the table and writes it into BENCHMARKS.md:
 
-  .venv/bin/python -m shadowopt.service.bench.heldout --scenes colonnade --lights 2 --screen 300x300 --no-cascades
+  shadowopt bench heldout --scenes colonnade --lights 2 --screen 300x300 --part single
 """
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import os
+import re
 import statistics
 import subprocess
-import sys
 import time
 from pathlib import Path
+
+import numpy as np
+
+from ...renderers.heldout import ensure_scene
+from ..scenes import SceneCache
+from .definitions import definitions, hemisphere_directions, quality_configs
+from .output import machine, write_section
+from .quality import quality_scene
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "configs" / "heldout.json"
@@ -40,8 +47,6 @@ def heldout_definitions() -> dict:
 def heldout_scenes(names=None, folder=None) -> dict:
     """{name: (path, scene spec)} for the held-out scenes (all, or `names` in that order), built into
     `folder` (default out/heldout/)."""
-    from ...renderers.heldout import ensure_scene
-
     spec = heldout_definitions()["scenes"]
     wanted = list(names) if names else list(spec)
     unknown = [n for n in wanted if n not in spec]
@@ -66,18 +71,14 @@ def _commit() -> str:
 
 
 def configurations(map_res, parts) -> dict:
-    """The corpus's configurations (service.bench.suite.quality_configs on configs/benchmarks.json's
+    """The corpus's configurations (service.bench.definitions.quality_configs on configs/benchmarks.json's
     `quality`), one map at `map_res`."""
-    from .suite import definitions, quality_configs
-
     q = definitions()["quality"]
     return quality_configs({**q, "map": list(map_res)}, parts)
 
 
 def scene_summary(rec: dict, dirs, protocol: dict) -> dict:
     """What the table prints for one scene rig, from quality_scene's record."""
-    import numpy as np
-
     out = {}
     base = protocol["baselines"]
     if "single" in rec["misclassified"]:
@@ -128,15 +129,12 @@ def _fingerprint(path: Path, camera: dict, screen, configs: dict, part_dirs: dic
     return h.hexdigest()[:16]
 
 
-def run(scenes=None, lights: int | None = None, seed: int | None = None, screen=None, map_res=None,
+def run(validate_rig, scenes=None, lights: int | None = None, seed: int | None = None, screen=None, map_res=None,
         cascade_scenes=None, cascade_lights: int | None = None, cascades: bool = True, reuse: bool = False,
         store: Path | None = None, results_md: Path | None = None, log=print) -> dict:
     """The corpus protocol on the held-out rigs; prints a block per scene rig as it finishes and returns
-    {"scenes": {key: summary}, "table": markdown, ...}; writes the table to `results_md` when given."""
-    from ...api.schemas import validate_rig
-    from .suite import hemisphere_directions, quality_scene
-    from ..scenes import SceneCache
-
+    {"scenes": {key: summary}, "table": markdown, ...}; writes the table to `results_md` when given.
+    `validate_rig(dict) -> dict` is the API's rig validation (as every bench takes it)."""
     d = heldout_definitions()
     proto = d["protocol"]
     n = lights or proto["lights"]
@@ -217,7 +215,7 @@ def tables(summaries: dict, proto: dict, settings: dict) -> str:
                 methods.append(m)
     out = [f"# Held-out check (configs/heldout.json, renderers/heldout.py)\n",
            f"Code: {settings['commit']}. Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. "
-           f"Protocol: service.bench.suite.quality_scene; {settings['lights']} suns uniform on the hemisphere above "
+           f"Protocol: service.bench.quality.quality_scene; {settings['lights']} suns uniform on the hemisphere above "
            f"{proto['min_elevation_deg']} deg (seed {settings['seed']}; the corpus uses 2), screen "
            f"{settings['screen'][0]}x{settings['screen'][1]}, one {settings['map'][0]}x{settings['map'][1]} map; "
            "misclassified pixels against exact ray-traced visibility. Best baseline: the best of "
@@ -284,37 +282,20 @@ def write_rig(scene: str, sun: int, dest: Path, rig_name: str | None = None, sto
     return heldout_scenes([scene])[scene][0], dest
 
 
-def _wxh(s: str):
-    w, _, h = s.lower().partition("x")
-    return [int(w), int(h or w)]
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m shadowopt.service.bench.heldout", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenes", help="comma-separated held-out scenes (default: all)")
-    ap.add_argument("--lights", type=int, help="suns per scene (default: configs/heldout.json)")
-    ap.add_argument("--seed", type=int)
-    ap.add_argument("--screen", type=_wxh, help="WxH")
-    ap.add_argument("--map", type=_wxh, help="one map's resolution, WxH or N")
-    ap.add_argument("--cascade-scenes", help="comma-separated scenes that also run 4 cascades")
-    ap.add_argument("--cascade-lights", type=int)
-    ap.add_argument("--no-cascades", action="store_true")
-    ap.add_argument("--reuse", action="store_true", help="take stored scene rigs measured with the same settings")
-    ap.add_argument("--store", type=Path)
-    ap.add_argument("--out", type=Path, help="write the Markdown table here (e.g. out/heldout/results.md)")
-    ap.add_argument("--rig-for", metavar="SCENE:SUN", help="only write a compare rig for a stored sun (to --out) and print the scene path")
-    a = ap.parse_args(argv)
-    if a.rig_for:
-        scene, _, sun = a.rig_for.partition(":")
-        path, rig = write_rig(scene, int(sun), a.out or OUT / f"{scene}-sun{sun}.json", store=a.store)
-        print(path, rig)
-        return 0
-    res = run(scenes=a.scenes, lights=a.lights, seed=a.seed, screen=a.screen, map_res=a.map,
-              cascade_scenes=a.cascade_scenes.split(",") if a.cascade_scenes else None, cascade_lights=a.cascade_lights,
-              cascades=not a.no_cascades, reuse=a.reuse, store=a.store, results_md=a.out)
-    print(res["table"])
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+def bench_heldout(validate_rig, lights: int | None = None, scenes: str | None = None, screen=None,
+                  cascade_lights: int | None = None, cascades: bool = True, reuse: bool = False, write: bool = True,
+                  log=None) -> dict:
+    """`shadowopt bench heldout`: `run` with configs/heldout.json's protocol (its map, seed and cascade
+    scenes); the table goes into BENCHMARKS.md's `heldout` section (its title dropped, its headings one
+    level down)."""
+    res = run(validate_rig, scenes=scenes, lights=lights, screen=screen, cascade_lights=cascade_lights,
+              cascades=cascades, reuse=reuse, log=log or (lambda m: None))
+    out = {"benchmark": "heldout", "machine": machine(), **res}
+    if write:
+        body = re.sub(r"(?m)^## ", "### ", res["table"].split("\n", 1)[1].lstrip("\n"))
+        cmd = ("shadowopt bench heldout" + (f" --scenes {scenes}" if scenes else "") + (f" --lights {lights}" if lights else "")
+               + (f" --screen {screen[0]}x{screen[1]}" if screen else "")
+               + (f" --cascade-lights {cascade_lights}" if cascade_lights else "")
+               + ("" if cascades else " --part single") + (" --reuse" if reuse else ""))
+        write_section("heldout", body, cmd)
+    return out

@@ -127,7 +127,7 @@ def bench_inspect(moves: int = 12, drags: int = 4, screen: str = "640x360", writ
     commit = git_commit()
     table += f" Code: the working tree at commit {commit}." if commit else ""
     if write:
-        from .suite import write_section
+        from .output import write_section
 
         write_section("inspect", table, "shadowopt bench inspect")
     return {"rows": rows, "table": table, "renderer": renderer, "load_avg": load_avg}

@@ -274,7 +274,7 @@ def bench_load(seconds: float = 60.0, clients: int = 4, sequential_requests: int
     table += f" Code: the working tree at commit {git_commit()}." if git_commit() else ""
     command = "shadowopt bench load" + (f" --seconds {seconds:g}" if seconds != 60 else "")
     if write:
-        from .suite import write_section
+        from .output import write_section
 
         write_section("load", table, command)
     return {"workloads": results, "table": table, "ready_s": round(ready_s, 2)}

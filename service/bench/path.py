@@ -26,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .suite import ROOT, corpus_scenes, machine, write_section
+from .definitions import ROOT, corpus_scenes
+from .output import machine, write_section
 
 PATHS_FILE = ROOT / "configs" / "paths.json"
 STRIP_FILE = ROOT / "docs" / "bench" / "path_strip.png"

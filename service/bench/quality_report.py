@@ -1,4 +1,4 @@
-"""The corpus benchmark's report pieces (service.bench.suite.bench_quality_corpus): each method's
+"""The corpus benchmark's report pieces (service.bench.quality_corpus.bench_quality_corpus): each method's
 objective as a ratio to the texel limit, the calibration of the predicted objective against measured
 misclassified pixels, and speed against error per scene (a table and a Pillow scatter plot).
 

@@ -266,7 +266,7 @@ def bench_security(write: bool = True, log=print) -> dict:
     commit = git_commit()
     table += f"\n\nCode: the working tree at commit {commit}." if commit else ""
     if write:
-        from .suite import write_section
+        from .output import write_section
 
         write_section("security", table, "shadowopt bench security")
     out["table"] = table

@@ -31,7 +31,8 @@ import tempfile
 import time
 
 from ..job_kinds import WHOLE_PATH_FRAMES
-from .suite import ROOT, machine, write_section
+from .definitions import ROOT
+from .output import machine, write_section
 
 SCENE = ROOT / "configs" / "demo_scene.usda"
 METHODS = ("focused", "stable_csm", "optimized", "path")

@@ -1,10 +1,14 @@
 """Outside pixels over the corpus: are the receivers the camera sees at full resolution inside the maps
 that serve them, for every corpus rig, sun, method and cascade count (renderers.coverage.outside_mask
-per configuration)."""
+per configuration). Used by tests/test_receivers.py (no benchmark section: a test helper)."""
 from __future__ import annotations
 
-from ...renderers.coverage import outside_mask
-from ...renderers.ground_truth import render_screen
+from shadowopt.renderers.coverage import outside_mask
+from shadowopt.renderers.ground_truth import render_screen
+from shadowopt.service.bench.definitions import corpus_scenes, hemisphere_directions
+from shadowopt.service.rigs import resolve_rig
+from shadowopt.service.scenes import SceneCache
+from shadowopt.service.solve import maps_from_solution, solve
 
 
 CASCADE_CONFIGS = {1: {"resolution": [400, 400], "cascades": 1},
@@ -15,14 +19,9 @@ def coverage_sweep(validate_rig, scenes=None, suns: int = 4, methods=("uniform",
                    cascades=(1, 4), screens=((750, 750), (1920, 1080)), seed: int = 2, min_elevation_deg: float = 5.0,
                    log=print) -> list[dict]:
     """Outside pixels on the corpus (configs/corpus.json): per scene rig, screen (the rig's resolution:
-    each solve sees that camera), sun (service.bench.suite.hemisphere_directions, the corpus benchmark's
+    each solve sees that camera), sun (service.bench.definitions.hemisphere_directions, the corpus benchmark's
     seed), method and cascade count, one row {scene, screen, sun, method, cascades, outside_pixels,
     receiver_pixels}. `validate_rig`: api.schemas.validate_rig (as every bench takes it). `log` gets one line per (scene, screen) with the totals per method."""
-    from ..rigs import resolve_rig
-    from ..scenes import SceneCache
-    from ..solve import maps_from_solution, solve
-    from .suite import corpus_scenes, hemisphere_directions
-
     found, _ = corpus_scenes(scenes)
     dirs = hemisphere_directions(suns, min_elevation_deg, seed)
     rows = []
