@@ -57,7 +57,7 @@ times the 95th percentile of the texel size (the longer side of a texel in the p
 to the light, from the map's own Jacobian) over the map's receivers (`texel_world_size`).
 A map with no receiver inside (an empty cube face) uses the size at the far end of its central ray.
 What an engine applies instead (no per-texel τ): each map's `depth` block (solvers.depth_modes.depth_block,
-set with depth_bias by solvers.depth_modes.with_bias): hardware or linear stored depth with a constant and slope bias in
+set with depth_bias by depth_modes.with_bias): hardware or linear stored depth with a constant and slope bias in
 stored units covering this rule's requirement at the 95th percentile of the map's receivers.
 
 Fallbacks (documented, never an exception): no receivers -> fit to the scene bounds (for any

@@ -31,7 +31,8 @@ refit's dependence dP/d(φ, u) comes from central differences of the NumPy fit (
 evaluation), and the chain rule joins them: one metric pass per gradient. `gradient="fd"`:
 central differences of f (four metric passes). The fit is a min/max over the receivers' hull and a
 minimum over the candidate parallelograms, so f is continuous but only piecewise smooth; both
-gradients agree away from the kinks (tests/test_optimize.py).
+gradients agree away from the kinks (tests/test_optimize.py). The searches over (φ, u) (NLopt, torch,
+Chong & Gortler's line search) are in solvers.search_methods.
 """
 from __future__ import annotations
 
@@ -40,7 +41,6 @@ import math
 import time
 from dataclasses import dataclass, field
 
-import nlopt
 import numpy as np
 
 from .baselines import PAD, SPOT_AS_CUBE_DEG, baseline
@@ -53,6 +53,7 @@ from .lights import DirectionalLight, PointLight, SpotLight
 from .metric import (device_samples, log_to_device, matrix_to_device, objective, objective_value, recentre,
                      serial_kernels, warped_moments)
 from .samples import Samples
+from .search_methods import DEFAULT_METHOD, EXTRA_METHODS, METHODS, TimeBudgetReached, search
 from .shadow_map import ShadowMap
 from .warp import log_warp, padded_log
 
@@ -66,17 +67,9 @@ U_MIN = -U_MAX
 PAD_TEXELS = 1.0  # map-space padding: texels kept free on each side of the fitted box, after the warp (the
 # baselines' rule, fitting.texel_margin, in Python floats for the inner loop)
 U_LOG_MIN = math.log1p(1e-3)  # the log warp needs a finite n' before the receivers (n' <= 1000 D)
-METHODS = ("gradient:lbfgs", "gradient:adam", "gradient:linesearch", "nlopt:LN_BOBYQA", "nlopt:LN_COBYLA",
-           "nlopt:LN_SBPLX", "nlopt:GN_DIRECT_L", "nlopt:LD_MMA", "nlopt:LD_LBFGS", "nlopt:LD_SLSQP")
-EXTRA_METHODS = ("none",)  # no search: the best start (or the warm start), for temporal stability
-DEFAULT_METHOD = "nlopt:LN_BOBYQA"  # measured: the best time to the lowest error (BENCHMARKS.md)
 START_NAMES = ("focused", "lispsm", "logpsm-perspective")
 FIT_STEP = 1e-6  # central-difference step of the refit dP/d(φ, u) (NumPy only, no metric pass)
 FD_STEP = 1e-4  # central-difference step of f for gradient="fd"
-XTOL, FTOL_REL = 1e-3, 1e-4  # NLopt stopping rules: (φ, u) within 1e-3, or a relative change of f below 1e-4
-# Chong & Gortler 2007 §3: line search over these angles (degrees) along the negative gradient,
-# the negative one forcing exploration.
-CG07_ANGLES_DEG = (-10, 3, 5, 9, 16, 23, 30, 40, 50)
 
 
 @dataclass
@@ -98,10 +91,6 @@ class OptimizeResult:
                 "njev": self.njev, "time_ms": round(self.time_ms, 3), "success": self.success,
                 "converged": self.success, "message": self.message, "start": self.start,
                 "starts": {k: float(v) for k, v in self.starts.items()}}
-
-
-class _Budget(Exception):
-    pass
 
 
 def robust_difference(fm, f0, fp, h):
@@ -429,9 +418,9 @@ class Problem:
         return padded_log(log_warp(n_prime * math.expm1(u), n_prime), self.resolution[1])
 
     # -------------------------------------------------------------- objective and gradient
-    def _check(self):
+    def check_deadline(self):
         if self.deadline is not None and time.perf_counter() > self.deadline:
-            raise _Budget()
+            raise TimeBudgetReached()
 
     def clip(self, x) -> np.ndarray:
         return np.clip(np.asarray(x, dtype=np.float64)[:2], self.lower, self.upper)
@@ -458,7 +447,7 @@ class Problem:
 
     def value(self, x) -> float:
         """f(x), each point evaluated once (solvers revisit points: BOBYQA starts at a start)."""
-        self._check()
+        self.check_deadline()
         x = self.clip(x)
         key = (float(x[0]), float(x[1]))
         if key not in self.seen:
@@ -477,7 +466,7 @@ class Problem:
         return self.eval_matrix(self.matrix(x))
 
     def value_and_grad(self, x):
-        self._check()
+        self.check_deadline()
         x = self.clip(x)
         self.njev += 1
         if self.gradient_mode == "fd":
@@ -655,7 +644,7 @@ def minimize(camera: Camera, light: DirectionalLight | SpotLight, samples: Sampl
     fam_vals = {name: prob.value(x) for name, x in xs.items()}
     best_start = min(fam_vals, key=fam_vals.get)
     prob.deadline = deadline
-    nit, success, message = _search(prob, method, xs[best_start].copy(), maxiter, len(samples))
+    nit, success, message = search(prob, method, xs[best_start].copy(), maxiter, len(samples))
     f, xb, _ = prob.best
     smap = prob.map_for(xb)
     same_kind = {n: v for n, v in base_vals.items() if (bases[n].log_warp is not None) == log}  # log: stay log
@@ -718,7 +707,7 @@ def _minimize_spot(camera, light, samples, receivers, casters_bounds, resolution
     prob.deadline = deadline
     # derivative-free on this family (its gradient would be finite differences of the fit)
     free = method == "none" or method.startswith("nlopt:LN")
-    nit, success, message = _search(prob, method if free else DEFAULT_METHOD, xs[best_start].copy(), maxiter,
+    nit, success, message = search(prob, method if free else DEFAULT_METHOD, xs[best_start].copy(), maxiter,
                                      len(samples))
     if not free and success:
         message = f"converged ({DEFAULT_METHOD}: spot lights use a derivative-free solver)"
@@ -733,135 +722,3 @@ def _minimize_spot(camera, light, samples, receivers, casters_bounds, resolution
     return OptimizeResult(np.asarray(xb, float), float(f), int(nit), prob.nfev, (time.perf_counter() - t0) * 1e3,
                           success, message, smap, start, {"focused": base_val, **{f"{k}@family": v for k, v in fam_vals.items()}},
                           prob.njev)
-
-
-def _search(prob, method: str, x: np.ndarray, maxiter: int, n_samples: int) -> tuple[int, bool, str]:
-    """Run `method` from x within the problem's deadline: (iterations, success, message). The problem
-    keeps the best point seen, so a search cut by the time budget still has a result."""
-    try:
-        prob._check()
-        if n_samples == 0:
-            return 0, True, "no samples: the best starting point is returned"
-        if method == "none":
-            return 0, True, "no optimization (method 'none'): the best start"
-        return _run(method, prob, x, maxiter), True, "converged"
-    except _Budget:
-        return 0, False, "time budget reached"
-
-
-def _run(method: str, prob: Problem, x: np.ndarray, maxiter: int) -> int:
-    kind, name = method.split(":")
-    lo, hi = prob.lower, prob.upper
-    if method == "gradient:linesearch":  # beside φ = 0, the affine fit's symmetric tie (as below)
-        return cg07_linesearch(prob, np.asarray(x, float) + [1e-3, 0.0], maxiter)
-    if kind == "gradient":
-        return _torch(name, prob, x, maxiter, lo, hi)
-    if name == "GN_DIRECT_L":
-        n = _nlopt(nlopt.GN_DIRECT_L, prob, x, lo, hi, maxeval=max(4 * maxiter, 60))
-        # a short local polish from the best point DIRECT found (its boxes resolve slowly)
-        return n + _nlopt(nlopt.LN_BOBYQA, prob, prob.best[1], lo, hi, maxeval=2 * maxiter, step=0.05)
-    if name.startswith("LD"):  # φ = 0 is a symmetric tie of the affine fit (f jumps there): start beside it
-        return _nlopt(getattr(nlopt, name), prob, np.asarray(x, float) + [1e-3, 0.0], lo, hi, maxeval=2 * maxiter)
-    return _nlopt(getattr(nlopt, name), prob, x, lo, hi, maxeval=3 * maxiter)
-
-
-def _nlopt(algo, prob: Problem, x, lo, hi, maxeval: int, step: float = 0.2) -> int:
-    opt = nlopt.opt(algo, 2)
-    opt.set_lower_bounds(lo.tolist())
-    opt.set_upper_bounds(hi.tolist())
-    scale = max(abs(prob.best[0]), 1e-300)  # objective normalised by the start's value
-
-    def f(v, grad):
-        if grad.size > 0:
-            fv, g = prob.value_and_grad(v)
-            grad[:] = g / scale
-            return fv / scale
-        return prob.value(v) / scale
-
-    opt.set_min_objective(f)
-    opt.set_maxeval(int(maxeval))
-    opt.set_xtol_abs([XTOL, XTOL])
-    opt.set_ftol_rel(FTOL_REL)
-    opt.set_initial_step([step, step])
-    try:
-        opt.optimize(np.clip(np.asarray(x, float), lo, hi).tolist())
-    except _Budget:
-        raise
-    except Exception:  # nlopt's roundoff-limited or runtime errors: the problem keeps the best value seen
-        pass
-    return int(opt.get_numevals())
-
-
-def _torch(name: str, prob: Problem, x, maxiter: int, lo, hi) -> int:
-    import torch  # lazy: seconds to import (11 s measured under load), only the gradient:lbfgs/adam solvers use it
-
-    scale = max(abs(prob.best[0]), 1e-300)
-    # The baselines' φ = 0 is a symmetric tie of the affine fit (f jumps there): start just beside it.
-    x = np.asarray(x, float) + [1e-3, 0.0]
-    p = torch.tensor(np.clip(x, lo, hi), dtype=torch.float64, requires_grad=True)
-    lo_t, hi_t = torch.tensor(lo), torch.tensor(hi)
-
-    def closure():
-        opt.zero_grad()
-        fv, g = prob.value_and_grad(p.detach().numpy())
-        inside = ((p.detach() > lo_t) & (p.detach() < hi_t)).numpy()
-        g = np.where(inside | (np.sign(g) * np.sign(p.detach().numpy() - (lo + hi) / 2) < 0), g, 0.0)
-        p.grad = torch.tensor(g / scale, dtype=torch.float64)
-        return torch.tensor(fv / scale, dtype=torch.float64)
-
-    if name == "lbfgs":
-        nit = 0
-        for _ in range(3):  # restarts: a kink of the fit ends a strong-Wolfe search; a fresh history goes on
-            before = prob.best[0]
-            opt = torch.optim.LBFGS([p], lr=1.0, max_iter=maxiter, max_eval=2 * maxiter, tolerance_grad=1e-7,
-                                    tolerance_change=1e-9, history_size=10, line_search_fn="strong_wolfe")
-            opt.step(closure)
-            nit += int(opt.state[p].get("n_iter", 0))
-            with torch.no_grad():
-                p.copy_(torch.tensor(prob.best[1]))
-            if prob.best[0] > before * (1 - 1e-4):
-                break
-        return nit
-    if name == "adam":
-        opt = torch.optim.Adam([p], lr=0.05)
-        for it in range(2 * maxiter):
-            opt.step(closure)
-            with torch.no_grad():
-                p.clamp_(lo_t, hi_t)
-        prob.value(p.detach().numpy())
-        return 2 * maxiter
-    raise ValueError(f"method: unknown solver 'gradient:{name}' (known: {', '.join(METHODS)})")
-
-
-def cg07_linesearch(prob: Problem, x: np.ndarray, maxiter: int) -> int:
-    """Chong & Gortler 2007 Algorithm 1: gradient, then a line search over fixed step sizes along the
-    negative gradient (one backwards, for forced exploration), halving the smallest step when none of
-    them helps, a few iterations."""
-    fx = prob.value(x)
-    it = 0
-    for it in range(1, min(maxiter, 8) + 1):
-        g = prob.gradient(x)
-        norm = float(np.linalg.norm(g))
-        if norm == 0 or not math.isfinite(norm):
-            break
-        d = -g / norm
-        best = (fx, x)
-        for a in CG07_ANGLES_DEG:
-            step = math.radians(a) * 4  # degrees of the paper's sphere rotation, scaled to (φ, u) units
-            xn = prob.clip(x + step * d)
-            fn = prob.value(xn)
-            if fn < best[0]:
-                best = (fn, xn)
-        step = math.radians(min(a for a in CG07_ANGLES_DEG if a > 0)) * 4
-        for _ in range(6):  # none of the fixed steps helps: halve the smallest one (backtracking)
-            if best[0] < fx * (1 - 1e-4):
-                break
-            step *= 0.5
-            xn = prob.clip(x + step * d)
-            fn = prob.value(xn)
-            if fn < best[0]:
-                best = (fn, xn)
-        if best[0] >= fx * (1 - 1e-4):
-            break
-        fx, x = best
-    return it

@@ -16,8 +16,9 @@ from .cascades import allocate_mean, mean_terms
 from .depth_modes import with_bias
 from .lights import DirectionalLight
 from .metric import per_sample_maps, predicted_error, predicted_objective, serial_kernels
-from .optimize import DEFAULT_METHOD, METHODS, Problem, minimize, optimizable, single_map_spot
+from .optimize import Problem, minimize, optimizable, single_map_spot
 from .samples import Samples
+from .search_methods import DEFAULT_METHOD, METHODS
 from .split_search import optimize_splits
 
 

@@ -275,7 +275,7 @@ def test_cg07_line_search_backtracks_downhill_when_every_fixed_step_overshoots()
     up, x 4 in (phi, u) units) overshoots the minimum at x_0 = 0.01; halving 3 deg reaches f < f(0) / 10, and the
     search keeps iterating towards the closed-form minimum f = 0.
     (kills the backtracking start `min(a > 0)` -> `min(a != 0)`, i.e. -10 deg: steps uphill)"""
-    from shadowopt.solvers.optimize import cg07_linesearch
+    from shadowopt.solvers.search_methods import cg07_linesearch
 
     class Quadratic:  # the problem's interface the line search uses
         def __init__(self):
@@ -472,7 +472,7 @@ def test_cg07_line_search_stops_at_a_stationary_point_without_evaluating():
     """At a point where the gradient vanishes (or is not finite) there is no direction to search: the line
     search stops after the first gradient, evaluates no step (every step would be 0 / 0 = NaN) and leaves x.
     (kills `norm == 0 or not isfinite(norm)` -> `and`, which went on to evaluate 15 NaN points)"""
-    from shadowopt.solvers.optimize import cg07_linesearch
+    from shadowopt.solvers.search_methods import cg07_linesearch
 
     class Bowl:
         def __init__(self, grad):
@@ -546,7 +546,7 @@ def test_cg07_line_search_stops_when_no_step_improves():
     and every halving overshoots: no step lowers f by the 1e-4 relative the search asks for, so it stops after
     the first iteration, having evaluated the start, the nine fixed steps and the six halvings, and x stays.
     (kills the stop test `best >= fx (1 - 1e-4)` -> `best is fx (1 - 1e-4)`, which ran all eight iterations)"""
-    from shadowopt.solvers.optimize import CG07_ANGLES_DEG, cg07_linesearch
+    from shadowopt.solvers.search_methods import CG07_ANGLES_DEG, cg07_linesearch
 
     class Vee:
         def __init__(self):

@@ -14,7 +14,7 @@ from testkit import box, plane, scene_entry_of
 
 from shadowopt.service.evaluation import evaluate_solution
 from shadowopt.service.solve import solve
-from shadowopt.solvers import baselines, optimize
+from shadowopt.solvers import baselines, optimize, warp
 
 PADS = (0.0, 64.0)  # texels on each side of a 512-texel map: none, an eighth of the map
 CAM = {"position": (0, 1.7, 0), "forward": (0, -0.15, 1.0), "near": 0.1, "far": 300, "resolution": (320, 180),
@@ -41,6 +41,7 @@ def test_more_fit_padding_never_loses_coverage(entry, method, cascades, monkeypa
     for pad in PADS:
         monkeypatch.setattr(baselines, "PAD_TEXELS", pad)
         monkeypatch.setattr(optimize, "PAD_TEXELS", pad)
+        monkeypatch.setattr(warp, "PAD_TEXELS", pad)  # the log warp's padding (warp.padded_log)
         r = rig(cascades)
         sol = solve(entry, r, method)
         res = evaluate_solution(entry, r, sol, screen=(320, 180))
