@@ -292,7 +292,7 @@ def render_coarse(rs: RayScene, camera: Camera, lights: list[Light], long_side: 
     """Cast one camera ray per coarse pixel and one shadow ray per hit and light, then the edge pass
     (fine_points: finer camera rays where the coarse pass saw geometric edges and along the border)."""
     mi = mitsuba()
-    import drjit as dr
+    import drjit as dr  # lazy: after mitsuba(), which points Dr.Jit at its libLLVM (solvers.jit)
 
     t0 = time.perf_counter()
     width, height = camera.coarse_resolution(long_side)
@@ -381,7 +381,7 @@ def fine_points(rs: RayScene, camera: Camera, lights: list[Light], hit: np.ndarr
     Vectorized: one Dr.Jit launch, the ray count padded to a power of two (few kernel sizes: a quarter-octave ladder
     traced fewer padding rays but compiled a kernel for a new camera, measured)."""
     mi = mitsuba()
-    import drjit as dr
+    import drjit as dr  # lazy: after mitsuba(), which points Dr.Jit at its libLLVM (solvers.jit)
 
     h, w = hit.shape
     f = fine_factor(camera, w) if factor is None else int(factor)
