@@ -7,6 +7,8 @@ evaluation before the NumPy conversion. Neighbour tests (shadow boundaries) run 
 """
 from __future__ import annotations
 
+import json
+import pathlib
 import time
 from dataclasses import dataclass, field
 
@@ -15,6 +17,7 @@ import numpy as np
 from ..solvers.cameras import Camera
 from ..solvers.lights import DirectionalLight, Light, PointLight, SpotLight
 from .mitsuba_setup import mitsuba
+from .previews import save_previews
 from .ray_scene import RayScene
 
 DEFAULT_LONG_SIDE = 180
@@ -118,11 +121,6 @@ class CoarseBuffers:
 
     def save(self, out_dir) -> list[str]:
         """Write every buffer as .npy and PNG previews into out_dir. Returns the written file names."""
-        from .previews import save_previews
-
-        import json
-        import pathlib
-
         out = pathlib.Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         arrays = {"hit": self.hit, "position": self.position, "normal": self.normal, "depth": self.depth,
