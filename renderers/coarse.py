@@ -7,6 +7,8 @@ evaluation before the NumPy conversion. Neighbour tests (shadow boundaries) run 
 """
 from __future__ import annotations
 
+import json
+import pathlib
 import time
 from dataclasses import dataclass, field
 
@@ -15,6 +17,7 @@ import numpy as np
 from ..solvers.cameras import Camera
 from ..solvers.lights import DirectionalLight, Light, PointLight, SpotLight
 from .mitsuba_setup import mitsuba
+from .previews import save_previews
 from .ray_scene import RayScene
 
 DEFAULT_LONG_SIDE = 180
@@ -118,11 +121,6 @@ class CoarseBuffers:
 
     def save(self, out_dir) -> list[str]:
         """Write every buffer as .npy and PNG previews into out_dir. Returns the written file names."""
-        from .previews import save_previews
-
-        import json
-        import pathlib
-
         out = pathlib.Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         arrays = {"hit": self.hit, "position": self.position, "normal": self.normal, "depth": self.depth,
@@ -292,7 +290,7 @@ def render_coarse(rs: RayScene, camera: Camera, lights: list[Light], long_side: 
     """Cast one camera ray per coarse pixel and one shadow ray per hit and light, then the edge pass
     (fine_points: finer camera rays where the coarse pass saw geometric edges and along the border)."""
     mi = mitsuba()
-    import drjit as dr
+    import drjit as dr  # lazy: after mitsuba(), which points Dr.Jit at its libLLVM (solvers.jit)
 
     t0 = time.perf_counter()
     width, height = camera.coarse_resolution(long_side)
@@ -381,7 +379,7 @@ def fine_points(rs: RayScene, camera: Camera, lights: list[Light], hit: np.ndarr
     Vectorized: one Dr.Jit launch, the ray count padded to a power of two (few kernel sizes: a quarter-octave ladder
     traced fewer padding rays but compiled a kernel for a new camera, measured)."""
     mi = mitsuba()
-    import drjit as dr
+    import drjit as dr  # lazy: after mitsuba(), which points Dr.Jit at its libLLVM (solvers.jit)
 
     h, w = hit.shape
     f = fine_factor(camera, w) if factor is None else int(factor)

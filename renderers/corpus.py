@@ -28,6 +28,8 @@ import random
 import sys
 from pathlib import Path
 
+from pxr import Gf, Usd, UsdGeom, Vt
+
 from .demo_scene import define_camera
 
 CORPUS_VERSION = 1  # bump when a builder changes on purpose (it is written into every file's doc)
@@ -121,8 +123,6 @@ class MeshAccumulator:
         return sum(c - 2 for c in self.counts)
 
     def define(self, stage, path: str):
-        from pxr import UsdGeom, Vt
-
         mesh = UsdGeom.Mesh.Define(stage, path)
         mesh.CreatePointsAttr(Vt.Vec3fArray([tuple(round(v, 5) for v in p) for p in self.points]))
         mesh.CreateFaceVertexCountsAttr(Vt.IntArray(self.counts))
@@ -136,8 +136,6 @@ class MeshAccumulator:
 def new_stage(documentation: str):
     """An in-memory stage for a generated scene: +Y up, metres, a /World default prim, `documentation`
     in the root layer (renderers.heldout's scenes are made the same way)."""
-    from pxr import Usd, UsdGeom
-
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
@@ -305,8 +303,6 @@ def closeup(stage) -> None:
     acc.box((-0.1, 0.035, -0.04), (0.03, 0.03, 0.09), yaw_deg=-35)
     acc.cone((-0.08, 0.02, 0.1), 0.03, 0.08, segments=16)
     acc.define(stage, "/World/Figurine")
-    from pxr import Gf, UsdGeom
-
     ball = UsdGeom.Sphere.Define(stage, "/World/Ball")
     ball.CreateRadiusAttr(0.035)
     UsdGeom.XformCommonAPI(ball).SetTranslate(Gf.Vec3d(0.0, 0.185, 0.0))

@@ -8,6 +8,8 @@ from __future__ import annotations
 import math
 import sys
 
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+
 # (kind, name, translate xyz, size parameters) - metres, Y up
 CASTERS = [
     ("Cube", "Crate", (4.0, 0.5, 8.0), {"size": 1.0}),
@@ -29,8 +31,6 @@ def define_camera(stage, path: str, *, focal_mm: float, aperture_mm: tuple[float
                   clipping: tuple[float, float], position, rotate_deg, rotation_order: str = "YXZ"):
     """A UsdGeom.Camera at `position` turned by `rotate_deg` (XformCommonAPI, rotation order
     `rotation_order`: "YXZ" by default, "XYZ" applies X first)."""
-    from pxr import Gf, UsdGeom
-
     cam = UsdGeom.Camera.Define(stage, path)
     cam.CreateFocalLengthAttr(focal_mm)
     cam.CreateHorizontalApertureAttr(aperture_mm[0])
@@ -43,8 +43,6 @@ def define_camera(stage, path: str, *, focal_mm: float, aperture_mm: tuple[float
 
 
 def write_demo_scene(path: str) -> None:
-    from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
-
     stage = Usd.Stage.CreateNew(path) if not Sdf.Layer.Find(path) else Usd.Stage.Open(path)
     stage.GetRootLayer().Clear()
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)

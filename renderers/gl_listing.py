@@ -319,7 +319,7 @@ def pack_light_pass(m: dict, reversed_z: bool) -> dict:
 
 class Harness:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
-        import moderngl
+        import moderngl  # lazy: OpenGL only in the subprocess that draws (this module's parsers run beside Dr.Jit)
 
         self.mgl = moderngl
         self.ctx = moderngl.create_standalone_context(backend="egl", require=450)

@@ -32,6 +32,8 @@ import os
 import random
 from pathlib import Path
 
+from pxr import Gf, UsdGeom, Vt
+
 from .corpus import build_text, ensure_file, new_stage, write_all
 from .demo_scene import define_camera
 
@@ -177,8 +179,6 @@ class Mesh:
         return sum(c - 2 for c in self.counts)
 
     def define(self, stage, path: str):
-        from pxr import UsdGeom, Vt
-
         mesh = UsdGeom.Mesh.Define(stage, path)
         mesh.CreatePointsAttr(Vt.Vec3fArray([tuple(round(v, 4) for v in p) for p in self.points]))
         mesh.CreateFaceVertexCountsAttr(Vt.IntArray(self.counts))
@@ -207,8 +207,6 @@ def _plane(stage, path, x0, x1, z0, z1, y=0.0):
 
 
 def _xform(stage, path, translate=(0, 0, 0), rotate=(0, 0, 0), scale=(1, 1, 1)):
-    from pxr import Gf, UsdGeom
-
     x = UsdGeom.Xform.Define(stage, path)
     api = UsdGeom.XformCommonAPI(x)
     api.SetTranslate(Gf.Vec3d(*translate))
@@ -220,8 +218,6 @@ def _xform(stage, path, translate=(0, 0, 0), rotate=(0, 0, 0), scale=(1, 1, 1)):
 def forest_path(stage) -> None:
     """A 3 m path along +Z (x in [-1.5, 1.5]) through a forest on gently rolling ground; trunks are a
     PointInstancer of one tapered prism, the canopy is thousands of small tilted leaf quads."""
-    from pxr import Gf, UsdGeom, Vt
-
     rng = random.Random(1001)
 
     def h(x, z):
@@ -322,8 +318,6 @@ def colonnade(stage) -> None:
 def curved_landscape(stage) -> None:
     """Curved receivers on a 200 m plane: implicit spheres, ellipsoids (non-uniform scales), lying
     cylinders and capsules (rotated prims), a tessellated dome and torus, spheres half sunk."""
-    from pxr import Gf, UsdGeom
-
     rng = random.Random(1003)
     _plane(stage, "/World/Ground", -100.0, 100.0, -100.0, 100.0)
     UsdGeom.Xform.Define(stage, "/World/Shapes")

@@ -10,7 +10,7 @@ RendererUnavailable = JitUnavailable
 def mitsuba():
     """Import Mitsuba with the LLVM variant set. Raises RendererUnavailable with a fix when it cannot."""
     path = ensure_llvm()
-    import mitsuba as mi
+    import mitsuba as mi  # lazy: after ensure_llvm(), which points Dr.Jit at its libLLVM
 
     if mi.variant() != VARIANT:
         try:

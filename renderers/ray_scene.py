@@ -29,7 +29,7 @@ class RayScene:
 
 def build_ray_scene(geometry: SceneGeometry) -> RayScene:
     mi = mitsuba()
-    import drjit as dr
+    import drjit as dr  # lazy: after mitsuba(), which points Dr.Jit at its libLLVM (solvers.jit)
 
     t0 = time.perf_counter()
     if geometry.triangle_count == 0:

@@ -20,7 +20,8 @@ from __future__ import annotations
 import math
 import time
 
-from ..renderers.ground_truth import DEPTH_CHOICES, evaluate_buffers
+from ..renderers.depth_tests import DEPTH_CHOICES
+from ..renderers.ground_truth import evaluate_buffers
 from ..renderers.heatmap import HEATMAP_MODES, heatmap_with_legend, misclassified_split
 from ..solvers.metric import error_stats
 from .request_cost import WorkLimit, check_eval_work, flush_if_large

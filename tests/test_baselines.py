@@ -467,7 +467,7 @@ def test_bias_is_the_receiver_side_texel_size():
     assert m.depth_bias["fixed_slope_m"] == pytest.approx(texel, rel=1e-4)
     # The evaluator's tau (texel world size at the receiver, from neighbouring texel rays) is that
     # size everywhere on an orthographic map ...
-    from shadowopt.renderers.ground_truth import texel_world_size_at
+    from shadowopt.renderers.depth_tests import texel_world_size_at
 
     def tau(smap, p):
         s, t, _, _ = smap.map_coords(p)

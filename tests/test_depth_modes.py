@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shadowopt.renderers.ground_truth import engine_depth, engine_splits, evaluate, texel_world_size_at
+from shadowopt.renderers.depth_tests import engine_depth, engine_splits, texel_world_size_at
+from shadowopt.renderers.ground_truth import evaluate
 from shadowopt.solvers import depth_modes as DM
 from shadowopt.solvers.baselines import baseline
 from shadowopt.solvers.cameras import Camera
@@ -270,7 +271,7 @@ def test_slope_scaled_bias_of_a_tilted_plane_is_tan_psi_texel_over_range(mode):
     """The light pass's stored depth on a plane tilted by psi under an orthographic map is the plane's
     depth at the texel centre plus k DZ, DZ = tan(psi) * texel / range (the closed form of the depth change
     per texel step along t; none along s), capped at m: in Dr.Jit and in the NumPy reference."""
-    from shadowopt.renderers import ground_truth as G
+    from shadowopt.renderers import shadow_map_rays as G
 
     psi, res, k = 35.0, 128, 1.5
     rs = _tilted_plane_scene(psi)
@@ -285,8 +286,8 @@ def test_slope_scaled_bias_of_a_tilted_plane_is_tan_psi_texel_over_range(mode):
     for m, expect in ((np.inf, D + k * dz), (0.5 * k * dz, D + 0.5 * k * dz)):
         eng = {"mode": mode, "constant": 0.0, "slope": 0.0, "normal_offset": 0.0, "near": 10.0, "far": 30.0,
                "slope_scaled": k, "slope_clamp": m}
-        d_occ, prim = G._device_map(rs, light, smap, prims=True)
-        dev = G._device_engine_map(rs, smap, d_occ, prim, eng).numpy().reshape(res, res)
+        d_occ, prim = G.device_map(rs, light, smap, prims=True)
+        dev = G.device_engine_map(rs, smap, d_occ, prim, eng).numpy().reshape(res, res)
         d_np, p_np = G.render_map(rs, light, smap, prims=True)
         ref = G.engine_stored_map(rs, smap, d_np, p_np, eng)
         assert np.all(np.isfinite(d_np)) and np.all(p_np >= 0)
@@ -298,7 +299,7 @@ def test_slope_scaled_bias_of_a_tilted_plane_is_tan_psi_texel_over_range(mode):
 
 def test_blend_band_switches_only_where_the_next_cascade_contains_the_point():
     """engine_cascades: past cascade k's band midpoint, k + 1 where it contains the point, else k."""
-    from shadowopt.renderers.ground_truth import engine_cascades
+    from shadowopt.renderers.depth_tests import engine_cascades
 
     smap, _ = ortho_map(64)
     a, b = (ShadowMap(smap.view, smap.projection, (64, 64)) for _ in range(2))

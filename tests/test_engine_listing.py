@@ -183,11 +183,13 @@ def test_blend_only_where_the_next_cascade_holds_the_point_and_the_normal_offset
 def test_the_light_pass_stores_what_evaluate_emulates():
     """Per texel, the depth Mesa's light pass stores with the document's state block (the OpenGL polygon offset
     for hardware, the shader's dFdx/dFdy term for linear) against evaluate's emulation of the light pass
-    (ground_truth.engine_stored_map: the caster's plane on the neighbouring texel rays): the offsets agree, as
+    (shadow_map_rays.engine_stored_map: the caster's plane on the neighbouring texel rays): the offsets agree, as
     returned and with a clamp m small enough to cap most texels."""
     import numpy as np
 
-    from shadowopt.renderers.ground_truth import engine_depth, engine_stored_map, render_map, screen_camera
+    from shadowopt.renderers.depth_tests import engine_depth
+    from shadowopt.renderers.ground_truth import screen_camera
+    from shadowopt.renderers.shadow_map_rays import engine_stored_map, render_map
     from shadowopt.service.pipeline import scene_entry
     from shadowopt.service.rigs import resolve_rig
 

@@ -490,7 +490,7 @@ def test_engine_frame_geometry_rasterized_by_opengl_matches_the_ray_cast_map(dem
     test GREATER, cleared to 0; Godot's Vulkan clip has y down): the stored depth is 1 - D of the ray-cast
     map's first hits on every texel. Unreal: left-handed, Z up, centimetres, a +Z-looking view and FMatrix
     row vectors; Godot: right-handed, Vulkan clip."""
-    from shadowopt.renderers.ground_truth import render_map
+    from shadowopt.renderers.shadow_map_rays import render_map
     from shadowopt.service.rigs import resolve_rig
     from shadowopt.service.solve import maps_from_solution, solve
 

@@ -289,9 +289,9 @@ def test_scene_far_from_origin_and_no_recompilation(monkeypatch):
 
     # Maps rendered in several chunks, of a size never seen before (a fresh size per run, so that
     # Dr.Jit's on-disk kernel cache cannot hide a kernel that bakes sizes or offsets in).
-    from shadowopt.renderers import ground_truth as G
+    from shadowopt.renderers import shadow_map_rays as M
 
-    monkeypatch.setattr(G, "RAY_CHUNK", 100_000)
+    monkeypatch.setattr(M, "RAY_CHUNK", 100_000)
     evaluate(rs, cam, light, [ortho_map_around(light.direction, everything, 500)])
     rng = np.random.default_rng()
     sm3 = ortho_map_around(light.direction, everything, 512)
@@ -320,7 +320,9 @@ def _test_maps(light_dir, pts):
 
 def test_device_rays_and_lookup_match_the_numpy_reference(box_scene):
     """The Dr.Jit texel rays and shadow test are ShadowMap.texel_rays / map_coords + shadow_test."""
+    from shadowopt.renderers import depth_tests as D
     from shadowopt.renderers import ground_truth as G
+    from shadowopt.renderers import shadow_map_rays as M
     from shadowopt.renderers.mitsuba_setup import mitsuba
 
     import drjit as dr
@@ -331,24 +333,24 @@ def test_device_rays_and_lookup_match_the_numpy_reference(box_scene):
     sb = G.render_screen(box_scene, cam, light)
     pts = np.vstack([sb.position[sb.receivers], box(BOX_LO, BOX_HI)[0]])
     X_np, N_np = sb.position[sb.hit], sb.normal[sb.hit]
-    X, N = G._device_points(mi, X_np - box_scene.origin), G._device_points(mi, N_np)
-    tol = G.NUMERIC_TOLERANCE * box_scene.extent
+    X, N = M.device_points(mi, X_np - box_scene.origin), M.device_points(mi, N_np)
+    tol = D.NUMERIC_TOLERANCE * box_scene.extent
     for smap in _test_maps(light.direction, pts):
         w, h = smap.resolution
-        near, dirn, length, _ = G._device_texel_rays(mi, dr, smap, box_scene.origin, dr.opaque(mi.UInt32, 0), w * h)
+        near, dirn, length, _ = M.device_texel_rays(mi, dr, smap, box_scene.origin, dr.opaque(mi.UInt32, 0), w * h)
         jj, ii = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
         ref_near, ref_far = smap.texel_rays((ii.ravel() + 0.5) / w, (jj.ravel() + 0.5) / h)
         dev_near = np.stack([v.numpy() for v in near], -1) + box_scene.origin
         dev_far = dev_near + np.stack([v.numpy() for v in dirn], -1) * length.numpy()[:, None]
         scale = np.abs(ref_far).max()
         assert np.abs(dev_near - ref_near).max() < 1e-9 * scale and np.abs(dev_far - ref_far).max() < 1e-9 * scale
-        d_occ_np = G.render_map(box_scene, light, smap)
+        d_occ_np = M.render_map(box_scene, light, smap)
         assert np.isfinite(d_occ_np).mean() > 0.3  # the map sees the scene
-        sh, inside, u, v = G._device_lookup(box_scene, light, smap, G._device_map(box_scene, light, smap), X, N, tol)
-        ref_sh, ref_out = G.shadow_test(smap, d_occ_np, X_np, N_np, light, tol)
+        sh, inside, u, v = D.device_lookup(box_scene, light, smap, M.device_map(box_scene, light, smap), X, N, tol)
+        ref_sh, ref_out = D.shadow_test(smap, d_occ_np, X_np, N_np, light, tol)
         assert np.array_equal(inside, ~ref_out) and 0.2 < inside.mean()
         assert np.count_nonzero(sh != ref_sh) <= 1e-4 * len(sh) and sh.sum() > 100
-        ref_uv = G.texel_coords(smap, X_np)
+        ref_uv = D.texel_coords(smap, X_np)
         assert np.nanmax(np.abs(np.stack([u, v], -1) - ref_uv)) < 1e-6
 
 
@@ -356,7 +358,9 @@ def test_engine_depth_lookup_matches_the_numpy_reference(box_scene):
     """The Dr.Jit light pass (stored depth with the caster-side slope-scaled bias of the map's depth block,
     float32, cleared texels at 1) is engine_stored_map, and the Dr.Jit engine-faithful test (hardware and
     linear stored depth, a normal offset) is shadow_test(..., engine=...) on the same texels."""
+    from shadowopt.renderers import depth_tests as D
     from shadowopt.renderers import ground_truth as G
+    from shadowopt.renderers import shadow_map_rays as M
     from shadowopt.renderers.mitsuba_setup import mitsuba
     from shadowopt.solvers.depth_modes import depth_block
 
@@ -366,17 +370,17 @@ def test_engine_depth_lookup_matches_the_numpy_reference(box_scene):
     sb = G.render_screen(box_scene, cam, light)
     pts = np.vstack([sb.position[sb.receivers], box(BOX_LO, BOX_HI)[0]])
     X_np, N_np = sb.position[sb.hit], sb.normal[sb.hit]
-    X, N = G._device_points(mi, X_np - box_scene.origin), G._device_points(mi, N_np)
+    X, N = M.device_points(mi, X_np - box_scene.origin), M.device_points(mi, N_np)
     for smap in _test_maps(light.direction, pts):
         smap.depth = depth_block(smap, sb.position[sb.receivers], light)
-        d_occ_np, prim_np = G.render_map(box_scene, light, smap, prims=True)
-        d_occ, prim = G._device_map(box_scene, light, smap, prims=True)
+        d_occ_np, prim_np = M.render_map(box_scene, light, smap, prims=True)
+        d_occ, prim = M.device_map(box_scene, light, smap, prims=True)
         for mode in ("hardware", "linear"):
             for offset in (0.0, 0.02):
-                eng = {**G.engine_depth(smap, mode), "normal_offset": offset}
+                eng = {**D.engine_depth(smap, mode), "normal_offset": offset}
                 assert eng["slope_scaled"] > 0 and eng["slope"] == 0.0  # the caster-side slope bias is on
-                stored = G._device_engine_map(box_scene, smap, d_occ, prim, eng)
-                ref_stored = G.engine_stored_map(box_scene, smap, d_occ_np, prim_np, eng)
+                stored = M.device_engine_map(box_scene, smap, d_occ, prim, eng)
+                ref_stored = M.engine_stored_map(box_scene, smap, d_occ_np, prim_np, eng)
                 w, h = smap.resolution
                 dev_stored = stored.numpy().reshape(h, w)
                 # the light pass's depth buffer: float32 values, equal up to one float32 step on the
@@ -384,11 +388,11 @@ def test_engine_depth_lookup_matches_the_numpy_reference(box_scene):
                 assert np.count_nonzero(np.abs(dev_stored - ref_stored) > 1.5 * np.spacing(np.float32(1))) \
                     <= 1e-4 * w * h
                 assert (ref_stored < 1).mean() > 0.3
-                sh, inside, u, v = G._device_lookup(box_scene, light, smap, stored, X, N, 0.0, eng)
-                ref_sh, ref_out = G.shadow_test(smap, ref_stored, X_np, N_np, light, 0.0, engine=eng)
+                sh, inside, u, v = D.device_lookup(box_scene, light, smap, stored, X, N, 0.0, eng)
+                ref_sh, ref_out = D.shadow_test(smap, ref_stored, X_np, N_np, light, 0.0, engine=eng)
                 assert np.count_nonzero(inside != ~ref_out) <= 1e-4 * len(sh) and 0.2 < inside.mean()
                 assert np.count_nonzero(sh != ref_sh) <= 1e-4 * len(sh) and sh.sum() > 100, (mode, offset)
-                assert np.nanmax(np.abs(np.stack([u, v], -1) - G.texel_coords(smap, X_np))) < 1e-6
+                assert np.nanmax(np.abs(np.stack([u, v], -1) - D.texel_coords(smap, X_np))) < 1e-6
 
 
 def test_a_camera_that_sees_nothing_gives_zero_counts(box_scene):

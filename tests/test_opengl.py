@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shadowopt.renderers.ground_truth import render_map
+from shadowopt.renderers.shadow_map_rays import render_map
 from shadowopt.service.pipeline import scene_entry
 from shadowopt.service.rigs import resolve_rig
 from shadowopt.service.solve import maps_from_solution, solve

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -71,7 +72,7 @@ def ground_samples(cam: Camera, far=150.0, grid=(96, 54)):
 
 def gl_depth(tmp_path, vertices, faces, matrix, resolution, clip_z, reversed_z=False):
     """Window depth (height, width), row 0 at the bottom, rasterized by real OpenGL (Mesa through EGL) in a
-    subprocess (renderers.gl_check: Mesa loads LLVM 15, Dr.Jit in this process 19); skips without EGL."""
+    subprocess (tests/gl_check.py: Mesa loads LLVM 15, Dr.Jit in this process 19); skips without EGL."""
     import subprocess
     import sys
 
@@ -80,7 +81,7 @@ def gl_depth(tmp_path, vertices, faces, matrix, resolution, clip_z, reversed_z=F
     src, out = tmp_path / "in.npz", tmp_path / "out.npz"
     np.savez(src, vertices=vertices.astype(np.float32), faces=faces.astype(np.uint32), matrix=matrix,
              resolution=np.array(resolution), depth_clamp=True, clip_z=clip_z, reversed_z=reversed_z)
-    p = subprocess.run([sys.executable, "-m", "shadowopt.renderers.gl_check", str(src), str(out)],
+    p = subprocess.run([sys.executable, str(Path(__file__).with_name("gl_check.py")), str(src), str(out)],
                        capture_output=True, text=True, timeout=300)
     if p.returncode != 0 and ("EGL" in p.stderr or "moderngl" in p.stderr):
         pytest.skip(f"no EGL/OpenGL here: {p.stderr.strip().splitlines()[-1]}")

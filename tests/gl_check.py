@@ -1,7 +1,7 @@
 """Rasterize a shadow map's depth with real OpenGL (Mesa llvmpipe through EGL) - a check that the
 matrices we return mean to a GPU what they mean to us.
 
-Run it in its own process (`python -m shadowopt.renderers.gl_check IN.npz OUT.npz`): Mesa loads
+Run it in its own process (`python tests/gl_check.py IN.npz OUT.npz`, as testkit.gl_depth does): Mesa loads
 LLVM 15, and a Dr.Jit in the same process would reuse that library and crash. This module imports
 nothing but NumPy and moderngl for that reason.
 
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import sys
 
+import moderngl
 import numpy as np
 
 GL_DEPTH_CLAMP = 0x864F
@@ -40,8 +41,6 @@ void main() { }
 
 def rasterize_depth(vertices, faces, matrix, resolution, depth_clamp=True, clip_z="neg_one_to_one",
                     reversed_z=False):
-    import moderngl
-
     ctx = moderngl.create_standalone_context(backend="egl")
     try:
         w, h = int(resolution[0]), int(resolution[1])
@@ -73,7 +72,7 @@ def rasterize_depth(vertices, faces, matrix, resolution, depth_clamp=True, clip_
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if len(argv) != 2:
-        print("usage: python -m shadowopt.renderers.gl_check IN.npz OUT.npz", file=sys.stderr)
+        print("usage: python tests/gl_check.py IN.npz OUT.npz", file=sys.stderr)
         return 2
     d = np.load(argv[0])
     depth, renderer = rasterize_depth(d["vertices"], d["faces"], d["matrix"], d["resolution"],
