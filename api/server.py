@@ -305,6 +305,7 @@ class Service:
         (or loaded from Dr.Jit's disk cache) before /healthz is 200."""
         from ..service.evaluation import evaluate_solution
         from ..service.scenes import SCENES
+        from ..service.request import SolveRequest
         from ..service.solve import solve
 
         t0 = time.perf_counter()
@@ -313,7 +314,7 @@ class Service:
                 entry = SCENES.get(path)  # the operator's own files: local mode, not the upload sandbox
                 rig = warm_rig(entry.loaded, path)
                 if rig is not None:
-                    sol = solve(entry, rig, method="optimized")
+                    sol = solve(entry, rig, SolveRequest(method="optimized"))
                     evaluate_solution(entry, rig, sol, screen=(160, 90))  # the ground-truth kernels too
             except Exception as e:  # a bad warm-up scene must not take the service down
                 self.warm_errors[str(path)] = f"{type(e).__name__}: {e}"
@@ -1039,6 +1040,7 @@ def check_eval_size(svc: Service, rig: dict, screen, solution: dict | None) -> N
 
 
 def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
+    from ..service.request import SolveRequest
     from ..service.solve import solve
 
     @app.post("/v1/optimize", summary="Shadow setup for a scene and rig: matrices, warp, cascades, predicted error",
@@ -1050,9 +1052,9 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
             entry = await scene_entry_for(svc, ticket, req.scene_id)
             t0 = time.perf_counter()
             with solver_errors():
-                sol = await svc.in_slot(svc.admission.solve, ticket, solve, entry, rig, method=req.method,
-                                        solver=req.solver, time_budget_ms=budget, previous=req.previous,
-                                        hysteresis=req.hysteresis, cache_tenant=tenant)  # service.coarse_cache
+                sol = await svc.in_slot(svc.admission.solve, ticket, solve, entry, rig, SolveRequest(
+                    method=req.method, solver=req.solver, time_budget_ms=budget, previous=req.previous,
+                    hysteresis=req.hysteresis, cache_tenant=tenant))  # service.coarse_cache
             svc.metrics.optimize.observe(time.perf_counter() - t0, req.method)
         return json_response(sol)
 
@@ -1094,7 +1096,7 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
             entry = await scene_entry_for(svc, ticket, req.scene_id)
             with solver_errors():
                 res = await svc.in_slot(svc.admission.solve, ticket, compare_methods, entry, rig, methods,
-                                        screen=req.screen, solve_options={"time_budget_ms": svc.time_budget(None)},
+                                        screen=req.screen, request=SolveRequest(time_budget_ms=svc.time_budget(None)),
                                         depth=req.depth)
         return json_response(res)
 

@@ -470,13 +470,14 @@ def _solve_with(get_entry, config: dict, settings: dict) -> dict:
     from .rigs import RigError, SolutionError
 
     try:
+        from .request import SolveRequest
         from .solve import solve
 
         rig = config["rig"]
         entry = get_entry()
-        sol = solve(entry, rig, method=config.get("method") or settings.get("method") or DEFAULT_METHOD,
+        sol = solve(entry, rig, SolveRequest(method=config.get("method") or settings.get("method") or DEFAULT_METHOD,
                     solver=settings.get("solver"), time_budget_ms=settings.get("time_budget_ms"),
-                    previous=config.get("previous"))  # a coherent path's previous frame (service.paths)
+                    previous=config.get("previous")))  # a coherent path's previous frame (service.paths)
         if "resolved" not in sol:  # what this configuration was solved for (service.echo)
             from .echo import resolved_echo
             from .rigs import resolve_rig

@@ -20,7 +20,9 @@ def coverage_sweep(validate_rig, scenes=None, suns: int = 4, methods=("uniform",
     receiver_pixels}. `validate_rig`: api.schemas.validate_rig (as every bench takes it). `log` gets one line per (scene, screen) with the totals per method."""
     from ..rigs import resolve_rig
     from ..scenes import SceneCache
-    from ..solve import maps_from_solution, solve
+    from ..request import SolveRequest
+    from ..solution_json import maps_from_solution
+    from ..solve import solve
     from .suite import corpus_scenes, hemisphere_directions
 
     found, _ = corpus_scenes(scenes)
@@ -42,7 +44,7 @@ def coverage_sweep(validate_rig, scenes=None, suns: int = 4, methods=("uniform",
                             if sb is None:
                                 r = resolve_rig(rig, entry.loaded)
                                 sb = render_screen(entry.rays, r.camera, r.lights[0], shadow_rays=False)
-                            maps = maps_from_solution(solve(entry, rig, method=method))[0]
+                            maps = maps_from_solution(solve(entry, rig, SolveRequest(method=method)))[0]
                             n = int(outside_mask(sb, maps).sum())
                             rows.append({"scene": name, "rig": rig_name, "screen": list(screen), "sun": i,
                                          "method": method, "cascades": k, "outside_pixels": n,

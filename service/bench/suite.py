@@ -205,7 +205,9 @@ def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict
     `setup_ms_hd`. Skipped when renderers.coverage is absent."""
     from ...renderers.ground_truth import evaluate_buffers, render_screen
     from ..rigs import resolve_rig
-    from ..solve import maps_from_solution, solve
+    from ..request import SolveRequest
+    from ..solution_json import maps_from_solution
+    from ..solve import solve
 
     keys = RECORD_KEYS
     outside_pixels = _coverage() if hd and hd.get("lights") else None
@@ -227,7 +229,7 @@ def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict
                     resolved[key] = resolve_rig(rig, entry.loaded)
                 r = resolved[key]
                 t0 = time.perf_counter()
-                sol = solve(entry, rig, method=c["method"])
+                sol = solve(entry, rig, SolveRequest(method=c["method"]))
                 maps = maps_from_solution(sol)[0]
                 ideal = evaluate_buffers(entry.rays, r.camera, r.lights[0], maps)
                 gt = ideal.result
@@ -250,7 +252,7 @@ def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict
                         rh = resolve_rig(rig_hd, entry.loaded)
                         resolved_hd[key] = (rh, render_screen(entry.rays, rh.camera, rh.lights[0], shadow_rays=False))
                     rh, screen_hd = resolved_hd[key]
-                    sol_hd = solve(entry, rig_hd, method=c["method"])
+                    sol_hd = solve(entry, rig_hd, SolveRequest(method=c["method"]))
                     cov = outside_pixels(entry.rays, rh.camera, rh.lights[0], maps_from_solution(sol_hd)[0], screen=screen_hd)
                     rec["outside_hd"][part][name].append(int(cov["outside_pixels"]))
                     rec["receivers_hd"][part][name].append(int(cov["receiver_pixels"]))
@@ -578,7 +580,7 @@ def _corpus_fingerprint(path: Path, camera: dict, screen, configs: dict, part_di
     code = sorted((ROOT / "solvers").glob("*.py")) + [
         ROOT / "renderers" / f for f in ("ground_truth.py", "coarse.py", "ray_scene.py", "mitsuba_setup.py", "coverage.py",
                                          "scene_data.py")] + [
-        ROOT / "service" / f for f in ("solve.py", "rigs.py", "pipeline.py")]
+        ROOT / "service" / f for f in ("solve.py", "receivers.py", "map_sizing.py", "solution_json.py", "rigs.py", "pipeline.py")]
     for f in code:
         if f.exists():
             h.update(f.read_bytes())
@@ -757,7 +759,7 @@ def bench_solvers(validate_rig, lights: int = 5, write: bool = True) -> dict:
 
     from ..pipeline import coarse_pass
     from ..scenes import SceneCache
-    from ..solve import light_problems
+    from ..receivers import light_problems
     from ...solvers.optimize import DEFAULT_METHOD, METHODS, minimize
     from ...solvers.optimized_maps import optimized_maps
 
@@ -830,7 +832,7 @@ def bench_solvers_corpus(validate_rig, lights: int = 3, scenes: str | None = Non
 
     from ..pipeline import coarse_pass
     from ..scenes import SceneCache
-    from ..solve import light_problems
+    from ..receivers import light_problems
     from ...solvers.optimize import DEFAULT_METHOD, METHODS, minimize
 
     spec = definitions()["quality_corpus"]
@@ -970,7 +972,9 @@ def bench_trust(validate_rig, rigs: int | None = None, write: bool = True) -> di
     from ...renderers.ground_truth import evaluate_buffers
     from ..rigs import resolve_rig
     from ..scenes import SceneCache
-    from ..solve import maps_from_solution, solve
+    from ..request import SolveRequest
+    from ..solution_json import maps_from_solution
+    from ..solve import solve
 
     spec = definitions()["trust"]
     n = rigs or spec["rigs"]
@@ -986,7 +990,7 @@ def bench_trust(validate_rig, rigs: int | None = None, write: bool = True) -> di
                                 "shadow": {"resolution": [res, res], "cascades": 1}})
             resolved = resolve_rig(rig, entry.loaded)
             for m in spec["methods"]:
-                sol = solve(entry, rig, method=m)
+                sol = solve(entry, rig, SolveRequest(method=m))
                 gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps_from_solution(sol)[0]).result
                 pred.append(sol["lights"][0]["predicted_error"]["objective"])
                 meas.append(gt["misclassified_pixels"])
