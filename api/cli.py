@@ -223,13 +223,14 @@ def _write_or_print(obj: dict, out: str | None, as_json: bool, summary: str) -> 
 
 def cmd_optimize(args) -> int:
     from ..service.pipeline import scene_entry
+    from ..service.request import SolveRequest
     from ..service.solve import solve
 
     rig = load_rig(args.rig, args)
     entry = scene_entry(args.scene, **_scene_options(args))
     previous = _read_json(args.previous, "--previous") if args.previous else None
-    sol = solve(entry, rig, method=args.method, solver=args.solver, time_budget_ms=args.time_budget_ms,
-                previous=previous, hysteresis=args.hysteresis)
+    sol = solve(entry, rig, SolveRequest(method=args.method, solver=args.solver, time_budget_ms=args.time_budget_ms,
+                                         previous=previous, hysteresis=args.hysteresis))
     errs = [l["predicted_error"] for l in sol["lights"]]
     summary = "; ".join(f"light {k}: {len(l['cascades'])} map(s), predicted p95 m {e['p95_m']:.3g}, "
                         f"median m {e['median_m']:.3g} over {e['samples']} samples"

@@ -11,6 +11,7 @@ from fastapi import FastAPI, Request
 from . import schemas as S
 from ..service.compare import compare as compare_methods
 from ..service.evaluation import evaluate_solution
+from ..service.request import SolveRequest
 from ..service.solve import solve
 from ..solvers.analysis import analyze as lloyd
 from .errors import AUTHED, ApiError, error_responses, solver_errors
@@ -61,9 +62,9 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
             entry = await scene_entry_for(svc, ticket, req.scene_id)
             t0 = time.perf_counter()
             with solver_errors():
-                sol = await svc.in_slot(svc.admission.solve, ticket, solve, entry, rig, method=req.method,
-                                        solver=req.solver, time_budget_ms=budget, previous=req.previous,
-                                        hysteresis=req.hysteresis, cache_tenant=tenant)  # service.coarse_cache
+                sol = await svc.in_slot(svc.admission.solve, ticket, solve, entry, rig, SolveRequest(
+                    method=req.method, solver=req.solver, time_budget_ms=budget, previous=req.previous,
+                    hysteresis=req.hysteresis, cache_tenant=tenant))  # service.coarse_cache
             svc.metrics.optimize.observe(time.perf_counter() - t0, req.method)
         return json_response(sol)
 
@@ -101,7 +102,7 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
             entry = await scene_entry_for(svc, ticket, req.scene_id)
             with solver_errors():
                 res = await svc.in_slot(svc.admission.solve, ticket, compare_methods, entry, rig, methods,
-                                        screen=req.screen, solve_options={"time_budget_ms": svc.time_budget(None)},
+                                        screen=req.screen, request=SolveRequest(time_budget_ms=svc.time_budget(None)),
                                         depth=req.depth)
         return json_response(res)
 

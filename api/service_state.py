@@ -19,6 +19,7 @@ from ..renderers.mitsuba_setup import mitsuba
 from ..service.job_runner import BatchRunner
 from ..service.evaluation import evaluate_solution
 from ..service.scenes import SCENES
+from ..service.request import SolveRequest
 from ..service.solve import solve
 from ..service.store import Store
 from .admission import Admission, Refused
@@ -117,7 +118,7 @@ class Service:
                 entry = SCENES.get(path)  # the operator's own files: local mode, not the upload sandbox
                 rig = warm_rig(entry.loaded, path)
                 if rig is not None:
-                    sol = solve(entry, rig, method="optimized")
+                    sol = solve(entry, rig, SolveRequest(method="optimized"))
                     evaluate_solution(entry, rig, sol, screen=(160, 90))  # the ground-truth kernels too
             except Exception as e:  # a bad warm-up scene must not take the service down
                 self.warm_errors[str(path)] = f"{type(e).__name__}: {e}"

@@ -1,8 +1,8 @@
 """The coarse pass split in its camera part and its light part, with the camera part cached in the
 server process: when only the light changes (the inspector's sun slider, a sun sweep over one camera),
 the camera rays, their hits, normals and view depths, the edge pass's fine rays (renderers.coarse),
-receiver_points' camera-only part (service.solve.receiver_prep: edge cells, cell table, tangent-plane
-reach of every pixel) and the receivers of a receiver mask (service.solve.receiver_points) are the same,
+receiver_points' camera-only part (service.receivers.receiver_prep: edge cells, cell table, tangent-plane
+reach of every pixel) and the receivers of a receiver mask (service.receivers.receiver_points) are the same,
 and only the shadow rays, the facing tests, the shadow-boundary mask and the new mask's receivers are
 computed again.
 
@@ -27,6 +27,8 @@ import numpy as np
 from ..renderers.coarse import (DEFAULT_BOUNDARY_RADIUS, CoarseBuffers, FinePoints, camera_hits, fine_points,
                                 fine_ray_directions, light_buffers, light_test, mask_numpy, surface_hits)
 from ..renderers.mitsuba_setup import mitsuba
+from .receivers import receiver_prep
+from .rigs import resolve_rig
 
 MAX_CAMERAS = 16  # camera entries kept (each ~8 MB at the 180 px default, ~4 MB more with a receiver prep, ~2-4 MB per receiver mask memo)
 MAX_RECEIVER_MASKS = 8  # receiver sets kept per camera entry (one per distinct receiver mask)
@@ -52,7 +54,7 @@ class CameraPass:
     fine_ok: np.ndarray | None
     trace_ms: float = 0.0
     receivers: OrderedDict = field(default_factory=OrderedDict)  # mask key -> (points, slack)
-    receiver_prep: object = None  # service.solve.ReceiverPrep: receiver_points' camera-only part, made on a second mask
+    receiver_prep: object = None  # service.receivers.ReceiverPrep: receiver_points' camera-only part, made on a second mask
     receiver_misses: int = 0
     lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -67,7 +69,7 @@ def camera_pass(rs, camera, long_side: int) -> CameraPass:
     """render_coarse's camera rays and hits, and the edge pass (renderers.coarse.fine_points) traced with
     no light; the same kernels and operations."""
     mi = mitsuba()
-    import drjit as dr
+    import drjit as dr  # lazy: loaded after mitsuba() has set its LLVM variant (renderers.mitsuba_setup)
 
     t0 = time.perf_counter()
     width, height = camera.coarse_resolution(long_side)
@@ -121,7 +123,7 @@ def light_part(rs, camera, cp: CameraPass, lights, boundary_radius: int = DEFAUL
     """The lights' coarse buffers over a camera pass: render_coarse's shadow rays and tests, its boundary
     mask, and the edge pass's per-light receiver test (fine_points: _light_test without shadow rays)."""
     mi = mitsuba()
-    import drjit as dr
+    import drjit as dr  # lazy: loaded after mitsuba() has set its LLVM variant (renderers.mitsuba_setup)
 
     t0 = time.perf_counter()
     p, n, hit = _vec(mi, mi.Point3f, cp.p32), _vec(mi, mi.Vector3f, cp.n32), mi.Bool(cp.hit.ravel())
@@ -196,9 +198,9 @@ class CoarseCache:
         return cp
 
     def receivers(self, cp: CameraPass, compute, camera, buffers, mask, bounds, fine_receivers):
-        """service.solve.receiver_points(camera, buffers, mask, bounds, fine_receivers) of this camera pass,
+        """service.receivers.receiver_points(camera, buffers, mask, bounds, fine_receivers) of this camera pass,
         memoized per (mask, fine receivers): a function of those and of the camera pass alone. A miss
-        computes only the mask's share: the camera-only part (service.solve.receiver_prep) is kept with
+        computes only the mask's share: the camera-only part (service.receivers.receiver_prep) is kept with
         the camera pass."""
         fr = None if fine_receivers is None else np.packbits(np.asarray(fine_receivers, bool)).tobytes()
         key = (np.packbits(mask).tobytes(), fr, None if fine_receivers is None else len(fine_receivers))
@@ -210,9 +212,7 @@ class CoarseCache:
                 return got
         prep = cp.receiver_prep
         if prep is None and cp.receiver_misses:  # a second mask (a light moved): once per camera pass (two
-            from .solve import receiver_prep  # threads may both make it: the same values)
-
-            prep = cp.receiver_prep = receiver_prep(camera, buffers)
+            prep = cp.receiver_prep = receiver_prep(camera, buffers)  # threads may both make it: the same values)
         cp.receiver_misses += 1  # a camera seen once (an orbit or fly step) never pays for the prep
         out = compute(camera, buffers, mask, bounds, fine_receivers, prep=prep)
         _readonly(*out)
@@ -230,9 +230,7 @@ COARSE = CoarseCache()
 def cached_coarse_pass(entry, rig: dict, tenant, cache: CoarseCache | None = None,
                        boundary_radius: int = DEFAULT_BOUNDARY_RADIUS):
     """service.pipeline.coarse_pass with the camera part from `cache` (default: the process's): (resolved
-    rig, buffers); the buffers carry `receivers_memo` for service.solve.light_problems."""
-    from .rigs import resolve_rig
-
+    rig, buffers); the buffers carry `receivers_memo` for service.receivers.light_problems."""
     cache = COARSE if cache is None else cache
     resolved = resolve_rig(rig, entry.loaded)
     cp = cache.camera_pass(tenant, entry, resolved.camera, resolved.coarse_long_side, boundary_radius)

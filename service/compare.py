@@ -6,6 +6,7 @@ and each evaluation names its screen and the rig's resolution (service.evaluatio
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from ..renderers.ground_truth import evaluate_buffers, screen_camera
@@ -13,14 +14,17 @@ from ..renderers.heatmap import errors_image, errors_legend, ground_truth_heatma
 from .evaluation import check_depth, pixel_units
 from .request_cost import WorkLimit, check_eval_work, check_solve_work, flush_if_large, light_faces, map_texels
 from .rigs import RigError, SolutionError, resolve_rig
+from .request import SolveRequest
 from .scenes import SceneEntry
-from .solve import maps_from_solution, solve
+from .solution_json import maps_from_solution
+from .solve import solve
 
 
 def compare(entry: SceneEntry, rig: dict, methods: list[str], screen=None, report_dir=None, grid_every=None,
-            solve_options: dict | None = None, depth: str = "solution") -> dict:
+            request: SolveRequest | None = None, depth: str = "solution") -> dict:
     """{"methods": {NAME: {"solution", "predicted_error", "evaluation", "setup_ms"}}, "screen", "rig_resolution",
     "depth"} (first light). `report_dir`: heatmaps.png (m), errors.png (what went wrong) and compare.md.
+    `request`: the solves' settings besides the method (service.request.SolveRequest; its method is replaced).
     depth: the evaluations' depth test (service.evaluation, default the solution's engine depth modes)."""
     check_depth(depth)
     resolved = resolve_rig(rig, entry.loaded)
@@ -36,17 +40,17 @@ def compare(entry: SceneEntry, rig: dict, methods: list[str], screen=None, repor
     except WorkLimit as e:
         raise SolutionError(e.field, e.message, code="too_costly") from None
     try:
-        return _compare(entry, rig, resolved, methods, screen, report_dir, grid_every, solve_options, depth)
+        return _compare(entry, rig, resolved, methods, screen, report_dir, grid_every, request or SolveRequest(), depth)
     finally:
         flush_if_large(work)
 
 
-def _compare(entry, rig, resolved, methods, screen, report_dir, grid_every, solve_options, depth="solution") -> dict:
+def _compare(entry, rig, resolved, methods, screen, report_dir, grid_every, request, depth="solution") -> dict:
     out, images, errors, titles = {}, [], [], []
-    solve(entry, rig, method=methods[0], **(solve_options or {}))  # warm-up: kernels compile once, not in a method's time
+    solve(entry, rig, replace(request, method=methods[0]))  # warm-up: kernels compile once, not in a method's time
     for name in methods:
         t0 = time.perf_counter()
-        sol = solve(entry, rig, method=name, **(solve_options or {}))  # the rig's resolution, as optimize
+        sol = solve(entry, rig, replace(request, method=name))  # the rig's resolution, as optimize
         setup_ms = (time.perf_counter() - t0) * 1e3
         maps = maps_from_solution(sol)[0]
         gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps, screen=screen, depth=depth)

@@ -28,7 +28,7 @@ from .request_cost import WorkLimit, check_eval_work, flush_if_large
 from .rigs import SolutionError, resolve_rig
 from .scenes import SceneEntry
 from .solution_check import validate_solution
-from .solve import maps_from_solution
+from .solution_json import maps_from_solution
 
 
 NO_MAP_RULE = ("the light has no shadow map (shadow none): it casts no shadow, so every visible receiver it truly "

@@ -18,6 +18,7 @@ from ..renderers.scene_data import SceneError
 from ..solvers.jit import pick_llvm
 from .echo import resolved_echo
 from .isolation import LoadLimits, die_with_parent
+from .request import SolveRequest
 from .rigs import RigError, SolutionError, resolve_rig
 
 DEFAULT_METHOD = "optimized"
@@ -78,9 +79,9 @@ def _solve_with(get_entry, config: dict, settings: dict) -> dict:
 
         rig = config["rig"]
         entry = get_entry()
-        sol = solve(entry, rig, method=config.get("method") or settings.get("method") or DEFAULT_METHOD,
+        sol = solve(entry, rig, SolveRequest(method=config.get("method") or settings.get("method") or DEFAULT_METHOD,
                     solver=settings.get("solver"), time_budget_ms=settings.get("time_budget_ms"),
-                    previous=config.get("previous"))  # a coherent path's previous frame (service.paths)
+                    previous=config.get("previous")))  # a coherent path's previous frame (service.paths)
         if "resolved" not in sol:  # what this configuration was solved for (service.echo)
             sol["resolved"] = resolved_echo(resolve_rig(rig, entry.loaded), rig.get("frame", "world"))
         for k in ("frame", "time", "scene_time"):  # a path job's frame index and time codes (service.paths)

@@ -21,7 +21,9 @@ ray, shadow ray and derivatives, costs ~2.6 us; a texel-centre ray ~80 ns on thi
 """
 from __future__ import annotations
 
+import ctypes
 import math
+import sys
 
 MAX_SOLVE_WORK = 1_200_000
 """Coarse pixels x maps over a request's solves (/v1/compare runs len(methods) + 1 solves). 1.2 M: the
@@ -162,7 +164,7 @@ def flush_if_large(work: int) -> bool:
     if work <= LARGE_REQUEST_WORK:
         return False
     try:
-        import drjit as dr
+        import drjit as dr  # lazy: the rendering stack, absent in the client install
     except ImportError:  # the client install
         return False
     dr.sync_thread()
@@ -172,9 +174,6 @@ def flush_if_large(work: int) -> bool:
 
 
 def _malloc_trim() -> None:
-    import ctypes
-    import sys
-
     if not sys.platform.startswith("linux"):
         return
     try:

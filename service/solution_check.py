@@ -23,7 +23,7 @@ A malformed field raises `service.rigs.SolutionError` naming the exact field pat
 
 Fields nobody reads (the exported `view_matrix`, `texture_matrix`, predicted errors, timings) are left alone.
 The return value is a normalized copy (an unbounded split's hi as inf, a null solver dropped) for
-`service.solve.maps_from_solution` and the previous-solution path.
+`service.solution_json.maps_from_solution` and the previous-solution path.
 """
 from __future__ import annotations
 

@@ -8,7 +8,9 @@ from shadowopt.renderers.ground_truth import render_screen
 from shadowopt.service.bench.definitions import corpus_scenes, hemisphere_directions
 from shadowopt.service.rigs import resolve_rig
 from shadowopt.service.scenes import SceneCache
-from shadowopt.service.solve import maps_from_solution, solve
+from shadowopt.service.request import SolveRequest
+from shadowopt.service.solution_json import maps_from_solution
+from shadowopt.service.solve import solve
 
 
 CASCADE_CONFIGS = {1: {"resolution": [400, 400], "cascades": 1},
@@ -41,7 +43,7 @@ def coverage_sweep(validate_rig, scenes=None, suns: int = 4, methods=("uniform",
                             if sb is None:
                                 r = resolve_rig(rig, entry.loaded)
                                 sb = render_screen(entry.rays, r.camera, r.lights[0], shadow_rays=False)
-                            maps = maps_from_solution(solve(entry, rig, method=method))[0]
+                            maps = maps_from_solution(solve(entry, rig, SolveRequest(method=method)))[0]
                             n = int(outside_mask(sb, maps).sum())
                             rows.append({"scene": name, "rig": rig_name, "screen": list(screen), "sun": i,
                                          "method": method, "cascades": k, "outside_pixels": n,

@@ -11,7 +11,9 @@ import pytest
 
 from shadowopt.service.evaluation import evaluate_solution
 from shadowopt.service.scenes import SceneEntry
-from shadowopt.service.solve import maps_from_solution, solve
+from shadowopt.service.request import SolveRequest
+from shadowopt.service.solution_json import maps_from_solution
+from shadowopt.service.solve import solve
 from shadowopt.solvers.baselines import baseline
 from shadowopt.solvers.cameras import Camera
 from shadowopt.solvers.fitting import PAD_TEXELS, box_corners, min_area_rectangle
@@ -106,12 +108,12 @@ def test_hard_cases_give_finite_maps_that_keep_every_receiver(case, method):
     cam, light = HARD[case]
     entry = scene()
     r = rig(cam, light)
-    sol = solve(entry, r, method)
+    sol = solve(entry, r, SolveRequest(method))
     for maps in maps_from_solution(sol):
         for m in maps:
             assert np.all(np.isfinite(m.matrix)), (case, method)
     res = evaluate_solution(entry, r, sol, screen=(320, 180))
-    # Exact receivers (service.solve.receiver_points: coarse hits, the edge pass's hits and their
+    # Exact receivers (service.receivers.receiver_points: coarse hits, the edge pass's hits and their
     # tangent-plane reach): no receiver outside its map, including the light-against-view box face
     # 0.3 degrees from edge-on to the light (1 of 138 lost before the edge pass).
     assert res["outside_pixels"] == 0, (case, method, res)
@@ -125,11 +127,11 @@ def test_scene_far_from_the_origin_and_one_triangle(method):
     entry = scene(off)
     c = {**CAM, "position": tuple(np.add(CAM["position"], off))}
     r = rig(c, {"type": "directional", "direction": (-0.3, -0.8, 0.5)})
-    res = evaluate_solution(entry, r, solve(entry, r, method), screen=(320, 180))
+    res = evaluate_solution(entry, r, solve(entry, r, SolveRequest(method)), screen=(320, 180))
     assert res["outside_pixels"] == 0 and res["misclassified_fraction"] < 0.01
     tri = entry_from([(np.array([[-5, 0, 5], [5, 0, 5], [0, 0, 15.0]]), np.array([[0, 2, 1]]))])
     r = rig(CAM, {"type": "directional", "direction": (-0.3, -0.8, 0.5)})
-    res = evaluate_solution(tri, r, solve(tri, r, method), screen=(320, 180))
+    res = evaluate_solution(tri, r, solve(tri, r, SolveRequest(method)), screen=(320, 180))
     assert res["outside_pixels"] == 0 and res["misclassified_pixels"] == 0 and res["receiver_pixels"] > 0
 
 
@@ -137,8 +139,8 @@ def test_scene_far_from_the_origin_and_one_triangle(method):
 def test_cascades_cover_the_view_and_shrink_the_error(splits):
     entry = scene()
     light = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}
-    one = solve(entry, rig(CAM, light), "focused")
-    three = solve(entry, rig(CAM, light, cascades=3, splits=splits), "focused")
+    one = solve(entry, rig(CAM, light), SolveRequest("focused"))
+    three = solve(entry, rig(CAM, light, cascades=3, splits=splits), SolveRequest("focused"))
     maps = maps_from_solution(three)[0]
     assert len(maps) == 3 and maps[0].split[0] == 0.0
     assert all(a.split[1] == pytest.approx(b.split[0]) for a, b in zip(maps, maps[1:]))
@@ -151,7 +153,7 @@ def test_texel_budget_allocation_spends_the_budget():
     r = rig(CAM, {"type": "directional", "direction": (-0.3, -0.8, 0.5)}, cascades=3)
     r["shadow"].pop("resolution")
     r["shadow"]["texel_budget"] = 3 * 512 * 512
-    maps = maps_from_solution(solve(entry, r, "focused"))[0]
+    maps = maps_from_solution(solve(entry, r, SolveRequest("focused")))[0]
     total = sum(m.resolution[0] * m.resolution[1] for m in maps)
     assert 0.9 * 3 * 512 * 512 <= total <= 3 * 512 * 512
     assert maps[0].resolution[0] * maps[0].resolution[1] != maps[2].resolution[0] * maps[2].resolution[1]
@@ -161,11 +163,11 @@ def test_optimized_splits_and_budget_beat_practical_lispsm_and_cover_the_view():
     entry = scene()
     light = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}
     base = rig(CAM, light, cascades=4)
-    practical = solve(entry, base, "lispsm")
+    practical = solve(entry, base, SolveRequest("lispsm"))
     r = rig(CAM, light, cascades=4, splits="optimized")
     r["shadow"].pop("resolution")
     r["shadow"]["texel_budget"] = 4 * 512 * 512
-    opt = solve(entry, r, "optimized")
+    opt = solve(entry, r, SolveRequest("optimized"))
     maps = maps_from_solution(opt)[0]
     inner = [m.split[1] for m in maps[:-1]]
     assert inner == pytest.approx(opt["solver"]["splits"]["split_at"])
@@ -180,7 +182,7 @@ def test_optimized_with_log_warps_allowed_says_which_warp_it_chose():
     entry = scene()
     r = rig(CAM, {"type": "directional", "direction": (-0.3, -0.8, 0.5)})
     r["output"]["allow_log_warp"] = True
-    sol = solve(entry, r, "optimized")
+    sol = solve(entry, r, SolveRequest("optimized"))
     c = sol["lights"][0]["cascades"][0]
     info = sol["solver"]["cascades"][0]
     assert "result_log" in info  # both families searched
@@ -199,7 +201,7 @@ def test_snap_to_texels_says_why_a_map_is_not_snapped():
     sun = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}
     spot = {"type": "spot", "position": (0, 10, 10), "direction": (0, -1, 0.2), "cone_deg": 40}
     for light, method in ((sun, "focused"), (sun, "lispsm"), (sun, "optimized"), (spot, "focused")):
-        sol = solve(entry, rig(CAM, light, cascades=2 if light is sun else 1, snap_to_texels=True), method)
+        sol = solve(entry, rig(CAM, light, cascades=2 if light is sun else 1, snap_to_texels=True), SolveRequest(method))
         for c in sol["lights"][0]["cascades"]:
             note = c.get("texel_snap_note")
             assert c["texel_snapped"] != bool(note), (method, c["texel_snapped"], note)
@@ -230,7 +232,7 @@ def test_texel_snapping_fixes_the_grid_in_the_world_and_keeps_every_receiver():
         for dx in (0.0, 0.37):
             cam = {**CAM, "position": (dx, 1.7, 0.0)}
             r = rig(cam, light, snap_to_texels=snap)
-            sol = solve(entry, r, "focused")
+            sol = solve(entry, r, SolveRequest("focused"))
             assert evaluate_solution(entry, r, sol, screen=(320, 180))["outside_pixels"] == 0
             frames.append(frac_texels(sol))
         (m0, f0), (m1, f1) = frames
@@ -246,8 +248,8 @@ def test_texel_snapping_fixes_the_grid_in_the_world_and_keeps_every_receiver():
 def test_point_light_over_a_small_view_gets_one_optimized_map_instead_of_a_cube():
     entry = scene()
     r = rig({**CAM, "far": 60}, {"type": "point", "position": (0.0, 80.0, 25.0)})
-    cube = solve(entry, r, "focused")
-    opt = solve(entry, r, "optimized")
+    cube = solve(entry, r, SolveRequest("focused"))
+    opt = solve(entry, r, SolveRequest("optimized"))
     # the cube keeps only the faces whose frusta hold visible receivers (service.need); the others are noted
     faces = cube["lights"][0]["cascades"]
     assert 1 <= len(faces) <= 6 and len(faces) + len(cube["lights"][0].get("notes", [])) == 6
@@ -267,9 +269,9 @@ def test_optimized_cascades_keep_their_splits(direction):
     with the optimizer as a start once came back with the single map's split 0..far)."""
     entry = scene()
     light = {"type": "directional", "direction": direction}
-    plan = maps_from_solution(solve(entry, rig(CAM, light, cascades=4), "focused"))[0]
+    plan = maps_from_solution(solve(entry, rig(CAM, light, cascades=4), SolveRequest("focused")))[0]
     r = rig(CAM, light, cascades=4)
-    sol = solve(entry, r, "optimized")
+    sol = solve(entry, r, SolveRequest("optimized"))
     maps = maps_from_solution(sol)[0]
     assert np.ravel([m.split for m in maps]) == pytest.approx(np.ravel([m.split for m in plan]))
     # Maps are fit to the coarse receivers (extended along their planes); a sliver thinner than a coarse
@@ -288,7 +290,7 @@ def test_optimized_splits_on_the_demo_scene_stay_contiguous():
     r = validate_rig({"camera": {"usd_path": "/World/Camera", "resolution": [320, 320]},
                       "lights": [{"type": "directional", "direction": [-0.107, -0.11, -0.988]}],
                       "shadow": {"texel_budget": 4 * 400 * 400, "cascades": 4, "splits": "optimized"}})
-    sol = solve(entry, r, "optimized")
+    sol = solve(entry, r, SolveRequest("optimized"))
     maps = maps_from_solution(sol)[0]
     ends = [m.split[1] for m in maps]
     assert maps[0].split[0] == 0.0 and all(a.split[1] == pytest.approx(b.split[0]) for a, b in zip(maps, maps[1:]))
@@ -301,11 +303,11 @@ def test_optimized_splits_on_the_demo_scene_stay_contiguous():
 def test_auto_cascades_pick_the_smallest_k_meeting_the_target():
     entry = scene()
     light = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}
-    errs = [solve(entry, rig(CAM, light, cascades=k), "focused")["lights"][0]["predicted_error"]["p95_m"]
+    errs = [solve(entry, rig(CAM, light, cascades=k), SolveRequest("focused"))["lights"][0]["predicted_error"]["p95_m"]
             for k in (1, 2, 3)]
     target = (errs[1] + errs[0]) / 2 if errs[1] < errs[0] else errs[1] * 1.01
     r = rig(CAM, light, cascades="auto", max_cascades=3, target_p95_m=target)
-    sol = solve(entry, r, "focused")
+    sol = solve(entry, r, SolveRequest("focused"))
     auto = sol["lights"][0]["auto_cascades"]
     expected = next(k for k, e in zip((1, 2, 3), errs) if e <= target)
     assert auto["chosen"] == expected == len(sol["lights"][0]["cascades"])

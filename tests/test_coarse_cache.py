@@ -14,6 +14,7 @@ from shadowopt.service import coarse_cache
 from shadowopt.service.coarse_cache import CoarseCache, cached_coarse_pass
 from shadowopt.service.pipeline import coarse_pass
 from shadowopt.service.scenes import SceneCache
+from shadowopt.service.request import SolveRequest
 from shadowopt.service.solve import solve
 
 from testkit import box, plane, scene_entry_of, sun
@@ -77,11 +78,11 @@ def test_cached_buffers_equal_render_coarse_bit_for_bit(demo):
 
 
 def test_cached_resolve_returns_the_same_matrices(demo, cache):
-    first = solve(demo, demo_rig(-60.0), "optimized", cache_tenant="a")  # fills the cache
+    first = solve(demo, demo_rig(-60.0), SolveRequest("optimized", cache_tenant="a"))  # fills the cache
     assert (cache.misses, cache.hits) == (1, 0)
     for az in (-60.0, 40.0):  # the same sun again (receivers memo), then a sun move (camera pass only)
-        cached = solve(demo, demo_rig(az), "optimized", cache_tenant="a")
-        plain = solve(demo, demo_rig(az), "optimized")
+        cached = solve(demo, demo_rig(az), SolveRequest("optimized", cache_tenant="a"))
+        plain = solve(demo, demo_rig(az), SolveRequest("optimized"))
         assert without_times(cached) == without_times(plain)
         assert cached["lights"][0]["cascades"][0] == plain["lights"][0]["cascades"][0]
     assert (cache.misses, cache.hits) == (1, 2)
@@ -95,18 +96,18 @@ def test_another_tenant_or_a_changed_scene_misses(cache):
 
     one, moved = scene(0.0), scene(6.0)
     rig = orbit_rig(30.0)
-    a = solve(one, rig, "focused", cache_tenant="a")
-    solve(one, orbit_rig(60.0), "focused", cache_tenant="a")
+    a = solve(one, rig, SolveRequest("focused", cache_tenant="a"))
+    solve(one, orbit_rig(60.0), SolveRequest("focused", cache_tenant="a"))
     assert (cache.misses, cache.hits) == (1, 1)
-    b = solve(one, rig, "focused", cache_tenant="b")  # another tenant, the same scene object and rig
+    b = solve(one, rig, SolveRequest("focused", cache_tenant="b"))  # another tenant, the same scene object and rig
     assert (cache.misses, cache.hits) == (2, 1)
     assert without_times(a) == without_times(b)
-    m = solve(moved, rig, "focused", cache_tenant="a")  # a changed scene: its own camera pass
+    m = solve(moved, rig, SolveRequest("focused", cache_tenant="a"))  # a changed scene: its own camera pass
     assert (cache.misses, cache.hits) == (3, 1)
-    assert without_times(m) == without_times(solve(moved, rig, "focused"))
+    assert without_times(m) == without_times(solve(moved, rig, SolveRequest("focused")))
     assert without_times(m) != without_times(a)
     again = scene(0.0)  # the same geometry reloaded: a new entry, never the old one's buffers
-    solve(again, rig, "focused", cache_tenant="a")
+    solve(again, rig, SolveRequest("focused", cache_tenant="a"))
     assert (cache.misses, cache.hits) == (4, 1)
     _, ref = coarse_pass(moved, rig)
     assert not np.array_equal(ref.depth, render_coarse(one.rays, ref.camera, [], ref.width).depth)  # it did change

@@ -185,10 +185,12 @@ def demo():
 
 
 def test_engine_modes_equal_ideal_for_an_orthographic_map_and_are_reported_for_a_warped_one(demo):
-    from shadowopt.service.solve import maps_from_solution, solve
+    from shadowopt.service.request import SolveRequest
+    from shadowopt.service.solution_json import maps_from_solution
+    from shadowopt.service.solve import solve
 
     entry, rig, r = demo
-    maps = maps_from_solution(solve(entry, rig, method="focused"))[0]
+    maps = maps_from_solution(solve(entry, rig, SolveRequest(method="focused")))[0]
     assert maps[0].warp_kind == "none"
     ideal = evaluate(entry.rays, r.camera, r.lights[0], maps, depth="ideal")
     for depth in ("solution", "hardware", "linear"):
@@ -196,7 +198,7 @@ def test_engine_modes_equal_ideal_for_an_orthographic_map_and_are_reported_for_a
         assert res["depth"] == depth and res["depth_rule"].startswith(depth + ":")
         assert abs(res["misclassified_pixels"] - ideal["misclassified_pixels"]) <= 5, (depth, res, ideal)
     assert ideal["depth"] == "ideal" and "tau" in ideal["depth_rule"]
-    warped = maps_from_solution(solve(entry, rig, method="optimized"))[0]
+    warped = maps_from_solution(solve(entry, rig, SolveRequest(method="optimized")))[0]
     assert warped[0].warp_kind == "perspective"
     w_ideal = evaluate(entry.rays, r.camera, r.lights[0], warped, depth="ideal")
     w_sol = evaluate(entry.rays, r.camera, r.lights[0], warped, depth="solution")
@@ -321,7 +323,9 @@ def test_engine_modes_leave_no_receiver_outside_that_ideal_serves(scene, sun, me
     from shadowopt.service.bench.definitions import corpus_scenes, hemisphere_directions
     from shadowopt.service.rigs import resolve_rig
     from shadowopt.service.scenes import SceneCache
-    from shadowopt.service.solve import maps_from_solution, solve
+    from shadowopt.service.request import SolveRequest
+    from shadowopt.service.solution_json import maps_from_solution
+    from shadowopt.service.solve import solve
     from shadowopt.renderers.ground_truth import evaluate_buffers
 
     found, skipped = corpus_scenes([scene])
@@ -335,7 +339,7 @@ def test_engine_modes_leave_no_receiver_outside_that_ideal_serves(scene, sun, me
                         "lights": [{"type": "directional", "direction": [float(v) for v in d]}],
                         "shadow": {"resolution": [1024, 1024], "cascades": 4, "splits": "practical", "lambda": 0.5}})
     r = resolve_rig(rig, entry.loaded)
-    maps = maps_from_solution(solve(entry, rig, method=method))[0]
+    maps = maps_from_solution(solve(entry, rig, SolveRequest(method=method)))[0]
     assert all(m.blend_band is not None for m in maps[:-1])
     ideal = evaluate_buffers(entry.rays, r.camera, r.lights[0], maps, depth="ideal")
     for depth in ("solution", "hardware"):

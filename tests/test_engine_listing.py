@@ -241,14 +241,16 @@ _LOCAL: dict = {}
 
 def _solve_local(entry, rig: dict, conventions, point_light_maps: str) -> dict:
     """solve_for_listing's result with shadow.point_light_maps set (solve_for_listing sets `shadow` itself)."""
-    from shadowopt.service.solve import maps_from_solution, solve
+    from shadowopt.service.request import SolveRequest
+    from shadowopt.service.solution_json import maps_from_solution
+    from shadowopt.service.solve import solve
 
     shadow = {"resolution": [MAP, MAP], "cascades": 1, "point_light_maps": point_light_maps}
     sols = {}
     for conv in dict.fromkeys(["opengl", *conventions]):
         api, rz = E.CONVENTIONS[conv]
         sols[conv] = solve(entry, validate_rig(dict(rig, shadow=shadow, output={
-            "convention": api, "layout": "column_major", "reversed_z": rz})), "optimized")
+            "convention": api, "layout": "column_major", "reversed_z": rz})), SolveRequest("optimized"))
     return {"solutions": sols, "maps": maps_from_solution(sols["opengl"])[0],
             "rig": validate_rig(dict(rig, shadow=shadow))}
 

@@ -178,16 +178,19 @@ def _rig(output: dict, cascades: int = 2, lights: list | None = None) -> dict:
 
 @pytest.fixture(scope="module")
 def world_solution(demo):
+    from shadowopt.service.request import SolveRequest
     from shadowopt.service.solve import solve
 
-    return solve(demo, _rig({}), "focused")
+    return solve(demo, _rig({}), SolveRequest("focused"))
 
 
 @pytest.mark.parametrize("engine", ENGINES)
 def test_every_preset_reads_back_exactly_and_states_its_convention(demo, world_solution, engine):
-    from shadowopt.service.solve import maps_from_solution, solve
+    from shadowopt.service.request import SolveRequest
+    from shadowopt.service.solution_json import maps_from_solution
+    from shadowopt.service.solve import solve
 
-    sol = json.loads(json.dumps(solve(demo, _rig({"engine": engine}), "focused")))  # through JSON, as served
+    sol = json.loads(json.dumps(solve(demo, _rig({"engine": engine}), SolveRequest("focused"))))  # through JSON, as served
     conv = sol["convention"]
     assert conv["engine"] == engine and conv["frame"] == "engine"
     assert (conv["handedness"], conv["up_axis"]) == {"unity": ("left", "+Y"), "unreal": ("left", "+Z")}.get(
@@ -233,9 +236,11 @@ def test_every_preset_reads_back_exactly_and_states_its_convention(demo, world_s
 def test_a_scene_point_through_a_real_solution(demo, engine):
     """A point on a texel's light ray of the demo's first cascade (a quarter of the way from its near plane,
     an orthographic map: D = 0.25), given in the engine's frame, through the returned texture matrix."""
-    from shadowopt.service.solve import maps_from_solution, solve
+    from shadowopt.service.request import SolveRequest
+    from shadowopt.service.solution_json import maps_from_solution
+    from shadowopt.service.solve import solve
 
-    sol = solve(demo, _rig({"engine": engine}, cascades=1), "focused")
+    sol = solve(demo, _rig({"engine": engine}, cascades=1), SolveRequest("focused"))
     smap = maps_from_solution(sol)[0][0]
     assert smap.warp_kind == "none" and abs(smap.projection[3, 2]) == 0.0  # orthographic
     s, t = 0.3125, 0.6875
@@ -430,11 +435,12 @@ def test_point_light_faces_keep_world_axis_names_under_a_preset(demo):
     """docs/engines.md: a point light's faces are named by shadowopt's world axes whatever the preset;
     under Unreal (Z up) the "+y" face looks along Unreal's +Z, "+z" along Unreal's +Y (TO_ENGINE of the
     world axis), each face's view read as FMatrix row vectors looking down +Z."""
+    from shadowopt.service.request import SolveRequest
     from shadowopt.service.solve import solve
 
     lights = [{"type": "point", "position": [0.5, 3.0, 0.5]}]
-    world = solve(demo, _rig({}, lights=lights), "focused")["lights"][0]["cascades"]
-    sol = solve(demo, _rig({"engine": "unreal"}, lights=lights), "focused")["lights"][0]["cascades"]
+    world = solve(demo, _rig({}, lights=lights), SolveRequest("focused"))["lights"][0]["cascades"]
+    sol = solve(demo, _rig({"engine": "unreal"}, lights=lights), SolveRequest("focused"))["lights"][0]["cascades"]
     faces = [c["face"] for c in world]  # the faces with receivers (the others are dropped), in the cube's order
     assert [c["face"] for c in sol] == faces and len(faces) >= 3
     assert faces == [f for f in ["+x", "-x", "+y", "-y", "+z", "-z"] if f in faces]
@@ -452,9 +458,11 @@ def test_log_warp_with_a_top_left_origin_applies_to_one_minus_v(demo):
     """docs/engines.md: a log-warped map (LogPSM, output.allow_log_warp) under a top-left preset (Bevy):
     t = 1 - v of the texture matrix, t' = c0 log(c1 t + c2) (warp.log), the texel at v = 1 - t', which is
     where the read-back map (its own log warp, bottom-left t) puts the point."""
-    from shadowopt.service.solve import maps_from_solution, solve
+    from shadowopt.service.request import SolveRequest
+    from shadowopt.service.solution_json import maps_from_solution
+    from shadowopt.service.solve import solve
 
-    sol = solve(demo, _rig({"engine": "bevy", "allow_log_warp": True}, cascades=1), "logpsm")
+    sol = solve(demo, _rig({"engine": "bevy", "allow_log_warp": True}, cascades=1), SolveRequest("logpsm"))
     c = sol["lights"][0]["cascades"][0]
     assert c["warp"]["kind"] == "log"
     lw = c["warp"]["log"]
@@ -472,10 +480,12 @@ def test_log_warp_with_a_top_left_origin_applies_to_one_minus_v(demo):
 def test_warp_n_is_in_the_preset_unit(demo):
     """docs/engines.md: warp.n is a length and is returned in the preset's unit (Unreal: centimetres) for a
     perspective-warped map (LiSPSM); the depth block's lengths likewise, read back in metres exactly."""
-    from shadowopt.service.solve import maps_from_solution, solve
+    from shadowopt.service.request import SolveRequest
+    from shadowopt.service.solution_json import maps_from_solution
+    from shadowopt.service.solve import solve
 
-    world = solve(demo, _rig({}, cascades=1), "lispsm")["lights"][0]["cascades"][0]
-    sol = solve(demo, _rig({"engine": "unreal"}, cascades=1), "lispsm")
+    world = solve(demo, _rig({}, cascades=1), SolveRequest("lispsm"))["lights"][0]["cascades"][0]
+    sol = solve(demo, _rig({"engine": "unreal"}, cascades=1), SolveRequest("lispsm"))
     c = sol["lights"][0]["cascades"][0]
     assert c["warp"]["kind"] == world["warp"]["kind"] == "perspective"
     assert c["warp"]["n"] == pytest.approx(100.0 * world["warp"]["n"], rel=1e-12)
@@ -492,10 +502,12 @@ def test_engine_frame_geometry_rasterized_by_opengl_matches_the_ray_cast_map(dem
     row vectors; Godot: right-handed, Vulkan clip."""
     from shadowopt.renderers.shadow_map_rays import render_map
     from shadowopt.service.rigs import resolve_rig
-    from shadowopt.service.solve import maps_from_solution, solve
+    from shadowopt.service.request import SolveRequest
+    from shadowopt.service.solution_json import maps_from_solution
+    from shadowopt.service.solve import solve
 
     rig = _rig({"engine": engine}, cascades=1)
-    sol = solve(demo, rig, "focused")
+    sol = solve(demo, rig, SolveRequest("focused"))
     c = sol["lights"][0]["cascades"][0]
     a_v, a_p = (np.asarray(c[k], float).reshape(4, 4) for k in ("view_matrix", "projection_matrix"))
     clip = (a_v @ a_p).T if engine == "unreal" else a_p.T @ a_v.T  # as column vectors: (v M)^T = M^T v^T

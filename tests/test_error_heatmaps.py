@@ -14,7 +14,9 @@ from shadowopt.service.compare import compare
 from shadowopt.service.evaluation import evaluate_solution
 from shadowopt.service.pipeline import scene_entry
 from shadowopt.service.rigs import FieldError, resolve_rig
-from shadowopt.service.solve import maps_from_solution, solve
+from shadowopt.service.request import SolveRequest
+from shadowopt.service.solution_json import maps_from_solution
+from shadowopt.service.solve import solve
 
 RIG = {"camera": {"usd_path": "/World/Camera", "resolution": [320, 180]}, "lights": [{"usd_path": "/World/Sun"}],
        "shadow": {"resolution": [64, 64], "cascades": 1}}
@@ -27,7 +29,7 @@ def case(repo):
 
     entry = scene_entry(repo / "configs" / "demo_scene.usda")
     rig = validate_rig(RIG)
-    sol = solve(entry, rig, method="lispsm")
+    sol = solve(entry, rig, SolveRequest(method="lispsm"))
     resolved = resolve_rig(rig, entry.loaded)
     # The independent truth: the ground truth's own masks for the solution's maps.
     # (evaluate's default depth test: each map's stated engine depth test, as evaluate_solution applies it)
@@ -115,7 +117,7 @@ def test_compare_with_a_screen_predicts_what_optimize_predicts(tmp_path, case):
     res = compare(entry, rig, ["lispsm", "optimized"], screen=(W // 2, H // 2), report_dir=tmp_path)
     assert res["screen"] == [W // 2, H // 2] and res["rig_resolution"] == [W, H]
     for name, r in res["methods"].items():
-        assert r["predicted_error"] == solve(entry, rig, method=name)["lights"][0]["predicted_error"], name
+        assert r["predicted_error"] == solve(entry, rig, SolveRequest(method=name))["lights"][0]["predicted_error"], name
         e = r["evaluation"]
         assert e["screen"] == [W // 2, H // 2] and e["wrongly_shadowed_pixels"] + e["wrongly_lit_pixels"] == e["misclassified_pixels"]
     table = (tmp_path / "compare.md").read_text()

@@ -9,7 +9,9 @@ import pytest
 from shadowopt.service.evaluation import evaluate_solution
 from shadowopt.service.point_faces import face_shares
 from shadowopt.service.solution_check import validate_solution
-from shadowopt.service.solve import maps_from_solution, solve
+from shadowopt.service.request import SolveRequest
+from shadowopt.service.solution_json import maps_from_solution
+from shadowopt.service.solve import solve
 from shadowopt.solvers.cameras import Camera
 from shadowopt.solvers.face_partition import FACES, assign_receivers, face_frusta, fit_face
 from shadowopt.solvers.light_frames import CUBE_FACES
@@ -49,7 +51,7 @@ def test_a_receiver_plane_seen_through_one_face_gets_exactly_one_map(scene):
     """Camera looking down at the ground under a point light 5 m up, 60 degree view from 3 m: every visible
     receiver's direction from the light is dominated by -y, so one map (the -y face), fitted to them."""
     r = rig((0.0, 5.0, 0.0), {"position": (0.0, 3.0, 0.0), "forward": (0.0, -1.0, 0.02), "near": 0.1, "far": 50})
-    sol = solve(scene, r, "focused")
+    sol = solve(scene, r, SolveRequest("focused"))
     light = sol["lights"][0]
     fp = light["face_partitioning"]
     assert [f["face"] for f in fp["faces"]] == ["-y"]
@@ -69,7 +71,7 @@ def test_face_partition_covers_every_receiver_ray_traced(scene, method):
     receiver pixel outside its map, and evaluate reads the per-face maps back from the solution."""
     r = rig((0.5, 2.0, 6.0), {"position": (0, 1.7, 0), "forward": (0, -0.15, 1.0), "near": 0.1, "far": 300},
             mode="face_partition")
-    sol = solve(scene, r, method)
+    sol = solve(scene, r, SolveRequest(method))
     light = sol["lights"][0]
     fp = light["face_partitioning"]
     assert fp["chosen"] == "face_partitioning" and len(fp["faces"]) >= 3
@@ -83,7 +85,7 @@ def test_face_partition_covers_every_receiver_ray_traced(scene, method):
 def test_the_cube_option_keeps_the_cube(scene):
     r = rig((0.5, 2.0, 6.0), {"position": (0, 1.7, 0), "forward": (0, -0.15, 1.0), "near": 0.1, "far": 300},
             mode="cube")
-    light = solve(scene, r, "focused")["lights"][0]
+    light = solve(scene, r, SolveRequest("focused"))["lights"][0]
     assert "face_partitioning" not in light
     assert all(c["resolution"] == [256, 256] for c in light["cascades"])
 

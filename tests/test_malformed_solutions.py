@@ -26,6 +26,7 @@ from shadowopt.service.evaluation import evaluate_solution
 from shadowopt.service.rigs import SolutionError
 from shadowopt.service.scenes import SCENES
 from shadowopt.service.solution_check import validate_solution
+from shadowopt.service.request import SolveRequest
 from shadowopt.service.solve import solve
 
 SCREEN = (64, 36)  # the property holds at any size; small keeps ~400 distinct evaluations fast
@@ -53,7 +54,7 @@ def solutions(entry):
     for name, method, rig in (("optimized", "optimized", _rig()),
                               ("logpsm2", "logpsm", {**_rig(cascades=2), "output": {**_rig()["output"],
                                                                                      "allow_log_warp": True}})):
-        sol = solve(entry, rig, method)
+        sol = solve(entry, rig, SolveRequest(method))
         out[name] = (rig, as_client_sees(sol))
     return out
 
@@ -186,7 +187,7 @@ def test_real_solutions_validate_unchanged(entry, solutions):
     for light in ({"type": "point", "position": [0.0, 12.0, 0.0]},
                   {"type": "spot", "position": [0.0, 12.0, 0.0], "direction": [0.2, -1.0, 0.1], "cone_deg": 50}):
         rig = Rig.model_validate({**TINY_RIG, "lights": [light]}).model_dump(by_alias=True)
-        sol = as_client_sees(solve(entry, rig, "focused"))
+        sol = as_client_sees(solve(entry, rig, SolveRequest("focused")))
         assert validate_solution(sol, light_kinds=[light["type"]])
         assert evaluate_solution(entry, rig, sol, screen=SCREEN)["receiver_pixels"] > 0
 
@@ -264,14 +265,14 @@ def test_malformed_previous_solutions(entry, solutions):
                 assert e.code == "invalid_previous"
                 assert_names_the_field(e, mutated, path, root="previous")
                 with pytest.raises(SolutionError) as again:  # solve refuses it the same way
-                    solve(entry, rig, "optimized", previous=mutated, time_budget_ms=50)
+                    solve(entry, rig, SolveRequest("optimized", previous=mutated, time_budget_ms=50))
                 assert again.value.field == e.field
                 refused += 1
                 continue
             accepted += 1
     assert refused >= 40, refused
     for ok in (replaced(sol, ("solver", "x", 0), None), replaced(sol, ("solver",), None), {"solver": sol["solver"]}):
-        assert solve(entry, rig, "optimized", previous=ok, time_budget_ms=50)["lights"][0]["cascades"]
+        assert solve(entry, rig, SolveRequest("optimized", previous=ok, time_budget_ms=50))["lights"][0]["cascades"]
     assert accepted >= 3
 
 
@@ -366,7 +367,7 @@ def test_two_light_solutions_and_previous(entry):
     two = Rig.model_validate({**TINY_RIG, "lights": [TINY_RIG["lights"][0],
                                                      {"type": "directional", "direction": [0.3, -1.0, 0.2]}]}
                              ).model_dump(by_alias=True)
-    sol = as_client_sees(solve(entry, two, "optimized", time_budget_ms=50))
+    sol = as_client_sees(solve(entry, two, SolveRequest("optimized", time_budget_ms=50)))
     assert evaluate_solution(entry, two, sol, screen=SCREEN)["lights"][1]["receiver_pixels"] > 0
     cases = [(replaced(sol, ("lights",), sol["lights"][:1]), "solution.lights", "has 1 lights but the rig has 2"),
              (replaced(sol, ("lights", 1, "type"), "spot"), "solution.lights.1.type", "rig's light is directional")]
@@ -379,7 +380,7 @@ def test_two_light_solutions_and_previous(entry):
                                (("solver", "lights", 1), "x", "previous.solver.lights.1"),
                                (("solver", "lights", 1, "x", 0), [math.nan, 1.0], "previous.solver.lights.1.x.0.0")):
         with pytest.raises(SolutionError) as e:
-            solve(entry, two, "optimized", previous=replaced(sol, path, value), time_budget_ms=50)
+            solve(entry, two, SolveRequest("optimized", previous=replaced(sol, path, value), time_budget_ms=50))
         assert e.value.code == "invalid_previous" and e.value.field == field, e.value
-    again = solve(entry, two, "optimized", previous=sol, time_budget_ms=50)
+    again = solve(entry, two, SolveRequest("optimized", previous=sol, time_budget_ms=50))
     assert len(again["lights"]) == 2

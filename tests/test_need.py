@@ -11,7 +11,9 @@ from shadowopt.service.evaluation import evaluate_solution
 from shadowopt.service.rigs import SolutionError, resolve_rig
 from shadowopt.service.scenes import SceneEntry
 from shadowopt.service.solution_check import validate_solution
-from shadowopt.service.solve import maps_from_solution, solve
+from shadowopt.service.request import SolveRequest
+from shadowopt.service.solution_json import maps_from_solution
+from shadowopt.service.solve import solve
 from shadowopt.solvers.cameras import Camera
 from testkit import box, plane, scene_entry_of
 
@@ -36,7 +38,7 @@ def rig(lights, camera=CAM, res=256, **shadow):
 
 def test_spot_light_facing_the_sky_gets_no_map_and_every_reader_accepts_it(scene):
     r = rig([SUN, UP_SPOT])
-    sol = solve(scene, r, "focused")
+    sol = solve(scene, r, SolveRequest("focused"))
     sun, spot = sol["lights"]
     assert sun["shadow"] == "map" and len(sun["cascades"]) == 1 and sun["need"]["receiver_pixels"] > 0
     assert spot["shadow"] == "none" and spot["cascades"] == []
@@ -53,7 +55,7 @@ def test_spot_light_facing_the_sky_gets_no_map_and_every_reader_accepts_it(scene
 
 
 def test_checker_refuses_maps_under_shadow_none_and_an_empty_list_without_it(scene):
-    sol = solve(scene, rig([SUN, UP_SPOT]), "focused")
+    sol = solve(scene, rig([SUN, UP_SPOT]), SolveRequest("focused"))
     bad = {**sol, "lights": [sol["lights"][0], {**sol["lights"][1], "cascades": sol["lights"][0]["cascades"]}]}
     with pytest.raises(SolutionError, match=r"lights\.1\.cascades"):
         validate_solution(bad)
@@ -68,7 +70,7 @@ def test_checker_refuses_maps_under_shadow_none_and_an_empty_list_without_it(sce
 def test_a_light_without_a_map_casts_no_shadow_in_the_evaluator(scene):
     """Strip the sun's map: the evaluator counts exactly the receivers the sun truly shadows (ray traced)."""
     r = rig([SUN])
-    sol = solve(scene, r, "focused")
+    sol = solve(scene, r, SolveRequest("focused"))
     stripped = {**sol, "lights": [{**sol["lights"][0], "shadow": "none", "cascades": []}]}
     ev = evaluate_solution(scene, r, stripped, depth="ideal")
     resolved = resolve_rig(r, scene.loaded)
@@ -84,7 +86,7 @@ def test_spot_receivers_are_the_coarse_pixels_inside_its_cone():
     entry = entry_from([plane(100)])
     spot = {"type": "spot", "position": (0, 4, 10), "direction": (0, -1, 0), "cone_deg": 30}
     r = rig([spot])
-    sol = solve(entry, r, "focused")
+    sol = solve(entry, r, SolveRequest("focused"))
     need = sol["lights"][0]["need"]
     cam = resolve_rig(r, entry.loaded).camera
     w, h = 120, 68  # coarse_long_side 120 at 320x180
@@ -109,7 +111,7 @@ def test_cascades_in_a_depth_gap_are_dropped():
     entry = entry_from([plane(3.0), box([-20, 0, 95], [20, 15, 100])])
     cam = {"position": (0, 2.0, -4.0), "forward": (0, -0.3, 1.0), "near": 0.1, "far": 300}
     r = rig([SUN], camera=cam, cascades=4, splits="practical")
-    sol = solve(entry, r, "focused")
+    sol = solve(entry, r, SolveRequest("focused"))
     light = sol["lights"][0]
     f = np.array(cam["forward"]) / np.linalg.norm(cam["forward"])
     corners = np.array([[x, 0, z] for x in (-3, 3) for z in (-3, 3)])
@@ -130,13 +132,13 @@ def test_cascades_in_a_depth_gap_are_dropped():
 
 
 def _p95(entry, r):
-    return solve(entry, r, "focused")["lights"][0]["predicted_error"]["p95_m"]
+    return solve(entry, r, SolveRequest("focused"))["lights"][0]["predicted_error"]["p95_m"]
 
 
 def test_p95_scales_as_texels_to_the_minus_half_and_the_budget_estimate_meets_the_target(scene):
     """The exponent auto's budget estimate uses (P95_TEXEL_EXPONENT = -1/2), measured: 4x the texels halves
     p95_m; and solving at the estimated budget meets the target it was asked for."""
-    from shadowopt.service.solve import P95_TEXEL_EXPONENT
+    from shadowopt.service.map_sizing import P95_TEXEL_EXPONENT
 
     a = _p95(scene, rig([SUN], res=512, fixed_resolution=True))
     b = _p95(scene, rig([SUN], res=1024, fixed_resolution=True))
@@ -144,7 +146,7 @@ def test_p95_scales_as_texels_to_the_minus_half_and_the_budget_estimate_meets_th
     r = rig([SUN], cascades="auto", max_cascades=2, target_p95_m=a / 3, fixed_resolution=True)
     r["shadow"].pop("resolution")
     r["shadow"]["texel_budget"] = 512 * 512
-    auto = solve(scene, r, "focused")["lights"][0]["auto_cascades"]
+    auto = solve(scene, r, SolveRequest("focused"))["lights"][0]["auto_cascades"]
     assert auto["rule"].startswith("no k met") and "texels^-0.5" in auto["budget_estimate"]
     best = min(auto["tried"], key=lambda t: t["p95_m"])
     r2 = rig([SUN], cascades=best["cascades"], fixed_resolution=True)
@@ -157,10 +159,10 @@ def test_auto_takes_the_fewest_cascades_within_the_tolerance(scene):
     """Each k's scores in `tried` are those of the same solve with cascades = k; the chosen k is the fewest whose
     objective x texels is within 5% of the least."""
     r = rig([SUN], cascades="auto", max_cascades=3)
-    light = solve(scene, r, "focused")["lights"][0]
+    light = solve(scene, r, SolveRequest("focused"))["lights"][0]
     auto = light["auto_cascades"]
     for t in auto["tried"]:
-        fixed = solve(scene, rig([SUN], cascades=t["cascades"]), "focused")["lights"][0]["predicted_error"]
+        fixed = solve(scene, rig([SUN], cascades=t["cascades"]), SolveRequest("focused"))["lights"][0]["predicted_error"]
         assert t["objective"] == pytest.approx(fixed["objective"])
     score = {t["cascades"]: t["objective"] * t["texels"] for t in auto["tried"]}
     assert auto["chosen"] == min(k for k, v in score.items() if v <= min(score.values()) * 1.05)
@@ -170,9 +172,9 @@ def test_auto_takes_the_fewest_cascades_within_the_tolerance(scene):
 def test_a_met_target_returns_a_smaller_resolution_unless_fixed(scene):
     p95 = _p95(scene, rig([SUN], res=2048, fixed_resolution=True))
     target = 2.5 * p95  # met at 2048: about 2048 / 2.5 per side would do
-    fixed = solve(scene, rig([SUN], res=2048, target_p95_m=target, fixed_resolution=True), "focused")["lights"][0]
+    fixed = solve(scene, rig([SUN], res=2048, target_p95_m=target, fixed_resolution=True), SolveRequest("focused"))["lights"][0]
     assert fixed["cascades"][0]["resolution"] == [2048, 2048] and not fixed.get("notes")
-    light = solve(scene, rig([SUN], res=2048, target_p95_m=target), "focused")["lights"][0]
+    light = solve(scene, rig([SUN], res=2048, target_p95_m=target), SolveRequest("focused"))["lights"][0]
     w, h = light["cascades"][0]["resolution"]
     assert w % 64 == 0 and h % 64 == 0 and w * h < 2048 * 2048 / 4
     assert light["predicted_error"]["p95_m"] <= target
@@ -193,7 +195,7 @@ def test_one_rig_budget_is_split_by_need_and_beats_equal_shares(scene):
         r = rig(lights, fixed_resolution=True, budget_scope=scope)
         r["shadow"].pop("resolution")
         r["shadow"]["texel_budget"] = budget
-        return solve(scene, r, "focused")
+        return solve(scene, r, SolveRequest("focused"))
 
     sol = run("rig", B)
     split = sol["texel_budget_split"]
@@ -214,7 +216,7 @@ def test_one_rig_budget_is_split_by_need_and_beats_equal_shares(scene):
 def test_a_budget_estimate_beyond_reach_is_none_not_an_overflow():
     """texels_for_p95: (p95 / target)^2 x texels, None when that is not a finite count below 2^53 (a target of
     5e-324 m once made optimize answer 500 OverflowError)."""
-    from shadowopt.service.solve import MAX_TEXEL_ESTIMATE, texels_for_p95
+    from shadowopt.service.map_sizing import MAX_TEXEL_ESTIMATE, texels_for_p95
 
     assert texels_for_p95(4.0, 1024 * 1024, 2.0) == 4 * 1024 * 1024
     assert texels_for_p95(100.0, 1024 * 1024, 5e-324) is None

@@ -11,7 +11,9 @@ import pytest
 from shadowopt.renderers.shadow_map_rays import render_map
 from shadowopt.service.pipeline import scene_entry
 from shadowopt.service.rigs import resolve_rig
-from shadowopt.service.solve import maps_from_solution, solve
+from shadowopt.service.request import SolveRequest
+from shadowopt.service.solution_json import maps_from_solution
+from shadowopt.service.solve import solve
 from shadowopt.solvers.conventions import from_layout
 
 from testkit import gl_depth
@@ -28,7 +30,7 @@ def test_gl_rasterized_depths_match_the_ray_cast_map(tmp_path, convention, rever
     rig["output"] = {"convention": convention, "layout": "column_major", "reversed_z": reversed_z}
     rig = validate_rig(rig)
     entry = scene_entry(REPO / "configs" / "demo_scene.usda")
-    sol = solve(entry, rig, "focused")
+    sol = solve(entry, rig, SolveRequest("focused"))
     cascade = sol["lights"][0]["cascades"][0]
     res = (256, 256)
     # The engine's matrices, as returned: projection (this convention) · view, column-major.

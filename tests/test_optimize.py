@@ -189,18 +189,19 @@ def test_temporal_stability_keeps_the_previous_setup_unless_clearly_better():
     spec.loader.exec_module(tb)
     entry = tb.scene()
     light = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}
+    from shadowopt.service.request import SolveRequest
     from shadowopt.service.solve import solve
 
-    first = tb.solve(entry, tb.rig(tb.CAM, light), "optimized")
+    first = tb.solve(entry, tb.rig(tb.CAM, light), SolveRequest("optimized"))
     # The camera moves a little: the refit previous setup is kept (no jump) ...
     moved = {**tb.CAM, "position": (0.05, 1.7, 0.05)}
-    again = solve(entry, tb.rig(moved, light), "optimized", previous=first)
+    again = solve(entry, tb.rig(moved, light), SolveRequest("optimized", previous=first))
     t = again["solver"]["cascades"][0].get("temporal")
     if first["solver"]["x"][0]:
         assert t is not None and t["kept_previous"] == (t["median_h_new"] >= 0.8 * t["median_h_previous_refit"])
     # ... and a previous setup that is far off (no warp at all) is replaced by a clearly better one.
     bad = {"solver": {"x": [[0.0, 0.0]]}}
-    fresh = solve(entry, tb.rig(tb.CAM, {"type": "directional", "direction": (0.0, -1.0, 0.0)}), "optimized", previous=bad)
+    fresh = solve(entry, tb.rig(tb.CAM, {"type": "directional", "direction": (0.0, -1.0, 0.0)}), SolveRequest("optimized", previous=bad))
     tt = fresh["solver"]["cascades"][0]["temporal"]
     assert tt["median_h_new"] < 0.8 * tt["median_h_previous_refit"] and not tt["kept_previous"]
 
@@ -214,6 +215,7 @@ def test_optimized_is_never_worse_than_any_baseline_on_random_suns():
     from shadowopt.api.cli import validate_rig
     from shadowopt.service.bench.definitions import hemisphere_directions
     from shadowopt.service.pipeline import scene_entry
+    from shadowopt.service.request import SolveRequest
     from shadowopt.service.solve import solve
 
     repo = Path(__file__).resolve().parents[1]
@@ -222,9 +224,9 @@ def test_optimized_is_never_worse_than_any_baseline_on_random_suns():
         rig = validate_rig({"camera": {"usd_path": "/World/Camera", "resolution": [640, 360]},
                             "lights": [{"type": "directional", "direction": d.tolist()}],
                             "shadow": {"resolution": [512, 512], "cascades": 2}})
-        best = min(solve(entry, rig, m)["lights"][0]["predicted_error"]["objective"]
+        best = min(solve(entry, rig, SolveRequest(m))["lights"][0]["predicted_error"]["objective"]
                    for m in ("uniform", "focused", "lispsm"))
-        opt = solve(entry, rig, "optimized")
+        opt = solve(entry, rig, SolveRequest("optimized"))
         assert opt["lights"][0]["predicted_error"]["objective"] <= best * (1 + 1e-9)
         bands = [c["blend_band"] for c in opt["lights"][0]["cascades"]]
         assert bands[-1] is None and bands[0][1] == opt["lights"][0]["cascades"][0]["split"][1]
@@ -300,7 +302,7 @@ def demo_problem():
     from shadowopt.api.cli import validate_rig
     from shadowopt.service.pipeline import coarse_pass
     from shadowopt.service.scenes import SceneCache
-    from shadowopt.service.solve import light_problems
+    from shadowopt.service.receivers import light_problems
 
     entry = SceneCache().get(Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda")
     rig = validate_rig({"camera": {"usd_path": "/World/Camera", "resolution": [640, 360]},

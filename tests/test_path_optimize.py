@@ -30,7 +30,9 @@ def strafe():
     from shadowopt.api.cli import validate_rig
     from shadowopt.service.pipeline import scene_entry
     from shadowopt.service.rigs import resolve_rig
-    from shadowopt.service.solve import maps_from_solution, solve
+    from shadowopt.service.request import SolveRequest
+    from shadowopt.service.solution_json import maps_from_solution
+    from shadowopt.service.solve import solve
 
     entry = scene_entry(Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda")
     rigs = [_rig(validate_rig, p, f) for p, f in STRAFE]
@@ -38,7 +40,7 @@ def strafe():
     for method in ("optimized", "path"):
         sols, prev = [], None
         for rig in rigs:
-            prev = solve(entry, rig, method, previous=prev if method == "path" else None)
+            prev = solve(entry, rig, SolveRequest(method, previous=prev if method == "path" else None))
             sols.append(prev)
         out[method] = sols
         out[method + "_maps"] = [maps_from_solution(s)[0] for s in sols]
@@ -169,6 +171,7 @@ def test_auto_cascade_count_is_held_unless_clearly_better():
 def test_a_malformed_previous_path_state_starts_fresh(strafe):
     """A previous solution is a client's JSON: a path state that cannot hold the receivers (zero or overflowing
     rows, a resolution beyond the rig's) is refit from scratch, giving the first frame's maps."""
+    from shadowopt.service.request import SolveRequest
     from shadowopt.service.solve import solve
 
     first = strafe["path"][0]
@@ -177,7 +180,7 @@ def test_a_malformed_previous_path_state_starts_fresh(strafe):
     for bad, fresh in (({"view": [[0] * 4] * 4, "canonical": [[0] * 4] * 3, "resolution": [MAP, MAP], "levels": [3, 4]}, True),
                        ({**good, "canonical": [[1e308] * 4] * 3}, True), ({"view": "x"}, True),
                        ({**good, "resolution": [10 ** 8, 1]}, False)):  # a sound grid: kept, at the rig's resolution
-        got = solve(strafe["entry"], strafe["rigs"][0], "path", previous={"solver": {"x": [None], "path": {"cascades": [bad]}}})
+        got = solve(strafe["entry"], strafe["rigs"][0], SolveRequest("path", previous={"solver": {"x": [None], "path": {"cascades": [bad]}}}))
         c = got["solver"]["path"]["cascades"][0]
         assert (c["decision"]["kept"] == "fresh") == fresh and c["resolution"] == [MAP, MAP], c["decision"]
         # (the state's x, when kept, only warm-starts the per-frame search: the same optimum to its tolerance)
@@ -188,12 +191,14 @@ def test_a_moving_sun_gets_a_new_grid(strafe):
     """A held grid projects along the light it was made for: when the sun moves, the next frame's maps look along
     the new direction (view -Z) and the grid is refit from scratch."""
     from shadowopt.api.cli import validate_rig
-    from shadowopt.service.solve import maps_from_solution, solve
+    from shadowopt.service.request import SolveRequest
+    from shadowopt.service.solution_json import maps_from_solution
+    from shadowopt.service.solve import solve
 
     first = strafe["path"][0]
     d = np.array([-0.45, -0.8, 0.4])
     rig = validate_rig({**strafe["rigs"][0], "lights": [{"type": "directional", "direction": d.tolist()}]})
-    got = solve(strafe["entry"], rig, "path", previous=first)
+    got = solve(strafe["entry"], rig, SolveRequest("path", previous=first))
     assert got["solver"]["path"]["cascades"][0]["decision"]["kept"] == "fresh"
     view = maps_from_solution(got)[0][0].view
     assert np.allclose(-view[2, :3], d / np.linalg.norm(d), atol=1e-9)
@@ -204,7 +209,8 @@ def test_whole_path_segments_hold_everything_but_whole_texel_moves(strafe):
     moves by whole texels from frame to frame (checked on the returned matrices), its stored depth and the
     bias do not change, so the ray-traced flicker of the whole-path maps is exactly 0 inside segments and,
     over the path, at most 0.3x the per-frame optimizer's at an objective within the pass's tolerance."""
-    from shadowopt.service.solve import maps_from_solution, solve_path
+    from shadowopt.service.solution_json import maps_from_solution
+    from shadowopt.service.solve import solve_path
     from shadowopt.solvers.path_optimize import SEGMENT_TOLERANCE
 
     sols = solve_path(strafe["entry"], strafe["rigs"])
@@ -245,7 +251,8 @@ def test_whole_path_segments_hold_everything_but_whole_texel_moves(strafe):
 def test_whole_path_keyframes_report_what_interpolation_adds(strafe):
     """solve_path(keyframes_every=K): keyframes at 0, K, ... and the last frame; each skipped frame reports the
     objective of the rule's interpolated maps there, recomputed here from the keyframes' returned matrices."""
-    from shadowopt.service.solve import frame_problems, maps_from_solution, solve_path
+    from shadowopt.service.solution_json import maps_from_solution
+    from shadowopt.service.solve import frame_problems, solve_path
     from shadowopt.solvers.metric import predicted_objective
     from shadowopt.solvers.path_optimize import interpolated_maps
 

@@ -267,14 +267,15 @@ def test_rest_post_paths_streams_frames_in_order_and_the_client_yields_them(anim
     # the stage at its default time (the box at its first sample).
     from shadowopt.api.schemas import validate_rig
     from shadowopt.service.scenes import SCENES
+    from shadowopt.service.request import SolveRequest
     from shadowopt.service.solve import solve
 
     frame = expand_path({"rig": CAM_RIG, "usd_camera": "/World/Cam", "time": {"start": 10, "end": 10}},
                         scene_path=animated)[0]
     assert frame["scene_time"] == 10
     rig = validate_rig(frame["rig"])
-    at_10 = solve(SCENES.get(animated, time_code=10.0), rig, method="focused")["lights"][0]["cascades"][0]
-    at_default = solve(SCENES.get(animated), rig, method="focused")["lights"][0]["cascades"][0]
+    at_10 = solve(SCENES.get(animated, time_code=10.0), rig, SolveRequest(method="focused"))["lights"][0]["cascades"][0]
+    at_default = solve(SCENES.get(animated), rig, SolveRequest(method="focused"))["lights"][0]["cascades"][0]
     served = lines[2]["lights"][0]["cascades"][0]
     assert lines[2]["scene_time"] == 10
     assert served["projection_matrix"] == pytest.approx(at_10["projection_matrix"], abs=1e-9)
@@ -434,6 +435,7 @@ def test_a_path_in_tasks_of_several_frames_on_two_workers_has_each_frames_maps_b
     from shadowopt.service.job_kinds import chunk_size
     from shadowopt.service.local_jobs import run_path
     from shadowopt.service.scenes import SCENES
+    from shadowopt.service.request import SolveRequest
     from shadowopt.service.solve import solve
 
     frames = _walk_frames(24)
@@ -444,7 +446,7 @@ def test_a_path_in_tasks_of_several_frames_on_two_workers_has_each_frames_maps_b
     assert [l["frame"] for l in lines] == list(range(24))
     entry = SCENES.get(str(DEMO))
     for line, f in zip(lines, frames):
-        alone = json.loads(json.dumps(solve(entry, f["rig"], method="focused")["lights"]))
+        alone = json.loads(json.dumps(solve(entry, f["rig"], SolveRequest(method="focused"))["lights"]))
         assert line["lights"] == alone, f"frame {f['frame']}"
 
 
@@ -455,6 +457,7 @@ def test_a_coherent_path_on_two_workers_is_two_coherent_chunks_each_starting_fre
     from shadowopt.service.job_workers import previous_of
     from shadowopt.service.local_jobs import run_path
     from shadowopt.service.scenes import SCENES
+    from shadowopt.service.request import SolveRequest
     from shadowopt.service.solve import solve
 
     frames = _walk_frames(40)
@@ -470,8 +473,8 @@ def test_a_coherent_path_on_two_workers_is_two_coherent_chunks_each_starting_fre
     entry = SCENES.get(str(DEMO))
     prev = None
     for line, f in zip(lines, frames):
-        sol = json.loads(json.dumps(solve(entry, f["rig"], method="optimized",
-                                          previous=None if f["frame"] in (0, 20) else prev)))
+        sol = json.loads(json.dumps(solve(entry, f["rig"], SolveRequest(method="optimized",
+                                          previous=None if f["frame"] in (0, 20) else prev))))
         assert line["lights"] == sol["lights"], f"frame {f['frame']}"
         prev = previous_of(sol)
 

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from testkit import box, plane, scene_entry_of
 
+from shadowopt.service.request import SolveRequest
 from shadowopt.service.solve import solve
 
 LIGHT = {"type": "directional", "direction": (-0.3, -0.8, 0.5)}
@@ -32,13 +33,13 @@ def rig():
 
 
 def with_previous(entry, x_prev):
-    sol = solve(entry, rig(), "optimized", previous={"solver": {"x": [list(x_prev)]}})
+    sol = solve(entry, rig(), SolveRequest("optimized", previous={"solver": {"x": [list(x_prev)]}}))
     t = sol["solver"]["cascades"][0]["temporal"]
     return sol, t["median_h_new"] / t["median_h_previous_refit"], t["kept_previous"]
 
 
 def test_a_new_median_between_0_8_and_1_times_the_previous_keeps_the_previous_map(entry):
-    fresh = solve(entry, rig(), "optimized")
+    fresh = solve(entry, rig(), SolveRequest("optimized"))
     x_fresh = np.asarray(fresh["solver"]["x"][0], dtype=np.float64)
     assert fresh["solver"]["cascades"][0]["chosen"] == "optimized" and np.any(x_fresh != 0)
 

@@ -20,6 +20,7 @@ from testkit import plane
 from shadowopt.renderers.ray_scene import build_ray_scene
 from shadowopt.renderers.scene_data import LoadedScene, SceneGeometry
 from shadowopt.service.scenes import SceneEntry
+from shadowopt.service.request import SolveRequest
 from shadowopt.service.solve import solve
 from shadowopt.solvers.fitting import PAD_TEXELS
 from shadowopt.solvers.frames import stage_to_world
@@ -61,7 +62,7 @@ def test_predicted_m_is_the_texel_footprint_in_full_resolution_pixels(ground, sc
         "uniform": math.hypot(2 * HALF, 2 * HALF) / (res - 2 * PAD_TEXELS),
     }
     for method, texel_diagonal in cases.items():
-        pe = solve(ground, overhead_rig(screen, res, coarse), method)["lights"][0]["predicted_error"]
+        pe = solve(ground, overhead_rig(screen, res, coarse), SolveRequest(method))["lights"][0]["predicted_error"]
         m_true = texel_diagonal / pixel
         assert pe["samples"] > 0
         for key in ("mean_m", "median_m", "max_m"):

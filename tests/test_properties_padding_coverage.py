@@ -1,7 +1,7 @@
 """More fit padding never loses coverage.
 
 Each fitted map keeps PAD_TEXELS texels free on each side of its receivers (solvers.fitting.texel_margin; the
-optimizer's solvers.optimize._padded_box). Coverage must come from the exact receivers (service.solve.receiver_points:
+optimizer's solvers.optimize._padded_box). Coverage must come from the exact receivers (service.receivers.receiver_points:
 coarse hits, the edge pass and their tangent-plane reach), not from the pad being tiny: with any pad, from none
 to a wide one, every receiver pixel of the full-resolution screen lies inside a map. Independent truth: the
 ground-truth evaluation's exact ray-traced receivers (evaluate_solution's outside_pixels: receiver pixels outside
@@ -13,6 +13,7 @@ import pytest
 from testkit import box, plane, scene_entry_of
 
 from shadowopt.service.evaluation import evaluate_solution
+from shadowopt.service.request import SolveRequest
 from shadowopt.service.solve import solve
 from shadowopt.solvers import baselines, optimize, warp
 
@@ -43,7 +44,7 @@ def test_more_fit_padding_never_loses_coverage(entry, method, cascades, monkeypa
         monkeypatch.setattr(optimize, "PAD_TEXELS", pad)
         monkeypatch.setattr(warp, "PAD_TEXELS", pad)  # the log warp's padding (warp.padded_log)
         r = rig(cascades)
-        sol = solve(entry, r, method)
+        sol = solve(entry, r, SolveRequest(method))
         res = evaluate_solution(entry, r, sol, screen=(320, 180))
         assert res["outside_pixels"] == 0, (method, cascades, pad, res["outside_pixels"])
         if (method, cascades) == ("optimized", 1):

@@ -15,7 +15,10 @@ from shadowopt.renderers.ray_scene import build_ray_scene
 from shadowopt.renderers.scene_data import LoadedScene
 from shadowopt.service.rigs import resolve_rig
 from shadowopt.service.scenes import SceneEntry
-from shadowopt.service.solve import light_problems, maps_from_solution, solve
+from shadowopt.service.receivers import light_problems
+from shadowopt.service.request import SolveRequest
+from shadowopt.service.solution_json import maps_from_solution
+from shadowopt.service.solve import solve
 from shadowopt.solvers.baselines import baseline
 from shadowopt.solvers.fitting import min_area_rectangle, to_view
 from shadowopt.solvers.frames import stage_to_world
@@ -87,7 +90,7 @@ def test_slivers_thinner_than_a_coarse_pixel_are_covered():
     assert outside_mask(sb, old).sum() > 20
     for method in METHODS:
         for k in (1, 4):
-            maps = maps_from_solution(solve(entry, _rig(SLIVER_CAM, SUN, SCREEN, k), method=method))[0]
+            maps = maps_from_solution(solve(entry, _rig(SLIVER_CAM, SUN, SCREEN, k), SolveRequest(method=method)))[0]
             assert outside_mask(sb, maps).sum() == 0, (method, k)
 
 
@@ -120,7 +123,7 @@ def test_focused_fit_on_a_close_up_is_the_visible_receivers_area():
         r = resolve_rig(rig, entry.loaded)
         lo, hi = entry.loaded.geometry.bounds()
         assert np.any(r.camera.position < lo) or np.any(r.camera.position > hi)
-        smap = maps_from_solution(solve(entry, rig, method="focused"))[0][0]
+        smap = maps_from_solution(solve(entry, rig, SolveRequest(method="focused")))[0][0]
         sb = render_screen(entry.rays, r.camera, r.lights[0], shadow_rays=False)
         assert outside_mask(sb, [smap]).sum() == 0
         xy = to_view(smap.view, sb.position[sb.receivers])[:, :2]
@@ -133,7 +136,7 @@ def test_focused_fit_on_a_close_up_is_the_visible_receivers_area():
 def test_sliver_between_fine_rays_inside_every_map():
     """The street canyon at 1920x1080, sun 3 of the corpus benchmark's seed: a lit wall face one
     full-resolution pixel wide at 195 m, between a receding wall and a farther face, falls between the
-    edge pass's fine rays (6 per coarse pixel, 1.8 px apart). Before service.solve.cell_frusta LiSPSM
+    edge pass's fine rays (6 per coarse pixel, 1.8 px apart). Before service.receivers.cell_frusta LiSPSM
     left 13 of its pixels outside the map (LogPSM 16, 4 cascades 27); the cell's frustum over its fine
     hits' depth range contains it."""
     from shadowopt.service.bench.definitions import corpus_scenes, hemisphere_directions
@@ -150,5 +153,5 @@ def test_sliver_between_fine_rays_inside_every_map():
         if sb is None:
             r = resolve_rig(rig, entry.loaded)
             sb = render_screen(entry.rays, r.camera, r.lights[0], shadow_rays=False)
-        maps = maps_from_solution(solve(entry, rig, method=method))[0]
+        maps = maps_from_solution(solve(entry, rig, SolveRequest(method=method)))[0]
         assert outside_mask(sb, maps).sum() == 0, (cascades, method)

@@ -117,17 +117,18 @@ def test_demo_and_largest_accepted_rig_solve_in_seconds(demo_entry, monkeypatch)
     import json
     from pathlib import Path
 
+    from shadowopt.service.request import SolveRequest
     from shadowopt.service.solve import solve
 
     flushed = []
     real = request_cost.flush_if_large
     monkeypatch.setattr("shadowopt.service.solve.flush_if_large", lambda w: flushed.append(real(w)))
     demo = Rig.model_validate(json.loads((Path(DEMO).parent / "demo_rig.json").read_text())).model_dump(by_alias=True)
-    sol = solve(demo_entry, demo, method="optimized")
+    sol = solve(demo_entry, demo, SolveRequest(method="optimized"))
     assert sol["lights"][0]["predicted_error"]["p95_m"] > 0 and flushed == [False]  # small: nothing flushed
     rig = Rig.model_validate(largest_rig()).model_dump(by_alias=True)
     t0 = time.perf_counter()
-    sol = solve(demo_entry, rig, method="uniform")
+    sol = solve(demo_entry, rig, SolveRequest(method="uniform"))
     elapsed = time.perf_counter() - t0
     assert len(sol["lights"]) == 16 and all(len(l["cascades"]) == 4 for l in sol["lights"])
     assert flushed[-1] is True  # large: Dr.Jit's cached allocations returned
@@ -138,6 +139,7 @@ def test_time_budget_is_shared_by_all_lights_of_a_solve(demo_entry, monkeypatch)
     """Each light's search gets what is left of the solve's budget (it used to get the whole budget each:
     16 lights x 10 s)."""
     import shadowopt.service.solve as solve_mod
+    from shadowopt.service.request import SolveRequest
 
     calls, real = [], solve_mod.optimized_maps
 
@@ -150,12 +152,12 @@ def test_time_budget_is_shared_by_all_lights_of_a_solve(demo_entry, monkeypatch)
     t0 = time.perf_counter()
     # the budget counts the coarse pass and the receivers of all 16 lights too (a focused solve does
     # those and no search): leave 400 ms of search after them
-    solve_mod.solve(demo_entry, rig, method="focused")  # warm (kernels compiled), then timed
+    solve_mod.solve(demo_entry, rig, SolveRequest(method="focused"))  # warm (kernels compiled), then timed
     t0 = time.perf_counter()
-    solve_mod.solve(demo_entry, rig, method="focused")
+    solve_mod.solve(demo_entry, rig, SolveRequest(method="focused"))
     budget = 1.2 * (time.perf_counter() - t0) * 1e3 + 300.0
     t0 = time.perf_counter()
-    sol = solve_mod.solve(demo_entry, rig, method="optimized", time_budget_ms=budget)
+    sol = solve_mod.solve(demo_entry, rig, SolveRequest(method="optimized", time_budget_ms=budget))
     elapsed = time.perf_counter() - t0
     assert len(sol["lights"]) == 16 and len(calls) == 16
     for t, given in calls:  # never more than what is left of the whole budget

@@ -1,4 +1,4 @@
-"""The inspector's sun move (issue 13): receiver_points' camera-only part (service.solve.receiver_prep) is kept
+"""The inspector's sun move (issue 13): receiver_points' camera-only part (service.receivers.receiver_prep) is kept
 with the cached camera pass, and tangent_reach / FinePoints.edges compute per component and per hit. None of it
 may change a number: the receivers and the solutions must be those of the plain computation, bit for bit.
 
@@ -12,11 +12,13 @@ import pytest
 from shadowopt.api import schemas as S
 from shadowopt.api.routes_solve import rig_dict
 from shadowopt.renderers.coarse import DEPTH_CONTINUITY
-from shadowopt.service import coarse_cache, solve as solve_mod
+from shadowopt.service import coarse_cache
 from shadowopt.service.coarse_cache import CoarseCache, cached_coarse_pass
 from shadowopt.service.pipeline import coarse_pass
 from shadowopt.service.scenes import SceneCache
-from shadowopt.service.solve import light_problems, solve, tangent_reach
+from shadowopt.service.receivers import light_problems, tangent_reach
+from shadowopt.service.request import SolveRequest
+from shadowopt.service.solve import solve
 
 from testkit import sun
 
@@ -129,8 +131,8 @@ def test_fine_edges_are_the_grid_state_test(demo):
 
 def test_cached_receivers_equal_the_plain_ones_over_sun_moves(demo, monkeypatch):
     made = []
-    real = solve_mod.receiver_prep
-    monkeypatch.setattr(solve_mod, "receiver_prep", lambda *a: made.append(1) or real(*a))
+    real = coarse_cache.receiver_prep
+    monkeypatch.setattr(coarse_cache, "receiver_prep", lambda *a: made.append(1) or real(*a))
     for coarse in (180, 96):
         c = CoarseCache()
         lights = [{"type": "directional", "direction": sun(az, el)} for az, el in
@@ -160,7 +162,7 @@ def test_cached_solve_equals_the_plain_solve(demo, monkeypatch):
     monkeypatch.setattr(coarse_cache, "COARSE", CoarseCache())
     for az in (-120.0, 17.0, 150.0):
         rig = demo_rig({"type": "directional", "direction": sun(az, 40.0)})
-        cached = solve(demo, rig, "optimized", cache_tenant="a")  # no time budget: the search runs to its end
-        plain = solve(demo, rig, "optimized")
+        cached = solve(demo, rig, SolveRequest("optimized", cache_tenant="a"))  # no time budget: the search runs to its end
+        plain = solve(demo, rig, SolveRequest("optimized"))
         assert without_times(cached) == without_times(plain)
         assert cached["solver"]["converged"]

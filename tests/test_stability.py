@@ -101,7 +101,9 @@ def test_stable_csm_is_texel_snapped_and_covers_every_receiver_along_a_strafe(ca
     from shadowopt.service.bench.definitions import corpus_scenes
     from shadowopt.service.rigs import resolve_rig
     from shadowopt.service.scenes import SceneCache
-    from shadowopt.service.solve import maps_from_solution, solve
+    from shadowopt.service.request import SolveRequest
+    from shadowopt.service.solution_json import maps_from_solution
+    from shadowopt.service.solve import solve
 
     spec = path_corpus()["paths"]["strafe"]
     scenes, _ = corpus_scenes([spec["scene"]])
@@ -115,7 +117,7 @@ def test_stable_csm_is_texel_snapped_and_covers_every_receiver_along_a_strafe(ca
         r = resolve_rig(rig, entry.loaded)
         cams.append(r.camera)
         light = r.lights[0]
-        maps.append(maps_from_solution(solve(entry, rig, method="stable_csm"))[0])
+        maps.append(maps_from_solution(solve(entry, rig, SolveRequest(method="stable_csm")))[0])
     assert [len(m) for m in maps] == [cascades] * 3
     for mp in maps:
         for smap in mp:

@@ -67,6 +67,7 @@ def _corpus_rigs(validate_rig, found: dict, screen):
 def bench_budget(validate_rig, scenes=None, screen=(320, 180), map_side: int = 1024, write: bool = True,
                  log=None) -> dict:
     from ..evaluation import evaluate_solution
+    from ..request import SolveRequest
     from ..solve import solve
 
     found, skipped = corpus_scenes(scenes.split(",") if isinstance(scenes, str) else scenes)
@@ -80,7 +81,7 @@ def bench_budget(validate_rig, scenes=None, screen=(320, 180), map_side: int = 1
                                 "shadow": {"texel_budget": budget, "budget_scope": scope, "cascades": 1,
                                            "fixed_resolution": True}})
             t0 = time.perf_counter()
-            sol = solve(entry, rig, "focused")
+            sol = solve(entry, rig, SolveRequest("focused"))
             ms = (time.perf_counter() - t0) * 1e3
             ev = evaluate_solution(entry, rig, sol, depth="solution")
             per = ev["lights"] if "lights" in ev else [ev]
@@ -113,6 +114,7 @@ def point_faces_rows(validate_rig, found: dict, screen, map_side: int, log=None)
     """Part two (module doc): per corpus rig, a point light inside and one outside the view, cube vs face
     partitioning at equal total texels, measured misclassified pixels."""
     from ..evaluation import evaluate_solution
+    from ..request import SolveRequest
     from ..solve import solve
 
     rows = []
@@ -129,7 +131,7 @@ def point_faces_rows(validate_rig, found: dict, screen, map_side: int, log=None)
                                                "fixed_resolution": True, "point_light_maps": mode},
                                     "output": {"allow_log_warp": allow_log}})
                 t0 = time.perf_counter()
-                sol = solve(entry, rig, "lispsm")
+                sol = solve(entry, rig, SolveRequest("lispsm"))
                 ms = (time.perf_counter() - t0) * 1e3
                 light = sol["lights"][0]
                 if light["shadow"] == "none":

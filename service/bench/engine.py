@@ -114,14 +114,16 @@ def solve_for_listing(validate_rig, entry, rig: dict, cascades: int, map_res: in
     solutions and so in the maps evaluate reads; a callable value is called with the block (e.g. a scaled
     constant). `cascade_override`: a function called with each solution's list of cascades (to change e.g.
     their blend bands), before the maps are read back."""
-    from ..solve import maps_from_solution, solve
+    from ..request import SolveRequest
+    from ..solution_json import maps_from_solution
+    from ..solve import solve
 
     sols = {}
     for conv in dict.fromkeys(["opengl", *conventions]):
         api, rz = CONVENTIONS[conv]
         r = dict(rig, shadow={"resolution": [map_res, map_res], "cascades": cascades},
                  output={"convention": api, "layout": "column_major", "reversed_z": rz})
-        sols[conv] = solve(entry, validate_rig(r), "optimized")
+        sols[conv] = solve(entry, validate_rig(r), SolveRequest("optimized"))
         for c in sols[conv]["lights"][0]["cascades"]:
             for mode in ("hardware", "linear"):
                 blk = c["depth"][mode]

@@ -70,7 +70,9 @@ def run_path(validate_rig, entry, cameras: list[dict], sun, shadow: dict, method
     """One path, one configuration, one method: per frame solve + evaluate, per pair stability."""
     from ...renderers.stability import path_stability
     from ..rigs import resolve_rig
-    from ..solve import maps_from_solution, solve, solve_path
+    from ..request import SolveRequest
+    from ..solution_json import maps_from_solution
+    from ..solve import solve, solve_path
 
     name, chain = _solve_method(method)
     cams, maps, setup = [], [], []
@@ -81,7 +83,7 @@ def run_path(validate_rig, entry, cameras: list[dict], sun, shadow: dict, method
             for cam in cameras]
     whole = solve_path(entry, rigs) if method == "path" else None  # the whole path ahead (a path job)
     for i, rig in enumerate(rigs):
-        sol = whole[i] if whole is not None else solve(entry, rig, method=name, previous=prev if chain else None)
+        sol = whole[i] if whole is not None else solve(entry, rig, SolveRequest(method=name, previous=prev if chain else None))
         prev = sol
         r = resolve_rig(rig, entry.loaded)
         cams.append(r.camera)

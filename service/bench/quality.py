@@ -68,7 +68,9 @@ def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict
     `setup_ms_hd`. Skipped when renderers.coverage is absent."""
     from ...renderers.ground_truth import evaluate_buffers, render_screen
     from ..rigs import resolve_rig
-    from ..solve import maps_from_solution, solve
+    from ..request import SolveRequest
+    from ..solution_json import maps_from_solution
+    from ..solve import solve
 
     keys = RECORD_KEYS
     outside_pixels = coverage_outside_pixels() if hd and hd.get("lights") else None
@@ -90,7 +92,7 @@ def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict
                     resolved[key] = resolve_rig(rig, entry.loaded)
                 r = resolved[key]
                 t0 = time.perf_counter()
-                sol = solve(entry, rig, method=c["method"])
+                sol = solve(entry, rig, SolveRequest(method=c["method"]))
                 maps = maps_from_solution(sol)[0]
                 ideal = evaluate_buffers(entry.rays, r.camera, r.lights[0], maps)
                 gt = ideal.result
@@ -113,7 +115,7 @@ def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict
                         rh = resolve_rig(rig_hd, entry.loaded)
                         resolved_hd[key] = (rh, render_screen(entry.rays, rh.camera, rh.lights[0], shadow_rays=False))
                     rh, screen_hd = resolved_hd[key]
-                    sol_hd = solve(entry, rig_hd, method=c["method"])
+                    sol_hd = solve(entry, rig_hd, SolveRequest(method=c["method"]))
                     cov = outside_pixels(entry.rays, rh.camera, rh.lights[0], maps_from_solution(sol_hd)[0], screen=screen_hd)
                     rec["outside_hd"][part][name].append(int(cov["outside_pixels"]))
                     rec["receivers_hd"][part][name].append(int(cov["receiver_pixels"]))

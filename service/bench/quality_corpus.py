@@ -58,7 +58,7 @@ def _corpus_fingerprint(path: Path, camera: dict, screen, configs: dict, part_di
     code = sorted((ROOT / "solvers").glob("*.py")) + [
         ROOT / "renderers" / f for f in ("ground_truth.py", "coarse.py", "ray_scene.py", "mitsuba_setup.py", "coverage.py",
                                          "scene_data.py")] + [
-        ROOT / "service" / f for f in ("solve.py", "rigs.py", "pipeline.py")]
+        ROOT / "service" / f for f in ("solve.py", "receivers.py", "map_sizing.py", "solution_json.py", "rigs.py", "pipeline.py")]
     for f in code:
         if f.exists():
             h.update(f.read_bytes())

@@ -19,7 +19,7 @@ def bench_solvers(validate_rig, lights: int = 5, write: bool = True) -> dict:
 
     from ..pipeline import coarse_pass
     from ..scenes import SceneCache
-    from ..solve import light_problems
+    from ..receivers import light_problems
     from ...solvers.optimize import DEFAULT_METHOD, METHODS, minimize
     from ...solvers.optimized_maps import optimized_maps
 
@@ -92,7 +92,7 @@ def bench_solvers_corpus(validate_rig, lights: int = 3, scenes: str | None = Non
 
     from ..pipeline import coarse_pass
     from ..scenes import SceneCache
-    from ..solve import light_problems
+    from ..receivers import light_problems
     from ...solvers.optimize import DEFAULT_METHOD, METHODS, minimize
 
     spec = definitions()["quality_corpus"]

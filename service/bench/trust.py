@@ -16,7 +16,9 @@ def bench_trust(validate_rig, rigs: int | None = None, write: bool = True) -> di
     from ...renderers.ground_truth import evaluate_buffers
     from ..rigs import resolve_rig
     from ..scenes import SceneCache
-    from ..solve import maps_from_solution, solve
+    from ..request import SolveRequest
+    from ..solution_json import maps_from_solution
+    from ..solve import solve
 
     spec = definitions()["trust"]
     n = rigs or spec["rigs"]
@@ -32,7 +34,7 @@ def bench_trust(validate_rig, rigs: int | None = None, write: bool = True) -> di
                                 "shadow": {"resolution": [res, res], "cascades": 1}})
             resolved = resolve_rig(rig, entry.loaded)
             for m in spec["methods"]:
-                sol = solve(entry, rig, method=m)
+                sol = solve(entry, rig, SolveRequest(method=m))
                 gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps_from_solution(sol)[0]).result
                 pred.append(sol["lights"][0]["predicted_error"]["objective"])
                 meas.append(gt["misclassified_pixels"])
