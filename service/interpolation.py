@@ -30,6 +30,8 @@ def _merge_pose(base_cam, pose: dict) -> dict:
 
 
 def camera_path(path, base_cam) -> list[dict]:
+    """The cameras of a request's camera_path over the base rig's camera: its poses, or its keyframes
+    interpolated over `samples` frames."""
     if not isinstance(path, dict):
         raise BatchError("camera_path", "expected {\"poses\": [...]} or {\"keyframes\": [...], \"samples\": N}")
     if ("poses" in path) == ("keyframes" in path):
@@ -108,6 +110,7 @@ def _normalised(v, fallback) -> list[float]:
 
 
 def light_set(request: dict, base: dict) -> list[list[float]] | None:
+    """The request's light_directions or sun_arc directions (None: it gives neither)."""
     if "light_directions" in request and "sun_arc" in request:
         raise BatchError("sun_arc", "give either light_directions or a sun_arc, not both")
     if "light_directions" in request:
@@ -146,6 +149,7 @@ def sun_arc(arc) -> list[list[float]]:
 
 
 def light_slot(request: dict, base: dict) -> int:
+    """The rig light the directions replace: light_index (default 0), checked against rig.lights."""
     k = request.get("light_index", 0)
     n = len(base.get("lights") or [])
     if isinstance(k, bool) or not isinstance(k, int) or not 0 <= k <= max(n - 1, 0):

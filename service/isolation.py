@@ -26,10 +26,12 @@
 from __future__ import annotations
 
 import concurrent.futures
+import ctypes
 import math
 import multiprocessing
 import os
 import queue
+import resource
 import signal
 import sys
 import threading
@@ -91,8 +93,6 @@ class LoadLimits:
 
 def _set_pdeathsig() -> bool:
     try:
-        import ctypes
-
         libc = ctypes.CDLL(None, use_errno=True)
         PR_SET_PDEATHSIG = 1
         return libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
@@ -206,8 +206,6 @@ def _cap_threads() -> None:
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
     try:
-        import ctypes
-
         M_ARENA_MAX = -8
         ctypes.CDLL(None).mallopt(M_ARENA_MAX, 2)
     except (OSError, AttributeError):
@@ -215,8 +213,6 @@ def _cap_threads() -> None:
 
 
 def _limit_self(memory_bytes: int, timeout_s: float) -> None:
-    import resource
-
     resource.setrlimit(resource.RLIMIT_CORE, (0, 0))  # a crashing child leaves no core file behind
     resource.setrlimit(resource.RLIMIT_AS, (memory_bytes, memory_bytes))
     cpu = int(math.ceil(timeout_s * CHILD_THREADS)) + CPU_SLACK_S
@@ -251,7 +247,7 @@ def _near(memory_bytes: int) -> bool:
 
 def _run_job(conn, fn, args: tuple, kwargs: dict, memory_bytes: int, timeout_s: float) -> None:
     """In the child: limits, then fn(*args, **kwargs); one answer back, then the child exits."""
-    from ..renderers.scene_data import SceneError
+    from ..renderers.scene_data import SceneError  # lazy: numpy; a loader child imports this module before _cap_threads
 
     conn.send(("ready", 0))  # imports done: the load's time limit starts now (run_isolated)
     lock = threading.Lock()
@@ -286,6 +282,7 @@ def _child_main(conn, parent_pid: int, job: tuple) -> None:
 
 
 def _preload() -> None:
+    # lazy: the child's fixed cost, loaded here after _cap_threads (and never in the server at import)
     import numpy  # noqa: F401
     from pxr import Sdf, Tf, Usd, UsdGeom, UsdLux, Work  # noqa: F401
 
@@ -384,7 +381,7 @@ def run_isolated(fn, args: tuple = (), kwargs: dict | None = None, *, memory_byt
     memory_bytes, killed after timeout_s of wall clock from when it begins fn (its imports done). fn must be
     importable by name (the child imports its module) and return a picklable value. Raises SceneError memory_limit / load_timeout / corrupt
     (a crash), or fn's own SceneError with its code and message."""
-    from ..renderers.scene_data import SceneError
+    from ..renderers.scene_data import SceneError  # lazy: numpy; a loader child imports this module before _cap_threads
 
     job = (fn, args, kwargs or {}, memory_bytes, timeout_s)
     spare = SPARES.take()
@@ -469,7 +466,7 @@ def run_isolated(fn, args: tuple = (), kwargs: dict | None = None, *, memory_byt
 
 
 def _memory_error(memory_bytes: int, what: str):
-    from ..renderers.scene_data import SceneError
+    from ..renderers.scene_data import SceneError  # lazy: numpy; a loader child imports this module before _cap_threads
 
     return SceneError("memory_limit", f"loading {what} needs more than {memory_bytes / 2**30:.3g} GiB of memory "
                       f"(the load memory limit); refused")
@@ -478,7 +475,7 @@ def _memory_error(memory_bytes: int, what: str):
 def _crashed(exitcode, peak: int, memory_bytes: int, what: str):
     """A child that died without answering: a failed allocation (std::bad_alloc aborts; the kernel's OOM
     killer sends SIGKILL) when it had mapped most of its limit, else a crash on a damaged file."""
-    from ..renderers.scene_data import SceneError
+    from ..renderers.scene_data import SceneError  # lazy: numpy; a loader child imports this module before _cap_threads
 
     sig = -exitcode if isinstance(exitcode, int) and exitcode < 0 else None
     if sig == signal.SIGXCPU:
@@ -490,9 +487,9 @@ def _crashed(exitcode, peak: int, memory_bytes: int, what: str):
 
 
 def _load_in_child(path: str, options: dict, max_triangles: int | None):
-    from pxr import Work
+    from pxr import Work  # lazy: usd-core, in the loader child only
 
-    from ..renderers.usd_loader import load_scene
+    from ..renderers.usd_loader import load_scene  # lazy: usd-core, in the loader child only
 
     Work.SetConcurrencyLimit(max(1, min(CHILD_THREADS, os.cpu_count() or 1)))
     return load_scene(path, **options, max_triangles=max_triangles)  # its messages are redacted already
@@ -502,7 +499,7 @@ def load_isolated(path, *, time_code: float | None = None, asset_root: str | Non
                   limits: LoadLimits):
     """renderers.usd_loader.load_scene(path, ..., max_triangles=limits.max_triangles) in a spawned child
     with limits.memory_bytes of address space and limits.timeout_s of wall clock; the LoadedScene."""
-    from ..renderers.scene_data import SceneError
+    from ..renderers.scene_data import SceneError  # lazy: numpy; a loader child imports this module before _cap_threads
 
     path = os.fspath(path)
     options = {"time_code": time_code, "asset_root": asset_root, "sandbox": sandbox}

@@ -136,7 +136,7 @@ def _path_tasks(store: Store, batch_id: str, items: list, settings: dict, worker
 class JobKind:
     """A kind of job: `owns(settings)` says whether a stored job's settings are this kind's; `tasks(store,
     batch_id, items, settings, workers, pause, total)` gives its pending [(index, config), ...] as worker tasks,
-    a TaskQueue or a queue with its protocol (take, finished, done, retry). The rest is the runner's, the same
+    a TaskQueue or a queue with its protocol (take, finished, done). The rest is the runner's, the same
     for every kind (see the module doc)."""
 
     name: str

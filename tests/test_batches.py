@@ -226,6 +226,35 @@ def test_mcusd_camera_keeps_its_45_7_degree_fov_along_a_path():
         assert e["fov_y_deg"] == pytest.approx(45.7, abs=0.05) and e["near"] == pytest.approx(cam.near)
 
 
+# -- job kinds -------------------------------------------------------------------------------------
+
+def _task_indices(queue) -> list[list[int]]:
+    out = []
+    while (group := queue.take()) is not None:
+        out.append([i for i, _ in group])
+    return out
+
+
+def test_a_job_kind_is_found_from_its_stored_settings_and_splits_its_items():
+    """A batch's configurations go in chunks; a path's frames (coherent, whole_path or the server's "path") by
+    the path's rules: method path in runs cut at multiples of WHOLE_PATH_FRAMES, in index order."""
+    from shadowopt.service.job_kinds import KINDS, WHOLE_PATH_FRAMES, chunk_size, kind_of
+
+    assert kind_of({"method": "optimized", "shape": None}) is KINDS["batch"]
+    for settings in ({"coherent": True}, {"whole_path": True}, {"path": True, "coherent": False}):
+        assert kind_of(settings) is KINDS["path"]
+    n = 2 * WHOLE_PATH_FRAMES + 1
+    items = [(i, {"rig": {}}) for i in reversed(range(n))]
+    runs = _task_indices(KINDS["path"].tasks(None, "b", items, {"whole_path": True}, 2))
+    assert runs == [list(range(WHOLE_PATH_FRAMES)), list(range(WHOLE_PATH_FRAMES, 2 * WHOLE_PATH_FRAMES)), [n - 1]]
+    items = [(i, {"rig": {}}) for i in range(10)]
+    size = chunk_size(10, 1)
+    assert _task_indices(KINDS["batch"].tasks(None, "b", items, {}, 1)) == [
+        list(range(k, min(k + size, 10))) for k in range(0, 10, size)]
+    assert _task_indices(KINDS["path"].tasks(None, "b", items, {"path": True}, 1)) == \
+        _task_indices(KINDS["batch"].tasks(None, "b", items, {}, 1))
+
+
 # -- execution on a real spawn pool ----------------------------------------------------------------
 
 @pytest.fixture(scope="module")
