@@ -5,9 +5,14 @@ import argparse
 import json
 import os
 import sys
+from importlib.metadata import version
 from pathlib import Path
 
+from pydantic import ValidationError
+
+from .schemas import ConfigurationError, format_validation_error, validate_configurations
 from .schemas import validate_rig  # the rig validation (api.schemas); kept importable from here
+from .settings import SettingsError, load_settings
 
 EXIT_USAGE = 2
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda"
@@ -32,10 +37,6 @@ def _parse_wxh(text: str) -> list[int]:
 
 def load_rig(path: str | None, args=None) -> dict:
     """Read a rig JSON file, apply CLI overrides to rig.shadow, validate, return the validated dict."""
-    from pydantic import ValidationError
-
-    from .schemas import format_validation_error
-
     if path is None:
         raise CliError("--rig: a rig JSON file is required (see configs/demo_rig.json)")
     try:
@@ -81,6 +82,7 @@ def _scene_options(args) -> dict:
 
 
 def cmd_scene_info(args) -> int:
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.pipeline import scene_entry
 
     entry = scene_entry(args.scene, **_scene_options(args))
@@ -105,6 +107,7 @@ def cmd_scene_info(args) -> int:
 
 
 def cmd_coarse(args) -> int:
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.pipeline import coarse_pass, scene_entry
 
     rig = load_rig(args.rig, args)
@@ -127,6 +130,7 @@ def cmd_coarse(args) -> int:
 
 
 def cmd_bench(args) -> int:
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.bench import suite as benchmarks
 
     if args.bench == "coarse":
@@ -149,23 +153,28 @@ def cmd_bench(args) -> int:
         else:
             result = benchmarks.bench_quality(validate_rig, lights=args.lights, write=not args.no_write, parts=parts)
     elif args.bench == "batch":
+        # lazy: the server stack (an extra) loads only for the command that runs, not for --help
         from ..service.bench.batches import bench_batch
 
         result = bench_batch(validate_rig, configurations=args.lights or 20, write=not args.no_write)
     elif args.bench == "security":
+        # lazy: the server stack (an extra) loads only for the command that runs, not for --help
         from ..service.bench.security import bench_security
 
         result = bench_security(write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "load":
+        # lazy: the server stack (an extra) loads only for the command that runs, not for --help
         from ..service.bench.load import bench_load
 
         result = bench_load(seconds=args.seconds, write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "engine":  # docs/engine-integration.md's listings in Mesa OpenGL vs evaluate --depth
+        # lazy: the server stack (an extra) loads only for the command that runs, not for --help
         from ..service.bench.engine import bench_engine
 
         result = bench_engine(validate_rig, scenes=args.scenes.split(",") if args.scenes else None,
                               write=not args.no_write, screen=args.screen, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "path":  # temporal stability along configs/paths.json (renderers.stability)
+        # lazy: the server stack (an extra) loads only for the command that runs, not for --help
         from ..service.bench.path import bench_path
 
         result = bench_path(validate_rig, frames=args.frames, screen=args.screen or (320, 180), map_side=args.map,
@@ -173,16 +182,19 @@ def cmd_bench(args) -> int:
                             methods=args.methods.split(",") if args.methods else None,
                             write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "inspect":  # the browser inspector: slider to new shadows on screen (headless chromium)
+        # lazy: the server stack (an extra) loads only for the command that runs, not for --help
         from ..service.bench.inspect import bench_inspect
 
         result = bench_inspect(write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "throughput":  # path jobs' frames/s per method, local pool and Ray (service.bench.throughput)
+        # lazy: the server stack (an extra) loads only for the command that runs, not for --help
         from ..service.bench.throughput import bench_throughput
 
         result = bench_throughput(validate_rig, frames=args.frames or 1000, screen=args.screen or (320, 180),
                                   map_side=args.map, methods=args.methods.split(",") if args.methods else None,
                                   write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "budget":  # what a rig's lights need: rig budget split vs per-light (service.bench.budget)
+        # lazy: the server stack (an extra) loads only for the command that runs, not for --help
         from ..service.bench.budget import bench_budget
 
         result = bench_budget(validate_rig, scenes=args.scenes, screen=args.screen or (320, 180), map_side=args.map,
@@ -208,6 +220,7 @@ def _write_or_print(obj: dict, out: str | None, as_json: bool, summary: str) -> 
 
 
 def cmd_optimize(args) -> int:
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.pipeline import scene_entry
     from ..service.solve import solve
 
@@ -240,6 +253,7 @@ DEPTH_FLAG_HELP = ("the depth test emulated: solution (default: what an engine d
 
 
 def cmd_evaluate(args) -> int:
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.evaluation import evaluate_solution
     from ..service.pipeline import scene_entry
 
@@ -276,6 +290,7 @@ def _evaluation_summary(r: dict, prefix: str = "") -> str:
 
 
 def cmd_analyze(args) -> int:
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..solvers.analysis import analyze
 
     for name, v, lo, hi in (("--f-over-n", args.f_over_n, 1.0, 1e9), ("--theta-deg", args.theta_deg, 0.0, 90.0),
@@ -296,6 +311,7 @@ def cmd_analyze(args) -> int:
 
 
 def cmd_compare(args) -> int:
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.compare import compare, markdown_table
     from ..service.pipeline import scene_entry
 
@@ -320,6 +336,7 @@ def cmd_compare(args) -> int:
 
 def cmd_batch(args) -> int:
     """Precompute many configurations (explicit, or a camera path crossed with light directions)."""
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.batches import BatchError, expand_configurations, run_batch
     from ..service.solve import METHODS
 
@@ -331,8 +348,6 @@ def cmd_batch(args) -> int:
         configs = expand_configurations(request)
     except BatchError as e:
         raise CliError(f"--configs {args.configs}: {e.field}: {e.message}") from e
-    from .schemas import ConfigurationError, validate_configurations
-
     try:
         configs = validate_configurations(configs)
     except ConfigurationError as e:
@@ -344,7 +359,7 @@ def cmd_batch(args) -> int:
         raise CliError(f"--workers: must be at least 1, got {args.workers}")
     if args.backend == "ray":
         try:
-            import ray  # noqa: F401
+            import ray  # noqa: F401  # lazy: optional (the ray extra), checked only for --backend ray
         except ImportError:
             raise CliError("--backend ray: ray is not installed (pip install 'shadowopt[ray]')") from None
     s = run_batch(args.scene, configs, backend=args.backend, workers=args.workers, out_path=args.out,
@@ -364,9 +379,9 @@ def cmd_batch(args) -> int:
 
 def cmd_path(args) -> int:
     """Solve a camera path frame by frame (service.paths): poses/keyframes, or a USD camera at time codes."""
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.paths import PathError, expand_path_with_notes, line_json, run_path
     from ..service.solve import METHODS
-    from .schemas import ConfigurationError, validate_configurations
 
     raw = _read_json(args.rig, "--rig")
     if not isinstance(raw, dict):
@@ -443,6 +458,7 @@ def _parse_time(text: str) -> dict:
 
 def cmd_pack(args) -> int:
     """A local stage with its references, sublayers and payloads as one .usdz to upload."""
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.packing import pack_stage
 
     res = pack_stage(args.scene, args.out, allow_outside=args.allow_outside)
@@ -459,8 +475,7 @@ def cmd_pack(args) -> int:
 
 
 def cmd_serve(args) -> int:
-    from .server import check_host, serve
-    from .settings import SettingsError, load_settings
+    from .server import check_host, serve  # lazy: FastAPI, uvicorn and the server stack: only to serve
 
     try:
         settings = load_settings(args.config, host=args.host, port=args.port, data_dir=args.data_dir,
@@ -646,8 +661,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _version() -> str:
     try:
-        from importlib.metadata import version
-
         return version("shadowopt")
     except Exception:
         return "0+unknown"
@@ -656,6 +669,7 @@ def _version() -> str:
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..renderers.mitsuba_setup import RendererUnavailable
     from ..renderers.scene_data import SceneError
     from ..service.rigs import RigError, SolutionError
