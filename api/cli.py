@@ -5,9 +5,14 @@ import argparse
 import json
 import os
 import sys
+from importlib.metadata import version
 from pathlib import Path
 
+from pydantic import ValidationError
+
+from .schemas import ConfigurationError, format_validation_error, validate_configurations
 from .schemas import validate_rig  # the rig validation (api.schemas); kept importable from here
+from .settings import SettingsError, load_settings
 
 EXIT_USAGE = 2
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda"
@@ -32,10 +37,6 @@ def _parse_wxh(text: str) -> list[int]:
 
 def load_rig(path: str | None, args=None) -> dict:
     """Read a rig JSON file, apply CLI overrides to rig.shadow, validate, return the validated dict."""
-    from pydantic import ValidationError
-
-    from .schemas import format_validation_error
-
     if path is None:
         raise CliError("--rig: a rig JSON file is required (see configs/demo_rig.json)")
     try:
@@ -81,6 +82,7 @@ def _scene_options(args) -> dict:
 
 
 def cmd_scene_info(args) -> int:
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.pipeline import scene_entry
 
     entry = scene_entry(args.scene, **_scene_options(args))
@@ -105,6 +107,7 @@ def cmd_scene_info(args) -> int:
 
 
 def cmd_coarse(args) -> int:
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.pipeline import coarse_pass, scene_entry
 
     rig = load_rig(args.rig, args)
@@ -163,23 +166,28 @@ def cmd_bench(args) -> int:
                                cascade_lights=args.cascade_lights, cascades=args.part != "single",
                                reuse=bool(args.reuse), write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "batch":
+        # lazy: the server stack (an extra) loads only for the command that runs, not for --help
         from ..service.bench.batches import bench_batch
 
         result = bench_batch(validate_rig, configurations=args.lights or 20, write=not args.no_write)
     elif args.bench == "security":
+        # lazy: the server stack (an extra) loads only for the command that runs, not for --help
         from ..service.bench.security import bench_security
 
         result = bench_security(write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "load":
+        # lazy: the server stack (an extra) loads only for the command that runs, not for --help
         from ..service.bench.load import bench_load
 
         result = bench_load(seconds=args.seconds, write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "engine":  # docs/engine-integration.md's listings in Mesa OpenGL vs evaluate --depth
+        # lazy: the server stack (an extra) loads only for the command that runs, not for --help
         from ..service.bench.engine import bench_engine
 
         result = bench_engine(validate_rig, scenes=args.scenes.split(",") if args.scenes else None,
                               write=not args.no_write, screen=args.screen, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "path":  # temporal stability along configs/paths.json (renderers.stability)
+        # lazy: the server stack (an extra) loads only for the command that runs, not for --help
         from ..service.bench.path import bench_path
 
         result = bench_path(validate_rig, frames=args.frames, screen=args.screen or (320, 180), map_side=args.map,
@@ -187,16 +195,19 @@ def cmd_bench(args) -> int:
                             methods=args.methods.split(",") if args.methods else None,
                             write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "inspect":  # the browser inspector: slider to new shadows on screen (headless chromium)
+        # lazy: the server stack (an extra) loads only for the command that runs, not for --help
         from ..service.bench.inspect import bench_inspect
 
         result = bench_inspect(write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "throughput":  # path jobs' frames/s per method, local pool and Ray (service.bench.throughput)
+        # lazy: the server stack (an extra) loads only for the command that runs, not for --help
         from ..service.bench.throughput import bench_throughput
 
         result = bench_throughput(validate_rig, frames=args.frames or 1000, screen=args.screen or (320, 180),
                                   map_side=args.map, methods=args.methods.split(",") if args.methods else None,
                                   write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "budget":  # what a rig's lights need: rig budget split vs per-light (service.bench.budget)
+        # lazy: the server stack (an extra) loads only for the command that runs, not for --help
         from ..service.bench.budget import bench_budget
 
         result = bench_budget(validate_rig, scenes=args.scenes, screen=args.screen or (320, 180), map_side=args.map,
@@ -222,6 +233,7 @@ def _write_or_print(obj: dict, out: str | None, as_json: bool, summary: str) -> 
 
 
 def cmd_optimize(args) -> int:
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.pipeline import scene_entry
     from ..service.request import SolveRequest
     from ..service.solve import solve
@@ -255,6 +267,7 @@ DEPTH_FLAG_HELP = ("the depth test emulated: solution (default: what an engine d
 
 
 def cmd_evaluate(args) -> int:
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.evaluation import evaluate_solution
     from ..service.pipeline import scene_entry
 
@@ -291,6 +304,7 @@ def _evaluation_summary(r: dict, prefix: str = "") -> str:
 
 
 def cmd_analyze(args) -> int:
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..solvers.analysis import analyze
 
     for name, v, lo, hi in (("--f-over-n", args.f_over_n, 1.0, 1e9), ("--theta-deg", args.theta_deg, 0.0, 90.0),
@@ -311,6 +325,7 @@ def cmd_analyze(args) -> int:
 
 
 def cmd_compare(args) -> int:
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.compare import compare, markdown_table
     from ..service.pipeline import scene_entry
 
@@ -335,9 +350,14 @@ def cmd_compare(args) -> int:
 
 def cmd_batch(args) -> int:
     """Precompute many configurations (explicit, or a camera path crossed with light directions)."""
+<<<<<<< HEAD
     from ..service.batch_request import expand_configurations
     from ..service.local_jobs import run_batch
     from ..service.request_fields import BatchError
+=======
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
+    from ..service.batches import BatchError, expand_configurations, run_batch
+>>>>>>> wt-api
     from ..service.solve import METHODS
 
     raw = _read_json(args.configs, "--configs")
@@ -348,8 +368,6 @@ def cmd_batch(args) -> int:
         configs = expand_configurations(request)
     except BatchError as e:
         raise CliError(f"--configs {args.configs}: {e.field}: {e.message}") from e
-    from .schemas import ConfigurationError, validate_configurations
-
     try:
         configs = validate_configurations(configs)
     except ConfigurationError as e:
@@ -361,7 +379,7 @@ def cmd_batch(args) -> int:
         raise CliError(f"--workers: must be at least 1, got {args.workers}")
     if args.backend == "ray":
         try:
-            import ray  # noqa: F401
+            import ray  # noqa: F401  # lazy: optional (the ray extra), checked only for --backend ray
         except ImportError:
             raise CliError("--backend ray: ray is not installed (pip install 'shadowopt[ray]')") from None
     s = run_batch(args.scene, configs, backend=args.backend, workers=args.workers, out_path=args.out,
@@ -381,10 +399,14 @@ def cmd_batch(args) -> int:
 
 def cmd_path(args) -> int:
     """Solve a camera path frame by frame (service.paths): poses/keyframes, or a USD camera at time codes."""
+<<<<<<< HEAD
     from ..service.local_jobs import run_path
     from ..service.paths import PathError, expand_path_with_notes, line_json
+=======
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
+    from ..service.paths import PathError, expand_path_with_notes, line_json, run_path
+>>>>>>> wt-api
     from ..service.solve import METHODS
-    from .schemas import ConfigurationError, validate_configurations
 
     raw = _read_json(args.rig, "--rig")
     if not isinstance(raw, dict):
@@ -461,6 +483,7 @@ def _parse_time(text: str) -> dict:
 
 def cmd_pack(args) -> int:
     """A local stage with its references, sublayers and payloads as one .usdz to upload."""
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.packing import pack_stage
 
     res = pack_stage(args.scene, args.out, allow_outside=args.allow_outside)
@@ -477,8 +500,7 @@ def cmd_pack(args) -> int:
 
 
 def cmd_serve(args) -> int:
-    from .server import check_host, serve
-    from .settings import SettingsError, load_settings
+    from .server import check_host, serve  # lazy: FastAPI, uvicorn and the server stack: only to serve
 
     try:
         settings = load_settings(args.config, host=args.host, port=args.port, data_dir=args.data_dir,
@@ -664,8 +686,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _version() -> str:
     try:
-        from importlib.metadata import version
-
         return version("shadowopt")
     except Exception:
         return "0+unknown"
@@ -674,6 +694,7 @@ def _version() -> str:
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..renderers.mitsuba_setup import RendererUnavailable
     from ..renderers.scene_data import SceneError
     from ..service.rigs import RigError, SolutionError

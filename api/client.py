@@ -25,8 +25,10 @@ import os
 import random
 import sys
 import time
+import zipfile
 from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass, field
+from io import BytesIO
 from pathlib import Path
 from typing import Any
 
@@ -178,9 +180,6 @@ def _scene_upload(path_or_bytes, filename: str | None, pack: bool | None = None)
 def zip_folder_bytes(folder) -> tuple[bytes, str]:
     """A local folder as .zip bytes and its name (regular files only: symbolic links, to files or folders,
     are left out, so nothing outside the folder is sent). Standard library only: the bare client zips."""
-    import zipfile
-    from io import BytesIO
-
     folder = Path(folder)
     buf = BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
@@ -205,8 +204,8 @@ def scene_bytes(path: Path, pack: bool | None = None) -> tuple[bytes, str]:
         return zip_folder_bytes(path)
     if pack is not False and path.suffix.lower() in (".usd", ".usda", ".usdc"):
         try:
-            from ..renderers.scene_data import SceneError
-            from ..service.packing import needs_package, pack_bytes
+            from ..renderers.scene_data import SceneError  # lazy: numpy and usd-core: the server extra
+            from ..service.packing import needs_package, pack_bytes  # lazy: the bare client install lacks them
         except ImportError:  # the bare client install: no usd-core; the server says what it cannot open
             if pack:
                 raise

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = tuple[Finite, Finite, Finite]
@@ -129,7 +129,7 @@ class OutputSpec(_Strict):
         if self.engine is None:
             return self
         try:
-            from ..solvers.conventions import ENGINE_PRESETS, preset_conflicts
+            from ..solvers.conventions import ENGINE_PRESETS, preset_conflicts  # lazy: absent in the bare client
         except ImportError:
             return self
         given = {k: getattr(self, k) for k in ("convention", "layout", "reversed_z", "frame")
@@ -158,6 +158,7 @@ class Rig(_Strict):
     def _work(self):
         """The one bound on a rig's solve work (service.request_cost: lights x coarse pixels x maps, x6 for
         point lights, against MAX_SOLVE_WORK); every request and batch configuration with a rig passes here."""
+        # lazy: the client's schemas load no service module at import (the bare client install)
         from ..service.request_cost import WorkLimit, check_solve_work
 
         try:
@@ -433,6 +434,7 @@ class CompareRequest(_SceneRequest):
         """A compare runs one solve per method plus a warm-up solve: their work together is bounded (field
         `methods`; service.compare checks it again with the screen's aspect and the lights' real types, and the
         ground truth's work after the server's pixel and texel limits)."""
+        # lazy: the client's schemas load no service module at import (the bare client install)
         from ..service.request_cost import WorkLimit, check_solve_work
 
         rig = info.data.get("rig")
@@ -488,8 +490,6 @@ class ConfigurationError(ValueError):
 def validate_configurations(configs: list[dict]) -> list[dict]:
     """Each expanded configuration validated as {"rig": Rig}; the first bad one raises ConfigurationError
     with its path under `configurations.K`."""
-    from pydantic import ValidationError
-
     out = []
     for k, c in enumerate(configs):
         try:

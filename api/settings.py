@@ -12,6 +12,8 @@ import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
+from ..service.isolation import LoadLimits  # stdlib only at import: no native stack pulled in
+
 LOOPBACK_HOSTS = ("127.0.0.1", "::1", "localhost")
 
 
@@ -67,8 +69,6 @@ class Settings:
     def load_limits(self):
         """The limits of an uploaded scene's isolated load (service.isolation.LoadLimits, which validates
         them); SettingsError naming the setting when one is out of range."""
-        from ..service.isolation import LoadLimits  # stdlib only at import: no native stack pulled in
-
         for name, field_ in (("max_triangles", "max_triangles"), ("load_memory_bytes", "memory_bytes"),
                              ("load_timeout_s", "timeout_s")):
             try:
@@ -129,7 +129,7 @@ def read_config_file(path: str | os.PathLike) -> dict:
         if p.suffix.lower() == ".json":
             data = json.loads(text)
         else:
-            import tomllib
+            import tomllib  # lazy: Python 3.11+ (requires-python >= 3.10); only a TOML config file needs it
 
             data = tomllib.loads(text)
     except (ValueError, json.JSONDecodeError) as e:
