@@ -350,14 +350,10 @@ def cmd_compare(args) -> int:
 
 def cmd_batch(args) -> int:
     """Precompute many configurations (explicit, or a camera path crossed with light directions)."""
-<<<<<<< HEAD
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.batch_request import expand_configurations
     from ..service.local_jobs import run_batch
     from ..service.request_fields import BatchError
-=======
-    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
-    from ..service.batches import BatchError, expand_configurations, run_batch
->>>>>>> wt-api
     from ..service.solve import METHODS
 
     raw = _read_json(args.configs, "--configs")
@@ -399,13 +395,9 @@ def cmd_batch(args) -> int:
 
 def cmd_path(args) -> int:
     """Solve a camera path frame by frame (service.paths): poses/keyframes, or a USD camera at time codes."""
-<<<<<<< HEAD
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.local_jobs import run_path
     from ..service.paths import PathError, expand_path_with_notes, line_json
-=======
-    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
-    from ..service.paths import PathError, expand_path_with_notes, line_json, run_path
->>>>>>> wt-api
     from ..service.solve import METHODS
 
     raw = _read_json(args.rig, "--rig")
