@@ -27,6 +27,10 @@ import time
 
 import numpy as np
 
+from ..evaluation import evaluate_solution
+from ..rigs import resolve_rig
+from ..scenes import SceneCache
+from ..solve import solve
 from .definitions import corpus_scenes
 from .output import machine, write_section
 
@@ -49,9 +53,6 @@ def _lights(entry, camera) -> list[dict]:
 
 def _corpus_rigs(validate_rig, found: dict, screen):
     """Each corpus scene rig once: (scene, rig name, scene entry, the rig with the bench's sun, its camera)."""
-    from ..rigs import resolve_rig
-    from ..scenes import SceneCache
-
     cache = SceneCache()
     try:
         for name, (path, spec) in found.items():
@@ -66,9 +67,6 @@ def _corpus_rigs(validate_rig, found: dict, screen):
 
 def bench_budget(validate_rig, scenes=None, screen=(320, 180), map_side: int = 1024, write: bool = True,
                  log=None) -> dict:
-    from ..evaluation import evaluate_solution
-    from ..solve import solve
-
     found, skipped = corpus_scenes(scenes.split(",") if isinstance(scenes, str) else scenes)
     B = 4 * map_side * map_side
     rows = []
@@ -112,9 +110,6 @@ POINT_MODES = (("cube", "cube", False), ("auto", "auto", False), ("auto_log", "a
 def point_faces_rows(validate_rig, found: dict, screen, map_side: int, log=None) -> list[dict]:
     """Part two (module doc): per corpus rig, a point light inside and one outside the view, cube vs face
     partitioning at equal total texels, measured misclassified pixels."""
-    from ..evaluation import evaluate_solution
-    from ..solve import solve
-
     rows = []
     for name, rig_name, entry, base, camera in _corpus_rigs(validate_rig, found, screen):
         inside = _lights(entry, camera)[3]["position"]

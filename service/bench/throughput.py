@@ -30,7 +30,11 @@ import sys
 import tempfile
 import time
 
-from ..batches import WHOLE_PATH_FRAMES
+from .. import batches
+from ..batches import BatchRunner, WHOLE_PATH_FRAMES
+from ..paths import expand_path, is_coherent, is_whole_path, line_json
+from ..scenes import SceneCache
+from ..store import Store, UNFINISHED
 from .definitions import ROOT
 from .output import machine, write_section
 
@@ -45,8 +49,6 @@ CHUNK_COMPARE = 240  # frames of the run with tasks of several frames against on
 
 def path_frames(validate_rig, frames: int, screen=SCREEN, map_side: int = 1024) -> list[dict]:
     """The demo walk as validated path frames ({"rig", "frame", "time"})."""
-    from ..paths import expand_path
-
     base = {"camera": {"usd_path": "/World/Camera", "resolution": list(screen)},
             "lights": [{"usd_path": "/World/Sun"}], "shadow": {"resolution": [map_side, map_side], "cascades": 1}}
     out = expand_path({"rig": base, "camera_path": {"keyframes": KEYFRAMES, "samples": frames}})
@@ -70,8 +72,6 @@ class _Clock:
 
 
 def _settings(method: str, workers: int) -> dict:
-    from ..paths import is_coherent, is_whole_path
-
     s = {"method": method, "coherent": is_coherent(method, False), "whole_path": is_whole_path(method, False)}
     if s["coherent"] and workers > 1:
         s["coherent_chunks"] = workers
@@ -80,9 +80,6 @@ def _settings(method: str, workers: int) -> dict:
 
 def _run_path(runner, store, clock: _Clock, scene_id: str, frames: list[dict], method: str, workers: int) -> dict:
     """One path job, streamed in frame order like run_path; its wall time and stages."""
-    from ..paths import line_json
-    from ..store import UNFINISHED
-
     clock.s.clear()
     t0 = time.perf_counter()
     batch_id = store.create_batch("bench", scene_id, frames, _settings(method, workers))
@@ -116,10 +113,6 @@ def _run_path(runner, store, clock: _Clock, scene_id: str, frames: list[dict], m
 def measure(backend: str, workers: int, methods, short: list[dict], repeats: int, long: list[dict] | None,
             log=None) -> dict:
     """One fresh runner: a cold run, then per method `repeats` short runs (and the long path when given)."""
-    from .. import batches
-    from ..batches import BatchRunner
-    from ..store import Store
-
     log = log or (lambda m: None)
     rows = {}
     with tempfile.TemporaryDirectory(prefix="shadowopt-bench-throughput-") as tmp:
@@ -158,8 +151,6 @@ def measure(backend: str, workers: int, methods, short: list[dict], repeats: int
 
 def _scene_load_s() -> float:
     """Loading the demo scene into a fresh cache (what each worker does once): seconds."""
-    from ..scenes import SceneCache
-
     t = time.perf_counter()
     SceneCache().get(str(SCENE))
     return time.perf_counter() - t
@@ -179,7 +170,7 @@ def bench_throughput(validate_rig, frames: int = 1000, short_frames: int = 40, r
         ray = None
         if backend == "ray":
             try:
-                import ray
+                import ray  # lazy: the optional `ray` extra; its rows are skipped without it
             except ImportError:
                 skipped["ray"] = "ray is not installed"
                 continue
