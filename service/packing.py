@@ -25,6 +25,7 @@ import stat
 import struct
 import tempfile
 import zipfile
+import zlib
 from io import BytesIO
 from pathlib import Path
 
@@ -42,7 +43,7 @@ def dependencies(scene) -> tuple[list[str], list[str], list[str]]:
     """(layers, other assets, unresolved paths) the stage at `scene` depends on, as paths relative to
     its folder where they lie inside it, else as the absolute path of the file read (symbolic links
     followed: a link in the folder leading out is outside) (usd-core's UsdUtils.ComputeAllDependencies)."""
-    from pxr import UsdUtils
+    from pxr import UsdUtils  # lazy: usd-core is the server extra; api.client imports this module
 
     src = os.path.abspath(os.fspath(scene))
     base = os.path.dirname(src)
@@ -80,7 +81,7 @@ def pack_stage(scene, out, allow_outside: bool = False) -> dict:
     "assets", "unresolved", "outside"} (unresolved: paths the stage names that do not exist, left out;
     outside: files outside the stage's folder, packed only with `allow_outside`, else SceneError
     "outside_folder" naming them)."""
-    from pxr import UsdUtils
+    from pxr import UsdUtils  # lazy: usd-core is the server extra; api.client imports this module
 
     src, out = Path(scene), Path(out)
     if not src.is_file():
@@ -241,9 +242,7 @@ def zip_to_usdz(data: bytes, name: str, max_unpacked: int = MAX_UNPACKED_BYTES) 
     which stores entries uncompressed and aligned as a usdz needs) and the package's name. The entries'
     sizes as the zip declares them add up to at most `max_unpacked` bytes, and no entry is read past its
     declared size; a damaged entry (bad CRC, unknown compression) is refused naming it."""
-    import zlib
-
-    from pxr import Sdf
+    from pxr import Sdf  # lazy: usd-core is the server extra; api.client imports this module
 
     count = _declared_entries(data)
     if count is not None and count > MAX_ZIP_ENTRIES:

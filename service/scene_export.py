@@ -21,6 +21,7 @@ from collections import OrderedDict
 from dataclasses import asdict, dataclass
 
 import numpy as np
+import pyfqmr
 
 from ..renderers.scene_data import LoadedScene
 
@@ -68,7 +69,7 @@ def scene_glb(loaded: LoadedScene, max_triangles: int = DEFAULT_TRIANGLE_BUDGET)
 
 
 def _export(loaded: LoadedScene, max_triangles: int) -> tuple[bytes, ExportInfo]:
-    import trimesh
+    import trimesh  # lazy: seconds to import; loaded on the first GLB export, not at server start
 
     g = loaded.geometry
     lo, hi = g.bounds()
@@ -78,8 +79,6 @@ def _export(loaded: LoadedScene, max_triangles: int) -> tuple[bytes, ExportInfo]
     n = int(faces.shape[0])
     decimated = n > max_triangles
     if decimated:
-        import pyfqmr
-
         simplify = pyfqmr.Simplify()
         simplify.setMesh(vertices, faces)
         simplify.simplify_mesh(target_count=max_triangles, aggressiveness=7, preserve_border=True, verbose=False)

@@ -7,12 +7,14 @@ running pool sees.
 """
 from __future__ import annotations
 
+import os
 import sys
 import tempfile
 import time
 
 from ..batch_request import expand_configurations
 from ..job_runner import BatchRunner
+from ..store import Store
 from .definitions import ROOT
 from .output import machine, write_section
 
@@ -35,8 +37,6 @@ def _timed_batch(runner: BatchRunner, store, scene_id: str, configs: list[dict],
 
 
 def measure(backend: str, workers: int, configs: list[dict], method: str, repeats: int = 3) -> dict:
-    from ..store import Store
-
     with tempfile.TemporaryDirectory(prefix="shadowopt-bench-batch-") as tmp:
         store = Store(tmp)
         scene_id = store.link_scene("bench", SCENE)
@@ -57,15 +57,13 @@ def measure(backend: str, workers: int, configs: list[dict], method: str, repeat
 def bench_batch(validate_rig, configurations: int = 20, workers: tuple[int, ...] = (1, 2),
                 backends: tuple[str, ...] = ("local", "ray"), method: str = "optimized", write: bool = True) -> dict:
     """Throughput table for each backend and worker count; Ray is skipped when it is not installed."""
-    import os
-
     configs = [{"rig": validate_rig(c["rig"])} for c in expand_configurations(sun_arc_request(configurations))]
     rows, skipped = [], {}
     load_before = os.getloadavg()[0]
     for backend in backends:
         if backend == "ray":
             try:
-                import ray  # noqa: F401
+                import ray  # noqa: F401  # lazy: the optional `ray` extra; its rows are skipped without it
             except ImportError:
                 skipped["ray"] = "ray is not installed"
                 continue

@@ -27,6 +27,11 @@ import time
 
 import numpy as np
 
+from ..evaluation import evaluate_solution
+from ..rigs import resolve_rig
+from ..scenes import SceneCache
+from ..request import SolveRequest
+from ..solve import solve
 from .definitions import corpus_scenes
 from .output import machine, write_section
 
@@ -49,9 +54,6 @@ def _lights(entry, camera) -> list[dict]:
 
 def _corpus_rigs(validate_rig, found: dict, screen):
     """Each corpus scene rig once: (scene, rig name, scene entry, the rig with the bench's sun, its camera)."""
-    from ..rigs import resolve_rig
-    from ..scenes import SceneCache
-
     cache = SceneCache()
     try:
         for name, (path, spec) in found.items():
@@ -66,10 +68,6 @@ def _corpus_rigs(validate_rig, found: dict, screen):
 
 def bench_budget(validate_rig, scenes=None, screen=(320, 180), map_side: int = 1024, write: bool = True,
                  log=None) -> dict:
-    from ..evaluation import evaluate_solution
-    from ..request import SolveRequest
-    from ..solve import solve
-
     found, skipped = corpus_scenes(scenes.split(",") if isinstance(scenes, str) else scenes)
     B = 4 * map_side * map_side
     rows = []
@@ -81,7 +79,7 @@ def bench_budget(validate_rig, scenes=None, screen=(320, 180), map_side: int = 1
                                 "shadow": {"texel_budget": budget, "budget_scope": scope, "cascades": 1,
                                            "fixed_resolution": True}})
             t0 = time.perf_counter()
-            sol = solve(entry, rig, SolveRequest("focused"))
+            sol = solve(entry, rig, SolveRequest(method="focused"))
             ms = (time.perf_counter() - t0) * 1e3
             ev = evaluate_solution(entry, rig, sol, depth="solution")
             per = ev["lights"] if "lights" in ev else [ev]
@@ -113,10 +111,6 @@ POINT_MODES = (("cube", "cube", False), ("auto", "auto", False), ("auto_log", "a
 def point_faces_rows(validate_rig, found: dict, screen, map_side: int, log=None) -> list[dict]:
     """Part two (module doc): per corpus rig, a point light inside and one outside the view, cube vs face
     partitioning at equal total texels, measured misclassified pixels."""
-    from ..evaluation import evaluate_solution
-    from ..request import SolveRequest
-    from ..solve import solve
-
     rows = []
     for name, rig_name, entry, base, camera in _corpus_rigs(validate_rig, found, screen):
         inside = _lights(entry, camera)[3]["position"]
@@ -131,7 +125,7 @@ def point_faces_rows(validate_rig, found: dict, screen, map_side: int, log=None)
                                                "fixed_resolution": True, "point_light_maps": mode},
                                     "output": {"allow_log_warp": allow_log}})
                 t0 = time.perf_counter()
-                sol = solve(entry, rig, SolveRequest("lispsm"))
+                sol = solve(entry, rig, SolveRequest(method="lispsm"))
                 ms = (time.perf_counter() - t0) * 1e3
                 light = sol["lights"][0]
                 if light["shadow"] == "none":

@@ -7,6 +7,9 @@ from __future__ import annotations
 import statistics
 import time
 
+from ...renderers.coarse import render_coarse
+from ..rigs import resolve_rig
+from ..scenes import SceneCache
 from .definitions import ROOT, definitions
 from .output import machine, progress, write_section
 
@@ -16,10 +19,6 @@ def bench_coarse(validate_rig, runs: int | None = None, scenes: str | None = Non
 
     `validate_rig(dict) -> dict` is the API's rig validation (benchmark rigs are ordinary rigs).
     """
-    from ...renderers.coarse import render_coarse
-    from ..rigs import resolve_rig
-    from ..scenes import SceneCache
-
     spec = definitions()["coarse"]
     runs = runs or spec["runs"]
     wanted = scenes.split(",") if scenes else list(spec["scenes"])

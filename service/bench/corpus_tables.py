@@ -6,6 +6,8 @@ from __future__ import annotations
 import math
 import statistics
 
+import numpy as np
+
 from . import quality_report
 from .quality_report import spearman
 
@@ -13,8 +15,6 @@ from .quality_report import spearman
 def scene_stats(rec: dict, dirs, spec: dict) -> dict:
     """Per scene and rig: what the corpus tables print (totals, ratios, losses, worst suns, outside
     pixels, setup medians, the pooled Spearman) and the verdict per target."""
-    import numpy as np
-
     t = spec["targets"]
     out = {}
     for part in rec["misclassified"]:
@@ -123,7 +123,7 @@ def tables_corpus(stats: dict, skipped: dict, spec: dict, corpus_ratio, corpus_o
                          f" | {r.get('optimized/focused', float('nan')):.3f} | {r.get('optimized/lispsm', float('nan')):.3f} | "
                          f"{r['optimized/best_baseline']:.3f} ({p['best_baseline']}) | {p['suns_not_lowest']} of {p['suns']} | "
                          f"{p['spearman_pooled']:.2f} | {p['spearman_within_sun_mean']:.2f} | "
-                         f"{quality_report._fmt((p.get('pixel_prediction') or {}).get('spearman'))} |")
+                         f"{quality_report.fmt_cell((p.get('pixel_prediction') or {}).get('spearman'))} |")
         lines += ["", "**One map: outside pixels** (receiver pixels outside every map; summed over the suns, the worst "
                   "sun in brackets), **setup time** (median ms per light, `timings_ms.optimize`: coarse pass excluded) "
                   "and the benchmark's cost: wall seconds of one (scene, sun, method) run, solve and evaluation, median over methods.", "",
@@ -162,7 +162,7 @@ def tables_corpus(stats: dict, skipped: dict, spec: dict, corpus_ratio, corpus_o
                          + " | ".join(f"{c['ratios'][f'{m}/{ref}']:.3f}" for m in names if m != ref) + " | "
                          + " | ".join(f"{c['outside'][m]}" for m in names) + " | "
                          + " | ".join(f"{c['setup_ms_p50'][m]:.1f}" for m in names) + f" | {c['spearman_pooled']:.2f} | "
-                         + f"{quality_report._fmt((c.get('pixel_prediction') or {}).get('spearman'))} |")
+                         + f"{quality_report.fmt_cell((c.get('pixel_prediction') or {}).get('spearman'))} |")
         lines += ["", *quality_report.table_engine(stats, "cascades", "Four cascades")]
         lines += ["", *_table_outside_hd(stats, "cascades", f"Four cascades at {hd_name}", hd_name)]
         lines += ["", *quality_report.table_ratio_to_limit(stats, "cascades", "Four cascades")]

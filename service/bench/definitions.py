@@ -6,6 +6,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
+from ...renderers.corpus import ensure_scene
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -15,8 +19,6 @@ def definitions() -> dict:
 
 def hemisphere_directions(n: int, min_elevation_deg: float, seed: int):
     """n light directions (the way light travels) uniform on the upper hemisphere above an elevation."""
-    import numpy as np
-
     rng = np.random.default_rng(seed)
     zmin = np.sin(np.radians(min_elevation_deg))
     y = rng.uniform(zmin, 1.0, n)  # uniform in height = uniform in solid angle
@@ -44,8 +46,6 @@ def corpus_scenes(names=None, cache_dir=None) -> tuple[dict, dict]:
     """The corpus's scenes (configs/corpus.json) as {name: (path, scene spec)}, generated ones built
     into the cache folder (renderers.corpus.ensure_scene), plus {name: why} for those that are absent
     (../shared/usd-assets not mounted). `names` picks some, in the given order."""
-    from ...renderers.corpus import ensure_scene
-
     spec = corpus_definitions()["scenes"]
     wanted = list(names) if names else list(spec)
     unknown = [n for n in wanted if n not in spec]

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -21,6 +22,15 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from ...renderers.ground_truth import evaluate_buffers, screen_camera
+from ..pipeline import scene_entry
+from ..rigs import resolve_rig
+from ..request import SolveRequest
+from ..solution_json import maps_from_solution
+from ..solve import solve
+from .definitions import corpus_scenes
+from .output import write_section
 
 ROOT = Path(__file__).resolve().parents[2]
 DOC = ROOT / "docs" / "engine-integration.md"
@@ -73,8 +83,6 @@ def without_caster_offset(src: dict) -> dict:
 
 def hlsl_tools() -> str | None:
     """None when glslangValidator and spirv-cross are on the PATH, else what is missing."""
-    import shutil
-
     missing = [t for t in ("glslangValidator", "spirv-cross") if shutil.which(t) is None]
     return None if not missing else (", ".join(missing) + " not found (Debian: apt-get install glslang-tools "
                                                           "spirv-cross)")
@@ -83,8 +91,6 @@ def hlsl_tools() -> str | None:
 def scene_rigs(names=None, screen=None):
     """[(name, scene path, rig without shadow/output)]: McUsd with its own camera and sun (if present), and
     the corpus scenes of CORPUS_SUNS with their rigs' cameras."""
-    from .definitions import corpus_scenes
-
     names = list(names) if names else ["mcusd", *CORPUS_SUNS]
     out, skipped = [], {}
     for name in names:
@@ -114,16 +120,12 @@ def solve_for_listing(validate_rig, entry, rig: dict, cascades: int, map_res: in
     solutions and so in the maps evaluate reads; a callable value is called with the block (e.g. a scaled
     constant). `cascade_override`: a function called with each solution's list of cascades (to change e.g.
     their blend bands), before the maps are read back."""
-    from ..request import SolveRequest
-    from ..solution_json import maps_from_solution
-    from ..solve import solve
-
     sols = {}
     for conv in dict.fromkeys(["opengl", *conventions]):
         api, rz = CONVENTIONS[conv]
         r = dict(rig, shadow={"resolution": [map_res, map_res], "cascades": cascades},
                  output={"convention": api, "layout": "column_major", "reversed_z": rz})
-        sols[conv] = solve(entry, validate_rig(r), SolveRequest("optimized"))
+        sols[conv] = solve(entry, validate_rig(r), SolveRequest(method="optimized"))
         for c in sols[conv]["lights"][0]["cascades"]:
             for mode in ("hardware", "linear"):
                 blk = c["depth"][mode]
@@ -243,10 +245,6 @@ def measure(validate_rig, name: str, path, rig: dict, cascades: int, map_res: in
     the idealized `--depth ideal` too. `sources`: the shader pieces (default: the document's listings);
     `depth_override`, `cascade_override`: solve_for_listing's. `no_offset`: also the GLSL in the opengl
     convention without the caster offset (without_caster_offset), jobs named <...>_no_offset."""
-    from ...renderers.ground_truth import evaluate_buffers, screen_camera
-    from ..pipeline import scene_entry
-    from ..rigs import resolve_rig
-
     t0 = time.perf_counter()
     entry = scene_entry(path)
     solved = solve_for_listing(validate_rig, entry, rig, cascades, map_res, depth_override, cascade_override,
@@ -292,8 +290,6 @@ def measure(validate_rig, name: str, path, rig: dict, cascades: int, map_res: in
 def bench_engine(validate_rig, scenes=None, write=True, map_res=2048, screen=None, log=None) -> dict:
     """`shadowopt bench engine`: McUsd at its camera's resolution (1 and 4 cascades) and the corpus scenes
     of CORPUS_SUNS at 1280x720; maps map_res^2."""
-    from .output import write_section
-
     missing = hlsl_tools()
     languages = LANGUAGES if missing is None else ("glsl",)
     pairs, skipped = scene_rigs(scenes, screen)

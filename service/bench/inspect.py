@@ -25,7 +25,10 @@ import tempfile
 import time
 from pathlib import Path
 
+import httpx
+
 from .load import DEMO_SCENE, free_port, git_commit, percentile, start_server, stop_server, wait_healthy
+from .output import write_section
 
 TARGET_MS = 150.0
 CHROMIUM_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"]
@@ -41,7 +44,7 @@ def _wait_latencies(page, n: int, timeout_ms: float = 60000) -> None:
 
 
 def bench_inspect(moves: int = 12, drags: int = 4, screen: str = "640x360", write: bool = True, log=print) -> dict:
-    from playwright.sync_api import sync_playwright
+    from playwright.sync_api import sync_playwright  # lazy: playwright is a dev dependency (this bench only)
 
     chromium = shutil.which("chromium") or "/usr/bin/chromium"
     if not os.path.exists(chromium):
@@ -127,8 +130,6 @@ def bench_inspect(moves: int = 12, drags: int = 4, screen: str = "640x360", writ
     commit = git_commit()
     table += f" Code: the working tree at commit {commit}." if commit else ""
     if write:
-        from .output import write_section
-
         write_section("inspect", table, "shadowopt bench inspect")
     return {"rows": rows, "table": table, "renderer": renderer, "load_avg": load_avg}
 
@@ -163,8 +164,6 @@ def server_parts(timings: dict, solver: dict | None) -> dict:
 def replay(base: str, token: str, asked: list[dict]) -> dict:
     """The page's requests (scene, method, rig, search budget) sent again one at a time (httpx): p50 round trip,
     server setup and CPU ms, and the search's evaluations. The first one again first, not counted."""
-    import httpx
-
     trip, total, cpu, nfev = [], [], [], []
     with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=60) as c:
         for i, body in enumerate(asked[:1] + asked):

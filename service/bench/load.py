@@ -24,6 +24,8 @@ from pathlib import Path
 
 import httpx
 
+from .output import write_section
+
 ROOT = Path(__file__).resolve().parents[2]
 DEMO_SCENE = ROOT / "configs" / "demo_scene.usda"
 DEMO_RIG = ROOT / "configs" / "demo_rig.json"
@@ -274,8 +276,6 @@ def bench_load(seconds: float = 60.0, clients: int = 4, sequential_requests: int
     table += f" Code: the working tree at commit {git_commit()}." if git_commit() else ""
     command = "shadowopt bench load" + (f" --seconds {seconds:g}" if seconds != 60 else "")
     if write:
-        from .output import write_section
-
         write_section("load", table, command)
     return {"workloads": results, "table": table, "ready_s": round(ready_s, 2)}
 

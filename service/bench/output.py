@@ -2,9 +2,12 @@
 BENCHMARKS.md (replaced in place, the others kept)."""
 from __future__ import annotations
 
+import os
 import platform
 import sys
 import time
+
+from tqdm import tqdm
 
 from .definitions import ROOT
 
@@ -12,14 +15,10 @@ BENCH_FILE = ROOT / "BENCHMARKS.md"
 
 
 def progress(total: int, desc: str):
-    from tqdm import tqdm
-
     return tqdm(total=total, desc=desc, file=sys.stderr, leave=False, disable=not sys.stderr.isatty())
 
 
 def machine() -> str:
-    import os
-
     return f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
 
 

@@ -1,16 +1,15 @@
 """The solvers benchmark's speed-against-error plot (docs/bench/solvers_pareto.png)."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
+
+from PIL import Image, ImageDraw, ImageFont
 
 
 def pareto_plot(results: dict, path: Path) -> None:
     """Time to solution (log x) against objective / best (y) per solver, one panel per scene, with the
     Pareto front joined (PIL only: no plotting dependency)."""
-    import math
-
-    from PIL import Image, ImageDraw, ImageFont
-
     W, H, M = 520, 380, 60
     font = ImageFont.load_default(size=12)
     img = Image.new("RGB", (W * len(results), H), "white")

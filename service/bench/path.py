@@ -25,7 +25,16 @@ import time
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, ImageDraw, ImageFont
 
+from ...renderers.heatmap import WRONGLY_LIT, WRONGLY_SHADOWED, errors_image, errors_legend
+from ...renderers.stability import path_stability
+from ..rigs import resolve_rig
+from ..scenes import SceneCache
+from ..interpolation import camera_path
+from ..request import SolveRequest
+from ..solution_json import maps_from_solution
+from ..solve import METHODS as SOLVE_METHODS, solve, solve_path
 from .definitions import ROOT, corpus_scenes
 from .output import machine, write_section
 
@@ -48,7 +57,6 @@ def path_corpus() -> dict:
 
 def frame_cameras(path_spec: dict, base_camera: dict, frames: int | None = None) -> list[dict]:
     """The path's camera dicts per frame: the batches' camera_path expansion over the rig's camera."""
-    from ..interpolation import camera_path
 
     cp = dict(path_spec["camera_path"])
     if frames is not None and "keyframes" in cp:
@@ -68,12 +76,6 @@ def _solve_method(method: str):
 def run_path(validate_rig, entry, cameras: list[dict], sun, shadow: dict, method: str, screen, thumbs=None,
              log=None) -> dict:
     """One path, one configuration, one method: per frame solve + evaluate, per pair stability."""
-    from ...renderers.stability import path_stability
-    from ..rigs import resolve_rig
-    from ..request import SolveRequest
-    from ..solution_json import maps_from_solution
-    from ..solve import solve, solve_path
-
     name, chain = _solve_method(method)
     cams, maps, setup = [], [], []
     prev = None
@@ -117,9 +119,6 @@ def bench_path(validate_rig, frames: int | None = None, screen=(320, 180), map_s
                methods=None, write: bool = True, log=None, strip_file: Path | None = None) -> dict:
     """Every path x cascade count x method (module doc); table, verdicts and the heatmap strip of the worst
     path (by per-frame optimized flicker, else the reference's misclassified pixels)."""
-    from ..scenes import SceneCache
-    from ..solve import METHODS as SOLVE_METHODS
-
     corpus = path_corpus()
     names = list(paths) if paths else list(corpus["paths"])
     unknown = [n for n in names if n not in corpus["paths"]]
@@ -187,10 +186,6 @@ def thumbnail(gt, flickered=None):
     """renderers.heatmap.errors_image reduced to at most THUMB by an integer factor, a block showing a
     misclassified colour when any of its pixels is misclassified (sparse errors stay visible), and FLICKERED
     where a pixel's world point changed its classification since the previous frame."""
-    from PIL import Image
-
-    from ...renderers.heatmap import WRONGLY_LIT, WRONGLY_SHADOWED, errors_image
-
     arr = np.asarray(errors_image(gt))
     h, w = arr.shape[:2]
     f = max(1, int(np.ceil(max(w / THUMB[0], h / THUMB[1]))))
@@ -209,10 +204,6 @@ def thumbnail(gt, flickered=None):
 def strip_image(thumbs: dict, worst, methods):
     """Rows: methods; columns: frames over time; each cell the frame's misclassified receivers
     (renderers.heatmap.errors_image: wrongly shadowed orange, wrongly lit blue, over greys)."""
-    from PIL import Image, ImageDraw, ImageFont
-
-    from ...renderers.heatmap import errors_legend
-
     n, k = worst
     rows = [m for m in methods if thumbs.get((n, k, m))]
     cols = max(len(thumbs[(n, k, m)]) for m in rows)

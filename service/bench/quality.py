@@ -6,6 +6,14 @@ from __future__ import annotations
 import statistics
 import time
 
+import numpy as np
+
+from ...renderers.ground_truth import evaluate_buffers, render_screen
+from ..rigs import resolve_rig
+from ..scenes import SceneCache
+from ..request import SolveRequest
+from ..solution_json import maps_from_solution
+from ..solve import solve
 from . import quality_report
 from .definitions import ROOT, definitions, hemisphere_directions, quality_configs
 from .output import machine, progress, write_section
@@ -14,8 +22,6 @@ from .output import machine, progress, write_section
 def _table1(mis: dict, setup: dict, ref: str) -> str:
     """Chong & Gortler 2007 Table 1: total misclassified pixels per method over all lights, then over
     the worst 10% of lights by each method, with the percentage more than `ref`; median setup time."""
-    import numpy as np
-
     methods = list(mis)
     arr = {m: np.asarray(v) for m, v in mis.items()}
     n = len(arr[ref])
@@ -41,7 +47,7 @@ def coverage_outside_pixels():
     """renderers.coverage.outside_pixels (the full-resolution outside-pixel count without shadow
     rays), or None where that module is absent."""
     try:
-        from ...renderers.coverage import outside_pixels
+        from ...renderers.coverage import outside_pixels  # lazy: optional: None where the module is absent
     except ImportError:
         return None
     return outside_pixels
@@ -66,12 +72,6 @@ def quality_scene(validate_rig, entry, camera: dict, screen, dirs, configs: dict
     again for a rig of that resolution and its receivers left outside every map counted at full
     resolution by renderers.coverage.outside_pixels (no shadow rays): `outside_hd`, `receivers_hd`,
     `setup_ms_hd`. Skipped when renderers.coverage is absent."""
-    from ...renderers.ground_truth import evaluate_buffers, render_screen
-    from ..rigs import resolve_rig
-    from ..request import SolveRequest
-    from ..solution_json import maps_from_solution
-    from ..solve import solve
-
     keys = RECORD_KEYS
     outside_pixels = coverage_outside_pixels() if hd and hd.get("lights") else None
     if outside_pixels is not None:
@@ -130,10 +130,6 @@ def bench_quality(validate_rig, lights: int | None = None, write: bool = True, p
     misclassified pixels per method against exact ray-traced visibility; totals, the worst-10% rows,
     setup time. `single`: one map per method; `cascades`: 4 cascades under one texel budget
     (configs/benchmarks.json). `bench_quality_corpus` runs the same per-scene loop on the corpus."""
-    import numpy as np
-
-    from ..scenes import SceneCache
-
     spec = definitions()["quality"]
     n = lights or spec["lights"]
     entry = SceneCache().get(ROOT / spec["scene"])

@@ -3,11 +3,16 @@ measurements stored (and reused when scene, rig, settings and code are unchanged
 (corpus_tables) and the speed-against-error plots (quality_report)."""
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import subprocess
 import time
 from pathlib import Path
 
+import numpy as np
+
+from ..scenes import SceneCache
 from . import quality_report
 from .corpus_tables import scene_stats, tables_corpus
 from .definitions import ROOT, corpus_scenes, definitions, hemisphere_directions, quality_configs
@@ -16,8 +21,6 @@ from .quality import RECORD_KEYS, coverage_outside_pixels, quality_scene
 
 
 def _loadavg() -> float | None:
-    import os
-
     try:
         return round(os.getloadavg()[0], 2)
     except OSError:
@@ -34,8 +37,6 @@ def _read_json(file: Path):
 
 def _write_atomic(file: Path, text: str) -> None:
     """Write via a temporary file and rename, so a parallel merge run never reads half a file."""
-    import os
-
     tmp = file.with_suffix(f".tmp{os.getpid()}")
     tmp.write_text(text)
     os.replace(tmp, file)
@@ -45,10 +46,6 @@ def _corpus_fingerprint(path: Path, camera: dict, screen, configs: dict, part_di
     """What a scene's corpus result depends on: the scene file, the rig, the protocol's settings and
     the code that solves and evaluates (solvers/, the renderers' ray casting and ground truth, the
     solve step). `--reuse` takes a stored result only when this matches."""
-    import hashlib
-
-    import numpy as np
-
     h = hashlib.sha256()
     st = path.stat()
     h.update(json.dumps([str(path), st.st_size, st.st_mtime_ns, camera, list(screen), configs, RECORD_KEYS,
@@ -67,8 +64,6 @@ def _corpus_fingerprint(path: Path, camera: dict, screen, configs: dict, part_di
 
 def code_state() -> str:
     """The commit measured, and the files the working tree changes (other engineers' work in progress)."""
-    import subprocess
-
     try:
         head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                               timeout=10).stdout.strip()
@@ -102,8 +97,6 @@ def bench_quality_corpus(validate_rig, lights: int | None = None, scenes: str | 
     Parallel runs: processes with disjoint `scenes` (and write=False) each store their scenes' files
     (written atomically); a last run over all scenes with reuse=True measures nothing that is stored
     and writes the merged section."""
-    from ..scenes import SceneCache
-
     qspec, spec = definitions()["quality"], definitions()["quality_corpus"]
     n = lights or spec["lights"]
     screen = list(screen or spec["screen"])

@@ -9,9 +9,13 @@ Records stored before a key existed simply lack it: every function here reads wi
 from __future__ import annotations
 
 import math
+import os
+import warnings
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+from scipy.stats import spearmanr
 
 
 def _finite(v) -> list[float]:
@@ -33,10 +37,6 @@ def ratio_to_limit(rec: dict, part: str) -> dict:
 
 def spearman(a, b) -> float:
     """Spearman's rank correlation (scipy.stats.spearmanr), NaN when a side is constant or < 3 values."""
-    import warnings
-
-    from scipy.stats import spearmanr
-
     if len(a) < 3:
         return float("nan")
     with warnings.catch_warnings():  # a constant side is NaN, reported as such
@@ -111,8 +111,8 @@ def table_pixel_prediction(stats: dict, part: str, label: str) -> list[str]:
         if c is None:
             lines.append(f"| {k} | - | - | - | - | - |")
             continue
-        lines.append(f"| {k} | {c['n']} | {_fmt(c['spearman'])} | {_fmt(c['spearman_objective'])} | "
-                     f"{_fmt(c['median'], '.3g')} | {_fmt(c['p10'], '.3g')}..{_fmt(c['p90'], '.3g')} |")
+        lines.append(f"| {k} | {c['n']} | {fmt_cell(c['spearman'])} | {fmt_cell(c['spearman_objective'])} | "
+                     f"{fmt_cell(c['median'], '.3g')} | {fmt_cell(c['p10'], '.3g')}..{fmt_cell(c['p90'], '.3g')} |")
     return lines
 
 
@@ -152,7 +152,8 @@ def speed_error(stats: dict, part: str = "single") -> dict:
     return out
 
 
-def _fmt(x, spec=".2f", none="-") -> str:
+def fmt_cell(x, spec=".2f", none="-") -> str:
+    """`x` formatted with `spec`, or `none` for None and non-finite floats (a table cell)."""
     return none if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, spec)
 
 
@@ -180,14 +181,14 @@ def table_calibration(stats: dict, cal: dict, part: str, label: str) -> list[str
     lines = [f"**{label}: calibration of the prediction** (every (sun, method) run of the scene: Spearman of predicted "
              "objective against measured misclassified pixels; the factor k in misclassified ≈ k · objective, fitted in "
              "log space with slope 1, its median, and the spread p10..p90 of misclassified / (k · objective); `k / corpus`: "
-             f"this scene's k over the corpus's k = {_fmt(c['factor'], '.4g')} (all scenes pooled; Spearman "
-             f"{_fmt(c['spearman'])}, spread {_fmt(c['p10'])}..{_fmt(c['p90'])}). Runs with 0 misclassified are left out "
+             f"this scene's k over the corpus's k = {fmt_cell(c['factor'], '.4g')} (all scenes pooled; Spearman "
+             f"{fmt_cell(c['spearman'])}, spread {fmt_cell(c['p10'])}..{fmt_cell(c['p90'])}). Runs with 0 misclassified are left out "
              "of the fit).", "",
              "| scene | runs | Spearman | k | median | spread p10..p90 | k / corpus | left out |",
              "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for k, s in per.items():
-        lines.append(f"| {k} | {s['n']} | {_fmt(s['spearman'])} | {_fmt(s['factor'], '.4g')} | {_fmt(s['median'], '.4g')} | "
-                     f"{_fmt(s['p10'])}..{_fmt(s['p90'])} | {_fmt(s.get('vs_corpus'))} | {s['left_out']} |")
+        lines.append(f"| {k} | {s['n']} | {fmt_cell(s['spearman'])} | {fmt_cell(s['factor'], '.4g')} | {fmt_cell(s['median'], '.4g')} | "
+                     f"{fmt_cell(s['p10'])}..{fmt_cell(s['p90'])} | {fmt_cell(s.get('vs_corpus'))} | {s['left_out']} |")
     return lines
 
 
@@ -201,7 +202,7 @@ def table_speed_error(se: dict, label: str, plot_link: str | None) -> list[str]:
              + (f"; plot: [{plot_link}]({plot_link})" if plot_link else "") + ".", "",
              "| scene | " + " | ".join(f"{m} ms / err" for m in methods) + " |", "|---|" + "---:|" * len(methods)]
     for k, r in se.items():
-        lines.append(f"| {k} | " + " | ".join(f"{r[m]['setup_ms']:.1f} ({_fmt(r[m].get('setup_ms_min'), '.1f')}) / "
+        lines.append(f"| {k} | " + " | ".join(f"{r[m]['setup_ms']:.1f} ({fmt_cell(r[m].get('setup_ms_min'), '.1f')}) / "
                                                 f"{r[m]['vs_best']:.2f}" for m in methods) + " |")
     return lines
 
@@ -213,8 +214,6 @@ PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 1
 def speed_error_plot(se: dict, path: Path, title: str = "setup ms (log) vs misclassified / best", cols: int = 4) -> Path:
     """One panel per scene: each method at (median setup ms, log x; total misclassified / the scene's
     best, log y). Pillow only (no plotting dependency)."""
-    from PIL import Image, ImageDraw, ImageFont
-
     W, H, M = 330, 260, 46
     font = ImageFont.load_default(size=11)
     methods = sorted({m for r in se.values() for m in r})
@@ -258,8 +257,6 @@ def speed_error_plot(se: dict, path: Path, title: str = "setup ms (log) vs miscl
         for m, r in res.items():
             X, Y = xy(r["setup_ms"], r["vs_best"])
             dr.ellipse([X - 4, Y - 4, X + 4, Y + 4], fill=colour[m], outline="black")
-    import os
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.{os.getpid()}{path.suffix}")  # parallel runs: never a half-written file

@@ -13,6 +13,7 @@ measures, from the outside:
 """
 from __future__ import annotations
 
+import json
 import os
 import secrets
 import tempfile
@@ -25,6 +26,7 @@ import httpx
 from .. import hostile_corpus as H
 from .load import DEMO_RIG, DEMO_SCENE, free_port, git_commit, light_direction, percentile, \
     start_server, stop_server, wait_healthy
+from .output import write_section
 
 QUEUED = 48  # heavy requests in flight while /healthz is probed (issue 9)
 
@@ -160,8 +162,6 @@ def health_under_queue(base: str, tokens: dict, scene_ids: dict) -> dict:
 
 
 def rig(direction) -> dict:
-    import json
-
     base = json.loads(DEMO_RIG.read_text())
     return {**base, "lights": [{"type": "directional", "direction": direction}]}
 
@@ -266,8 +266,6 @@ def bench_security(write: bool = True, log=print) -> dict:
     commit = git_commit()
     table += f"\n\nCode: the working tree at commit {commit}." if commit else ""
     if write:
-        from .output import write_section
-
         write_section("security", table, "shadowopt bench security")
     out["table"] = table
     return out

@@ -4,6 +4,12 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
+
+from ...solvers.optimized_maps import optimized_maps
+from ..pipeline import coarse_pass
+from ..scenes import SceneCache
+from ..receivers import light_problems
 from .definitions import ROOT, corpus_scenes, definitions, hemisphere_directions
 from .output import machine, progress, write_section
 from .pareto_plot import pareto_plot
@@ -15,13 +21,7 @@ def bench_solvers(validate_rig, lights: int = 5, write: bool = True) -> dict:
     directions, on the demo scene and the chess set (when ../shared is present). Also the default
     solver end to end per light (`optimized_maps`: the baselines, the starts, the search and the bias;
     sample selection excluded) for one map and for 4 cascades."""
-    import numpy as np
-
-    from ..pipeline import coarse_pass
-    from ..scenes import SceneCache
-    from ..receivers import light_problems
-    from ...solvers.optimize import DEFAULT_METHOD, METHODS, minimize
-    from ...solvers.optimized_maps import optimized_maps
+    from ...solvers.optimize import DEFAULT_METHOD, METHODS, minimize  # lazy: METHODS read at call time (a caller may narrow solvers.optimize.METHODS)
 
     spec = definitions()["coarse"]["scenes"]
     results, lines = {}, []
@@ -88,12 +88,7 @@ def bench_solvers_corpus(validate_rig, lights: int = 3, scenes: str | None = Non
     scene (its first rig at the corpus screen, one map of the corpus's size) and sun, every solver of
     solvers.optimize.METHODS minimizes the same problem; each solver's objective over the lowest any
     of them reached on that sun, worst over the suns, and its median time."""
-    import numpy as np
-
-    from ..pipeline import coarse_pass
-    from ..scenes import SceneCache
-    from ..receivers import light_problems
-    from ...solvers.optimize import DEFAULT_METHOD, METHODS, minimize
+    from ...solvers.optimize import DEFAULT_METHOD, METHODS, minimize  # lazy: METHODS read at call time (a caller may narrow solvers.optimize.METHODS)
 
     spec = definitions()["quality_corpus"]
     res_map = tuple(spec["map"])

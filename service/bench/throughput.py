@@ -13,7 +13,7 @@ Each (backend, workers) gets a fresh runner. Its first run ("cold") includes sta
 the workers, as a server with a running pool does. Per method: `repeats` runs of `short` frames (their
 median frames/s), and on the local pool with the most workers one run of the whole `frames`-frame path
 (and the first CHUNK_COMPARE frames of it in tasks of several frames and in tasks of one).
-Method path is solved as a path job solves it: runs of up to batches.WHOLE_PATH_FRAMES consecutive frames,
+Method path is solved as a path job solves it: runs of up to job_kinds.WHOLE_PATH_FRAMES consecutive frames,
 each run solved together by one worker (service.solve.solve_path), the runs in parallel.
 
 Stages, per frame: the coarse pass and the rest of the solve as each solution's timings_ms reports them
@@ -30,7 +30,13 @@ import sys
 import tempfile
 import time
 
+from .. import job_kinds
 from ..job_kinds import WHOLE_PATH_FRAMES
+from ..job_runner import BatchRunner
+from ..job_workers import llvm_path
+from ..paths import expand_path, is_coherent, is_whole_path, line_json
+from ..scenes import SceneCache
+from ..store import Store, UNFINISHED
 from .definitions import ROOT
 from .output import machine, write_section
 
@@ -45,8 +51,6 @@ CHUNK_COMPARE = 240  # frames of the run with tasks of several frames against on
 
 def path_frames(validate_rig, frames: int, screen=SCREEN, map_side: int = 1024) -> list[dict]:
     """The demo walk as validated path frames ({"rig", "frame", "time"})."""
-    from ..paths import expand_path
-
     base = {"camera": {"usd_path": "/World/Camera", "resolution": list(screen)},
             "lights": [{"usd_path": "/World/Sun"}], "shadow": {"resolution": [map_side, map_side], "cascades": 1}}
     out = expand_path({"rig": base, "camera_path": {"keyframes": KEYFRAMES, "samples": frames}})
@@ -70,8 +74,6 @@ class _Clock:
 
 
 def _settings(method: str, workers: int) -> dict:
-    from ..paths import is_coherent, is_whole_path
-
     s = {"method": method, "coherent": is_coherent(method, False), "whole_path": is_whole_path(method, False)}
     if s["coherent"] and workers > 1:
         s["coherent_chunks"] = workers
@@ -80,9 +82,6 @@ def _settings(method: str, workers: int) -> dict:
 
 def _run_path(runner, store, clock: _Clock, scene_id: str, frames: list[dict], method: str, workers: int) -> dict:
     """One path job, streamed in frame order like run_path; its wall time and stages."""
-    from ..paths import line_json
-    from ..store import UNFINISHED
-
     clock.s.clear()
     t0 = time.perf_counter()
     batch_id = store.create_batch("bench", scene_id, frames, _settings(method, workers))
@@ -116,10 +115,6 @@ def _run_path(runner, store, clock: _Clock, scene_id: str, frames: list[dict], m
 def measure(backend: str, workers: int, methods, short: list[dict], repeats: int, long: list[dict] | None,
             log=None) -> dict:
     """One fresh runner: a cold run, then per method `repeats` short runs (and the long path when given)."""
-    from .. import job_kinds
-    from ..job_runner import BatchRunner
-    from ..store import Store
-
     log = log or (lambda m: None)
     rows = {}
     with tempfile.TemporaryDirectory(prefix="shadowopt-bench-throughput-") as tmp:
@@ -158,8 +153,6 @@ def measure(backend: str, workers: int, methods, short: list[dict], repeats: int
 
 def _scene_load_s() -> float:
     """Loading the demo scene into a fresh cache (what each worker does once): seconds."""
-    from ..scenes import SceneCache
-
     t = time.perf_counter()
     SceneCache().get(str(SCENE))
     return time.perf_counter() - t
@@ -179,13 +172,11 @@ def bench_throughput(validate_rig, frames: int = 1000, short_frames: int = 40, r
         ray = None
         if backend == "ray":
             try:
-                import ray
+                import ray  # lazy: the optional `ray` extra; its rows are skipped without it
             except ImportError:
                 skipped["ray"] = "ray is not installed"
                 continue
             if not ray.is_initialized():  # one local instance with a CPU per worker, for every worker count
-                from ..job_workers import llvm_path
-
                 llvm = llvm_path()
                 ray.init(num_cpus=max(workers), include_dashboard=False, log_to_driver=False,
                          object_store_memory=128 * 1024 * 1024,

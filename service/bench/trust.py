@@ -2,6 +2,14 @@
 misclassified pixels do (Spearman within a rig and pooled)?"""
 from __future__ import annotations
 
+import numpy as np
+
+from ...renderers.ground_truth import evaluate_buffers
+from ..rigs import resolve_rig
+from ..scenes import SceneCache
+from ..request import SolveRequest
+from ..solution_json import maps_from_solution
+from ..solve import solve
 from .definitions import ROOT, definitions, hemisphere_directions
 from .output import machine, progress, write_section
 from .quality_report import spearman
@@ -11,15 +19,6 @@ def bench_trust(validate_rig, rigs: int | None = None, write: bool = True) -> di
     """Trust in the prediction: per rig (a sun direction on the demo scene), every method at several
     map resolutions ranked by predicted `objective` and by measured misclassified pixels; the
     within-rig Spearman correlation, its mean, and the pooled (across-rig) correlation."""
-    import numpy as np
-
-    from ...renderers.ground_truth import evaluate_buffers
-    from ..rigs import resolve_rig
-    from ..scenes import SceneCache
-    from ..request import SolveRequest
-    from ..solution_json import maps_from_solution
-    from ..solve import solve
-
     spec = definitions()["trust"]
     n = rigs or spec["rigs"]
     entry = SceneCache().get(ROOT / spec["scene"])
