@@ -17,7 +17,7 @@ export DRJIT_LIBLLVM_PATH ?= $(firstword $(wildcard /usr/lib/*-linux-gnu/libLLVM
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: setup serve test bench demo clean mutate
+.PHONY: setup serve test test-fast bench demo clean mutate
 
 setup: $(STAMP)
 
@@ -39,8 +39,14 @@ $(STAMP): requirements.lock pyproject.toml
 serve: setup
 	$(VENV)/bin/shadowopt serve --host $(HOST) --port $(PORT)
 
+# Every layer (TESTING.md: unit, server, browser, gl; slow ones included). Exit code 5 (no test collected) fails too.
 test: setup
 	$(PY) -m pytest -q
+
+# The unit layer without its slow tests: no server, browser or OpenGL (~1-2 min on 2 cores). One layer:
+# `$(PY) -m pytest -m server`; schemathesis' plugin is left out (only the server layer's fuzzing needs it).
+test-fast: setup
+	$(PY) -m pytest -q -m "unit and not slow" -p no:schemathesis
 
 # Sampled mutation testing with cosmic-ray's operators (tests/mutation/run.py; the sample, the module -> tests map
 # and the time budget in tests/mutation/config.json): scores per folder into TESTING.md, survivors into

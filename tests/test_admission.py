@@ -157,6 +157,7 @@ def quantile(values: list[float], q: float) -> float:
 PROBES = 40  # /healthz and /metrics probes each while the flood is queued
 
 
+@pytest.mark.server
 @pytest.mark.slow
 def test_probes_answer_at_once_and_another_tenant_gets_its_turn_while_one_floods(server):
     """48 heavy requests from alice in flight (2 running, the rest queued): /healthz and /metrics answer in
@@ -232,6 +233,7 @@ def test_probes_answer_at_once_and_another_tenant_gets_its_turn_while_one_floods
     assert gauge(server.base, "shadowopt_inflight_requests") == 0
 
 
+@pytest.mark.server
 def test_one_tenant_over_its_queue_quota_gets_429_while_another_proceeds(server):
     """issue 9: a batch as large as the whole queue from one tenant made the next tenant's small batch fail
     with 503 queue_full. Now the first is refused with 429 naming tenant_max_queued and the second queues."""
@@ -256,6 +258,7 @@ def test_one_tenant_over_its_queue_quota_gets_429_while_another_proceeds(server)
         httpx.delete(f"{server.base}/v1/batches/{r.json()['batch_id']}", headers=auth(who))
 
 
+@pytest.mark.server
 def test_stored_bytes_quota_per_tenant(server):
     """tenant_max_stored_bytes = 3000: carol's uploads stop with 429 naming the quota once her stored scenes
     would exceed it (413 for one file larger than the quota), bob's go on, and deleting makes room."""
@@ -285,6 +288,7 @@ def test_stored_bytes_quota_per_tenant(server):
         httpx.delete(f"{server.base}/v1/scenes/{s['scene_id']}", headers=auth("carol"))
 
 
+@pytest.mark.server
 def test_an_evicted_scene_is_reloaded_once_for_six_concurrent_optimizes(server):
     """issue 9: after a tenant's uploads evicted a scene, 6 concurrent optimizes did 6 full reloads and
     shadowopt_inflight_requests stayed 0. The reload runs under the requests' admission, in a scene-load slot,
@@ -306,6 +310,7 @@ def test_an_evicted_scene_is_reloaded_once_for_six_concurrent_optimizes(server):
         httpx.delete(f"{server.base}/v1/scenes/{sid}", headers=auth("carol"))
 
 
+@pytest.mark.server
 def test_requests_that_waited_for_a_failed_reload_get_its_answer_without_loading_again(server):
     """Single flight for failures: an evicted scene whose file was damaged on disk meanwhile fails to reload;
     the six concurrent optimizes that asked for it all get the leader's 422 (naming the file), and the file is
@@ -366,6 +371,7 @@ def slow_compare(base: str, scene: str, who: str, timeout: float) -> httpx.Respo
         return "gave up"
 
 
+@pytest.mark.server
 def test_a_client_that_gives_up_while_waiting_frees_its_place_at_once(small):
     """review of issue 9: requests whose clients had gone away stayed admitted, used the tenant's quota
     (its next request got 429) and all ran for nobody. Alice sends three slow compares (one runs, two wait
@@ -398,6 +404,7 @@ def test_a_client_that_gives_up_while_waiting_frees_its_place_at_once(small):
     assert gauge(small.base, "shadowopt_inflight_requests") == 0
 
 
+@pytest.mark.server
 @pytest.mark.slow
 def test_two_tenants_at_max_inflight_do_not_lock_a_third_out(small):
     """review of issue 9: alice holds max_inflight = 3 heavy requests; bob and carol, with nothing in flight,
@@ -440,6 +447,7 @@ def raw_upload_start(base: str, who: str, length: int, sent: bytes) -> socket.so
     return s
 
 
+@pytest.mark.server
 def test_an_upload_is_admitted_before_its_body_is_read(small):
     """review of issue 9: upload bodies (up to max_upload_bytes each) were read into memory before admission,
     so one token could hold rate_limit_burst of them. Now an upload is admitted first: three uploads whose
@@ -475,6 +483,7 @@ def test_an_upload_is_admitted_before_its_body_is_read(small):
     assert "slow.usda" not in httpx.get(small.base + "/v1/scenes", headers=auth("carol")).text
 
 
+@pytest.mark.server
 def test_a_batch_is_validated_in_a_solver_slot(small):
     """review of issue 9: a batch's per-configuration validation (up to tenant_max_queued rigs resolved against
     the scene) ran in the shared threadpool beside the solves. It takes a solver slot: while a slow compare
@@ -508,6 +517,7 @@ def grid_scene(n: int) -> str:
             f'        int[] faceVertexIndices = [{idx}]\n        point3f[] points = [{pts}]\n    }}\n}}\n')
 
 
+@pytest.mark.server
 def test_a_scene_over_the_tenants_cache_share_is_refused_413(small):
     """review of issue 9: a scene whose loaded size is over one tenant's share of the scene cache was served
     uncached and reloaded on every request. Its upload is refused, 413 too_large_for_cache, the message naming

@@ -140,6 +140,7 @@ def test_eta_shaping_corner_values():
     assert eta_shaping(90, th, "p") == 0.0
 
 
+@pytest.mark.server
 def test_cli_analyze_json():
     exe = Path(sys.executable).with_name("shadowopt")
     out = subprocess.run([str(exe), "analyze", "--f-over-n", "1000", "--theta-deg", "30", "--gamma-deg", "90",

@@ -13,6 +13,8 @@ import pytest
 from PIL import Image
 from serverkit import DEMO, TINY_RIG, auth, running, upload
 
+pytestmark = pytest.mark.server
+
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):

@@ -384,6 +384,7 @@ def _stored(db: Path, batch_id: str) -> dict[int, str]:
         return dict(c.execute("SELECT idx, result FROM results WHERE batch_id = ?", (batch_id,)).fetchall())
 
 
+@pytest.mark.server
 def test_resume_after_sigkill_computes_only_what_was_missing(tmp_path):
     data = tmp_path / "data"
     store = Store(data)
@@ -460,6 +461,7 @@ def _cli(*args):
     return subprocess.run([str(exe), *map(str, args)], capture_output=True, text=True, timeout=300, cwd=REPO)
 
 
+@pytest.mark.server
 def test_cli_batch_writes_json_lines_in_index_order(tmp_path):
     cfg = tmp_path / "arc.json"
     cfg.write_text(json.dumps({"rig": TINY, "sun_arc": {"azimuth_deg": 220, "elevation_deg": [20, 70], "samples": 3}}))
@@ -479,6 +481,7 @@ def test_cli_batch_writes_json_lines_in_index_order(tmp_path):
     assert 1 <= len(progress) <= 2 + took / LOG_INTERVAL_S, progress
 
 
+@pytest.mark.server
 @pytest.mark.parametrize("content, words", [
     ({"rig": TINY, "sun_arc": {"elevation_deg": [20, 70], "samples": 0}}, "sun_arc.samples"),
     ({"configurations": [{"rig": TINY}, {"rig": {**TINY, "shadow": {"lambda": 2}}}]}, "configurations.1.rig.shadow.lambda"),
@@ -500,6 +503,7 @@ def test_cli_batch_bad_configs_exit_2_naming_the_field(tmp_path, content, words)
     assert e.value.field == words or e.value.field.startswith(words + "."), (e.value.field, words)
 
 
+@pytest.mark.server
 def test_cli_batch_on_a_file_that_is_not_usd_exits_2_with_the_loaders_reason(tmp_path):
     bad = tmp_path / "bad.usda"
     bad.write_text("not usd")

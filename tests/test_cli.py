@@ -23,6 +23,7 @@ def run(*args, check=None):
     return p
 
 
+@pytest.mark.server
 def test_scene_info_json_on_the_demo_scene():
     info = json.loads(run("scene-info", DEMO, "--json", check=0).stdout)
     assert info["triangles"] > 1000 and info["warnings"] == []
@@ -32,6 +33,7 @@ def test_scene_info_json_on_the_demo_scene():
     assert info["frame"]["world"].startswith("right-handed, +Y up, meters")
 
 
+@pytest.mark.server
 def test_coarse_writes_buffers_and_previews(tmp_path):
     out = tmp_path / "buffers"
     summary = json.loads(run("coarse", DEMO, "--rig", DEMO_RIG, "--out", out, "--json", check=0).stdout)
@@ -45,6 +47,7 @@ def test_coarse_writes_buffers_and_previews(tmp_path):
         assert (out / png).stat().st_size > 100
 
 
+@pytest.mark.server
 def test_cli_flags_override_the_rig_and_bad_flags_exit_2(tmp_path):
     p = run("coarse", DEMO, "--rig", DEMO_RIG, "--out", tmp_path, "--cascades", "x", check=2)
     assert "--cascades" in p.stderr and "Traceback" not in p.stderr
@@ -52,6 +55,7 @@ def test_cli_flags_override_the_rig_and_bad_flags_exit_2(tmp_path):
     assert "shadow.lambda" in p.stderr
 
 
+@pytest.mark.server
 @pytest.mark.parametrize("content, words", [
     ("not json", "not valid JSON"),
     ('{"camera": {"position": [0, 1, 0], "target": [0, 0, 5]}, "lights": [{"type": "sun"}]}', "lights.0.type"),
@@ -66,6 +70,7 @@ def test_bad_rigs_exit_2_naming_the_field(tmp_path, content, words):
     assert words in p.stderr and "Traceback" not in p.stderr
 
 
+@pytest.mark.server
 def test_malformed_scene_exits_2(tmp_path):
     bad = tmp_path / "bad.usdc"
     bad.write_bytes(b"PXR-USDC" + b"\0" * 40)
@@ -75,6 +80,7 @@ def test_malformed_scene_exits_2(tmp_path):
     assert "No such file" in p.stderr and "[not_found]" in p.stderr
 
 
+@pytest.mark.server
 def test_bench_coarse_json_on_the_demo_scene():
     res = json.loads(run("bench", "coarse", "--scenes", "demo", "--runs", "3", "--no-write", "--json", check=0).stdout)
     demo = res["scenes"]["demo"]
@@ -95,6 +101,7 @@ CASCADE_FIELDS = {"split", "light_depth", "view_matrix", "projection_matrix", "t
 ERROR_FIELDS = {"objective", "mean_m", "median_m", "p95_m", "max_m", "frac_m_gt_1", "samples"}
 
 
+@pytest.mark.server
 @pytest.mark.parametrize("method", ["uniform", "focused", "lispsm", "logpsm"])
 def test_optimize_writes_the_solution_schema_and_evaluate_reads_it(tmp_path, method):
     sol_path = tmp_path / "sol.json"
@@ -115,6 +122,7 @@ def test_optimize_writes_the_solution_schema_and_evaluate_reads_it(tmp_path, met
     assert heat.stat().st_size > 1000
 
 
+@pytest.mark.server
 def test_evaluate_refuses_a_solution_for_another_scene(tmp_path):
     sol_path = tmp_path / "sol.json"
     run("optimize", DEMO, "--rig", DEMO_RIG, "--out", sol_path, check=0)
@@ -128,6 +136,7 @@ def test_evaluate_refuses_a_solution_for_another_scene(tmp_path):
     assert "not a shadowopt solution" in p.stderr
 
 
+@pytest.mark.server
 def test_bench_quality_json_small_run():
     res = json.loads(run("bench", "quality", "--lights", "2", "--part", "single", "--no-write", "--json", check=0).stdout)
     assert res["lights"] == 2 and set(res["totals"]["single"]) == {"uniform", "focused", "lispsm", "logpsm", "optimized"}
@@ -144,6 +153,7 @@ def test_hemisphere_directions_point_down_above_the_elevation():
     assert abs(np.mean(-d[:, 1]) - (1 + np.sin(np.radians(5))) / 2) < 0.05  # uniform in height
 
 
+@pytest.mark.server
 def test_bench_trust_ranks_configurations_as_measured():
     res = json.loads(run("bench", "trust", "--lights", "2", "--no-write", "--json", check=0).stdout)
     assert len(res["rigs"]) == 2 and len(res["configurations"]) == 15
@@ -160,6 +170,7 @@ def _coloured(png: Path, w: int, h: int) -> tuple[int, int]:
     return tuple(int(np.all(img == np.array(c), axis=-1).sum()) for c in (WRONGLY_SHADOWED, WRONGLY_LIT))
 
 
+@pytest.mark.server
 def test_evaluate_errors_heatmap_and_a_bad_mode(tmp_path):
     sol_path, heat = tmp_path / "sol.json", tmp_path / "errors.png"
     run("optimize", DEMO, "--rig", DEMO_RIG, "--method", "lispsm", "--shadow-resolution", "128x128", "--out", sol_path,
@@ -178,6 +189,7 @@ def test_evaluate_errors_heatmap_and_a_bad_mode(tmp_path):
     assert "--heatmap-mode" in p.stderr and "errors" in p.stderr and "Traceback" not in p.stderr
 
 
+@pytest.mark.server
 def test_compare_with_a_screen_predicts_exactly_what_optimize_predicts(tmp_path):
     """The predicted error is in the rig's own pixels whatever --screen the evaluation uses (issue 10, item 6)."""
     res = json.loads(run("compare", DEMO, "--rig", DEMO_RIG, "--methods", "lispsm,optimized", "--screen", "320x180",
@@ -199,6 +211,7 @@ def _readme_block(heading: str) -> list[str]:
     return [line for line in block[:block.index("```")].splitlines() if line.strip()]
 
 
+@pytest.mark.server
 @pytest.mark.slow
 def test_the_readme_heatmap_example_runs_verbatim(tmp_path):
     """The README's heatmap example, line by line, in a scratch folder (configs/ linked in, so its outputs

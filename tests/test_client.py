@@ -43,6 +43,7 @@ def alice(server):
         yield c
 
 
+@pytest.mark.server
 def test_five_line_use(alice):
     scene = alice.upload_scene(DEMO)
     solution = alice.optimize(scene.scene_id, TINY_RIG)
@@ -54,6 +55,7 @@ def test_five_line_use(alice):
     assert err["samples"] > 0 and 0 < err["p95_m"] < float("inf")
 
 
+@pytest.mark.server
 def test_evaluate_compare_analyze(alice):
     scene = alice.upload_scene(DEMO)
     sol = alice.optimize(scene.scene_id, TINY_RIG, method="focused")
@@ -66,6 +68,7 @@ def test_evaluate_compare_analyze(alice):
     assert a["R_s"] > 0 and a["S"] > 0
 
 
+@pytest.mark.server
 def test_error_carries_server_code_and_field(alice):
     scene = alice.upload_scene(DEMO)
     bad = {**TINY_RIG, "camera": {"usd_path": "/World/Camera", "resolution": [0, 90]}}
@@ -82,6 +85,7 @@ def test_error_carries_server_code_and_field(alice):
     assert e.value.status == 422 and e.value.field.startswith("rig.lights") and "NoSuchLight" in e.value.message
 
 
+@pytest.mark.server
 def test_auth_and_tenants(server, alice):
     scene = alice.upload_scene(DEMO)
     for token in (None, "not-a-token-at-all"):
@@ -96,6 +100,7 @@ def test_auth_and_tenants(server, alice):
     assert alice.get_scene(scene.scene_id).scene_id == scene.scene_id
 
 
+@pytest.mark.server
 def test_async_client_with_typed_rig(server):
     rig = Rig.model_validate(TINY_RIG)
 
@@ -123,6 +128,7 @@ def sun(az_deg: float, el_deg: float = 40.0) -> list[float]:
     return [-math.cos(e) * math.cos(a), -math.sin(e), -math.cos(e) * math.sin(a)]
 
 
+@pytest.mark.server
 def test_batch_submit_wait_and_results(alice, capsys):
     scene = alice.upload_scene(DEMO)
     confs = [{**TINY_RIG, "lights": [{"type": "directional", "direction": sun(az)}]} for az in (0, 60, 120, 180)]
@@ -139,6 +145,7 @@ def test_batch_submit_wait_and_results(alice, capsys):
         bob.batch(created.batch_id)
 
 
+@pytest.mark.server
 def test_batch_results_followed_while_running_and_cancel(alice):
     scene = alice.upload_scene(DEMO)
     confs = [{**TINY_RIG, "lights": [{"type": "directional", "direction": sun(az, 30)}]} for az in (10, 70, 130)]
@@ -153,6 +160,7 @@ def test_batch_results_followed_while_running_and_cancel(alice):
     assert final.state == "cancelled" and final.done < final.total == 30
 
 
+@pytest.mark.server
 def test_busy_server_503_is_retried(tmp_path):
     """A real server admitting one solver request at a time answers the others 503 busy with
     Retry-After; concurrent clients still all get their solutions."""
@@ -258,6 +266,7 @@ def test_connection_refused_is_retried_then_raised():
     assert isinstance(e.value, ShadowoptError) and e.value.status is None
 
 
+@pytest.mark.server
 def test_client_import_needs_no_rendering_stack():
     code = ("import sys, shadowopt.api.client; "
             "print(sorted({m.split('.')[0] for m in sys.modules} & {'numpy', 'mitsuba', 'drjit', 'fastapi', "
@@ -268,6 +277,7 @@ def test_client_import_needs_no_rendering_stack():
 
 # -- typed answers, the README's client examples, progress in a log file ----------------------------
 
+@pytest.mark.server
 def test_optimize_and_results_are_typed_models(alice):
     from shadowopt.api.schemas import BatchResultLine, LightSolution, Solution
 
@@ -302,6 +312,7 @@ def _readme_python_blocks(section: str) -> list[str]:
     return blocks
 
 
+@pytest.mark.server
 def test_readme_client_examples_run_verbatim(server, monkeypatch, capsys):
     """The README's Python client blocks, as printed, against a real server: the camera-path batch's lines
     echo the demo USD camera's own field of view (2 atan(20.25 / 36), from its aperture and focal length; not
@@ -372,6 +383,7 @@ def test_progress_in_a_log_file_is_a_line_every_few_seconds():
     assert type(progress_bar(3, "x", stream=Tty())).__name__ == "tqdm"
 
 
+@pytest.mark.server
 def test_the_server_does_not_import_the_cli():
     code = "import sys, shadowopt.api.server; print('shadowopt.api.cli' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout

@@ -224,6 +224,7 @@ def run(*args, check=None):
     return p
 
 
+@pytest.mark.server
 def test_cli_depth_flag(tmp_path):
     sol = tmp_path / "sol.json"
     run("optimize", DEMO, "--rig", DEMO_RIG, "--method", "focused", "--shadow-resolution", "512x512", "--out", sol,

@@ -81,6 +81,7 @@ def _age_file(path: Path, seconds: float) -> None:
     os.utime(path, (t, t))
 
 
+@pytest.mark.server
 def test_sweep_removes_what_a_killed_upload_left_and_keeps_every_recorded_scene(tmp_path):
     d = tmp_path / "data"
     store = Store(d)
@@ -281,6 +282,7 @@ def _stored_files(data_dir: Path) -> list[Path]:
     return sorted(p for p in (data_dir / "scenes").rglob("*") if p.is_file())
 
 
+@pytest.mark.server
 @pytest.mark.slow
 def test_sigkill_during_an_upload_leaves_nothing_or_a_complete_scene(tmp_path):
     """The server is killed (SIGKILL) while an upload is being loaded (its file is on disk, the load runs),
@@ -335,6 +337,7 @@ def _try_upload(base: str, text: bytes) -> int | None:
         return None
 
 
+@pytest.mark.server
 def test_a_damaged_database_is_a_clean_503_on_health_listing_and_upload(tmp_path):
     """issue 9: /healthz said ok on a corrupt database while /v1/scenes and uploads answered 500. With its
     header overwritten under a running server: /healthz 503 database_unavailable naming the reason, and the

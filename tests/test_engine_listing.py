@@ -78,6 +78,7 @@ def _listing_result(scene, cascades):
     return _RESULTS[(scene, cascades)]
 
 
+@pytest.mark.gl
 @pytest.mark.parametrize("language", E.LANGUAGES)
 @pytest.mark.parametrize("cascades", [1, 4])
 @pytest.mark.parametrize("scene", SCENES)
@@ -109,6 +110,7 @@ def test_pasted_listing_matches_evaluate_depth(scene, cascades, language):
             assert echo["camera"][key] == pytest.approx(r["camera"][key], abs=1e-9), (conv, key)
 
 
+@pytest.mark.gl
 def test_a_wrong_listing_fails_the_check():
     """The check can fail: the lookup without reversed-Z's flipped comparison, or without its bias, is far
     outside 1.25x of evaluate."""
@@ -140,6 +142,7 @@ def _without(src: dict, piece: str, line: str, instead: str = "") -> dict:
     return E.replaced(src, lang, piece, line, instead)
 
 
+@pytest.mark.gl
 def test_the_caster_offset_is_needed():
     """With a quarter of the solution's receiver constant (in evaluate's maps and the listing's alike) the
     casters' slope-scaled offset carries the bias on sloped surfaces: the listing with it agrees with evaluate
@@ -158,6 +161,7 @@ def test_the_caster_offset_is_needed():
         assert v["wrong"] > 3 * max(ev, 10), f"{name}: without the offset {v['wrong']} wrong pixels, evaluate {ev}"
 
 
+@pytest.mark.gl
 def test_blend_only_where_the_next_cascade_holds_the_point_and_the_normal_offset():
     """Blend bands widened to each cascade's whole split (in evaluate's maps and the listing's), so that past
     a band's midpoint many receivers lie outside cascade k + 1, and a normal offset (0.3 m; the solutions
@@ -180,6 +184,7 @@ def test_blend_only_where_the_next_cascade_holds_the_point_and_the_normal_offset
 
 
 
+@pytest.mark.gl
 def test_the_light_pass_stores_what_evaluate_emulates():
     """Per texel, the depth Mesa's light pass stores with the document's state block (the OpenGL polygon offset
     for hardware, the shader's dFdx/dFdy term for linear) against evaluate's emulation of the light pass
@@ -301,6 +306,7 @@ def _local_light(tmp_path_factory, name: str, sources=None, conventions=tuple(E.
             "type": solved["solutions"]["opengl"]["lights"][0]["type"]}
 
 
+@pytest.mark.gl
 @pytest.mark.parametrize("light", ["/World/Spot", "/World/Bulb", "/World/Bulb:cube"])
 def test_local_light_listing_matches_evaluate_depth(tmp_path_factory, light):
     """A spot light's map and a point light's faces (auto chooses face partitioning here: faces of different sizes
@@ -326,6 +332,7 @@ def test_local_light_listing_matches_evaluate_depth(tmp_path_factory, light):
     assert not bad, "; ".join(bad)
 
 
+@pytest.mark.gl
 def test_a_point_lights_face_rule_is_needed(tmp_path_factory):
     """The check can fail for the local lookup: a point light's faces served by face 0 alone (the loop without
     its inside test), or each map as a cascade (uParams.z ignored), are 10% (+ 200 px) past evaluate, outside

@@ -493,6 +493,7 @@ def test_warp_n_is_in_the_preset_unit(demo):
     assert maps_from_solution(sol)[0][0].n_prime == pytest.approx(world["warp"]["n"], rel=1e-12)
 
 
+@pytest.mark.gl
 @pytest.mark.parametrize("engine", ["unreal", "godot"])
 def test_engine_frame_geometry_rasterized_by_opengl_matches_the_ray_cast_map(demo, tmp_path, engine):
     """The demo's geometry moved into the engine's frame and units by hand (TO_ENGINE), drawn with the
@@ -537,6 +538,7 @@ def test_engine_frame_geometry_rasterized_by_opengl_matches_the_ray_cast_map(dem
     assert np.median(err) < 1e-4 * span and np.mean(err < 1e-3 * span) > 0.97, (np.median(err), span)
 
 
+@pytest.mark.server
 @pytest.mark.filterwarnings("ignore:Using `httpx` with `starlette.testclient`")
 def test_rest_camera_path_batch_and_client_rig_with_a_preset(tmp_path):
     """On a real uvicorn server (tests/serverkit.py): a camera-path batch with an engine preset (the server

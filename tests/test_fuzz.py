@@ -23,6 +23,8 @@ from schemathesis.specs.openapi.checks import (content_type_conformance, negativ
                                                status_code_conformance)
 from serverkit import DEMO, REPO, TINY_RIG, auth, running, upload
 
+pytestmark = pytest.mark.server
+
 CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_headers_conformance,
           response_schema_conformance]
 FAST = settings(max_examples=30, deadline=None, derandomize=True, database=None,

@@ -21,6 +21,8 @@ from serverkit import REPO, auth, running
 
 from shadowopt.service.hostile_corpus import mutations
 
+pytestmark = pytest.mark.server
+
 CRATE = "full_assets/OpenChessSet/assets/Rook/Rook_geom.usd"  # 759 KB, binary crate (PXR-USDC), 30,528 triangles
 TEXT = "full_assets/Vehicles/USD_Mini_Car_Kit/assets/wheels/wheelNormal/geo/wheelNormalGeo.usda"  # 39 KB, 236 tris
 CASES = {"usdc": 80, "usda": 80, "usdz": 80}  # 240: ~0.3 s per isolated load (300 took 93 s)

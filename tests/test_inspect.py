@@ -52,6 +52,7 @@ def _glb(r: httpx.Response):
     return mesh, transform
 
 
+@pytest.mark.server
 def test_geometry_is_the_scenes_triangles_in_the_world_frame(server, scene):
     r = httpx.get(f"{server.base}/v1/scenes/{scene['scene_id']}/geometry.glb", headers=auth("alice"), timeout=60)
     mesh, transform = _glb(r)
@@ -71,6 +72,7 @@ def test_geometry_is_the_scenes_triangles_in_the_world_frame(server, scene):
     assert mesh.area == pytest.approx(area, rel=1e-5)
 
 
+@pytest.mark.server
 def test_geometry_above_the_budget_is_decimated_to_it(server, scene):
     budget = 1000
     r = httpx.get(f"{server.base}/v1/scenes/{scene['scene_id']}/geometry.glb", params={"max_triangles": budget},
@@ -87,6 +89,7 @@ def test_geometry_above_the_budget_is_decimated_to_it(server, scene):
     assert low.status_code == 422 and low.json()["error"]["field"] == "max_triangles"
 
 
+@pytest.mark.server
 def test_geometry_needs_the_token_and_is_the_tenants_own(server, scene):
     url = f"{server.base}/v1/scenes/{scene['scene_id']}/geometry.glb"
     assert httpx.get(url).status_code == 401
@@ -96,6 +99,7 @@ def test_geometry_needs_the_token_and_is_the_tenants_own(server, scene):
     assert httpx.get(f"{server.base}/v1/scenes/nosuchscene/geometry.glb", headers=auth("alice")).status_code == 404
 
 
+@pytest.mark.server
 def test_page_and_its_files_are_served_without_a_token(server):
     page = httpx.get(server.base + "/inspect")
     assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")

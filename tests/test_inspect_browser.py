@@ -21,6 +21,8 @@ from serverkit import DEMO, TOKENS, auth, running, upload
 
 from shadowopt.renderers.heatmap import LIT_GREY, SHADOWED_GREY, WRONGLY_LIT, WRONGLY_SHADOWED
 
+pytestmark = pytest.mark.browser
+
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 if not os.path.exists(CHROMIUM):
     pytest.skip("Debian's chromium is absent (make setup installs it: apt-get install chromium); the inspector's "

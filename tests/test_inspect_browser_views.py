@@ -15,6 +15,8 @@ from PIL import Image
 from serverkit import DEMO, TOKENS
 from test_inspect_browser import SCREEN, _classes, _evaluator_mask, _solved, browser, page, server, shots  # noqa: F401
 
+pytestmark = pytest.mark.browser
+
 
 def _responses(page) -> int:
     return page.evaluate("window.inspector.state.stats.optimizeResponses")

@@ -291,6 +291,7 @@ PARENT = textwrap.dedent("""
 """)
 
 
+@pytest.mark.server
 def test_a_loader_child_dies_with_its_parent(tmp_path):
     script = tmp_path / "parent.py"
     script.write_text(PARENT)
@@ -320,6 +321,7 @@ def test_a_loader_child_dies_with_its_parent(tmp_path):
                 pass
 
 
+@pytest.mark.server
 def test_sigkill_of_the_server_leaves_no_worker_and_no_resource_tracker(tmp_path):
     """The issue: after a SIGKILL the resource tracker and 2 batch workers lived on under PID 1."""
     server = launch(tmp_path / "data", env={"SHADOWOPT_BATCH_WORKERS": "2", "SHADOWOPT_RATE_LIMIT_PER_S": "0"},

@@ -383,6 +383,7 @@ print(json.dumps(out))
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.server
 def test_twenty_thousand_instanced_spheres_are_refused_at_once(tmp_path):
     path = tmp_path / "spheres.usda"
     path.write_text(hc.instanced_spheres(20000))

@@ -311,6 +311,7 @@ SERVER_CASES = [  # (path, value, the field the 422 names)
 ]
 
 
+@pytest.mark.server
 def test_server_answers_422_naming_the_field(server):
     r = upload(server.base, "alice")
     assert r.status_code in (200, 201), r.text
@@ -344,6 +345,7 @@ def test_server_answers_422_naming_the_field(server):
         assert httpx.get(server.base + "/healthz").status_code == 200
 
 
+@pytest.mark.server
 def test_compare_and_evaluate_accept_what_optimize_accepts(server):
     """Issue 9, item 9: a rig with a texel budget (no resolution) was refused by /v1/compare (422 "cascades.0.
     resolution ... got None") while /v1/optimize accepted it; all three answer 200 now."""

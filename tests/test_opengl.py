@@ -18,6 +18,8 @@ from shadowopt.solvers.conventions import from_layout
 
 from testkit import gl_depth
 
+pytestmark = pytest.mark.gl
+
 REPO = Path(__file__).resolve().parents[1]
 
 

@@ -143,6 +143,7 @@ def test_a_zip_of_a_folder_becomes_a_package_with_its_root_layer_first(tmp_path)
     assert zip_to_usdz(two, "b.zip")[1] == "b.usdz"  # the zip's name says which
 
 
+@pytest.mark.server
 def test_cli_pack_writes_a_usdz_the_sandbox_loads_whole(tmp_path):
     from shadowopt.renderers.usd_loader import load_scene
 
@@ -163,6 +164,7 @@ def test_cli_pack_writes_a_usdz_the_sandbox_loads_whole(tmp_path):
 
 # -- over a real server ----------------------------------------------------------------------------
 
+@pytest.mark.server
 def test_client_packs_a_multi_file_stage_and_uploads_a_folder(server, tmp_path):
     stage = multi_file_stage(tmp_path / "site")
     with Client(server.base, token=TOKENS["alice"]) as c:
@@ -176,6 +178,7 @@ def test_client_packs_a_multi_file_stage_and_uploads_a_folder(server, tmp_path):
     assert refused and all("one package" in w and str(tmp_path) not in w for w in refused)
 
 
+@pytest.mark.server
 @pytest.mark.parametrize("bad, shown", [("../../escape.usda", "../../escape.usda"), ("/abs/escape.usda", "abs/escape.usda")])
 def test_server_refuses_an_unsafe_zip_entry_with_422_naming_it(server, bad, shown):
     data = zip_bytes({"scene/scene.usda": ROOT.encode(), bad: PART.encode()})
@@ -187,6 +190,7 @@ def test_server_refuses_an_unsafe_zip_entry_with_422_naming_it(server, bad, show
     assert str(server.data_dir) not in r.text and "/tmp" not in r.text
 
 
+@pytest.mark.server
 def test_server_refuses_a_symlink_zip_entry(server):
     data = zip_bytes({"scene.usda": ROOT.encode(), "parts/part.usda": b"/etc/passwd"}, links=("parts/part.usda",))
     r = httpx.post(f"{server.base}/v1/scenes", params={"filename": "scene.zip"}, content=data,
@@ -194,6 +198,7 @@ def test_server_refuses_a_symlink_zip_entry(server):
     assert r.status_code == 422 and "'parts/part.usda': a symbolic link" in r.json()["error"]["message"]
 
 
+@pytest.mark.server
 @pytest.mark.skipif(not CHESS.exists(), reason="the OpenChessSet asset is not on this machine")
 def test_the_chess_set_packs_uploads_and_optimizes(server, tmp_path):
     """The chess set (references and payloads over 29 layers) packed by `shadowopt pack`, uploaded and
@@ -221,6 +226,7 @@ def test_the_chess_set_packs_uploads_and_optimizes(server, tmp_path):
     assert sol.lights[0].cascades[0].resolution == (256, 256)
 
 
+@pytest.mark.server
 @pytest.mark.skipif(not CHESS.exists(), reason="the OpenChessSet asset is not on this machine")
 def test_the_chess_set_alone_is_refused_saying_how_and_showing_no_server_path(server):
     """Its root layer by itself holds no geometry (all of it is in referenced files): 422 empty_stage whose
@@ -276,6 +282,7 @@ def test_client_does_not_pack_a_file_outside_the_stage_folder_unless_asked(tmp_p
     assert alone == stage.read_bytes()
 
 
+@pytest.mark.server
 def test_cli_pack_refuses_a_file_outside_the_stage_folder_unless_allowed(tmp_path):
     secret = secret_file(tmp_path)
     stage = stage_naming(tmp_path / "site", str(secret))
@@ -314,6 +321,7 @@ def test_an_entry_named_like_the_package_being_written_is_just_a_file():
     assert name == "scene.usdz"
 
 
+@pytest.mark.server
 def test_server_answers_a_colliding_zip_with_422_naming_the_entry(server):
     for entries in ({"scene.usda": ROOT.encode(), "tex": b"x", "tex/a.png": b"y"},
                     {"scene.usda": ROOT.encode(), "tex/a.png": b"y", "tex": b"x"},
@@ -376,6 +384,7 @@ def test_too_many_entries_are_refused_before_zipfile_reads_the_central_directory
 
 # -- the bare client install zips a folder --------------------------------------------------------------
 
+@pytest.mark.server
 def test_the_bare_client_uploads_a_folder_without_numpy_or_usd_core(tmp_path):
     """With numpy and usd-core unimportable (the client install: httpx and pydantic), the client zips a
     folder and sends a stage that would need packing as it is; nothing of the rendering stack is imported."""
@@ -421,6 +430,7 @@ def test_a_folder_with_an_empty_file_and_a_link_out_uploads_without_them(tmp_pat
     assert e.value.code == "empty_stage" and "'scene.usda' is empty" in e.value.message
 
 
+@pytest.mark.server
 def test_server_refuses_a_zip_over_the_entry_limit_with_413(server):
     data = with_declared_count(many_entries(MAX_ZIP_ENTRIES + 1), 7)  # the count lies; the records are counted
     r = httpx.post(f"{server.base}/v1/scenes", params={"filename": "scene.zip"}, content=data,

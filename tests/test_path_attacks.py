@@ -161,6 +161,7 @@ def attacked(server):
     return st, lines, time.monotonic() - t0
 
 
+@pytest.mark.server
 def test_a_frame_whose_mesh_is_nan_at_its_time_code_says_so_on_its_line(attacked):
     """The caster's points are NaN at t = 5: the loader skips it there, and that frame's line (only that one)
     carries the loader's warning naming the prim and why."""
@@ -171,6 +172,7 @@ def test_a_frame_whose_mesh_is_nan_at_its_time_code_says_so_on_its_line(attacked
     assert not any("/World/Caster" in w for w in lines[0].get("warnings") or [])
 
 
+@pytest.mark.server
 def test_a_frame_heavy_only_at_its_time_code_fails_alone_over_the_upload_load_memory_limit(attacked):
     """The worker's load at t = 10 (20 k instanced spheres: 19 M triangles, ~0.9 GB) runs isolated under the
     upload's memory limit and is stopped there: that frame's line (with its frame, time and scene_time, like a
@@ -203,6 +205,7 @@ def test_a_frame_load_over_the_load_time_limit_fails_naming_it(tmp_path):
     assert time.monotonic() - t0 < 30
 
 
+@pytest.mark.server
 def test_a_nan_focal_length_is_refused_naming_the_attribute_and_time_code(server):
     """focalLength NaN at t = 5 (and USD's interpolation toward it between samples): a 422 naming usd_camera with
     the camera attribute, its value and the time code, not a range error on a fov_y_deg the request never gave."""

@@ -157,6 +157,7 @@ def _cli(*args, cwd=REPO):
     return subprocess.run([str(EXE), *map(str, args)], cwd=cwd, capture_output=True, text=True, timeout=300)
 
 
+@pytest.mark.server
 def test_cli_usd_camera_path_coherent_json_lines_in_frame_order(animated, tmp_path):
     """--camera/--time: one JSON line per frame on stdout, in order, each with frame, time and the solution
     solved at the closed-form pose; --coherent: each frame after the first was given the previous frame's
@@ -205,6 +206,7 @@ def _readme_path_command() -> str:
     return block[:block.index("```")].strip()
 
 
+@pytest.mark.server
 def test_readme_camera_path_command_runs_verbatim(tmp_path):
     """The README's command, as printed (in a scratch folder with configs/ linked in): one line per frame of
     the keyframed path, in order, each camera at its interpolated position."""
@@ -228,6 +230,7 @@ def test_readme_camera_path_command_runs_verbatim(tmp_path):
 
 # -- REST and the client on a real server -------------------------------------------------------
 
+@pytest.mark.server
 def test_rest_post_paths_streams_frames_in_order_and_the_client_yields_them(animated, tmp_path, monkeypatch):
     """An uploaded stage (its animation read in the isolated loader child): 202, errors naming the field, then
     the client's optimize_path yields typed frames in order, and the batch results endpoint has the same
@@ -303,6 +306,7 @@ def _stored(db: Path, batch_id: str) -> dict[int, str]:
         return dict(c.execute("SELECT idx, result FROM results WHERE batch_id = ?", (batch_id,)).fetchall())
 
 
+@pytest.mark.server
 def test_a_coherent_path_resumes_after_sigkill_from_the_stored_previous_frame(tmp_path):
     """Killed mid-path (runner and workers, as a power cut): resume solves only the missing frames, and the
     first of them is given the stored solution of the frame before it."""

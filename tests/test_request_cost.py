@@ -184,6 +184,7 @@ def _error(r: httpx.Response, status: int = 422) -> dict:
     return r.json()["error"]
 
 
+@pytest.mark.server
 def test_server_refuses_the_attackers_rig_on_optimize_compare_evaluate_and_batches(server, scene_id):
     h = auth("alice")
     for rig, field, words in ((attacker_rig(), "rig.coarse_long_side", ("512",)),
@@ -210,6 +211,7 @@ def test_server_refuses_the_attackers_rig_on_optimize_compare_evaluate_and_batch
         assert time.monotonic() - t0 < 20  # refused up front, not after minutes of solving
 
 
+@pytest.mark.server
 def test_server_compare_over_the_eval_limit_is_too_costly_and_small_requests_still_run(server, scene_id):
     h = auth("alice")
     three = {"scene_id": scene_id, "rig": largest_rig(), "methods": ["uniform", "focused", "lispsm"]}

@@ -11,6 +11,8 @@ import httpx
 import pytest
 from serverkit import TINY_RIG, auth, launch, stop, upload, wait_ready
 
+pytestmark = pytest.mark.server
+
 ENV = {"SHADOWOPT_BATCH_WORKERS": "1", "SHADOWOPT_RATE_LIMIT_PER_S": "0"}
 N = 16
 

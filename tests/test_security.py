@@ -62,6 +62,7 @@ def error_of(r: httpx.Response, status: int) -> dict:
     return r.json()["error"]
 
 
+@pytest.mark.server
 def test_missing_wrong_or_malformed_token_is_401(server):
     for headers in ({}, {"Authorization": "Bearer not-a-token"}, {"Authorization": "Basic YWxpY2U6eA=="},
                     {"Authorization": "Bearer " + auth("alice")["Authorization"][7:] + "x"}):
@@ -74,6 +75,7 @@ def test_missing_wrong_or_malformed_token_is_401(server):
     assert httpx.get(server.base + "/metrics").status_code == 200
 
 
+@pytest.mark.server
 def test_another_tenants_scene_and_batch_are_404(server, alice_box):
     base = server.base
     bob = auth("bob")
@@ -103,6 +105,7 @@ def test_another_tenants_scene_and_batch_are_404(server, alice_box):
     assert httpx.get(f"{base}/v1/scenes/{alice_box}", headers=auth("alice")).status_code == 200
 
 
+@pytest.mark.server
 def test_upload_referencing_a_file_elsewhere_is_refused_with_a_warning(server):
     target = (REPO / "configs" / "demo_scene.usda").resolve()
     refs = (f'    def "Stolen" (\n        prepend references = @{target}@\n    ) {{}}\n'
@@ -118,6 +121,7 @@ def test_upload_referencing_a_file_elsewhere_is_refused_with_a_warning(server):
     assert info["cameras"] == [] and info["lights"] == []  # the demo's camera and sun stayed outside
 
 
+@pytest.mark.server
 def test_usdz_entry_with_a_traversal_name_is_refused_with_a_warning(server):
     import io
     import zipfile
@@ -135,6 +139,7 @@ def test_usdz_entry_with_a_traversal_name_is_refused_with_a_warning(server):
     assert any("unsafe names" in w and "../evil.usda" in w for w in info["warnings"]), info["warnings"]
 
 
+@pytest.mark.server
 def test_upload_size_limit_413(server):
     big = (BOX % "") + "#" * 25000 + "\n"
     err = error_of(post_scene(server.base, "alice", big), 413)
@@ -145,6 +150,7 @@ def test_upload_size_limit_413(server):
     assert error_of(r, 413)["code"] == "upload_too_large"
 
 
+@pytest.mark.server
 def test_json_body_limit_413_and_time_budget_cap(server, alice_box):
     padded = {"scene_id": alice_box, "rig": BOX_RIG, "previous": {"pad": "x" * 120_000}}
     err = error_of(httpx.post(server.base + "/v1/optimize", json=padded, headers=auth("alice")), 413)
@@ -161,6 +167,7 @@ def test_json_body_limit_413_and_time_budget_cap(server, alice_box):
     assert r.json()["provenance"]["settings"]["time_budget_ms"] == 300  # capped by the server's budget
 
 
+@pytest.mark.server
 def test_triangle_limit_413_and_nothing_kept(server):
     r = upload(server.base, "alice", DEMO)
     err = error_of(r, 413)
@@ -178,6 +185,7 @@ def slow_configurations(n: int) -> list[dict]:
     return [{"rig": {**rig, "lights": [{"type": "directional", "direction": [0.1 * k, -1, 0.2]}]}} for k in range(n)]
 
 
+@pytest.mark.server
 def test_full_batch_queue_503_with_retry_after(server, alice_box):
     configs = slow_configurations(4)
     body = {"scene_id": alice_box, "configurations": configs, "method": "optimized"}
@@ -195,6 +203,7 @@ def test_full_batch_queue_503_with_retry_after(server, alice_box):
     httpx.delete(f"{server.base}/v1/batches/{statuses[0].json()['batch_id']}", headers=auth("carol"))
 
 
+@pytest.mark.server
 def test_rate_limit_per_token_429(server):
     codes, retry = [], None
     with httpx.Client(base_url=server.base, headers=auth("carol")) as c:
@@ -212,6 +221,7 @@ def test_rate_limit_per_token_429(server):
     assert httpx.get(server.base + "/v1/scenes", headers=auth("carol")).status_code == 200
 
 
+@pytest.mark.server
 def test_ground_truth_size_limits_cover_budgets_and_malformed_resolutions(server, alice_box):
     """A texel budget (compare sizes its maps from it) and a solution's resolution are checked before any
     ray is cast: a budget over the limit is a 413, a resolution that is not two positive integers a 422."""
@@ -229,6 +239,7 @@ def test_ground_truth_size_limits_cover_budgets_and_malformed_resolutions(server
     assert err["code"] == "invalid_solution" and err["field"] == "solution.lights.0.cascades.0.resolution"
 
 
+@pytest.mark.server
 def test_compare_and_evaluate_accept_a_texel_budget_rig_as_optimize_does(server, alice_box):
     """issue 9: /v1/compare refused every rig with `texel_budget` (422 "cascades.0.resolution ... got None").
     A budget rig (two cascades under 2 x 256^2 texels) is accepted by optimize, compare and evaluate alike."""
@@ -249,6 +260,7 @@ def test_compare_and_evaluate_accept_a_texel_budget_rig_as_optimize_does(server,
     assert ev.json()["receiver_pixels"] > 0
 
 
+@pytest.mark.server
 def test_no_server_path_in_any_answer(server, alice_box):
     """issue 9: load errors carried the storage path (<data>/scenes/<tenant hash>/<id>/x.usda) and a warning a
     path inside the virtual environment. Damaged files (USD's own parse errors name the layer's full path),
@@ -305,6 +317,7 @@ def Xform "tmp" {
 """
 
 
+@pytest.mark.server
 def test_prim_paths_that_look_like_server_paths_come_back_unchanged(server):
     """review of issue 9: redaction ran over every string of every answer, so a scene whose prims live under
     /tmp (the server's temporary folder) came back with its camera `/tmp/Camera` as `Camera`. Identifiers are

@@ -23,6 +23,7 @@ def server(tmp_path_factory):
         yield s
 
 
+@pytest.mark.server
 def test_ready_after_warm_up(server):
     assert server.statuses[-1] == 200 and set(server.statuses) <= {200, 503}
     health = httpx.get(server.base + "/healthz").json()
@@ -35,6 +36,7 @@ def test_ready_after_warm_up(server):
     assert r.status_code == 200, r.text
 
 
+@pytest.mark.server
 def test_served_openapi_is_the_repository_document(server):
     served = httpx.get(server.base + "/openapi.json").json()
     kept = json.loads((REPO / "docs" / "openapi.json").read_text())
@@ -52,6 +54,7 @@ def test_served_openapi_is_the_repository_document(server):
     assert "Retry-After" in served["paths"]["/v1/batches"]["post"]["responses"]["503"]["headers"]
 
 
+@pytest.mark.server
 def test_request_id_is_echoed_generated_and_logged(server):
     r = httpx.get(server.base + "/v1/scenes", headers={**auth("alice"), "X-Request-ID": "trace-42.a"})
     assert r.status_code == 200 and r.headers["x-request-id"] == "trace-42.a"
@@ -66,6 +69,7 @@ def test_request_id_is_echoed_generated_and_logged(server):
     assert miss and miss[0]["status"] == 404 and miss[0]["error_code"] == "scene_not_found"
 
 
+@pytest.mark.server
 def test_metrics_count_requests_latency_optimize_and_queue(server):
     for _ in range(3):
         httpx.get(server.base + "/v1/scenes", headers=auth("bob"))
@@ -79,6 +83,7 @@ def test_metrics_count_requests_latency_optimize_and_queue(server):
     assert "# TYPE shadowopt_request_duration_seconds histogram" in text
 
 
+@pytest.mark.server
 def test_no_tokens_means_loopback_only_and_open(tmp_path):
     exe = Path(sys.executable).with_name("shadowopt")
     env = {k: v for k, v in os.environ.items() if not k.startswith("SHADOWOPT_")}
@@ -96,6 +101,7 @@ def test_no_tokens_means_loopback_only_and_open(tmp_path):
         stop(server)
 
 
+@pytest.mark.server
 def test_retention_removes_old_scenes(tmp_path):
     env = {"SHADOWOPT_RETENTION_DAYS": str(1.0 / 86400), "SHADOWOPT_RETENTION_INTERVAL_S": "0.3"}
     with running(tmp_path / "data", env=env) as server:
@@ -136,6 +142,7 @@ def test_settings_from_file_env_and_flags(tmp_path):
     assert is_loopback("127.0.0.1") and is_loopback("::1") and not is_loopback("0.0.0.0")
 
 
+@pytest.mark.server
 def test_serve_bad_config_exits_2(tmp_path):
     exe = Path(sys.executable).with_name("shadowopt")
     (tmp_path / "c.toml").write_text("max_queue = 0\n")
@@ -145,6 +152,7 @@ def test_serve_bad_config_exits_2(tmp_path):
     assert r.returncode == 2 and "max_queue: must be at least 1" in r.stderr
 
 
+@pytest.mark.server
 def test_load_limits_are_checked_once_with_the_loaders_own_floor(tmp_path):
     """review of issue 9: SHADOWOPT_LOAD_TIMEOUT_S=nan (or inf) was accepted and then every upload answered
     500; the memory floor was checked twice with different numbers. The server now refuses to start naming
