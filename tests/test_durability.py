@@ -21,7 +21,8 @@ import pytest
 from serverkit import auth, launch, running, stop, upload, wait_ready
 
 from shadowopt.service import hostile_corpus as H
-from shadowopt.service.store import Store, scene_id_for, tenant_dir_name
+from shadowopt.service.store import Store, scene_id_for
+from shadowopt.service.store_db import tenant_dir_name
 
 DEMO = Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda"
 

@@ -11,7 +11,8 @@ import pytest
 
 from storekit import add_upload
 
-from shadowopt.service.store import Store, tenant_dir_name
+from shadowopt.service.store import Store
+from shadowopt.service.store_db import tenant_dir_name
 
 DEMO = Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda"
 
