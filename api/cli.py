@@ -131,11 +131,11 @@ def cmd_coarse(args) -> int:
 
 def cmd_bench(args) -> int:
     if args.bench == "coarse":
-        from ..service.bench.coarse import bench_coarse
+        from ..service.bench.coarse import bench_coarse  # lazy: the server stack loads only for the command that runs
 
         result = bench_coarse(validate_rig, runs=args.runs, scenes=args.scenes, write=not args.no_write)
     elif args.bench == "solvers":
-        from ..service.bench.solvers import bench_solvers, bench_solvers_corpus
+        from ..service.bench.solvers import bench_solvers, bench_solvers_corpus  # lazy: the server stack loads only for the command that runs
 
         if args.corpus:
             result = bench_solvers_corpus(validate_rig, lights=args.lights or 3, scenes=args.scenes,
@@ -143,24 +143,24 @@ def cmd_bench(args) -> int:
         else:
             result = bench_solvers(validate_rig, lights=args.lights or 5, write=not args.no_write)
     elif args.bench == "trust":
-        from ..service.bench.trust import bench_trust
+        from ..service.bench.trust import bench_trust  # lazy: the server stack loads only for the command that runs
 
         result = bench_trust(validate_rig, rigs=args.lights, write=not args.no_write)
     elif args.bench == "quality":
         parts = ("single", "cascades") if args.part == "all" else (args.part,)
         if args.corpus:
-            from ..service.bench.quality_corpus import bench_quality_corpus
+            from ..service.bench.quality_corpus import bench_quality_corpus  # lazy: the server stack loads only for the command that runs
 
             result = bench_quality_corpus(validate_rig, lights=args.lights, scenes=args.scenes, parts=parts,
                                           write=not args.no_write, reuse=args.reuse or False,
                                           screen=args.screen, cascade_lights=args.cascade_lights,
                                           hd_lights=args.hd_lights, log=lambda m: print(m, file=sys.stderr))
         else:
-            from ..service.bench.quality import bench_quality
+            from ..service.bench.quality import bench_quality  # lazy: the server stack loads only for the command that runs
 
             result = bench_quality(validate_rig, lights=args.lights, write=not args.no_write, parts=parts)
     elif args.bench == "heldout":  # the corpus protocol on the held-out scenes (configs/heldout.json)
-        from ..service.bench.heldout import bench_heldout
+        from ..service.bench.heldout import bench_heldout  # lazy: the server stack loads only for the command that runs
 
         result = bench_heldout(validate_rig, lights=args.lights, scenes=args.scenes, screen=args.screen,
                                cascade_lights=args.cascade_lights, cascades=args.part != "single",

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..renderers.coarse import (DEFAULT_BOUNDARY_RADIUS, CoarseBuffers, FinePoints, camera_hits, fine_points,
-                                fine_ray_directions, light_buffers, light_test, mask_numpy, surface_hits)
+                                fine_ray_directions, light_buffers, light_test, mask_numpy, opaque3, surface_hits)
 from ..renderers.mitsuba_setup import mitsuba
 from .receivers import receiver_prep
 from .rigs import resolve_rig
@@ -105,8 +105,6 @@ def _fine_rays(mi, dr, rs, camera, fine: FinePoints, shape):
     f = fine.factor
     vj, vi = np.divmod(fine.traced, fine.grid_shape[1])
     _, d = fine_ray_directions(mi, camera, vj, vi, f, w, h)
-    from ..renderers.coarse import opaque3
-
     o = opaque3(mi, dr, mi.Point3f, camera.position - rs.origin)
     fwd = opaque3(mi, dr, mi.Vector3f, camera.forward)
     pi, ok, t, p, nrm = surface_hits(mi, dr, rs, mi.Ray3f(o, d), fwd, camera)
