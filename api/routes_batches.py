@@ -149,7 +149,7 @@ def status_json(svc: Service, tenant: str, b: dict) -> dict:
 
 
 def batch_hints(svc: Service, tenant: str, b: dict) -> dict:
-    """service.batches.interpolation_hints over the results, read a page at a time and cut down to the
+    """service.interpolation_hints.interpolation_hints over the results, read a page at a time and cut down to the
     fields the hints compare (a big batch never sits in memory whole); cached per finished batch."""
     key = (tenant, b["batch_id"])
     with _HINTS_LOCK:

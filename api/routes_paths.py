@@ -185,7 +185,7 @@ async def path_animation(svc: Service, ticket, scene_id: str, camera: str, times
 
 
 def read_animation_for(svc: Service, path, sandboxed: bool, camera: str, times: list, light_paths: list) -> dict:
-    """renderers.usd_loader.read_animation on a stored scene: an upload in a child under the load limits (as
+    """renderers.usd_animation.read_animation on a stored scene: an upload in a child under the load limits (as
     its load), a local scene in this process."""
     if not sandboxed:
         return read_animation(os.fspath(path), camera, times, light_paths=light_paths)

@@ -7,7 +7,7 @@ says so (`screen`, `rig_resolution`) and, when the two differ, adds `measured_er
 same measurement with every footprint converted to the rig's pixels (m times s, h times s²,
 s = sqrt(W H / (w h)), the rig's pixels per screen pixel along a side; screens keep the camera's aspect).
 
-Depth (renderers.ground_truth.DEPTH_CHOICES): "solution" (default) emulates what an engine does with each
+Depth (renderers.depth_tests.DEPTH_CHOICES): "solution" (default) emulates what an engine does with each
 map's `depth` block in the mode the solution chose; "hardware" / "linear" force that block; "ideal" is the
 idealized per-texel rule of `depth_bias`. Each evaluation says which (`depth`, `depth_rule`).
 

@@ -1,7 +1,7 @@
 """What a light needs of a shadow map: the visible receivers it can shadow, read from the coarse buffers.
 
 A receiver of a light is a surface point the camera sees (a coarse hit, or a hit of the edge pass) that faces
-the light inside its cone (spot) — lit by it or shadowed from it (renderers.coarse._light_test's `facing` and
+the light inside its cone (spot) — lit by it or shadowed from it (renderers.coarse.light_test's `facing` and
 `in_light`; a surface facing away is dark by its own shading, which needs no map). A light with none casts no
 visible shadow: it gets no map (`"shadow": "none"` and the reason, with the counts). A cascade or cube face
 whose region holds none of the light's receivers (service.receivers.receiver_points, with their view-depth slack)

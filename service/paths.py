@@ -46,7 +46,7 @@ class PathError(BatchError):
 def expand_path(request: dict, *, scene_path=None, reader=None) -> list[dict]:
     """The frames of a path request in order, each {"rig": RIG, "frame": k, "time": t or None}
     (see the module doc). The `usd_camera` form reads the stage: `reader(camera_path, times, light_paths)`
-    returns renderers.usd_loader.read_animation's dict (the server runs it isolated for uploads), or
+    returns renderers.usd_animation.read_animation's dict (the server runs it isolated for uploads), or
     `scene_path` is read directly. Raises PathError naming the field."""
     return expand_path_with_notes(request, scene_path=scene_path, reader=reader)[0]
 

@@ -53,7 +53,7 @@ def _corpus_fingerprint(path: Path, camera: dict, screen, configs: dict, part_di
                         + ([hd] if hd and hd.get("lights") else []),
                         sort_keys=True, default=str).encode())
     code = sorted((ROOT / "solvers").glob("*.py")) + [
-        ROOT / "renderers" / f for f in ("ground_truth.py", "coarse.py", "ray_scene.py", "mitsuba_setup.py", "coverage.py",
+        ROOT / "renderers" / f for f in ("ground_truth.py", "shadow_map_rays.py", "depth_tests.py", "coarse.py", "ray_scene.py", "mitsuba_setup.py", "coverage.py",
                                          "scene_data.py")] + [
         ROOT / "service" / f for f in ("solve.py", "receivers.py", "map_sizing.py", "solution_json.py", "rigs.py", "pipeline.py")]
     for f in code:
