@@ -6,7 +6,7 @@ reach of every pixel) and the receivers of a receiver mask (service.receivers.re
 and only the shadow rays, the facing tests, the shadow-boundary mask and the new mask's receivers are
 computed again.
 
-Exact, not an approximation: the light part runs renderers.coarse's own kernels (_light_test) on the
+Exact, not an approximation: the light part runs renderers.coarse's own kernels (light_test) on the
 camera part's Dr.Jit values as they were computed (float32, before any conversion), so the buffers equal
 renderers.coarse.render_coarse's bit for bit (tests/test_coarse_cache.py compares every array).
 
@@ -119,7 +119,7 @@ def _vec(mi, cls, a: np.ndarray):
 
 def light_part(rs, camera, cp: CameraPass, lights, boundary_radius: int = DEFAULT_BOUNDARY_RADIUS) -> CoarseBuffers:
     """The lights' coarse buffers over a camera pass: render_coarse's shadow rays and tests, its boundary
-    mask, and the edge pass's per-light receiver test (fine_points: _light_test without shadow rays)."""
+    mask, and the edge pass's per-light receiver test (fine_points: light_test without shadow rays)."""
     mi = mitsuba()
     import drjit as dr  # lazy: loaded after mitsuba() has set its LLVM variant (renderers.mitsuba_setup)
 
