@@ -1,7 +1,7 @@
 """usd-core's diagnostics and errors as scene warnings and messages.
 
-- usd-core's diagnostics (missing files, MaterialX it cannot read) become scene warnings.
-  (captured_stderr); Tf errors' texts without the C++ location (tf_text, usd_error_text).
+- usd-core's diagnostics (missing files, MaterialX it cannot read) become scene warnings (captured_stderr).
+- Tf errors' texts without the C++ location (tf_text, usd_error_text); warnings without repeats (dedupe).
 """
 from __future__ import annotations
 
@@ -12,8 +12,6 @@ import sys
 import tempfile
 import threading
 
-
-# ---------------------------------------------------------------- diagnostics
 _FD2_LOCK = threading.RLock()  # fd 2 is process-wide: one redirect at a time (loads are serialised)
 
 

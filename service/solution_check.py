@@ -33,7 +33,7 @@ import numpy as np
 
 from .rigs import SolutionError
 
-SCHEMA_VERSION = 1  # of the solution JSON service.solve writes (defined here: the check imports no solver)
+SCHEMA_VERSION = 1  # of the solution JSON service.solution_json writes (defined here: the check imports no solver)
 MAX_LIGHTS = 16
 MAX_CASCADES = 16
 MAX_RESOLUTION = 16384

@@ -301,7 +301,7 @@ def test_receivers_memo_counts_hits_and_misses_exactly_and_keeps_eight_masks():
     from shadowopt.service.coarse_cache import MAX_RECEIVER_MASKS, CoarseCache
 
     cache = CoarseCache()
-    # a pass whose camera-only receiver part is already made (service.receivers.receiver_prep: not called here)
+    # a pass whose camera-only receiver part is already made (service.solve.receiver_prep: not called here)
     cp = SimpleNamespace(lock=threading.Lock(), receivers=OrderedDict(), receiver_prep=object(),
                          receiver_misses=0)
     computed = []
