@@ -83,7 +83,7 @@ class FinePoints:
         and is not a receiver, or is one at a view depth more than `continuity` away (corners not
         traced lie inside coarse pixels without a geometric edge: not an edge); slack = the largest
         view-depth change to a receiver 4-neighbour (full-resolution pixels between fine rays have depths
-        within it: cascade overlap, as service.solve.depth_slack for the coarse pixels). 0 for non-receivers.
+        within it: cascade overlap, as service.receivers.depth_slack for the coarse pixels). 0 for non-receivers.
         `neighbours`: self.neighbours(), when kept."""
         nb = self.neighbours() if neighbours is None else neighbours
         receiver = np.asarray(receiver, dtype=bool)

@@ -585,7 +585,7 @@ def held_cascade_count(maps_for, maps, info, auto: dict, state, shadow: dict, hy
     """`cascades: "auto"` with method path: the previous frame's count is kept unless the count auto_cascades
     chose scores better by the hysteresis factor (objective x texels below `hysteresis` x the held count's), or,
     with a target_p95_m, unless the held count misses the target and the chosen one meets it. Returns (maps, info,
-    auto) as service.solve.auto_cascades does, the rule saying when the held count was kept."""
+    auto) as service.map_sizing.auto_cascades does, the rule saying when the held count was kept."""
     hysteresis = HYSTERESIS if hysteresis is None else float(hysteresis)
     if not isinstance(state, dict) or not isinstance(state.get("cascades"), list):
         return maps, info, auto
