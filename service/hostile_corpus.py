@@ -9,7 +9,6 @@ enough to pass an upload size limit while asking the loader for far more than it
   which a depth-limited walk stops following before it reaches `target`;
 - `empty_xforms`: hundreds of thousands of empty prims (composition and traversal cost, no triangles);
 - `tiny_scene`: distinct valid tiny scenes (a flood of uploads that would evict everyone's cache);
-- `mutations`: seeded truncations and byte flips of a real file (fuzzing);
 - `poisoned_scene`: a valid scene whose camera path shows up in the scene info when it was opened.
 """
 from __future__ import annotations
@@ -104,26 +103,3 @@ def poisoned_scene(marker_camera: str = "/Poison/Camera") -> str:
     root, _, name = marker_camera.strip("/").partition("/")
     return (f'#usda 1.0\n(\n    defaultPrim = "{root}"\n)\ndef Xform "{root}" {{\n    def Camera "{name or "Camera"}" {{\n'
             '    }\n    def Cube "Secret" {\n        double size = 3\n    }\n}\n')
-
-
-def mutations(data: bytes, n: int, seed: int = 0) -> list[bytes]:
-    """`n` damaged copies of `data`: truncations at random lengths, runs of flipped bytes, and zeroed
-    blocks, in a seeded order (the same corpus every run)."""
-    rng = random.Random(seed)
-    out = []
-    for k in range(n):
-        kind = k % 3
-        if kind == 0 or len(data) < 16:
-            out.append(data[: rng.randrange(1, max(2, len(data)))])
-            continue
-        b = bytearray(data)
-        if kind == 1:
-            for _ in range(rng.randint(1, 16)):
-                i = rng.randrange(len(b))
-                b[i] ^= 1 << rng.randrange(8)
-        else:
-            i = rng.randrange(len(b))
-            j = min(len(b), i + rng.randint(1, 256))
-            b[i:j] = bytes(j - i) if rng.random() < 0.5 else bytes(rng.randrange(256) for _ in range(j - i))
-        out.append(bytes(b))
-    return out
