@@ -20,9 +20,6 @@ from .responses import redact
 
 log = logging.getLogger("shadowopt.server")
 
-
-# --- errors -------------------------------------------------------------------------------------
-
 DESCRIPTIONS = {
     400: "malformed request", 401: "missing or unknown bearer token", 404: "no such resource for this tenant",
     409: "the resource is in a state that does not allow this", 413: "too large (upload size, triangles, "
