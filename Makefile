@@ -40,8 +40,10 @@ serve: setup
 	$(VENV)/bin/shadowopt serve --host $(HOST) --port $(PORT)
 
 # Every layer (TESTING.md: unit, server, browser, gl; slow ones included). Exit code 5 (no test collected) fails too.
+# TEST_JOBS=2 runs the files on two pytest-xdist workers (--dist loadfile: a file's module server is started once).
+TEST_JOBS ?=
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q $(if $(TEST_JOBS),-n $(TEST_JOBS) --dist loadfile)
 
 # The unit layer without its slow tests: no server, browser or OpenGL (~1-2 min on 2 cores). One layer:
 # `$(PY) -m pytest -m server`; schemathesis' plugin is left out (only the server layer's fuzzing needs it).

@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from shadowopt.solvers import warp
@@ -160,6 +161,7 @@ def test_cli_analyze_json():
 TABLE3_FP = [("fp+p", 865, 2000, 1490, 3.6), ("fp+log", 5.98, 14.8, 10.9, 3.6)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method, s_min, s_max, s_mean, maps", TABLE3_FP)
 def test_table3_face_partitioning_rows(method, s_min, s_max, s_mean, maps):
     from shadowopt.solvers.analysis import direction_stats
@@ -192,3 +194,27 @@ def test_face_partitioning_closed_forms():
 def test_face_partitioning_takes_one_partition():
     with pytest.raises(ValueError, match="partitions"):
         analyze(1000, 30, 45, "fp+log", 5)
+
+
+def test_min_depth_along_light_matches_a_brute_force_walk_of_the_ray():
+    """analysis.min_depth_along_light: d_min of Lloyd et al. 2006 eqs. 45/54, the smallest view depth on the
+    light's line through p inside the view frustum (n <= z <= f, |x|, |y| <= z tan theta). Truth: walk the line
+    in 1e-3 m steps and take the least z of the points inside the frustum. Light directions that leave through
+    the near plane (d_min = n), a side plane, and the far plane."""
+    from shadowopt.solvers.analysis import min_depth_along_light
+
+    n, f, tan_t = 1.0, 20.0, np.tan(np.radians(30.0))
+    rng = np.random.default_rng(11)
+    z = rng.uniform(2.0, 18.0, 30)
+    p = np.column_stack([rng.uniform(-0.8, 0.8, 30) * z * tan_t, rng.uniform(-0.8, 0.8, 30) * z * tan_t, z])
+    mu = np.arange(-60.0, 60.0, 1e-3)
+    for l in ([0.0, 0.0, 1.0], [0.3, -0.4, 0.866], [0.0, -1.0, 0.0], [0.6, 0.0, -0.8]):
+        l = np.asarray(l) / np.linalg.norm(l)
+        got = min_depth_along_light(p, l, n, f, tan_t)
+        for i in range(len(p)):
+            q = p[i] + mu[:, None] * l
+            inside = (q[:, 2] >= n) & (q[:, 2] <= f) & (np.abs(q[:, 0]) <= q[:, 2] * tan_t) & (np.abs(q[:, 1]) <= q[:, 2] * tan_t)
+            want = q[inside, 2].min()
+            assert got[i] == pytest.approx(want, abs=2e-3), (l, i)
+    on_axis = np.array([[0.0, 0.0, 5.0], [0.0, 0.0, 15.0]])  # on the view axis, the line along it reaches z = n
+    assert min_depth_along_light(on_axis, np.array([0.0, 0.0, 1.0]), n, f, tan_t) == pytest.approx([n, n])

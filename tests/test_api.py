@@ -309,7 +309,6 @@ def test_solver_work_does_not_block_the_event_loop(api, scene, server):
         time.sleep(0.02)
     worker.join()
     evaluate_s = time.perf_counter() - start
-    assert done["r"].status_code == 200 and len(latencies) >= 5
-    # answered while the evaluate ran in a worker thread: a blocked event loop would hold one probe for
-    # (nearly) the whole evaluate; no absolute bound (a loaded machine slows both alike)
-    assert max(latencies) < evaluate_s / 2, (latencies, evaluate_s)
+    # answered while the evaluate ran in a worker thread: a blocked event loop would hold the first probe for
+    # the whole evaluate, which would then be over (one or two probes in all); how fast is a benchmark's figure
+    assert done["r"].status_code == 200 and len(latencies) >= 5, (latencies, evaluate_s)

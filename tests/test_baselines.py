@@ -637,3 +637,101 @@ def test_warped_baselines_pad_in_map_space(height, pitch_deg, sun):
         assert i.min() >= 0 and j.min() >= 0 and i.max() < 400 and j.max() < 400
         unused_cols, unused_rows = 1 - (np.ptp(i) + 1) / 400, 1 - (np.ptp(j) + 1) / 400
         assert max(unused_cols, unused_rows) <= 0.01, (method, m.warp_kind, unused_cols, unused_rows)
+
+
+def test_a_middle_cascade_is_fitted_to_its_slice_not_to_every_deeper_receiver():
+    """Only the last cascade takes every receiver past its near split (and the first every one before its far
+    split); a middle cascade's focused or LiSPSM map is fitted to its own depth slice, so on the ground under a
+    tilted sun no receiver two slices deeper falls inside it (map coordinates in [0, 1]^2, w > 0). 7 cascades:
+    the fifth is the one `len(z) / 2` names."""
+    from shadowopt.solvers.baselines import baseline
+
+    cam = Camera.look([0, 2, 0], [0, -0.1, 1], near=0.1, far=300, resolution=(1280, 720))
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    pts, _ = ground_samples(cam, far=150.0)
+    depth = (pts - cam.position) @ cam.forward
+    for method in ("focused", "lispsm"):
+        maps = baseline(method, cam, sun, pts, bounds, (512, 512), cascades=7, splits="practical")
+        for k in range(len(maps) - 2):
+            deep = pts[depth > maps[k + 1].split[1]]
+            assert len(deep) > 10
+            s, t, _, w = maps[k].map_coords(deep)
+            inside = (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (w > 0)
+            assert not inside.any(), (method, k, float(inside.mean()))
+
+
+def test_texel_extents_of_an_orthographic_map_are_its_width_per_unit():
+    """texel_extents: world metres per unit s and t, by central differences in the plane perpendicular to the
+    light. An overhead orthographic map of half-size hw is 2 hw metres per unit on both axes, exactly; the
+    difference step scales with the points' extent, so scenes of 2 km to 40 km agree with the closed form to
+    1e-8 (a step fixed near 1e-9 m leaves roundoff of ~2e-6 there)."""
+    from shadowopt.solvers.texel_size import texel_extents
+    from shadowopt.solvers.shadow_map import ShadowMap
+
+    sun = DirectionalLight.make([0, -1, 0])
+    view = np.array([[1.0, 0, 0, 0], [0, 0, -1.0, 0], [0, 1.0, 0, -50.0], [0, 0, 0, 1.0]])  # looks down -y from y = 50
+    rng = np.random.default_rng(1)
+    for hw in (1000.0, 5000.0, 20000.0):
+        proj = np.diag([1 / hw, 1 / hw, -2 / 199.0, 1.0])
+        proj[2, 3] = -201 / 199.0
+        sm = ShadowMap(view, proj, (1024, 1024))
+        pts = np.column_stack([rng.uniform(-0.9 * hw, 0.9 * hw, 200), np.zeros(200), rng.uniform(-0.9 * hw, 0.9 * hw, 200)])
+        s, t, _, w = sm.map_coords(pts)
+        assert np.all((s > 0) & (s < 1) & (t > 0) & (t < 1) & (w > 0))
+        per_s, per_t = texel_extents(sm, pts, sun)
+        assert per_s == pytest.approx(np.full(200, 2 * hw), rel=1e-8)
+        assert per_t == pytest.approx(np.full(200, 2 * hw), rel=1e-8)
+
+
+def test_perspective_light_near_plane_rule():
+    """perspective_near (spot and point lights): 1e-4 of the far distance (at least 0.1 mm), pulled in to half the
+    nearest receiver's depth, never below 1e-7 of far. Closed forms: far 100 m with receivers at 5 and 20 m
+    keeps 1 cm; a receiver at 4 mm pulls it to 2 mm; one at 1e-9 m stops at the 1e-5 m floor; no receiver: 1 cm."""
+    from shadowopt.solvers.fitting import perspective_near
+
+    assert perspective_near(np.array([5.0, 20.0, np.inf, -3.0]), 100.0) == pytest.approx(0.01, rel=1e-12)
+    assert perspective_near(np.array([0.004, 7.0]), 100.0) == pytest.approx(0.002, rel=1e-12)
+    assert perspective_near(np.array([1e-9]), 100.0) == pytest.approx(1e-5, rel=1e-12)
+    assert perspective_near(np.zeros(0), 100.0) == pytest.approx(0.01, rel=1e-12)
+    assert perspective_near(np.array([1.0]), 0.5) == pytest.approx(1e-4, rel=1e-12)  # the 0.1 mm minimum
+
+
+def test_logpsm_eta_follows_lloyd_shaping_with_the_smaller_half_angle():
+    """The LogPSM baseline's warp strength is Lloyd et al. 2007 eq. 79's eta(gamma) with theta the camera's
+    smaller half field of view (30 deg for a 60 deg vertical fov at 16:9; 30 deg horizontal for a 9:16 portrait
+    camera of 2 atan(tan 30 deg * 16/9) vertical). gamma = 45 deg lies between gamma_b = theta and gamma_c, where
+    eta depends on theta. Truth: warp.eta_shaping at that theta, the angle between view and light in NumPy."""
+    from shadowopt.solvers.baselines import baseline
+    from shadowopt.solvers.warp import eta_shaping
+
+    sun = DirectionalLight.make([0.0, -np.sin(np.radians(45)), np.cos(np.radians(45))])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    tall = float(np.degrees(2 * np.arctan(np.tan(np.radians(30)) * 16 / 9)))
+    for fov_y, res in ((60.0, (1280, 720)), (tall, (720, 1280))):
+        cam = Camera.look([0, 2, 0], [0, 0, 1], fov_y_deg=fov_y, near=0.1, far=300, resolution=res)
+        pts, _ = ground_samples(cam, far=150.0, grid=(48, 27))
+        m = baseline("logpsm", cam, sun, pts, bounds, (1024, 1024))[0]
+        gamma = float(np.degrees(np.arccos(np.clip(cam.forward @ sun.direction, -1, 1))))
+        assert gamma == pytest.approx(45.0, abs=1e-9)
+        assert m.eta == pytest.approx(eta_shaping(gamma, 30.0), rel=1e-9), (fov_y, m.eta)
+
+
+def test_texel_extents_with_the_light_along_the_x_axis():
+    """texel_extents measures in the plane perpendicular to the light with axes e1 = l x y (l x x when l is
+    along y): a light travelling exactly along +x is an ordinary case. An orthographic map looking along +x of
+    half-size 40 m is 80 m per unit on both axes."""
+    from shadowopt.solvers.texel_size import texel_extents
+    from shadowopt.solvers.light_frames import look_matrix
+    from shadowopt.solvers.shadow_map import ShadowMap
+
+    sun = DirectionalLight.make([1.0, 0.0, 0.0])
+    view = look_matrix(np.array([-100.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+    proj = np.diag([1 / 40.0, 1 / 40.0, -2 / 199.0, 1.0])
+    proj[2, 3] = -201 / 199.0
+    sm = ShadowMap(view, proj, (512, 512))
+    rng = np.random.default_rng(2)
+    pts = np.column_stack([rng.uniform(-20, 20, 50), rng.uniform(-30, 30, 50), rng.uniform(-30, 30, 50)])
+    per_s, per_t = texel_extents(sm, pts, sun)
+    assert per_s == pytest.approx(np.full(50, 80.0), rel=1e-8)
+    assert per_t == pytest.approx(np.full(50, 80.0), rel=1e-8)

@@ -2,7 +2,9 @@
 baselines at the solver level (tight SDSM range, coverage, error against one map)."""
 from __future__ import annotations
 
+import dataclasses
 import math
+import time
 
 import numpy as np
 import pytest
@@ -157,3 +159,81 @@ def test_explicit_split_depths_are_checked():
     pts, _ = ground_samples(CAM)
     with pytest.raises(ValueError, match="split_at: need 3"):
         baseline("focused", CAM, SUN, pts, BOUNDS, cascades=4, split_at=[5.0, 10.0])
+
+
+def test_split_search_nfev_is_the_number_of_candidate_fits(monkeypatch):
+    """SplitResult.nfev reports how many split candidates were scored. Each candidate costs exactly one map fit
+    (the module's docstring), so a counter wrapped around fit_baseline is an independent count; and the search
+    scores the three standard starts plus at most maxeval BOBYQA points."""
+    from shadowopt.solvers import split_search
+
+    calls = []
+    real = split_search.fit_baseline
+
+    def counting(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(split_search, "fit_baseline", counting)
+    cam = Camera.look([0, 2, 0], [0, -0.1, 1], near=0.1, far=300, resolution=(1280, 720))
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    pts, samples = ground_samples(cam, grid=(48, 27))
+    r = split_search.optimize_splits(cam, sun, samples, pts, bounds, (256, 256), 3, maxeval=6)
+    assert r.nfev == len(calls)
+    assert 3 < r.nfev <= 3 + 6
+    assert r.to_json()["nfev"] == len(calls)
+
+
+def test_split_search_without_samples_returns_the_practical_splits():
+    """With no samples there is nothing to score: optimize_splits returns the k - 1 inner practical splits
+    (λ = 0.5: the mean of Lloyd et al.'s log split z_n (z_f/z_n)^(i/k) and the uniform one) over the receivers'
+    view-depth range, without evaluating anything."""
+    from shadowopt.solvers.split_search import optimize_splits
+
+    cam = Camera.look([0, 2, 0], [0, 0, 1], near=0.1, far=300, resolution=(640, 480))
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    rec = np.array([[0.0, 0.0, 5.0], [1.0, 0.0, 80.0], [-2.0, 0.0, 30.0]])
+    _, samples = ground_samples(cam, grid=(16, 9))
+    none = samples.subset(np.zeros(len(samples), bool))
+    bounds = (np.array([-10.0, 0.0, 0.0]), np.array([10.0, 5.0, 100.0]))
+    zn, zf = 5.0, 80.0
+    want = [0.5 * zn * (zf / zn) ** (i / 3) + 0.5 * (zn + (zf - zn) * i / 3) for i in (1, 2)]
+    t0 = time.perf_counter()
+    r = optimize_splits(cam, sun, none, rec, bounds, (256, 256), 3)
+    wall_ms = (time.perf_counter() - t0) * 1e3
+    assert r.split_at == pytest.approx(want, rel=1e-9)
+    assert r.nfev == 0 and r.start == "practical"
+    assert 0 <= r.time_ms <= wall_ms  # milliseconds, measured inside the call
+
+
+def test_split_search_under_a_budget_scores_the_samples_weighted_mean():
+    """Under a texel budget a candidate's value is still the samples' weighted mean h (plus the receivers'
+    term), each sample on the cascade serving its view depth: scaling every weight leaves the standard starts'
+    values unchanged, while giving the far samples ten times the weight of the near ones changes them."""
+    from shadowopt.solvers.split_search import optimize_splits
+
+    cam = Camera.look([0, 2, 0], [0, -0.1, 1], near=0.1, far=300, resolution=(1280, 720))
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    pts, samples = ground_samples(cam, grid=(48, 27))
+
+    def starts(weight):  # a new Samples object: the arrays of one are never modified (its subsets are cached)
+        s = dataclasses.replace(samples, weight=np.asarray(weight, float), _device={}, _subsets={})
+        return optimize_splits(cam, sun, s, pts, bounds, (256, 256), 3, texel_budget=3 * 256 * 256, maxeval=1).starts
+
+    base = starts(np.ones(len(samples)))
+    assert starts(np.full(len(samples), 3.0)) == pytest.approx(base, rel=1e-9)
+    far = np.where(samples.view_depth > np.median(samples.view_depth), 10.0, 1.0)
+    moved = starts(far)
+    for kind in base:
+        assert abs(moved[kind] / base[kind] - 1) > 0.05, (kind, moved[kind], base[kind])
+
+
+def test_split_result_json_keeps_microseconds():
+    """SplitResult.to_json: time_ms to the microsecond (3 decimals), the resolution every solver's time in the
+    responses has."""
+    from shadowopt.solvers.split_search import SplitResult
+
+    r = SplitResult(np.array([3.0, 9.0]), 1.5, "log", {"log": 1.5}, 7, 12.3456)
+    assert r.to_json()["time_ms"] == 12.346

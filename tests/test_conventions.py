@@ -300,3 +300,17 @@ def test_texture_origin_override_and_convention_info():
             info["reversed_z"], info["engine"]) == ("world", "right", "+Y", "metres", "top-left", True, None)
     info = convention_info({"frame": "stage"}, stage_to_world("Z", 0.01))
     assert (info["frame"], info["handedness"], info["up_axis"], info["length_unit"]) == ("stage", "right", "+Z", "metres")
+
+
+def test_perpendicular_up_needs_more_than_1e_6_of_perpendicular_component():
+    """A hint is usable when its component perpendicular to `forward` is longer than 1e-6 (the light within
+    ~1e-6 rad of the view axis falls back to the camera's up): at exactly 1e-6 the next hint is taken, just
+    above it the hint itself. The perpendicular parts here are exact in binary floating point."""
+    from shadowopt.solvers.light_frames import perpendicular_up
+
+    f = np.array([0.0, 0.0, 1.0])
+    at = np.array([1e-6, 0.0, 1.0])  # h - (h.f) f = (1e-6, 0, 0): norm exactly 1e-6
+    assert np.linalg.norm(at - np.dot(at, f) * f) == 1e-6
+    assert perpendicular_up(f, at, [0.0, 1.0, 0.0]) == pytest.approx([0.0, 1.0, 0.0], abs=0)
+    above = np.array([2e-6, 0.0, 1.0])
+    assert perpendicular_up(f, above, [0.0, 1.0, 0.0]) == pytest.approx([1.0, 0.0, 0.0], abs=0)

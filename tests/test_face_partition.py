@@ -127,3 +127,60 @@ def test_face_shares_split_by_need_with_a_floor_and_the_total():
     # equal need -> equal shares
     assert len(set(face_shares(600, [5.0, 5.0, 5.0], 200))) == 1
     assert FACES == tuple(CUBE_FACES)
+
+
+def test_face_shares_split_by_need_above_a_quarter_of_an_equal_share():
+    from shadowopt.service.point_faces import FLOOR_SHARE, face_shares
+
+    def near(got, exact):
+        return len(got) == len(exact) and all(0 <= e - g <= 1 for g, e in zip(got, exact))
+
+    # floor = 1/4 of an equal share = int(1000 / 4 / 3) = 83; face 2 (no edge) gets it, the other two split the
+    # remaining 917 as d^(2/3) = 4 : 1 -> 733.6, 183.4, rounded down
+    assert FLOOR_SHARE == 0.25
+    assert near(face_shares(1000, [8.0, 1.0, 0.0], 64), [733, 183, 83])
+    assert near(face_shares(1000, [8.0, 1.0], 64), [800, 200])  # both above the floor (125): plain split
+    assert face_shares(1200, [0.0, 0.0, 0.0], 64) == [400, 400, 400]  # no edges: equal shares
+    # a face far below the floor is raised to it, and then a second one that the rest's split left below it
+    out = face_shares(6000, [1000.0, 1.0, 0.001, 0.0, 0.0, 0.0], 64)
+    floor = int(0.25 * 6000 / 6)
+    assert out[2:] == [floor] * 4 and min(out) >= floor and sum(out) <= 6000
+    assert out[0] > out[1] >= floor
+    assert face_shares(100, [], 64) == []
+
+
+def test_the_partitions_warp_and_the_objective_it_is_judged_by():
+    import math
+
+    from shadowopt.service.point_faces import _objective, warp_for
+
+    assert warp_for("focused", False) == warp_for("focused", True) == "none"  # FP
+    assert warp_for("".join(["focu", "sed"]), True) == "none"  # a method name read at run time: compared by value
+    for method in ("lispsm", "logpsm", "optimized"):
+        assert warp_for(method, False) == "perspective" and warp_for(method, True) == "log"  # FP+P, FP+LogP
+    assert _objective({"objective": 2.5}) == 2.5 and _objective({"objective": 2.5, "unserved_samples": 0}) == 2.5
+    for bad in ({"objective": None}, {}, {"objective": float("nan")}, {"objective": math.inf},
+                {"objective": 1.0, "unserved_samples": 3}, {"objective": 1.0, "unserved_samples": 1}):
+        assert _objective(bad) == math.inf, bad  # unknown, not finite, or leaving samples unserved: never chosen
+
+
+def test_face_resolutions_split_the_texels_by_the_probed_need(monkeypatch):
+    from types import SimpleNamespace
+
+    from shadowopt.service import point_faces
+
+    faces = [SimpleNamespace(face=0), SimpleNamespace(face=3)]
+    monkeypatch.setattr(point_faces, "assign_receivers", lambda pos, rec: [[0], [1]])
+    monkeypatch.setattr(point_faces, "partition_maps", lambda *a: (faces, [[0], [1]]))
+    probes = []
+
+    def maps_error(fp, samples, origin):
+        probes.append(fp)
+        return {}, [{"misclassified_pixels": 8.0}, {"misclassified_pixels": 1.0}]
+
+    prob = SimpleNamespace(receivers=[0, 1], samples=None)
+    res, mis = point_faces.face_resolutions(None, SimpleNamespace(position=None), prob, None, 50_000, maps_error, None)
+    # shares 4 : 1 (d^(2/3) of 8 : 1) of 50,000 texels: 40,000 and 10,000 -> sides 200 and 100 (one less at most
+    # when a share rounds down)
+    assert mis == [8.0, 1.0] and len(probes) == 1
+    assert res[0][0] in (199, 200) and res[3][0] in (99, 100) and res[0][0] == res[0][1]

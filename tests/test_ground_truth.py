@@ -354,6 +354,7 @@ def test_device_rays_and_lookup_match_the_numpy_reference(box_scene):
         assert np.nanmax(np.abs(np.stack([u, v], -1) - ref_uv)) < 1e-6
 
 
+@pytest.mark.slow
 def test_engine_depth_lookup_matches_the_numpy_reference(box_scene):
     """The Dr.Jit light pass (stored depth with the caster-side slope-scaled bias of the map's depth block,
     float32, cleared texels at 1) is engine_stored_map, and the Dr.Jit engine-faithful test (hardware and

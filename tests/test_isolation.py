@@ -99,6 +99,7 @@ def test_a_loader_error_comes_back_with_its_code_and_no_server_path(tmp_path):
     assert str(tmp_path) not in got.value.message and "garbage.usda" in got.value.message
 
 
+@pytest.mark.slow
 def test_a_memory_hungry_load_is_refused_and_the_server_keeps_no_memory(spheres):
     """The issue's 20,000-instance upload: refused (by the triangle count while loading, or by the child's
     memory limit when the count is set out of reach), within seconds, and the parent's RSS is unchanged."""
@@ -111,7 +112,8 @@ def test_a_memory_hungry_load_is_refused_and_the_server_keeps_no_memory(spheres)
     took = time.monotonic() - t0
     assert e.value.code == "memory_limit", e.value.message
     assert "memory" in e.value.message and str(spheres.parent) not in e.value.message
-    assert took < 60, took  # not minutes (the issue's load took 50 s and kept 3.6 GB)
+    # refused by the memory limit, not by the 120 s clock (the issue's load took 50 s and kept 3.6 GB); how fast
+    # is `shadowopt bench security`'s
     with pytest.raises(SceneError) as e:
         load_isolated(spheres, sandbox=True, limits=LoadLimits(max_triangles=1_000_000, timeout_s=120))
     assert e.value.code == "too_many_triangles", e.value.message
@@ -123,20 +125,16 @@ def test_a_memory_hungry_load_is_refused_and_the_server_keeps_no_memory(spheres)
 def test_the_triangle_limit_reaches_the_loader_in_the_child(spheres):
     """Without max_triangles in the child, the 19 M-triangle scene would end as memory_limit (or a
     timeout), not as too_many_triangles."""
-    t0 = time.monotonic()
     with pytest.raises(SceneError) as e:
         load_isolated(spheres, sandbox=True, limits=LoadLimits(max_triangles=100_000))
     assert e.value.code == "too_many_triangles" and "100000" in e.value.message.replace(",", "")
-    assert time.monotonic() - t0 < 30  # not minutes; how fast it is belongs in BENCHMARKS.md
 
 
 def test_a_load_over_its_time_limit_is_killed(spheres):
-    t0 = time.monotonic()
     with pytest.raises(SceneError) as e:  # a real load (gigabytes allowed) cut short by the clock
         load_isolated(spheres, sandbox=True, limits=LoadLimits(max_triangles=10**9, memory_bytes=16 * GiB,
                                                                timeout_s=1.5))
-    assert e.value.code == "load_timeout" and "1.5 s" in e.value.message
-    assert time.monotonic() - t0 < 30  # killed, not left to run its minutes (a spawn alone costs 1.2-1.5 s under load)
+    assert e.value.code == "load_timeout" and "1.5 s" in e.value.message  # killed by the clock, not left to run
     assert not [p for p in isolation.multiprocessing.active_children()
                 if p.name.startswith("shadowopt-") and p.pid != isolation.SPARES.pid()]  # only the next spare
 
@@ -154,10 +152,9 @@ def test_a_child_that_sleeps_past_the_limit_is_gone_after_the_refusal():
 
     t = threading.Thread(target=watch)
     t.start()
-    t0 = time.monotonic()
-    with pytest.raises(SceneError) as e:
-        run_isolated(time.sleep, (60,), timeout_s=1.0)
-    assert e.value.code == "load_timeout" and time.monotonic() - t0 < 30  # not the 60 s it asked for
+    with pytest.raises(SceneError) as e:  # a refusal that waited for the child would hang here for the hour
+        run_isolated(time.sleep, (3600,), timeout_s=1.0)
+    assert e.value.code == "load_timeout"
     t.join()
     seen = [p for p in seen if p != isolation.SPARES.pid()]  # the spare started for the next load
     assert seen and not any(alive(p) for p in seen)
@@ -362,3 +359,94 @@ def test_sigkill_of_the_server_leaves_no_worker_and_no_resource_tracker(tmp_path
         for p in everyone:
             if alive(p):
                 os.kill(p, signal.SIGKILL)
+
+
+def test_a_dead_loader_child_is_classified_by_signal_and_memory():
+    import math
+    import signal
+
+    from shadowopt.renderers.scene_data import SceneError
+    from shadowopt.service.isolation import CRASH_MEMORY_SHARE, _crashed
+
+    mem = 1 << 30
+
+    def code(exitcode, peak):
+        with pytest.raises(SceneError) as e:
+            _crashed(exitcode, peak, mem, "x.usda")
+        return e.value.code
+
+    near = math.ceil(CRASH_MEMORY_SHARE * mem)  # the least whole byte count at the share
+    assert code(-signal.SIGKILL, 0) == "memory_limit"  # the OOM killer
+    assert code(-signal.SIGXCPU, 0) == "load_timeout"
+    for sig in (signal.SIGABRT, signal.SIGSEGV, signal.SIGBUS, signal.SIGHUP, signal.SIGFPE):
+        assert code(-sig, near - 4096) == "corrupt", sig  # a crash far from the limit: a damaged file
+        assert code(-sig, near) == "memory_limit", sig  # std::bad_alloc aborts near the limit
+    assert code(1, 0) == "corrupt" and code(None, 0) == "corrupt" and code(None, mem) == "memory_limit"
+
+
+def test_near_the_memory_limit_is_the_documented_share_of_it(monkeypatch):
+    from shadowopt.service import isolation
+
+    monkeypatch.setattr(isolation, "_status", lambda pid="self": {"VmPeak": 800})
+    assert isolation._near(1000) is True and isolation._near(999) is True  # 800 >= 0.8 x 999
+    assert isolation._near(1001) is False and isolation._near(10_000) is False
+    monkeypatch.setattr(isolation, "_status", lambda pid="self": {})
+    assert isolation._near(1) is False  # nothing known: not near
+
+
+def test_a_loader_child_limits_itself_as_documented(monkeypatch):
+    import math
+    import resource
+
+    from shadowopt.service import isolation
+
+    calls = {}
+    monkeypatch.setattr(resource, "setrlimit", lambda which, lim: calls.__setitem__(which, lim))
+    isolation._limit_self(3 << 30, 2.3)
+    # RLIMIT_CPU = timeout x threads (rounded up) + the slack (a backstop), hard 5 s above; no core files
+    cpu = math.ceil(2.3 * isolation.CHILD_THREADS) + isolation.CPU_SLACK_S
+    assert calls == {resource.RLIMIT_CORE: (0, 0), resource.RLIMIT_AS: (3 << 30, 3 << 30),
+                     resource.RLIMIT_CPU: (cpu, cpu + 5)}
+
+
+def test_the_spawner_runs_a_nested_call_in_place_instead_of_waiting_for_itself():
+    import threading
+
+    from shadowopt.service.isolation import _Spawner
+
+    s = _Spawner()
+    assert s.on_thread() is False  # no thread yet
+    assert s.call(s.on_thread) is True and s.on_thread() is False  # on its thread / from this one
+    out = []
+    t = threading.Thread(target=lambda: out.append(s.call(lambda: s.call(lambda: 42))), daemon=True)
+    t.start()
+    t.join(10)  # a nested call queued behind itself would never return
+    assert out == [42]
+    assert s.call(threading.current_thread).name == "shadowopt-spawner"
+
+
+def test_the_memory_floor_message_states_the_same_amount_in_bytes_and_gib():
+    import re
+
+    from shadowopt.service.isolation import MEMORY_FLOOR_BYTES, LoadLimits
+
+    with pytest.raises(ValueError) as e:
+        LoadLimits(memory_bytes=MEMORY_FLOOR_BYTES - 1)
+    m = re.search(r"at least (\d+) \(([\d.]+) GiB", str(e.value))
+    assert m and int(m.group(1)) == MEMORY_FLOOR_BYTES
+    assert float(m.group(2)) * 2**30 == pytest.approx(MEMORY_FLOOR_BYTES, rel=1e-4)  # the two agree
+    assert LoadLimits(memory_bytes=MEMORY_FLOOR_BYTES).memory_bytes == MEMORY_FLOOR_BYTES  # the floor itself is allowed
+
+
+def test_load_isolated_passes_the_loaders_own_defaults(monkeypatch):
+    import inspect
+
+    from shadowopt.renderers.usd_loader import load_scene
+    from shadowopt.service import isolation
+
+    seen = {}
+    monkeypatch.setattr(isolation, "run_isolated", lambda fn, args, **kw: seen.update(options=args[1]))
+    isolation.load_isolated("/nowhere/s.usda", limits=isolation.LoadLimits())
+    defaults = inspect.signature(load_scene).parameters
+    for name in ("time_code", "asset_root", "sandbox"):  # "load_scene(path, ...) in a spawned child"
+        assert seen["options"][name] == defaults[name].default, name

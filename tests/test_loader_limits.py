@@ -681,6 +681,7 @@ def test_the_keyword_bound_counts_no_less_than_the_prim_specs(tmp_path, monkeypa
     assert e.value.code == "too_many_prims"
 
 
+@pytest.mark.slow
 def test_composed_prims_are_counted_before_composing_and_during_the_traversal(tmp_path, no_stage_open,
                                                                              monkeypatch):
     """Few specs, many composed prims: 300 internal references to a 200-prim prototype compose 60,300+

@@ -204,6 +204,7 @@ def test_the_reproduced_500s_are_422s_naming_the_field(entry, solutions):
         assert str(e.value).startswith("solution.lights.0.cascades.0.warp: expected an object with kind")
 
 
+@pytest.mark.slow
 def test_every_field_times_every_malformation(entry, solutions):
     """Systematic: every field path (matrices: rows and two entries) x every kind of malformation."""
     stats = {"refused": 0, "evaluated": 0}
@@ -236,6 +237,7 @@ JSON = st.recursive(st.none() | st.booleans() | st.integers(-10**6, 10**6) | st.
                     max_leaves=12)
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck))
 @given(data=st.data())
 def test_hypothesis_drawn_malformations(entry, solutions, data):

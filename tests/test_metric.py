@@ -217,3 +217,66 @@ def test_predicted_error_counts_misclassified_pixels_in_full_resolution_pixels()
     a = (20 / 1000) / 0.02
     err = predicted_error([sm], s)
     assert err["misclassified_pixels"] == pytest.approx(MISCLASSIFIED_K * np.sqrt(2) * a * 8, rel=1e-6)
+
+
+def _q(P, X):
+    c = X @ P[:, :3].T + P[:, 3]
+    return c[:, :2] / c[:, 3:4]
+
+
+def test_warped_moments_drop_samples_behind_the_projection_centre():
+    """warped_moments' fifth sum is the weight of samples with no footprint, e.g. behind the perspective
+    warp's centre (clip w <= 0); the first four sums are over the others only. Truth: G = (J_q J_q^T)^-1 with
+    J_q from central differences of q = (c0/cw, c1/cw) along each sample's dX/dx, dX/dy, summed in NumPy over
+    the samples in front, and the lost weight summed over those behind."""
+    from shadowopt.solvers.metric import DeviceSamples, recentre, warped_moments
+
+    cam = Camera.look_at([0, 2, 0], [0, 0, 20], fov_y_deg=60, resolution=(800, 600))
+    rng = np.random.default_rng(7)
+    n = 240
+    pts = np.column_stack([rng.uniform(-10, 10, n), np.zeros(n), rng.uniform(3, 60, n)])
+    nrm = np.tile([0.0, 1.0, 0.0], (n, 1))
+    dx, dy, dep = pixel_derivatives(cam, pts, nrm)
+    w = rng.uniform(0.5, 2.0, n)
+    s = Samples(pts, nrm, dx, dy, dep, w, np.zeros((n, 2), int), "boundary")
+    ds = DeviceSamples(s, cam.position)
+    # w_clip = 1 - z/40: the centre of projection is the plane z = 40, samples beyond it are behind
+    Pq = np.array([[1.0, 0, 0.2, 0], [0, 0.1, 1.0, 0], [0, 1.0, 0, 0], [0, 0, -1 / 40, 1.0]])
+    front = 1 - pts[:, 2] / 40 > 1e-9
+    assert 40 < front.sum() < n - 40  # both kinds present
+    G = warped_moments(recentre(Pq, ds.origin), ds)
+
+    eps = 1e-6
+    want = np.zeros(3)
+    for i in np.flatnonzero(front):
+        X = pts[i:i + 1]
+        cols = [(_q(Pq, X + eps * d[i]) - _q(Pq, X - eps * d[i]))[0] / (2 * eps) for d in (dx, dy)]
+        J = np.column_stack(cols)  # dq / dpixel, 2 x 2
+        Gi = np.linalg.inv(J @ J.T)
+        want += w[i] * np.array([Gi[0, 0], Gi[0, 1], Gi[1, 1]])
+    assert G[:3] == pytest.approx(want, rel=1e-5)
+    assert G[3] == pytest.approx(w[front].sum(), rel=1e-12)
+    assert G[4] == pytest.approx(w[~front].sum(), rel=1e-12)
+
+
+def test_coarse_samples_stand_for_the_whole_screen_in_full_resolution_pixels():
+    """Each coarse sample stands for (W H) / (w h) full-resolution pixels, so when every coarse pixel is a
+    sample their pixels sum to the rig's W x H, whatever the coarse size and the aspect."""
+    from shadowopt.solvers.lights import SpotLight
+    from shadowopt.solvers.samples import select_samples
+
+    light = SpotLight.make([0, 10, 10], [0, -1, 0], 60)
+    for res, (hgt, wdt) in (((640, 480), (3, 4)), ((1920, 1080), (9, 16)), ((1000, 1000), (5, 5))):
+        cam = Camera.look_at([0, 2, 0], [0, 0, 20], resolution=res)
+        pos = np.zeros((hgt, wdt, 3))
+        pos[..., 0] = np.linspace(-1, 1, wdt)[None, :]
+        pos[..., 2] = np.linspace(8, 12, hgt)[:, None]
+        nrm = np.broadcast_to([0.0, 1.0, 0.0], pos.shape).astype(np.float32)
+        ones = np.ones((hgt, wdt), bool)
+        s = select_samples(cam, light, pos, nrm, ones, ones, ones)
+        assert len(s) == hgt * wdt
+        assert float(np.sum(s.pixels)) == pytest.approx(res[0] * res[1], rel=1e-12)
+        half = np.zeros((hgt, wdt), bool)
+        half[:, : wdt // 2] = True  # the boundary samples alone: their share of the screen
+        s = select_samples(cam, light, pos, nrm, ones, ones, half)
+        assert float(np.sum(s.pixels)) == pytest.approx(res[0] * res[1] * half.sum() / half.size, rel=1e-12)

@@ -2,6 +2,8 @@
 none is dropped; every reader of solutions accepts such a light."""
 from __future__ import annotations
 
+import random
+
 import numpy as np
 import pytest
 
@@ -222,3 +224,166 @@ def test_a_budget_estimate_beyond_reach_is_none_not_an_overflow():
     assert texels_for_p95(100.0, 1024 * 1024, 5e-324) is None
     assert texels_for_p95(float("inf"), 1024, 1.0) is None
     assert texels_for_p95(1.0, int(MAX_TEXEL_ESTIMATE), 0.5) is None
+
+
+def test_split_budget_follows_the_two_thirds_power_and_floors():
+    from shadowopt.service.need import split_budget
+
+    # Chong 2003's Lagrange allocation: T_i proportional to d_i^(2/3); hand-computed cubes give the exact shares,
+    # and each is rounded down (floating point may put an exact share just below its integer: one texel less)
+    def near(got, exact):
+        return len(got) == len(exact) and all(0 <= e - g <= 1 for g, e in zip(got, exact))
+
+    assert near(split_budget(1000, [8.0, 1.0], 1), [800, 200])
+    assert near(split_budget(1400, [27.0, 8.0, 1.0], 1), [900, 400, 100])
+    assert near(split_budget(1400, [27.0, None, 8.0, 1.0], 1), [900, 0, 400, 100])  # no map: no texels
+    assert split_budget(11, [1.0, 1.0, 1.0], 4) == [3, 3, 3]  # whole texels, rounded down (never over)
+    assert split_budget(12, [0.0, 0.0, None], 4) == [6, 6, 0]  # no edge anywhere: equal shares
+    assert split_budget(12, [-3.0, 0.0], 4) == [6, 6]  # a negative estimate counts as none
+    assert near(split_budget(1000, [8.0, -1.0], 1), [1000, 0])
+    assert split_budget(1000, [None, None], 4) == [0, 0]
+    assert split_budget(1000, [], 4) == []
+
+
+def test_split_budget_never_exceeds_the_budget_and_ignores_the_probe_and_the_scale():
+    from shadowopt.service.need import split_budget
+
+    rng = random.Random(7)
+    for _ in range(300):
+        n = rng.randrange(1, 6)
+        mis = [None if rng.random() < 0.2 else rng.choice([0.0, rng.uniform(0, 50), rng.uniform(0, 1e4)])
+               for _ in range(n)]
+        budget = rng.randrange(0, 1 << 24)
+        out = split_budget(budget, mis, rng.choice([1, 64 * 64, 1024 * 1024]))
+        active = [i for i, m in enumerate(mis) if m is not None]
+        assert all(isinstance(t, int) and t >= 0 for t in out) and len(out) == n
+        assert all(out[i] == 0 for i in range(n) if mis[i] is None)
+        assert budget - len(active) < sum(out) <= budget or not active
+        # d_i = M_i(probe) sqrt(probe): the probe and a common factor cancel in the shares
+        for probe in (4, 123456):
+            assert split_budget(budget, mis, probe) == out
+        scaled = [None if m is None else 3.0 * m for m in mis]
+        assert all(abs(a - b) <= 1 for a, b in zip(split_budget(budget, scaled, 4), out))
+
+
+class _Cam:  # a camera away from the origin, looking along +z: a point's view depth is z + 7
+    position = np.array([3.0, -2.0, -7.0])
+    forward = np.array([0.0, 0.0, 1.0])
+
+
+class _Cascade:
+    face = None
+
+    def __init__(self, lo, hi):
+        self.split = (lo, hi)
+
+
+def _count_by_hand(depths, slack, lo, hi):
+    return sum(1 for d, s in zip(depths, slack) if d + s >= lo and d - s <= hi)
+
+
+def test_receivers_per_cascade_is_the_depth_interval_overlap_count():
+
+    from shadowopt.service.need import receivers_per_map
+
+    rng = np.random.default_rng(3)
+    depth = np.concatenate([rng.uniform(0, 40, 200), [10.0, 20.0, 0.0, 40.0]])  # some exactly on a split
+    pts = np.stack([rng.uniform(-5, 5, len(depth)), rng.uniform(-5, 5, len(depth)), depth - 7.0], axis=1)
+    slack = rng.uniform(0, 2, len(depth))
+    slack[-4:] = 0.0
+    maps = [_Cascade(0.0, 10.0), _Cascade(10.0, 20.0), _Cascade(20.0, 30.5), _Cascade(30.5, 40.0)]
+    got = receivers_per_map(maps, pts, slack, _Cam())
+    assert got.tolist() == [_count_by_hand(depth, slack, *m.split) for m in maps]
+    zero = [_count_by_hand(depth, np.zeros_like(depth), *m.split) for m in maps]
+    assert got.tolist() != zero  # the slack matters
+    for no_slack in (None, slack[:-1]):  # none, or not one per receiver: no slack
+        assert receivers_per_map(maps, pts, no_slack, _Cam()).tolist() == zero
+    assert receivers_per_map(maps, pts[:0], slack[:0], _Cam()).tolist() == [0, 0, 0, 0]
+    assert receivers_per_map([], pts, slack, _Cam()).tolist() == []
+
+
+class _Face:
+    def __init__(self, face, s, t, w):
+        self.face, self._c = face, (np.asarray(s), np.asarray(t), np.zeros(len(s)), np.asarray(w))
+
+    def map_coords(self, pts):
+        return self._c
+
+
+def test_receivers_per_face_are_those_inside_its_map_in_front():
+    from shadowopt.service.need import receivers_per_map
+
+    pts = np.zeros((6, 3))
+    # s, t on the closed unit square count (edges included); w <= 0 is behind the light's face
+    f0 = _Face(0, [0.0, 1.0, 0.5, 0.5, -1e-9, 0.5], [0.0, 1.0, 0.5, 1.0000001, 0.5, 0.5], [1, 1, 1, 1, 1, 0.0])
+    f1 = _Face(1, [0.2] * 6, [0.3] * 6, [-1.0] * 6)
+    f2 = _Face(2, [0.2] * 6, [0.3] * 6, [1e-12] * 6)
+    assert receivers_per_map([f0, f1, f2], pts, None, _Cam()).tolist() == [3, 0, 6]
+
+
+def _depth_points(*depths):
+    return np.array([[0.0, 0.0, d - 7.0] for d in depths])
+
+
+def test_dropped_cascades_give_their_range_to_a_kept_neighbour():
+    from shadowopt.service.need import drop_empty_maps
+
+    def run(depths, n=4):
+        maps = [_Cascade(10.0 * k, 10.0 * (k + 1)) for k in range(n)]
+        kept, notes = drop_empty_maps(maps, _depth_points(*depths), None, _Cam())
+        return [m.split for m in kept], notes
+
+    splits, notes = run([5.0, 35.0])  # cascades 1 and 2 hold nothing: cascade 0 takes their range
+    assert splits == [(0.0, 30.0), (30.0, 40.0)] and len(notes) == 2
+    assert notes[0].startswith("cascade 1 (view depth 10-20) dropped") and notes[1].startswith("cascade 2 (")
+    splits, notes = run([15.0, 35.0])  # the first is empty: the next kept one takes it
+    assert splits == [(0.0, 30.0), (30.0, 40.0)] and [n.split(" (")[0] for n in notes] == ["cascade 0", "cascade 2"]
+    splits, notes = run([5.0, 15.0])  # the last ones empty
+    assert splits == [(0.0, 10.0), (10.0, 40.0)] and len(notes) == 2
+    assert run([5.0, 15.0, 25.0, 35.0]) == ([(0.0, 10.0), (10.0, 20.0), (20.0, 30.0), (30.0, 40.0)], [])
+    assert run([100.0]) == ([(0.0, 10.0), (10.0, 20.0), (20.0, 30.0), (30.0, 40.0)], [])  # none served: kept
+    assert run([100.0], n=1) == ([(0.0, 10.0)], [])
+    assert run([15.0], n=2) == ([(0.0, 20.0)], [run([15.0], n=2)[1][0]])
+
+
+def test_dropped_cube_faces_keep_the_others_untouched():
+    from shadowopt.service.need import drop_empty_maps
+
+    faces = [_Face(0, [0.5], [0.5], [1.0]), _Face(3, [0.5], [0.5], [-1.0]), _Face(4, [2.0], [0.5], [1.0])]
+    kept, notes = drop_empty_maps(faces, np.zeros((1, 3)), None, _Cam())
+    assert [f.face for f in kept] == [0] and len(notes) == 2
+    assert notes[0].startswith("cube face 3 dropped") and notes[1].startswith("cube face 4 dropped")
+
+
+def test_a_lights_need_counts_its_coarse_pixels_by_hand():
+    from types import SimpleNamespace
+
+    from shadowopt.service.need import light_need
+
+    hit = np.array([[1, 1, 1, 1], [1, 1, 0, 0]], bool)
+    in_light = np.array([[1, 1, 1, 0], [1, 0, 1, 1]], bool)  # in the cone (a miss does not count)
+    facing = np.array([[1, 0, 1, 1], [1, 1, 1, 1]], bool)
+    visible = np.array([[1, 0, 0, 1], [0, 0, 1, 1]], bool)
+    light = SimpleNamespace(in_light=in_light, facing=facing, visible=visible)
+    fine = SimpleNamespace(flat=np.arange(7), receiver=[np.array([1, 0, 1, 1, 0, 0, 0], bool)])
+    buffers = SimpleNamespace(hit=hit, lights=[light, light], fine=fine)
+    # seen = 6; in cone = hit & in_light = (0,0),(0,1),(0,2),(1,0) = 4; receivers also facing = (0,0),(0,2),(1,0)
+    # = 3; lit = receivers & visible = (0,0) = 1
+    need = light_need(buffers, 0)
+    assert (need.seen, need.in_cone, need.receivers, need.lit, need.edge_points, need.edge_receivers) == (6, 4, 3, 1, 7, 3)
+    assert need.shadowed == 2 and need.needs_map
+    assert light_need(buffers, 1).edge_receivers == 0  # no edge-pass list for that light
+    none = light_need(SimpleNamespace(hit=hit, lights=[light], fine=None), 0)
+    assert (none.edge_points, none.edge_receivers) == (0, 0)
+    j = need.to_json()
+    assert (j["receiver_pixels"], j["lit_pixels"], j["shadowed_pixels"], j["edge_receivers"]) == (3, 1, 2, 3)
+
+
+def test_a_light_needs_a_map_when_any_receiver_faces_it():
+    from shadowopt.service.need import Need
+
+    # a bool, as annotated (not a count that happens to be truthy)
+    assert Need(10, 10, 0, 0, 5, 0).needs_map is False
+    assert Need(10, 10, 0, 0, 5, 1).needs_map is True  # only an edge-pass receiver
+    assert Need(10, 10, 1, 1, 0, 0).needs_map is True and Need(10, 10, 6, 1, 0, 3).needs_map is True
+    assert Need(10, 10, 4, 1, 0, 0).shadowed == 3

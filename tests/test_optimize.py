@@ -451,3 +451,186 @@ def test_a_subset_taken_again_is_not_copied_or_uploaded_again(ground):
     assert a is b and device_samples(a, cam.position) is device_samples(b, cam.position)
     assert far is not a and np.array_equal(far.position, s.position[~near])
     assert np.array_equal(a.position, s.position[near]) and np.array_equal(a.weight, s.weight[near])
+
+
+def test_robust_difference_takes_the_side_without_the_jump():
+    """The optimizer's finite difference of a piecewise-smooth objective (its fit switches hull edges): the
+    central difference where both sides agree, else the one-sided difference with the smaller change, on
+    whichever side the jump is. f = 2 x + 3 y with a jump of 10 at x = 0.5 + h/2 (or x = 0.5 - h/2): the slope
+    (2, 3) is recovered from the smooth side."""
+    from shadowopt.solvers.optimize import robust_difference
+
+    h = 1e-3
+    x0 = np.array([0.5, 0.2])
+
+    def f(x, jump_at):
+        return np.array([2 * x[0] + 3 * x[1] + (10.0 if (x[0] - jump_at) * np.sign(jump_at - 0.5) > 0 else 0.0)])
+
+    for jump_at in (0.5 + h / 2, 0.5 - h / 2):
+        g = [robust_difference(f(x0 - h * e, jump_at), f(x0, jump_at), f(x0 + h * e, jump_at), h)[0]
+             for e in np.eye(2)]
+        assert g == pytest.approx([2.0, 3.0], rel=1e-6)
+    h = 1e-4  # x^2 at 1: the sides agree to 1e-4, so the central difference, exact for a quadratic
+    smooth = robust_difference(np.array([(1 - h) ** 2]), np.array([1.0]), np.array([(1 + h) ** 2]), h)
+    assert smooth[0] == pytest.approx(2.0, rel=1e-9)
+
+
+def test_objective_affine_fit_named_by_a_runtime_string():
+    """The optimizer's affine fit is chosen by name, and names arrive at run time (request JSON, settings),
+    not as interned literals: Problem(affine=<"objective" built at run time>) evaluates exactly as the literal,
+    and its value is no worse than the axis-aligned box's (the "objective" fit minimises the weighted mean h
+    over parallelograms that include the flush rectangles; Chong & Gortler's h via solvers.metric)."""
+    from shadowopt.solvers.optimize import Problem
+
+    cam = Camera.look_at([0, 2, 0], [0, 0, 30], near=0.1, far=200, resolution=(1280, 720))
+    pts, s = ground_samples(cam, grid=(48, 27))
+    sun = DirectionalLight.make([1, -1, 0])
+    bounds = (np.array([-150, 0, -150.0]), np.array([150, 10, 150.0]))
+    name = "".join(["objec", "tive"])
+    assert name == "objective" and name is not "objective"  # noqa: F632  (the point of the test)
+    lit = Problem(cam, sun, s, pts, bounds, (1024, 1024), affine="objective")
+    run = Problem(cam, sun, s, pts, bounds, (1024, 1024), affine=name)
+    box = Problem(cam, sun, s, pts, bounds, (1024, 1024), affine="axis")
+    for x in ([0.1, 1.0], [0.3, 2.0]):
+        x = np.array(x)
+        assert run.value(x) == lit.value(x)
+        assert run.value(x) <= box.value(x) * (1 + 1e-9)
+
+
+def test_cg07_line_search_backtracks_downhill_when_every_fixed_step_overshoots():
+    """Chong & Gortler 2007 Algorithm 1: fixed steps along the negative gradient, and when none helps, the
+    smallest positive one halved. On f(x) = 1000 (x_0 - 0.01)^2 + x_1^2 from x = 0 every fixed step (3 deg and
+    up, x 4 in (phi, u) units) overshoots the minimum at x_0 = 0.01; halving 3 deg reaches f < f(0) / 10, and the
+    search keeps iterating towards the closed-form minimum f = 0."""
+    from shadowopt.solvers.search_methods import cg07_linesearch
+
+    class Quadratic:  # the problem's interface the line search uses
+        def __init__(self):
+            self.seen = []
+
+        def value(self, x):
+            v = 1000.0 * (x[0] - 0.01) ** 2 + x[1] ** 2
+            self.seen.append(v)
+            return v
+
+        def gradient(self, x):
+            return np.array([2000.0 * (x[0] - 0.01), 2.0 * x[1]])
+
+        def clip(self, x):
+            return np.clip(x, -10.0, 10.0)
+
+    prob = Quadratic()
+    f0 = prob.value(np.zeros(2))
+    assert all(prob.value(np.array([np.radians(a) * 4, 0.0])) > f0 for a in (3, 5, 50))  # every fixed step overshoots
+    it = cg07_linesearch(prob, np.zeros(2), 8)
+    assert min(prob.seen) < f0 / 10
+    assert it >= 2
+
+
+def test_parallelogram_fit_of_a_parallelogram_is_the_parallelogram_itself():
+    """affine="parallelogram": the minimum-area enclosing parallelogram (two pairs of parallel lines flush with
+    hull edges). For points that are a parallelogram (sides (2, 0) and (1, 1), area 2; its axis box is 3 x 1) the
+    map's region in q space, area prod(hi - lo) / |det C|, is exactly 2 and every point lies inside it."""
+    from shadowopt.solvers.optimize import affine_fit
+
+    corners = np.array([[0.0, 0.0], [2.0, 0.0], [3.0, 1.0], [1.0, 1.0]])
+    rng = np.random.default_rng(5)
+    inner = rng.uniform(0, 1, (40, 2)) @ np.array([[2.0, 0.0], [1.0, 1.0]])  # points inside it
+    q = np.vstack([corners, inner])
+    for res in ((512, 512), (1024, 512)):
+        C, lo, hi = affine_fit(q, "parallelogram", res)
+        A = C[:2, :2]
+        assert np.prod(hi - lo) / abs(np.linalg.det(A)) == pytest.approx(2.0, rel=1e-9)
+        r = q @ A.T
+        assert np.all((r >= lo - 1e-12) & (r <= hi + 1e-12))
+    C, lo, hi = affine_fit(q, "axis", (512, 512))
+    assert np.prod(hi - lo) == pytest.approx(3.0, rel=1e-12)
+
+
+def test_optimized_map_depth_range_is_set_by_the_receivers_amid_a_small_caster():
+    """The optimized map's depth range spans the receivers' and the casters' warped light depths z / w'
+    (Lloyd et al.'s warp: depth divides by w', constant along each light ray), padded by 1%: no wider, so no
+    depth precision is wasted. With one 4 x 3 x 4 m caster amid 100 m of ground receivers under a 45 degree
+    sun the receivers themselves set both ends: their clip depths reach within 3% of -1 and of 1."""
+    from shadowopt.solvers.optimize import minimize
+
+    cam = Camera.look_at([0, 2, 0], [0, 0, 30], near=0.1, far=200, resolution=(1280, 720))
+    pts, s = ground_samples(cam, grid=(48, 27))
+    caster = (np.array([-2.0, 0.0, 8.0]), np.array([2.0, 3.0, 12.0]))
+    r = minimize(cam, DirectionalLight.make([1, -1, 0]), s, pts, caster, (1024, 1024))
+    _, _, z, w = r.map.map_coords(pts)
+    assert np.all(w > 0) and np.all(np.abs(z) <= 1)
+    assert z.min() < -0.97 and z.max() > 0.97, (float(z.min()), float(z.max()))
+
+
+def test_point_light_receivers_within_the_single_map_cone_get_one_tight_spot():
+    """single_map_spot: a point light whose receivers lie within SINGLE_MAP_CONE_DEG (70 deg) of one axis gets
+    one map, a spot on the receivers' mean direction with a cone just covering them. Receivers on a circle at
+    half-angle a about -y (plus the axis point): the cone covers a and exceeds it by at most 1 deg, for a = 20
+    and for a = 68.5, still one map."""
+    from shadowopt.solvers.lights import PointLight
+    from shadowopt.solvers.optimize import SINGLE_MAP_CONE_DEG, single_map_spot
+
+    light = PointLight.make([0.0, 10.0, 0.0])
+    phi = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    for a in (20.0, 68.5):
+        assert a < SINGLE_MAP_CONE_DEG
+        r = np.tan(np.radians(a)) * 10.0
+        ring = np.column_stack([r * np.cos(phi), np.zeros_like(phi), r * np.sin(phi)])
+        spot = single_map_spot(light, np.vstack([ring, [[0.0, 0.0, 0.0]]]))
+        assert spot is not None, a
+        assert spot.direction == pytest.approx([0.0, -1.0, 0.0], abs=1e-9)
+        assert a <= spot.cone_deg <= a + 1.0 + 1e-9
+
+
+def test_cg07_line_search_stops_at_a_stationary_point_without_evaluating():
+    """At a point where the gradient vanishes (or is not finite) there is no direction to search: the line
+    search stops after the first gradient, evaluates no step (every step would be 0 / 0 = NaN) and leaves x."""
+    from shadowopt.solvers.search_methods import cg07_linesearch
+
+    class Bowl:
+        def __init__(self, grad):
+            self.seen, self.grad = [], grad
+
+        def value(self, x):
+            self.seen.append(np.array(x, float))
+            return float(np.sum((np.asarray(x) - 0.25) ** 2))
+
+        def gradient(self, x):
+            return np.array(self.grad(x), float)
+
+        def clip(self, x):
+            return np.clip(x, -10.0, 10.0)
+
+    for grad in (lambda x: 2 * (np.asarray(x) - 0.25), lambda x: [np.inf, 0.0], lambda x: [np.nan, 1.0]):
+        prob = Bowl(grad)
+        it = cg07_linesearch(prob, np.array([0.25, 0.25]), 8)
+        assert it == 1
+        assert len(prob.seen) == 1 and np.all(np.isfinite(prob.seen[0]))  # only the start was evaluated
+
+
+def test_cg07_line_search_stops_when_no_step_improves():
+    """At the kink of f = 1000 |x_0 - 0.25| + |x_1| (a minimum with a non-zero gradient there) every fixed step
+    and every halving overshoots: no step lowers f by the 1e-4 relative the search asks for, so it stops after
+    the first iteration, having evaluated the start, the nine fixed steps and the six halvings, and x stays."""
+    from shadowopt.solvers.search_methods import CG07_ANGLES_DEG, cg07_linesearch
+
+    class Vee:
+        def __init__(self):
+            self.seen = []
+
+        def value(self, x):
+            self.seen.append(np.array(x, float))
+            return float(1000.0 * abs(x[0] - 0.25) + abs(x[1]) + 1.0)
+
+        def gradient(self, x):
+            return np.array([1000.0 * np.sign(x[0] - 0.25 + 1e-300), np.sign(x[1])])
+
+        def clip(self, x):
+            return np.clip(x, -10.0, 10.0)
+
+    prob = Vee()
+    it = cg07_linesearch(prob, np.array([0.25, 0.0]), 8)
+    assert it == 1
+    assert len(prob.seen) == 1 + len(CG07_ANGLES_DEG) + 6
+    assert min(float(prob.value(x)) for x in list(prob.seen)) == pytest.approx(1.0)

@@ -171,3 +171,23 @@ def test_four_cascades_on_the_interior_rig_against_ray_traced_visibility():
     for name in ("optimized (practical splits, equal)", "optimized"):
         for r, o in zip(ref, rec[name]):
             assert o <= 1.25 * r + 50, (name, rec)
+
+
+def test_receiver_terms_do_not_depend_on_an_earlier_call_with_fewer_receivers():
+    """receiver_terms scores at most n receivers (a seeded subset) and keeps the subset per receiver array
+    for speed only: the same numbers with or without the memo. Truth: the terms of all receivers
+    (n >= their count) on a fresh array, against the same call on a copy that was first scored with n = 50."""
+    from shadowopt.solvers.baselines import baseline
+    from shadowopt.solvers.cascade_scores import receiver_terms
+
+    cam = Camera.look([0, 2, 0], [0, -0.1, 1], near=0.1, far=300, resolution=(1280, 720))
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    pts, _ = ground_samples(cam, grid=(48, 27))
+    assert 50 < len(pts) < 5000
+    smap = baseline("focused", cam, sun, pts, bounds, (512, 512))[0]
+    want = receiver_terms(smap, pts.copy(), cam, sun, 5000)
+    other = pts.copy()
+    few = receiver_terms(smap, other, cam, sun, 50)
+    assert few != want  # a subset scores differently, so the check below can fail
+    assert receiver_terms(smap, other, cam, sun, 5000) == want

@@ -186,7 +186,6 @@ def test_a_frame_heavy_only_at_its_time_code_fails_alone_over_the_upload_load_me
     assert "time code 10" in big["error"]["message"] and "1.5 GiB" in big["error"]["message"]
     assert "(the load memory limit)" in big["error"]["message"]
     assert st["errors"] == [{"index": 2, "frame": 2, "time": 10, "scene_time": 10, **big["error"]}]
-    assert took < 90, f"the heavy frame was not stopped at the limit ({took:.0f} s)"
 
 
 def test_a_frame_load_over_the_load_time_limit_fails_naming_it(tmp_path):
@@ -197,12 +196,10 @@ def test_a_frame_load_over_the_load_time_limit_fails_naming_it(tmp_path):
     p = tmp_path / "balls.usda"
     p.write_text(stage(ball_crowd()))
     settings = {"method": "focused", "load_limits": {"timeout_s": 0.5, "max_triangles": 50_000_000}}
-    t0 = time.monotonic()
     out = solve_configuration(str(p), True, {"rig": RIG, "frame": 2, "time": 10.0, "scene_time": 10.0}, settings)
     assert out["error"]["code"] == "load_timeout", out
     assert out["error"]["message"].startswith("the stage at time code 10: loading scene 'balls.usda' took longer "
                                               "than 0.5 s (the load time limit)"), out
-    assert time.monotonic() - t0 < 30
 
 
 @pytest.mark.server

@@ -11,6 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from shadowopt.solvers.cameras import Camera
+from shadowopt.solvers.lights import DirectionalLight
+from testkit import ground_samples
+
 SCREEN = (320, 180)
 MAP = 256
 FRAMES = 6
@@ -267,3 +271,69 @@ def test_whole_path_keyframes_report_what_interpolation_adds(strafe):
     assert kf[0]["interpolated_objective"] is None
     assert kf[0]["max_objective_ratio"] >= max(k["interpolated_objective"] / s["solver"]["fun"]
                                                for k, s in zip(kf, sols) if k["interpolated_objective"]) * (1 - 1e-9)
+
+
+def test_joint_grid_is_seen_from_the_middle_frame():
+    """joint_grid optimizes one canonical part for several frames, on the union of their samples and
+    receivers, seen from the middle frame's camera (its splits and warp frame). So with three frames the first
+    frame's camera plays no part: moving it (same samples and receivers) leaves the grid unchanged, while
+    moving the middle frame's camera changes it."""
+    from shadowopt.solvers.path_optimize import FrameProblem, joint_grid
+
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    cams = [Camera.look([x, 2, 0], [0.1 * x, -0.1, 1], near=0.1, far=300, resolution=(640, 360)) for x in (-4.0, 0.0, 4.0)]
+    data = [ground_samples(c, far=120.0, grid=(32, 18)) for c in cams]
+    opts = {"resolution": (512, 512), "cascades": 1}
+
+    def frames(cameras):
+        return [FrameProblem(c, sun, s, p, bounds, dict(opts)) for c, (p, s) in zip(cameras, data)]
+
+    moved = Camera.look([30.0, 8, -20], [-0.5, -0.3, 1], near=0.1, far=300, resolution=(640, 360))
+    base = joint_grid(frames(cams), 0)
+    assert base is not None
+    first = joint_grid(frames([moved, cams[1], cams[2]]), 0)
+    middle = joint_grid(frames([cams[0], moved, cams[2]]), 0)
+    assert np.array_equal(first.view, base.view) and np.array_equal(first.G, base.G)
+    assert not (np.allclose(middle.view, base.view) and np.allclose(middle.G, base.G))
+
+
+def test_segment_pass_finds_the_cheapest_cut(monkeypatch):
+    """segment_pass cuts a path into segments (dynamic programming over segment counts) and, with the reference
+    out of reach, returns the cut of least summed objective (the fewest segments among equals). The map fits
+    are replaced by a table whose segment cost is g(the segment's coarsest level) x the sum of its frames'
+    weights (not additive over frames, so the cut matters). Truth: every one of the 2^3 cuts of 4 frames
+    evaluated by brute force."""
+    import itertools
+    from types import SimpleNamespace
+
+    from shadowopt.solvers import path_optimize as PO
+
+    lv, w, g = [1, 0, 2, 1], [5.0, 0.5, 5.0, 0.5], {0: 3.0, 1: 0.2, 2: 10.0}
+    n = len(lv)
+
+    def fake_fit(grid, kk, corners, held=None, origin=None, force=None, depth_frame=None):
+        cost = 0.0 if held is None else g[held[0]] * w[kk]
+        return SimpleNamespace(cost=cost, depth_frame=(0.0, 0.0, 1.0, (0.0, 1.0))), held or (0, 0)
+
+    monkeypatch.setattr(PO, "fit_on_grid", fake_fit)
+    monkeypatch.setattr(PO, "tight_levels", lambda grid, kk: (lv[kk], lv[kk]))
+    cam = SimpleNamespace(position=np.zeros(3))
+    frames = [SimpleNamespace(camera=cam, light=None) for _ in range(n)]
+    fits = [[SimpleNamespace(fit_pts=kk, corners=None, score=lambda smap, c, l: smap.cost)] for kk in range(n)]
+    fresh = [[PO.Grid(np.eye(4), np.zeros((3, 4)), (64, 64))] for _ in range(n)]
+    maps, grids, report = PO.segment_pass(frames, fits, fresh, [[0.0]] * n, tolerance=1.0, joint=False)
+
+    def seg(i, j):
+        return g[min(lv[i:j + 1])] * sum(w[i:j + 1])
+
+    best = None
+    for k in range(n):
+        for cuts in itertools.combinations(range(1, n), k):
+            b = (0,) + cuts + (n,)
+            total = sum(seg(b[t], b[t + 1] - 1) for t in range(len(b) - 1))
+            if best is None or total < best[0] - 1e-12:
+                best = (total, [[b[t], b[t + 1] - 1] for t in range(len(b) - 1)])
+    assert report[0]["objective_sum"] == pytest.approx(best[0], rel=1e-12)
+    assert report[0]["segments"] == best[1]
+    assert best[0] == pytest.approx(3.6)

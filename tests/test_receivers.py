@@ -133,6 +133,7 @@ def test_focused_fit_on_a_close_up_is_the_visible_receivers_area():
         assert truth <= fitted <= 1.08 * truth, (sun, fitted / truth)
 
 
+@pytest.mark.slow
 def test_sliver_between_fine_rays_inside_every_map():
     """The street canyon at 1920x1080, sun 3 of the corpus benchmark's seed: a lit wall face one
     full-resolution pixel wide at 195 m, between a receding wall and a farther face, falls between the

@@ -109,3 +109,25 @@ def test_anonymous_layer_identifiers_and_heap_addresses_never_reach_a_message():
     assert r.text("flags 0xff, id 0x1234abcd, </World/box0x55a6175187e0>") == \
         "flags 0xff, id 0x1234abcd, </World/box0x55a6175187e0>"
     assert r.text(out) == out and r.text(r.text(msg)) == out
+
+
+def test_only_the_temp_dir_is_hidden_one_level_below_root():
+    import tempfile
+
+    from shadowopt.renderers.redaction import PathRedactor
+
+    tmp = tempfile.gettempdir().rstrip("/")
+    # "/home" and "/srv" sort before "/tmp": a folder one level below / is never hidden, whatever its name
+    r = PathRedactor(hidden=["/home", "/srv", "/aaa", tmp])
+    assert r.text("see /home/alice/notes and /srv/x/y and /aaa/b/c") == "see /home/alice/notes and /srv/x/y and /aaa/b/c"
+    assert r.text(f"at {tmp}/abc/def") == "at def"
+    assert PathRedactor(hidden=["/home/alice"]).text("see /home/alice/notes") == "see notes"  # two levels: hidden
+
+
+def test_a_relative_root_is_matched_as_written_only_with_two_components_or_more():
+    from shadowopt.renderers.redaction import PathRedactor
+
+    assert PathRedactor(roots=["out/data"], hidden=[]).text("at out/data/x.usda") == "at x.usda"
+    # a one-word relative folder ("data") would cut the word wherever it appears: only its absolute form counts
+    assert PathRedactor(roots=["data"], hidden=[]).text("at data/y.usda") == "at data/y.usda"
+    assert PathRedactor(roots=["./data"], hidden=[]).text("at data/y.usda") == "at data/y.usda"

@@ -113,7 +113,9 @@ def test_resolve_rig_refuses_a_rig_dict_that_skipped_the_model(demo_entry):
     assert "lights: 16" in e.value.message and f"{MAX_SOLVE_WORK:,}" in e.value.message
 
 
-def test_demo_and_largest_accepted_rig_solve_in_seconds(demo_entry, monkeypatch):
+def test_demo_and_largest_accepted_rig_solve_and_only_the_large_one_flushes_dr_jits_cache(demo_entry, monkeypatch):
+    """The demo rig and the largest rig within every limit both solve (how long the largest takes, ~1.5 s alone,
+    is a benchmark's figure); only the large solve returns Dr.Jit's cached allocations."""
     import json
     from pathlib import Path
 
@@ -132,9 +134,10 @@ def test_demo_and_largest_accepted_rig_solve_in_seconds(demo_entry, monkeypatch)
     elapsed = time.perf_counter() - t0
     assert len(sol["lights"]) == 16 and all(len(l["cascades"]) == 4 for l in sol["lights"])
     assert flushed[-1] is True  # large: Dr.Jit's cached allocations returned
-    assert elapsed < 30, elapsed  # ~1.5 s alone on this machine; not minutes
+    print(f"the largest accepted rig (16 lights x 4 cascades, uniform): {elapsed:.1f} s")
 
 
+@pytest.mark.slow
 def test_time_budget_is_shared_by_all_lights_of_a_solve(demo_entry, monkeypatch):
     """Each light's search gets what is left of the solve's budget (it used to get the whole budget each:
     16 lights x 10 s)."""
@@ -163,7 +166,7 @@ def test_time_budget_is_shared_by_all_lights_of_a_solve(demo_entry, monkeypatch)
     for t, given in calls:  # never more than what is left of the whole budget
         assert given <= max(1.0, budget - (t - t0) * 1e3) + 1.0, (given, (t - t0) * 1e3)
     assert calls[-1][1] < calls[0][1] and calls[-1][1] == 1.0  # the last lights get what is left: 1 ms
-    assert elapsed < 30, elapsed
+    print(f"16 lights within a {budget:.0f} ms budget: {elapsed * 1e3:.0f} ms")
 
 
 @pytest.fixture(scope="module")
@@ -179,6 +182,13 @@ def scene_id(server):
     return r.json()["scene_id"]
 
 
+def optimizes_solved(base: str) -> int:
+    """How many optimize requests reached solve() (the shadowopt_optimize_seconds histogram's counts)."""
+    text = httpx.get(base + "/metrics").text
+    return sum(int(float(line.rsplit(" ", 1)[1])) for line in text.splitlines()
+               if line.startswith("shadowopt_optimize_seconds_count"))
+
+
 def _error(r: httpx.Response, status: int = 422) -> dict:
     assert r.status_code == status, r.text
     return r.json()["error"]
@@ -187,10 +197,10 @@ def _error(r: httpx.Response, status: int = 422) -> dict:
 @pytest.mark.server
 def test_server_refuses_the_attackers_rig_on_optimize_compare_evaluate_and_batches(server, scene_id):
     h = auth("alice")
+    solved = optimizes_solved(server.base)
     for rig, field, words in ((attacker_rig(), "rig.coarse_long_side", ("512",)),
                               (attacker_rig(512), "rig", ("too costly", "rig.lights: 16", "rig.shadow.cascades: 16",
                                                           f"{MAX_SOLVE_WORK:,}"))):
-        t0 = time.monotonic()
         bodies = {"/v1/optimize": {"scene_id": scene_id, "rig": rig, "method": "optimized", "time_budget_ms": 10000},
                   "/v1/compare": {"scene_id": scene_id, "rig": rig},
                   "/v1/evaluate": {"scene_id": scene_id, "rig": rig, "solution": {"lights": []}}}
@@ -208,7 +218,7 @@ def test_server_refuses_the_attackers_rig_on_optimize_compare_evaluate_and_batch
                                                           "sun_arc": {"elevation_deg": [10, 60], "samples": 3}},
                        headers=h, timeout=60)
         assert _error(r)["field"].startswith("rig"), r.text
-        assert time.monotonic() - t0 < 20  # refused up front, not after minutes of solving
+    assert optimizes_solved(server.base) == solved  # refused up front: not one optimize reached solve()
 
 
 @pytest.mark.server
@@ -226,3 +236,28 @@ def test_server_compare_over_the_eval_limit_is_too_costly_and_small_requests_sti
     assert r.status_code == 200, r.text
     r = httpx.post(server.base + "/v1/compare", json={**body, "screen": [160, 90]}, headers=h, timeout=120)
     assert r.status_code == 200 and set(r.json()["methods"]) == {"uniform", "focused", "lispsm"}, r.text
+
+
+def test_auto_cascades_cost_uses_the_schemas_default_max_cascades():
+    from shadowopt.api.schemas import ShadowSpec
+    from shadowopt.service.request_cost import _describe, maps_per_light
+
+    k = ShadowSpec.model_fields["max_cascades"].default  # the request's default, from the schema
+    fits = k * (k + 1) // 2  # auto tries 1..k cascades: k(k+1)/2 map fits
+    assert maps_per_light({"cascades": "auto"}) == fits == maps_per_light({"cascades": "auto", "max_cascades": k})
+    assert maps_per_light(ShadowSpec(cascades="auto")) == fits
+    assert maps_per_light({"cascades": "auto", "max_cascades": 3}) == 6 and maps_per_light({"cascades": 3}) == 3
+    text = _describe({"shadow": {"cascades": "auto"}, "lights": [{"type": "directional"}]})
+    assert f"max_cascades {k} ({fits} map fits)" in text
+
+
+def test_map_texels_is_the_resolution_times_the_maps_or_the_budget():
+    from shadowopt.service.request_cost import map_texels
+
+    assert map_texels({"resolution": [1024, 512], "cascades": 3}) == 1024 * 512 * 3
+    assert map_texels({"resolution": [300, 200]}) == 60_000  # one cascade by default
+    assert map_texels({}) == 2048 * 2048  # no resolution given: the service default, 2048 x 2048
+    assert map_texels({"resolution": [1024, 512], "cascades": "auto", "max_cascades": 2}) == 1024 * 512 * 3
+    assert map_texels({"texel_budget": 1_000_000, "cascades": 3}) == 1_000_000  # a budget is the light's total
+    assert map_texels({"texel_budget": 1_000_000, "cascades": "auto", "max_cascades": 3}) == 6_000_000  # per try
+    assert isinstance(map_texels({"resolution": [7, 3], "cascades": 2}), int)

@@ -381,3 +381,75 @@ def test_redact_cuts_every_server_path_to_its_file_name(tmp_path):
                     "cameras": [{"usd_path": "/tmp/Camera"}], "prims": ["/tmp/Geo/Mesh"],
                     "filename": "x.usda", "heatmap_png_base64": [str(stored)]}
     assert str(data) not in ApiError(422, "x", f"{data}/shadowopt.db is locked").body()["error"]["message"]
+
+
+TOKENS = {"alice": "alice-token-0001", "bob": "bob-token-0002"}
+
+
+class FakeClock:
+    def __init__(self):
+        self.now = 5000.0
+
+    def monotonic(self):
+        return self.now
+
+
+def _app(tmp_path, monkeypatch, **settings):
+    """The real app (create_app) without its lifespan (no store): the tenant dependency answers before any
+    route body runs, so 401 / 429 are its own; a request it lets through gets past it (any other status)."""
+    from types import SimpleNamespace
+
+    from fastapi.testclient import TestClient
+
+    import shadowopt.api.rate_limit as rate_limit
+    import shadowopt.api.server as server
+    from shadowopt.api.settings import Settings
+
+    clock = FakeClock()
+    monkeypatch.setattr(rate_limit, "time", SimpleNamespace(monotonic=clock.monotonic, time=__import__("time").time,
+                                                            perf_counter=__import__("time").perf_counter,
+                                                            strftime=__import__("time").strftime,
+                                                            gmtime=__import__("time").gmtime))
+    s = Settings(data_dir=str(tmp_path / "data"), **settings)
+    return TestClient(server.create_app(s), raise_server_exceptions=False), clock
+
+
+def _get(client, token=None):
+    return client.get("/v1/scenes/00000000", headers={"Authorization": f"Bearer {token}"} if token else {})
+
+
+def test_tenant_for_names_the_token_owner_and_nobody_else():
+    from shadowopt.api.service_state import LOCAL_TENANT, Service
+    from shadowopt.api.settings import Settings
+
+    svc = Service(Settings(tokens=dict(TOKENS)))
+    assert [svc.tenant_for(t) for t in TOKENS.values()] == list(TOKENS)  # each token -> its own name
+    for bad in (None, "", "alice-token-000", "alice-token-00011", "bob-token-0001", "ALICE-TOKEN-0001"):
+        assert svc.tenant_for(bad) is None, bad
+    free = Service(Settings())  # no tokens configured: every request is the local tenant, token or not
+    assert {free.tenant_for(t) for t in (None, "", "anything-at-all")} == {LOCAL_TENANT}
+
+
+def test_the_dependency_refuses_missing_and_unknown_tokens_with_401(tmp_path, monkeypatch):
+    client, _ = _app(tmp_path, monkeypatch, tokens=dict(TOKENS), rate_limit_per_s=0.0)
+    for token, message in ((None, "missing bearer token"), ("nobody-token-9", "unknown bearer token")):
+        r = _get(client, token)
+        assert r.status_code == 401 and r.headers["www-authenticate"] == "Bearer"
+        err = r.json()["error"]
+        assert (err["code"], err["message"], err["field"]) == ("unauthorized", message, "Authorization")
+    for token in TOKENS.values():
+        assert _get(client, token).status_code not in (401, 429)
+
+
+@pytest.mark.parametrize("rate, want", [(4.0, 1), (0.4, 3), (0.5, 2), (1 / 7, 7)])
+def test_retry_after_is_the_whole_seconds_until_a_token_is_back(tmp_path, monkeypatch, rate, want):
+    # burst 1: the first request takes the token, the second (same instant) waits 1/rate s; the header is
+    # that wait rounded up to whole seconds, at least 1 (RFC 9110's Retry-After is whole seconds)
+    client, clock = _app(tmp_path, monkeypatch, tokens=dict(TOKENS), rate_limit_per_s=rate, rate_limit_burst=1)
+    assert _get(client, TOKENS["alice"]).status_code not in (401, 429)
+    r = _get(client, TOKENS["alice"])
+    assert r.status_code == 429 and r.json()["error"]["code"] == "rate_limited"
+    assert r.headers["retry-after"] == str(want)
+    assert _get(client, TOKENS["bob"]).status_code not in (401, 429)  # bob's bucket is his own
+    clock.now += want  # after the advertised wait the request passes
+    assert _get(client, TOKENS["alice"]).status_code not in (401, 429)

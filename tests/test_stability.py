@@ -8,6 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from shadowopt.solvers.cameras import Camera
+from shadowopt.solvers.lights import DirectionalLight
+from testkit import ground_samples
+
 ROOT = Path(__file__).resolve().parents[1]
 SCREEN = (240, 135)
 SUN = [-0.45, -0.8, 0.4]
@@ -143,3 +147,50 @@ def test_bench_path_runs_a_three_frame_path_without_writing(capsys):
     stable = [ln for ln in rows if "| stable_csm |" in ln]
     assert all(ln.split("|")[5].strip() == "0.000" for ln in stable)  # stable CSM does not swim
     assert (ROOT / "BENCHMARKS.md").read_text() == before
+
+
+def test_stable_csm_cascade_bias_comes_from_its_own_depth_slice():
+    """stable_csm's maps do not depend on the receivers (world-fixed spheres and grid); only each cascade's
+    bias does, from the receivers in its view-depth slice (baselines' rule). Truth: cascade i's bias and depth
+    block equal those of the same call given only the receivers of slice i, with the camera far from the world
+    origin (position . forward = -60 m) so that depths measured from the wrong point pick other receivers."""
+    from shadowopt.solvers.stable_csm import stable_csm_maps
+
+    cam = Camera.look([0, 2, -60], [0, -0.1, 1], near=0.1, far=300, resolution=(1280, 720))
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    pts, _ = ground_samples(cam, far=150.0)
+    # some relief, so that the slices' receivers ask for different slope biases
+    pts = pts + np.column_stack([np.zeros(len(pts)), 0.02 * (pts[:, 2] + 60) * np.sin(pts[:, 0]), np.zeros(len(pts))])
+    maps = stable_csm_maps(cam, sun, pts, bounds, (1024, 1024), cascades=3)
+    depth = (pts - cam.position) @ cam.forward
+    differs = checked = 0
+    for i, m in enumerate(maps):
+        sel = (depth >= m.split[0]) & (depth <= m.split[1])
+        if not sel.any():  # a slice past the receivers: biased by all of them
+            continue
+        checked += 1
+        alone = stable_csm_maps(cam, sun, pts[sel], bounds, (1024, 1024), cascades=3)[i]
+        assert np.array_equal(alone.matrix, m.matrix)
+        assert alone.depth_bias == m.depth_bias and alone.depth == m.depth
+        other = stable_csm_maps(cam, sun, pts[~sel], bounds, (1024, 1024), cascades=3)[i]
+        differs += other.depth != m.depth or other.depth_bias != m.depth_bias
+    assert checked >= 2 and differs  # the bias does depend on which receivers, so the check above can fail
+
+
+def test_stable_csm_slice_sphere_encloses_the_slice_and_touches_a_corner():
+    """slice_sphere (Valient 2008): the bounding sphere of the view-frustum slice [z0, z1]. Truth: the slice's
+    eight corners from the camera's field of view (depth z, +-z tan(fov_x / 2) right, +-z tan(fov_y / 2) up) lie
+    inside it, and the farthest one lies on it (radius = the larger corner distance from the centre)."""
+    from shadowopt.solvers.stable_csm import slice_sphere
+
+    for fov, res, (z0, z1) in ((60.0, (1280, 720), (0.1, 10.0)), (45.0, (1920, 1080), (10.0, 40.0)),
+                              (90.0, (1000, 1000), (2.0, 2.5))):
+        cam = Camera.look([3.0, 2.0, -7.0], [0.2, -0.3, 1.0], fov_y_deg=fov, near=0.1, far=300, resolution=res)
+        ty = np.tan(np.radians(fov) / 2)
+        tx = ty * res[0] / res[1]
+        corners = np.array([cam.position + z * (cam.forward + sx * tx * cam.right + sy * ty * cam.up)
+                            for z in (z0, z1) for sx in (-1, 1) for sy in (-1, 1)])
+        centre, r = slice_sphere(cam, z0, z1)
+        dist = np.linalg.norm(corners - centre, axis=1)
+        assert dist.max() == pytest.approx(r, rel=1e-9)

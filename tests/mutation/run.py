@@ -5,10 +5,10 @@ directory (out/mutation/work-<folders>), an import shim there (`_import/shadowop
 first on PYTHONPATH so the tests import the mutated copy instead of the editable install, and cosmic-ray's
 `mutate_and_test` mutates, runs the mapped tests and restores each file in that copy.
 
-tests/mutation/config.json maps each module to the test files that cover it (only those run per mutant) and, for a
-big module, the definitions to mutate ("only"). The mutants are sampled per folder with a fixed seed (each folder
-its own random stream, so `--folders` does not change a folder's sample, and a larger `--per-folder` extends the
-smaller sample). Mutations inside annotations of a module with `from __future__ import annotations` that nothing
+tests/mutation/config.json maps each module to the tests that cover it (files, node IDs, or "@name" for a list in
+its test_groups; only those run per mutant) and, for a big module, the definitions to mutate ("only"). The mutants
+are sampled per folder with a fixed seed (each folder its own random stream, so `--folders` does not change a
+folder's sample, and a larger `--per-folder` extends the smaller sample). Mutations inside annotations of a module with `from __future__ import annotations` that nothing
 evaluates (no pydantic / FastAPI / get_type_hints in it) are skipped: they cannot change behaviour. Each module's
 tests run unmutated first: a failing set is reported and its mutants skipped; the time it took sets the mutant's
 timeout, max(60 s, 4 x baseline), also given to pytest-timeout (a hang counts as killed, as in cosmic-ray).
@@ -139,6 +139,16 @@ def enumerate_mutants(work: Path, modules: dict) -> tuple[dict[str, list], dict[
     finally:
         os.chdir(old)
     return by_module, skipped
+
+
+def load_config(path: Path) -> dict:
+    """The config with each module's "@group" test entries replaced by the group's list (test_groups)."""
+    cfg = json.loads(path.read_text())
+    groups = cfg.get("test_groups", {})
+    for entry in cfg["modules"].values():
+        entry["tests"] = [t for item in entry["tests"]
+                          for t in (groups[item[1:]] if item.startswith("@") else [item])]
+    return cfg
 
 
 def test_command(entry: dict, timeout: float | None = None) -> list[str]:
@@ -296,9 +306,9 @@ def write_reports(data: dict) -> None:
     tmp.write_text(json.dumps(data, indent=1) + "\n")
     tmp.replace(RESULTS)
     out = ["# Surviving mutants", "",
-           "Written by `make mutate` from the merged tests/mutation/results.json. Each is killed by a test in "
-           "tests/test_mutation_kills*.py (re-run with `--only ID`) or listed in tests/mutation/equivalent.json "
-           "with the reason it is equivalent. \"stale\": the module changed since the mutant ran (re-run it).", ""]
+           "Written by `make mutate` from the merged tests/mutation/results.json. Each is killed by a test (re-run "
+           "with `--only ID`; tests/mutation/config.json's test_groups list those written for survivors) or listed "
+           "in tests/mutation/equivalent.json with the reason it is equivalent. \"stale\": the module changed since the mutant ran (re-run it).", ""]
     for r in results:
         if r["outcome"] != "survived":
             continue
@@ -363,7 +373,7 @@ def main(argv=None) -> int:
     if args.report:
         merge([])
         return 0
-    cfg = json.loads(Path(args.config).read_text())
+    cfg = load_config(Path(args.config))
     seed = cfg["seed"] if args.seed is None else args.seed
     budget = cfg["budget_s"] if args.budget is None else args.budget
     mapped = sorted({folder_of(m) for m in cfg["modules"]})
