@@ -10,6 +10,7 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
+from .progress import progress_bar
 from .schemas import ConfigurationError, format_validation_error, validate_configurations
 from .schemas import validate_rig  # the rig validation (api.schemas); kept importable from here
 from .settings import SettingsError, load_settings
@@ -348,6 +349,11 @@ def cmd_compare(args) -> int:
     return 0
 
 
+def cli_bar(total: int, desc: str, unit: str):
+    """The batch and path commands' progress: a tqdm bar on a terminal, a line every few seconds in a log file."""
+    return progress_bar(total, desc, unit=unit)
+
+
 def cmd_batch(args) -> int:
     """Precompute many configurations (explicit, or a camera path crossed with light directions)."""
     # lazy: the server stack (an extra) loads only for the command that runs, not for --help
@@ -379,7 +385,7 @@ def cmd_batch(args) -> int:
         except ImportError:
             raise CliError("--backend ray: ray is not installed (pip install 'shadowopt[ray]')") from None
     s = run_batch(args.scene, configs, backend=args.backend, workers=args.workers, out_path=args.out,
-                  method=method, progress=not args.no_progress, solver=args.solver or request.get("solver"),
+                  method=method, progress=None if args.no_progress else cli_bar, solver=args.solver or request.get("solver"),
                   time_budget_ms=args.time_budget_ms or request.get("time_budget_ms"), ray_address=args.ray_address)
     print(f"batch: {s['total']} configurations, {s['done']} done, {s['failed']} failed in {s['seconds']:.1f} s "
           f"({s['total'] / max(s['seconds'], 1e-9):.2f} configurations/s); results in {args.out}")
@@ -444,7 +450,7 @@ def cmd_path(args) -> int:
 
     try:
         s = run_path(args.scene, frames, method=method, coherent=args.coherent, workers=args.workers,
-                     on_line=on_line, progress=not args.no_progress, solver=args.solver,
+                     on_line=on_line, progress=None if args.no_progress else cli_bar, solver=args.solver,
                      time_budget_ms=args.time_budget_ms)
     finally:
         if out is not None:

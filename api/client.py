@@ -35,7 +35,7 @@ from typing import Any
 import httpx
 from pydantic import BaseModel
 
-from ..service.progress import progress_bar
+from .progress import progress_bar
 from .schemas import BatchCreated, BatchResultLine, BatchStatus, Health, PathFrame, Rig, SceneInfo, Solution
 
 __all__ = ["Client", "AsyncClient", "SceneInfo", "Solution", "BatchResultLine", "PathFrame", "PathFrames", "BatchCreated", "BatchStatus",
@@ -366,7 +366,7 @@ class _Base:
 
 
 def _progress_bar(total: int, desc: str, enabled: bool | str):
-    """service.progress.progress_bar: a tqdm bar on a terminal, a line every few seconds in a log file."""
+    """api.progress.progress_bar: a tqdm bar on a terminal, a line every few seconds in a log file."""
     return progress_bar(total, desc, unit="conf", enabled=enabled, stream=sys.stderr)
 
 

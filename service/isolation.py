@@ -123,7 +123,7 @@ def die_with_parent(parent_pid: int | None = None, *, pdeathsig: bool = False,
     threading.Thread(target=_watch, args=(parent_pid, interval), name="die-with-parent", daemon=True).start()
 
 
-class _Spawner:
+class Spawner:
     """One long-lived daemon thread that starts every child process, so PDEATHSIG (which follows the
     spawning thread) fires only when the whole process is gone."""
 
@@ -165,7 +165,7 @@ class _Spawner:
         self.call(start)
 
 
-SPAWNER = _Spawner()
+SPAWNER = Spawner()
 
 
 class DyingProcessPool(ProcessPoolExecutor):
@@ -454,7 +454,7 @@ def run_isolated(fn, args: tuple = (), kwargs: dict | None = None, *, memory_byt
             if proc.exitcode is None:
                 proc.kill()
                 proc.join(timeout=5)
-            return _crashed(proc.exitcode, peak, memory_bytes, what)
+            return crash_error(proc.exitcode, peak, memory_bytes, what)
         kind = msg[0]
         if kind == "ok":
             return msg[1]
@@ -472,7 +472,7 @@ def _memory_error(memory_bytes: int, what: str):
                       f"(the load memory limit); refused")
 
 
-def _crashed(exitcode, peak: int, memory_bytes: int, what: str):
+def crash_error(exitcode, peak: int, memory_bytes: int, what: str):
     """A child that died without answering: a failed allocation (std::bad_alloc aborts; the kernel's OOM
     killer sends SIGKILL) when it had mapped most of its limit, else a crash on a damaged file."""
     from ..renderers.scene_data import SceneError  # lazy: numpy; a loader child imports this module before _cap_threads

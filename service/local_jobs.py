@@ -1,5 +1,6 @@
 """The CLI's batch and path: a job run by a BatchRunner on a temporary Store, so execution is the server's,
-its result lines streamed (to a JSON-lines file, or to a callback in frame order) under a progress bar."""
+its result lines streamed (to a JSON-lines file, or to a callback in frame order) under the caller's progress bar
+(`progress`: a factory (total, desc, unit) -> bar or None, as api.progress.progress_bar; service draws nothing itself)."""
 from __future__ import annotations
 
 import contextlib
@@ -12,8 +13,22 @@ from ..renderers.scene_data import SceneError
 from .job_runner import BatchRunner
 from .job_workers import DEFAULT_METHOD
 from .paths import is_coherent, is_whole_path
-from .progress import NullBar, progress_bar
 from .store import UNFINISHED, Store
+
+
+class NullBar:
+    """The bar's interface doing nothing but count: what a caller uses when progress_bar gives None."""
+
+    n = 0
+
+    def update(self, k: int = 1) -> None:
+        self.n += k
+
+    def set_postfix(self, **kw) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
 
 
 @contextlib.contextmanager
@@ -53,7 +68,7 @@ def follow(runner: BatchRunner, store: Store, batch_id: str, bar, on_lines, show
 
 
 def run_batch(scene_path, configurations: list[dict], backend: str = "local", workers: int = 2,
-              out_path=None, method: str = DEFAULT_METHOD, progress: bool = True, solver: str | None = None,
+              out_path=None, method: str = DEFAULT_METHOD, progress=None, solver: str | None = None,
               time_budget_ms: float | None = None, ray_address: str | None = None) -> dict:
     """Run configurations (each {"rig": validated rig}) on a scene file; write JSON lines (one per
     configuration, in index order, each with "index"; failures as {"index", "error"}) to out_path as
@@ -64,7 +79,7 @@ def run_batch(scene_path, configurations: list[dict], backend: str = "local", wo
     t0 = time.perf_counter()
     with local_job(scene_path, configurations, settings, "batch", backend, workers,
                    ray_address) as (runner, store, batch_id):
-        bar = progress_bar(len(configurations), "batch", unit="config", enabled=progress) or NullBar()
+        bar = (progress and progress(len(configurations), "batch", "config")) or NullBar()
         out = open(out_path, "w") if out_path else None
 
         def write(lines):
@@ -84,7 +99,7 @@ def run_batch(scene_path, configurations: list[dict], backend: str = "local", wo
 
 
 def run_path(scene_path, frames: list[dict], *, method: str = "optimized", coherent: bool = False,
-             workers: int = 2, on_line=None, progress: bool = True, solver: str | None = None,
+             workers: int = 2, on_line=None, progress=None, solver: str | None = None,
              time_budget_ms: float | None = None, backend: str = "local", ray_address: str | None = None) -> dict:
     """Solve the frames (validated {"rig", "frame", "time"}) as a batch in a temporary Store; call
     `on_line(line)` for each result line in frame order as soon as it and every frame before it are done.
@@ -99,7 +114,7 @@ def run_path(scene_path, frames: list[dict], *, method: str = "optimized", coher
         settings["coherent_chunks"] = workers
     t0 = time.perf_counter()
     with local_job(scene_path, frames, settings, "path", backend, workers, ray_address) as (runner, store, batch_id):
-        bar = progress_bar(len(frames), "path", unit="frame", enabled=progress) or NullBar()
+        bar = (progress and progress(len(frames), "path", "frame")) or NullBar()
 
         def each(lines):
             for line in lines:

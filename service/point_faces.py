@@ -52,7 +52,7 @@ def face_shares(total: int, misclassified: list[float], probe: int) -> list[int]
         fixed |= low
 
 
-def _objective(err: dict) -> float:
+def variant_objective(err: dict) -> float:
     o = err.get("objective")
     return float(o) if o is not None and np.isfinite(o) and err.get("unserved_samples", 0) == 0 else math.inf
 
@@ -66,13 +66,13 @@ def choose(method: str, camera, prob, bounds, maps: list, allow_log: bool, maps_
     light = prob.light
     total = int(sum(m.resolution[0] * m.resolution[1] for m in maps))
     ref_err, _ = maps_error(maps, prob.samples, origin)
-    ref_obj = _objective(ref_err)
+    ref_obj = variant_objective(ref_err)
     res, mis = face_resolutions(camera, light, prob, bounds, total, maps_error, origin)
     tried = []
     for warp in dict.fromkeys(("none", warp_for(method, allow_log))):  # FP, and FP+P / FP+LogP for warped methods
         fp, parts = partition_maps(camera, light, prob.receivers, bounds, res, warp)
         err, _ = maps_error(fp, prob.samples, origin)
-        tried.append((_objective(err), warp, fp, parts, err, mis))
+        tried.append((variant_objective(err), warp, fp, parts, err, mis))
     best = min(tried, key=lambda c: c[0])
     fp_obj, warp, fp, parts, fp_err, mis = best
     chosen = "face_partitioning" if fp_obj < ref_obj or mode == "face_partition" else \

@@ -93,7 +93,7 @@ def solve_work(rig, kinds: list[str] | None = None) -> int:
     return sum(px * maps * light_faces(l, kinds[i] if kinds else None) for i, l in enumerate(lights))
 
 
-def _describe(rig, kinds=None, prefix: str = "rig.") -> str:
+def describe_work(rig, kinds=None, prefix: str = "rig.") -> str:
     lights = _get(rig, "lights", [])
     faces = [light_faces(l, kinds[i] if kinds else None) for i, l in enumerate(lights)]
     cube = sum(1 for f in faces if f > 1)
@@ -126,7 +126,7 @@ def check_solve_work(rig, solves: int = 1, kinds: list[str] | None = None, prefi
         times = f" x {solves} solves" if solves > 1 else ""
         raise WorkLimit(_largest_field(rig, kinds),
                         f"the request is too costly: estimated solve work {work:,} coarse pixel x map units"
-                        f"{times} is over the limit of {MAX_SOLVE_WORK:,} ({_describe(rig, kinds, prefix)}; "
+                        f"{times} is over the limit of {MAX_SOLVE_WORK:,} ({describe_work(rig, kinds, prefix)}; "
                         f"work = sum over lights of coarse pixels x maps, x{CUBE_FACES} for point lights); "
                         f"lower {prefix}coarse_long_side, the number of {prefix}lights or {prefix}shadow.cascades")
 

@@ -475,7 +475,7 @@ def test_cli_batch_writes_json_lines_in_index_order(tmp_path):
     assert "3 done, 0 failed" in p.stdout and "batch" in p.stderr  # summary, and the progress bar on stderr
     # stderr is a pipe, not a terminal: progress as whole lines (no carriage returns), few of them, the last final
     progress = [x for x in p.stderr.splitlines() if x.startswith("batch: ")]
-    from shadowopt.service.progress import LOG_INTERVAL_S
+    from shadowopt.api.progress import LOG_INTERVAL_S
 
     assert "\r" not in p.stderr and progress[-1] == "batch: 3/3 config"
     assert 1 <= len(progress) <= 2 + took / LOG_INTERVAL_S, progress

@@ -358,7 +358,7 @@ def test_progress_in_a_log_file_is_a_line_every_few_seconds():
     (stand-in) clock, and the final state once; a terminal gets tqdm; off is nothing."""
     import io
 
-    from shadowopt.service.progress import LOG_INTERVAL_S, progress_bar, progress_mode
+    from shadowopt.api.progress import LOG_INTERVAL_S, progress_bar, progress_mode
 
     now = [0.0]
     log = io.StringIO()

@@ -152,16 +152,16 @@ def test_face_shares_split_by_need_above_a_quarter_of_an_equal_share():
 def test_the_partitions_warp_and_the_objective_it_is_judged_by():
     import math
 
-    from shadowopt.service.point_faces import _objective, warp_for
+    from shadowopt.service.point_faces import variant_objective, warp_for
 
     assert warp_for("focused", False) == warp_for("focused", True) == "none"  # FP
     assert warp_for("".join(["focu", "sed"]), True) == "none"  # a method name read at run time: compared by value
     for method in ("lispsm", "logpsm", "optimized"):
         assert warp_for(method, False) == "perspective" and warp_for(method, True) == "log"  # FP+P, FP+LogP
-    assert _objective({"objective": 2.5}) == 2.5 and _objective({"objective": 2.5, "unserved_samples": 0}) == 2.5
+    assert variant_objective({"objective": 2.5}) == 2.5 and variant_objective({"objective": 2.5, "unserved_samples": 0}) == 2.5
     for bad in ({"objective": None}, {}, {"objective": float("nan")}, {"objective": math.inf},
                 {"objective": 1.0, "unserved_samples": 3}, {"objective": 1.0, "unserved_samples": 1}):
-        assert _objective(bad) == math.inf, bad  # unknown, not finite, or leaving samples unserved: never chosen
+        assert variant_objective(bad) == math.inf, bad  # unknown, not finite, or leaving samples unserved: never chosen
 
 
 def test_face_resolutions_split_the_texels_by_the_probed_need(monkeypatch):

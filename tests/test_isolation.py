@@ -366,13 +366,13 @@ def test_a_dead_loader_child_is_classified_by_signal_and_memory():
     import signal
 
     from shadowopt.renderers.scene_data import SceneError
-    from shadowopt.service.isolation import CRASH_MEMORY_SHARE, _crashed
+    from shadowopt.service.isolation import CRASH_MEMORY_SHARE, crash_error
 
     mem = 1 << 30
 
     def code(exitcode, peak):
         with pytest.raises(SceneError) as e:
-            _crashed(exitcode, peak, mem, "x.usda")
+            crash_error(exitcode, peak, mem, "x.usda")
         return e.value.code
 
     near = math.ceil(CRASH_MEMORY_SHARE * mem)  # the least whole byte count at the share
@@ -412,9 +412,9 @@ def test_a_loader_child_limits_itself_as_documented(monkeypatch):
 def test_the_spawner_runs_a_nested_call_in_place_instead_of_waiting_for_itself():
     import threading
 
-    from shadowopt.service.isolation import _Spawner
+    from shadowopt.service.isolation import Spawner
 
-    s = _Spawner()
+    s = Spawner()
     assert s.on_thread() is False  # no thread yet
     assert s.call(s.on_thread) is True and s.on_thread() is False  # on its thread / from this one
     out = []

@@ -240,14 +240,14 @@ def test_server_compare_over_the_eval_limit_is_too_costly_and_small_requests_sti
 
 def test_auto_cascades_cost_uses_the_schemas_default_max_cascades():
     from shadowopt.api.schemas import ShadowSpec
-    from shadowopt.service.request_cost import _describe, maps_per_light
+    from shadowopt.service.request_cost import describe_work, maps_per_light
 
     k = ShadowSpec.model_fields["max_cascades"].default  # the request's default, from the schema
     fits = k * (k + 1) // 2  # auto tries 1..k cascades: k(k+1)/2 map fits
     assert maps_per_light({"cascades": "auto"}) == fits == maps_per_light({"cascades": "auto", "max_cascades": k})
     assert maps_per_light(ShadowSpec(cascades="auto")) == fits
     assert maps_per_light({"cascades": "auto", "max_cascades": 3}) == 6 and maps_per_light({"cascades": 3}) == 3
-    text = _describe({"shadow": {"cascades": "auto"}, "lights": [{"type": "directional"}]})
+    text = describe_work({"shadow": {"cascades": "auto"}, "lights": [{"type": "directional"}]})
     assert f"max_cascades {k} ({fits} map fits)" in text
 
 

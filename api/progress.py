@@ -72,21 +72,6 @@ class _LogLines:
         self._maybe_print(force=True)
 
 
-class NullBar:
-    """The bar's interface doing nothing but count: what a caller uses when progress_bar gives None."""
-
-    n = 0
-
-    def update(self, k: int = 1) -> None:
-        self.n += k
-
-    def set_postfix(self, **kw) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
 def progress_bar(total: int, desc: str, unit: str = "conf", enabled: bool | str = True, stream=None,
                  interval_s: float = LOG_INTERVAL_S, clock=None):
     """A bar with tqdm's `n`, `total`, `update(k)`, `set_postfix_str`, `set_postfix` and `close`, or None
