@@ -24,10 +24,12 @@ pytestmark = pytest.mark.server
 
 CRATE = "full_assets/OpenChessSet/assets/Rook/Rook_geom.usd"  # 759 KB, binary crate (PXR-USDC), 30,528 triangles
 TEXT = "full_assets/Vehicles/USD_Mini_Car_Kit/assets/wheels/wheelNormal/geo/wheelNormalGeo.usda"  # 39 KB, 236 tris
-CASES = {"usdc": 80, "usda": 80, "usdz": 80}  # 240: ~0.3 s per isolated load (300 took 93 s)
+# 60: the first quarter of the same seeded cases as `shadowopt bench hostile` (service/bench/hostile.py: 80 per
+# format, the whole corpus, too long for the suite: 240 cases took 245 s at load 5 on 2 cores)
+CASES = {"usdc": 20, "usda": 20, "usdz": 20}
 HARD_STOP_S = 500.0  # the run stops here whatever happens, and fails unless every case ran (not a timing
-# bound: 240 cases take ~70 s idle, 173 s in the full suite, 385 s at load average 8 on 2 cores; the elapsed
-# time is printed, -s; under pytest-timeout's 600 s so this test's own message is the one shown)
+# bound: a hanging server costs the suite minutes; under pytest-timeout's 600 s so this test's own message is the
+# one shown)
 RSS_BOUND = 3 * 1024 ** 3  # peak resident memory of the server process over its whole life (warm-up included)
 
 
@@ -90,7 +92,7 @@ def test_the_originals_load(server, originals):
 
 @pytest.mark.slow
 def test_mutated_files_answer_2xx_or_4xx_and_leak_nothing(server, originals):
-    """240 damaged files (the three formats in turn), one after another: each a 2xx or a 4xx refusal with a
+    """60 damaged files (the three formats in turn), one after another: each a 2xx or a 4xx refusal with a
     specific code (not `internal`: an exception the loader did not expect), no server path in any answer, the
     server up and its peak memory under RSS_BOUND afterwards. The run stops at HARD_STOP_S whatever happens
     (so a hanging server costs the suite minutes, not hours) and then fails, saying how many cases ran; the

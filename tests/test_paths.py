@@ -433,6 +433,7 @@ def test_chunk_starts_split_a_long_path_evenly_and_keep_a_short_one_whole():
     assert chunk_starts(3, 8) == [0]
 
 
+@pytest.mark.slow
 def test_a_path_in_tasks_of_several_frames_on_two_workers_has_each_frames_maps_bit_for_bit():
     """A path job (tasks of several frames, two workers, one Dr.Jit thread each) answers every frame with the
     maps and matrices this process computes for that frame alone, to the last bit."""
@@ -454,6 +455,7 @@ def test_a_path_in_tasks_of_several_frames_on_two_workers_has_each_frames_maps_b
         assert line["lights"] == alone, f"frame {f['frame']}"
 
 
+@pytest.mark.slow
 def test_a_coherent_path_on_two_workers_is_two_coherent_chunks_each_starting_fresh():
     """--coherent with two workers: frames 0-19 and 20-39 each solved in order from a fresh start, every other
     frame given its predecessor's solution; each frame equals this process's own chain, bit for bit."""
