@@ -134,7 +134,7 @@ def cmd_bench(args) -> int:
     if args.bench == "coarse":
         from ..service.bench.coarse import bench_coarse  # lazy: the server stack loads only for the command that runs
 
-        result = bench_coarse(validate_rig, runs=args.runs, scenes=args.scenes, write=not args.no_write)
+        result = bench_coarse(validate_rig, runs=args.runs or 20, scenes=args.scenes, write=not args.no_write)
     elif args.bench == "solvers":
         from ..service.bench.solvers import bench_solvers, bench_solvers_corpus  # lazy: the server stack loads only for the command that runs
 
@@ -213,6 +213,14 @@ def cmd_bench(args) -> int:
 
         result = bench_budget(validate_rig, scenes=args.scenes, screen=args.screen or (320, 180), map_side=args.map,
                               write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
+    elif args.bench == "limits":  # solve time of the largest rigs the request-cost limits admit (service.bench.limits)
+        from ..service.bench.limits import bench_limits  # lazy: the server stack loads only for the command that runs
+
+        result = bench_limits(validate_rig, runs=args.runs or 3, write=not args.no_write)
+    elif args.bench == "hostile":  # the whole seeded corpus of damaged uploads against a real server
+        from ..service.bench.hostile import bench_hostile  # lazy: the server stack loads only for the command that runs
+
+        result = bench_hostile(write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     else:  # argparse restricts choices
         raise CliError(f"unknown benchmark {args.bench!r}")
     if args.json:
@@ -599,7 +607,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
     sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch", "security", "engine", "path",
-                                       "throughput", "inspect", "budget", "heldout"])
+                                       "throughput", "inspect", "budget", "heldout", "limits", "hostile"])
     sp.add_argument("--frames", type=int, default=None, help="path: frames per path (default: configs/paths.json's samples); "
                     "throughput: frames of the long path (default 1000)")
     sp.add_argument("--paths", default=None, help="path: comma-separated path names from configs/paths.json")
@@ -610,7 +618,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--lights", type=int, default=None, help="quality, solvers, trust: number of light directions (rigs)")
     sp.add_argument("--part", choices=["single", "cascades", "all"], default="all",
                     help="quality: one map per method, 4 cascades under one budget, or both")
-    sp.add_argument("--runs", type=int, default=20, help="warm runs per scene (median reported)")
+    sp.add_argument("--runs", type=int, default=None, help="coarse: warm runs per scene (default 20); limits: runs per rig (default 3); the median is reported")
     sp.add_argument("--scenes", default=None, help="comma-separated scene names from configs/benchmarks.json "
                     "(quality --corpus: from configs/corpus.json)")
     sp.add_argument("--corpus", action="store_true", help="quality, solvers: every scene of configs/corpus.json")

@@ -1,6 +1,6 @@
 """Mutation fuzzing of real USD files through a real server (issue 9, "a hostile corpus in the suite").
 
-Truncations, flipped bytes and overwritten blocks (tests/usd_mutations.py, seeded) of a binary
+Truncations, flipped bytes and overwritten blocks (service.hostile_corpus.mutations, seeded) of a binary
 crate file, a text .usda and a .usdz from ../shared/usd-assets (read in place; the .usdz is packaged from the
 .usda into the test's temporary folder), uploaded to a real uvicorn with the shipped limits. Every case must
 answer 2xx or 4xx (never 5xx, never a dropped connection); every answer (and the scene info of the uploads
@@ -18,7 +18,7 @@ import httpx
 import pytest
 from conftest import USD_ASSETS
 from serverkit import REPO, auth, running
-from usd_mutations import mutations
+from shadowopt.service.hostile_corpus import mutations
 
 pytestmark = pytest.mark.server
 

@@ -21,7 +21,8 @@ import httpx
 
 from ..hostile_corpus import mutations
 from .load import free_port, start_server, stop_server, wait_healthy
-from .suite import ROOT, machine, write_section
+from .definitions import ROOT
+from .output import machine, write_section
 
 ASSETS = ROOT.parent / "shared" / "usd-assets"
 CRATE = "full_assets/OpenChessSet/assets/Rook/Rook_geom.usd"  # 759 KB, binary crate (PXR-USDC), 30,528 triangles

@@ -16,8 +16,10 @@ import statistics
 import time
 
 from ..pipeline import scene_entry
+from ..request import SolveRequest
 from ..solve import solve
-from .suite import ROOT, machine, write_section
+from .definitions import ROOT
+from .output import machine, write_section
 
 DEMO = ROOT / "configs" / "demo_scene.usda"
 SUNS = 16
@@ -44,14 +46,14 @@ def bench_limits(validate_rig, runs: int = 3, write: bool = True) -> dict:
     entry = scene_entry(DEMO)
     demo = validate_rig(json.loads((ROOT / "configs" / "demo_rig.json").read_text()))
     big = validate_rig(largest_rig())
-    rows = {"demo rig, optimized": _timed(lambda: solve(entry, demo, method="optimized"), runs),
-            f"largest rig ({SUNS} suns x 4 cascades), uniform": _timed(lambda: solve(entry, big, method="uniform"), runs),
-            f"largest rig ({SUNS} suns x 4 cascades), focused": _timed(lambda: solve(entry, big, method="focused"),
+    rows = {"demo rig, optimized": _timed(lambda: solve(entry, demo, SolveRequest(method="optimized")), runs),
+            f"largest rig ({SUNS} suns x 4 cascades), uniform": _timed(lambda: solve(entry, big, SolveRequest(method="uniform")), runs),
+            f"largest rig ({SUNS} suns x 4 cascades), focused": _timed(lambda: solve(entry, big, SolveRequest(method="focused")),
                                                                        runs)}
     focused_ms = statistics.median(rows[f"largest rig ({SUNS} suns x 4 cascades), focused"]) * 1e3
     budget = 1.2 * focused_ms + 300.0
     rows[f"largest rig, optimized within {budget:.0f} ms"] = _timed(
-        lambda: solve(entry, big, method="optimized", time_budget_ms=budget), runs)
+        lambda: solve(entry, big, SolveRequest(method="optimized", time_budget_ms=budget)), runs)
     results = {name: {"median_s": round(statistics.median(ts), 3), "max_s": round(max(ts), 3), "runs": len(ts)}
                for name, ts in rows.items()}
     lines = ["| solve (demo scene, in process) | median s | slowest s | runs |", "|---|---|---|---|"]
