@@ -5,13 +5,24 @@ keeps the best point seen): Chong & Gortler 2007's line search (gradient:linesea
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import nlopt
 import numpy as np
 
-if TYPE_CHECKING:
-    from .optimize import Problem
+
+class Problem(Protocol):
+    """What a search needs of a problem (solvers.optimize.Problem is one): its bounds, the best point seen
+    (value, x), the objective and its gradient, clipping into the bounds and the deadline check."""
+    lower: np.ndarray
+    upper: np.ndarray
+    best: tuple
+
+    def value(self, x: np.ndarray) -> float: ...
+    def gradient(self, x: np.ndarray) -> np.ndarray: ...
+    def value_and_grad(self, x: np.ndarray) -> tuple: ...
+    def clip(self, x: np.ndarray) -> np.ndarray: ...
+    def check_deadline(self) -> None: ...
 
 METHODS = ("gradient:lbfgs", "gradient:adam", "gradient:linesearch", "nlopt:LN_BOBYQA", "nlopt:LN_COBYLA",
            "nlopt:LN_SBPLX", "nlopt:GN_DIRECT_L", "nlopt:LD_MMA", "nlopt:LD_LBFGS", "nlopt:LD_SLSQP")

@@ -69,16 +69,9 @@ def _inside(node, parents, kinds) -> bool:
     return False
 
 
-def _type_checking_only(node, parents) -> bool:
-    while node in parents:
-        node = parents[node]
-        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
-            return True
-    return False
-
-
 def import_edges(mods: dict[str, Module]) -> list[Edge]:
-    """Every import of one product module by another, at module level or inside a function."""
+    """Every import of one product module by another, at module level, inside a function or for type checking
+    only (a circle through an annotation is still a circle a reader has to follow)."""
     edges = []
     for mod in mods.values():
         parents = _enclosing(mod.tree)
@@ -90,8 +83,6 @@ def import_edges(mods: dict[str, Module]) -> list[Edge]:
                 targets = [(f"{base}.{a.name}", ()) if f"{base}.{a.name}" in mods else (base, (a.name,))
                            for a in node.names]
             else:
-                continue
-            if _type_checking_only(node, parents):
                 continue
             in_function = _inside(node, parents, (ast.FunctionDef, ast.AsyncFunctionDef))
             for target, names in targets:
