@@ -12,18 +12,17 @@ from __future__ import annotations
 import os
 import sys
 import time
-from pathlib import Path
 
 import httpx
 import pytest
 from conftest import USD_ASSETS
 from serverkit import REPO, auth, running
+from shadowopt.service.bench.hostile import CRATE, SEED, TEXT, error_code, proc_status
+from shadowopt.service.bench.hostile import originals as hostile_originals
 from shadowopt.service.hostile_corpus import mutations
 
 pytestmark = pytest.mark.server
 
-CRATE = "full_assets/OpenChessSet/assets/Rook/Rook_geom.usd"  # 759 KB, binary crate (PXR-USDC), 30,528 triangles
-TEXT = "full_assets/Vehicles/USD_Mini_Car_Kit/assets/wheels/wheelNormal/geo/wheelNormalGeo.usda"  # 39 KB, 236 tris
 # 60: the first quarter of the same seeded cases as `shadowopt bench hostile` (service/bench/hostile.py: 80 per
 # format, the whole corpus, too long for the suite: 240 cases took 245 s at load 5 on 2 cores)
 CASES = {"usdc": 20, "usda": 20, "usdz": 20}
@@ -33,20 +32,6 @@ HARD_STOP_S = 500.0  # the run stops here whatever happens, and fails unless eve
 RSS_BOUND = 3 * 1024 ** 3  # peak resident memory of the server process over its whole life (warm-up included)
 
 
-def _proc_status(pid: int, key: str) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(key + ":"):
-            return int(line.split()[1]) * 1024
-    raise KeyError(key)
-
-
-def _code(r: httpx.Response) -> str | None:
-    try:
-        return (r.json().get("error") or {}).get("code")
-    except (ValueError, AttributeError):
-        return None
-
-
 @pytest.fixture(scope="module")
 def originals(tmp_path_factory) -> dict[str, bytes]:
     crate, text = USD_ASSETS / CRATE, USD_ASSETS / TEXT
@@ -54,13 +39,7 @@ def originals(tmp_path_factory) -> dict[str, bytes]:
         pytest.skip(f"../shared/usd-assets is absent or incomplete: the hostile corpus mutates {CRATE} and {TEXT} "
                     f"read in place from {USD_ASSETS}")
     assert crate.read_bytes()[:8] == b"PXR-USDC"
-    from pxr import Sdf
-
-    usdz = tmp_path_factory.mktemp("usdz") / "wheel.usdz"
-    writer = Sdf.ZipFileWriter.CreateNew(str(usdz))
-    writer.AddFile(str(text), "wheel.usda")
-    writer.Save()
-    return {"usdc": crate.read_bytes(), "usda": text.read_bytes(), "usdz": usdz.read_bytes()}
+    return hostile_originals(tmp_path_factory.mktemp("usdz"))
 
 
 @pytest.fixture(scope="module")
@@ -98,8 +77,8 @@ def test_mutated_files_answer_2xx_or_4xx_and_leak_nothing(server, originals):
     (so a hanging server costs the suite minutes, not hours) and then fails, saying how many cases ran; the
     elapsed time is printed (timings belong in BENCHMARKS.md, not in a test under a loaded machine)."""
     pid = server.proc.pid
-    rss_before = _proc_status(pid, "VmRSS")
-    corpus = {ext: mutations(data, CASES[ext], seed=9) for ext, data in originals.items()}
+    rss_before = proc_status(pid, "VmRSS")
+    corpus = {ext: mutations(data, CASES[ext], seed=SEED) for ext, data in originals.items()}
     order = [(ext, k) for k in range(max(CASES.values())) for ext in corpus if k < CASES[ext]]  # interleaved
     statuses: dict[str, dict[int, int]] = {ext: {} for ext in originals}
     bad, leaked, internal, times = [], [], [], []
@@ -118,7 +97,7 @@ def test_mutated_files_answer_2xx_or_4xx_and_leak_nothing(server, originals):
                 continue
             times.append(time.monotonic() - t)
             statuses[ext][r.status_code] = statuses[ext].get(r.status_code, 0) + 1
-            if 400 <= r.status_code < 500 and _code(r) == "internal":
+            if 400 <= r.status_code < 500 and error_code(r) == "internal":
                 internal.append((ext, k, r.text[:200]))
             if not (200 <= r.status_code < 300 or 400 <= r.status_code < 500):
                 bad.append((ext, k, len(blob), r.status_code, r.text[:300]))
@@ -134,8 +113,8 @@ def test_mutated_files_answer_2xx_or_4xx_and_leak_nothing(server, originals):
     ran = sum(sum(v.values()) for v in statuses.values())
     alive = server.proc.poll() is None
     health = httpx.get(server.base + "/healthz", timeout=10).status_code if alive else None
-    peak = _proc_status(pid, "VmHWM") if alive else None
-    rss_after = _proc_status(pid, "VmRSS") if alive else None
+    peak = proc_status(pid, "VmHWM") if alive else None
+    rss_after = proc_status(pid, "VmRSS") if alive else None
     times.sort()
     print(f"hostile corpus: {ran} of {len(order)} cases in {elapsed:.1f} s (per upload: median "
           f"{times[len(times) // 2]:.2f} s, max {times[-1]:.2f} s); statuses {statuses}; server RSS "

@@ -45,14 +45,16 @@ def originals(folder: Path) -> dict[str, bytes]:
     return {"usdc": crate.read_bytes(), "usda": text.read_bytes(), "usdz": usdz.read_bytes()}
 
 
-def _status(pid: int, key: str) -> int:
+def proc_status(pid: int, key: str) -> int:
+    """A /proc/PID/status memory line (VmRSS, VmHWM) in bytes."""
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith(key + ":"):
             return int(line.split()[1]) * 1024
     raise KeyError(key)
 
 
-def _code(r: httpx.Response) -> str | None:
+def error_code(r: httpx.Response) -> str | None:
+    """The error body's code, or None when the answer is not one."""
     try:
         return (r.json().get("error") or {}).get("code")
     except (ValueError, AttributeError):
@@ -73,7 +75,7 @@ def bench_hostile(cases: int = 80, write: bool = True, log=None) -> dict:
             wait_healthy(base, proc, data_dir / "server.log")
             paths = {str(data_dir), os.path.realpath(data_dir), sys.prefix, os.path.realpath(sys.prefix), str(ROOT),
                      str(ASSETS)}
-            rss_before = _status(proc.pid, "VmRSS")
+            rss_before = proc_status(proc.pid, "VmRSS")
             statuses: dict[str, dict[int, int]] = {ext: {} for ext in corpus}
             bad = internal = leaked = 0
             times = []
@@ -91,14 +93,14 @@ def bench_hostile(cases: int = 80, write: bool = True, log=None) -> dict:
                         times.append(time.monotonic() - t)
                         statuses[ext][r.status_code] = statuses[ext].get(r.status_code, 0) + 1
                         bad += not (200 <= r.status_code < 300 or 400 <= r.status_code < 500)
-                        internal += 400 <= r.status_code < 500 and _code(r) == "internal"
+                        internal += 400 <= r.status_code < 500 and error_code(r) == "internal"
                         leaked += any(p in r.text for p in paths)
                         if r.status_code in (200, 201):
                             api.delete(f"/v1/scenes/{r.json()['scene_id']}")
                     if log and (k + 1) % 20 == 0:
                         log(f"hostile: {3 * (k + 1)} of {3 * cases} cases")
             elapsed = time.monotonic() - t0
-            peak = _status(proc.pid, "VmHWM")
+            peak = proc_status(proc.pid, "VmHWM")
         finally:
             stop_server(proc)
     result = {"cases": sum(len(v) for v in corpus.values()), "seconds": round(elapsed, 1),
