@@ -186,7 +186,7 @@ class DyingProcessPool(ProcessPoolExecutor):
 
 # -- isolated loads ------------------------------------------------------------------------------------
 
-def _status(pid: int | str = "self") -> dict[str, int]:
+def memory_status(pid: int | str = "self") -> dict[str, int]:
     """VmSize/VmPeak/VmRSS/VmHWM of a process in bytes ({} once it is gone)."""
     out = {}
     try:
@@ -231,7 +231,7 @@ class _PeakReporter:
 
     def _run(self) -> None:
         while not self.done:
-            v = _status().get("VmPeak", 0)
+            v = memory_status().get("VmPeak", 0)
             if v >= self.last + PEAK_STEP:
                 with self.lock:
                     if self.done:
@@ -242,7 +242,7 @@ class _PeakReporter:
 
 
 def _near(memory_bytes: int) -> bool:
-    return _status().get("VmPeak", 0) >= CRASH_MEMORY_SHARE * memory_bytes
+    return memory_status().get("VmPeak", 0) >= CRASH_MEMORY_SHARE * memory_bytes
 
 
 def _run_job(conn, fn, args: tuple, kwargs: dict, memory_bytes: int, timeout_s: float) -> None:
@@ -446,7 +446,7 @@ def run_isolated(fn, args: tuple = (), kwargs: dict | None = None, *, memory_byt
                     deadline = time.monotonic() + timeout_s
                     continue
                 break
-            peak = max(peak, _status(proc.pid).get("VmPeak", 0))
+            peak = max(peak, memory_status(proc.pid).get("VmPeak", 0))
         if msg is not None:
             proc.kill()  # its answer is in: no need to wait for usd-core's exit-time destructors
         proc.join(timeout=5)

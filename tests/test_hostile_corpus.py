@@ -17,9 +17,10 @@ import httpx
 import pytest
 from conftest import USD_ASSETS
 from serverkit import REPO, auth, running
-from shadowopt.service.bench.hostile import CRATE, SEED, TEXT, error_code, proc_status
+from shadowopt.service.bench.hostile import CRATE, SEED, TEXT, error_code
 from shadowopt.service.bench.hostile import originals as hostile_originals
 from shadowopt.service.hostile_corpus import mutations
+from shadowopt.service.isolation import memory_status
 
 pytestmark = pytest.mark.server
 
@@ -77,7 +78,7 @@ def test_mutated_files_answer_2xx_or_4xx_and_leak_nothing(server, originals):
     (so a hanging server costs the suite minutes, not hours) and then fails, saying how many cases ran; the
     elapsed time is printed (timings belong in BENCHMARKS.md, not in a test under a loaded machine)."""
     pid = server.proc.pid
-    rss_before = proc_status(pid, "VmRSS")
+    rss_before = memory_status(pid)["VmRSS"]
     corpus = {ext: mutations(data, CASES[ext], seed=SEED) for ext, data in originals.items()}
     order = [(ext, k) for k in range(max(CASES.values())) for ext in corpus if k < CASES[ext]]  # interleaved
     statuses: dict[str, dict[int, int]] = {ext: {} for ext in originals}
@@ -113,8 +114,8 @@ def test_mutated_files_answer_2xx_or_4xx_and_leak_nothing(server, originals):
     ran = sum(sum(v.values()) for v in statuses.values())
     alive = server.proc.poll() is None
     health = httpx.get(server.base + "/healthz", timeout=10).status_code if alive else None
-    peak = proc_status(pid, "VmHWM") if alive else None
-    rss_after = proc_status(pid, "VmRSS") if alive else None
+    peak = memory_status(pid)["VmHWM"] if alive else None
+    rss_after = memory_status(pid)["VmRSS"] if alive else None
     times.sort()
     print(f"hostile corpus: {ran} of {len(order)} cases in {elapsed:.1f} s (per upload: median "
           f"{times[len(times) // 2]:.2f} s, max {times[-1]:.2f} s); statuses {statuses}; server RSS "

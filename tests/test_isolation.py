@@ -387,10 +387,10 @@ def test_a_dead_loader_child_is_classified_by_signal_and_memory():
 def test_near_the_memory_limit_is_the_documented_share_of_it(monkeypatch):
     from shadowopt.service import isolation
 
-    monkeypatch.setattr(isolation, "_status", lambda pid="self": {"VmPeak": 800})
+    monkeypatch.setattr(isolation, "memory_status", lambda pid="self": {"VmPeak": 800})
     assert isolation._near(1000) is True and isolation._near(999) is True  # 800 >= 0.8 x 999
     assert isolation._near(1001) is False and isolation._near(10_000) is False
-    monkeypatch.setattr(isolation, "_status", lambda pid="self": {})
+    monkeypatch.setattr(isolation, "memory_status", lambda pid="self": {})
     assert isolation._near(1) is False  # nothing known: not near
 
 

@@ -20,6 +20,7 @@ from pathlib import Path
 import httpx
 
 from ..hostile_corpus import mutations
+from ..isolation import memory_status
 from .load import free_port, start_server, stop_server, wait_healthy
 from .definitions import ROOT
 from .output import machine, write_section
@@ -45,14 +46,6 @@ def originals(folder: Path) -> dict[str, bytes]:
     return {"usdc": crate.read_bytes(), "usda": text.read_bytes(), "usdz": usdz.read_bytes()}
 
 
-def proc_status(pid: int, key: str) -> int:
-    """A /proc/PID/status memory line (VmRSS, VmHWM) in bytes."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(key + ":"):
-            return int(line.split()[1]) * 1024
-    raise KeyError(key)
-
-
 def error_code(r: httpx.Response) -> str | None:
     """The error body's code, or None when the answer is not one."""
     try:
@@ -75,7 +68,7 @@ def bench_hostile(cases: int = 80, write: bool = True, log=None) -> dict:
             wait_healthy(base, proc, data_dir / "server.log")
             paths = {str(data_dir), os.path.realpath(data_dir), sys.prefix, os.path.realpath(sys.prefix), str(ROOT),
                      str(ASSETS)}
-            rss_before = proc_status(proc.pid, "VmRSS")
+            rss_before = memory_status(proc.pid)["VmRSS"]
             statuses: dict[str, dict[int, int]] = {ext: {} for ext in corpus}
             bad = internal = leaked = 0
             times = []
@@ -100,7 +93,7 @@ def bench_hostile(cases: int = 80, write: bool = True, log=None) -> dict:
                     if log and (k + 1) % 20 == 0:
                         log(f"hostile: {3 * (k + 1)} of {3 * cases} cases")
             elapsed = time.monotonic() - t0
-            peak = proc_status(proc.pid, "VmHWM")
+            peak = memory_status(proc.pid)["VmHWM"]
         finally:
             stop_server(proc)
     result = {"cases": sum(len(v) for v in corpus.values()), "seconds": round(elapsed, 1),
