@@ -62,6 +62,8 @@ def load_rig(path: str | None, args=None) -> dict:
             shadow["splits"] = args.splits
         if getattr(args, "split_lambda", None) is not None:
             shadow["lambda"] = args.split_lambda
+        if getattr(args, "bias", None):
+            shadow["bias"] = args.bias
     try:
         return validate_rig(raw)
     except ValidationError as e:
@@ -160,6 +162,11 @@ def cmd_bench(args) -> int:
             from ..service.bench.quality import bench_quality  # lazy: the server stack loads only for the command that runs
 
             result = bench_quality(validate_rig, lights=args.lights, write=not args.no_write, parts=parts)
+    elif args.bench == "engine-truth":  # the engine's depth test with the fitted and the fixed-rule bias
+        from ..service.bench.engine_truth import bench_engine_truth  # lazy: the server stack loads only for the command that runs
+
+        result = bench_engine_truth(validate_rig, lights=args.lights, scenes=args.scenes, screen=args.screen,
+                                    write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "heldout":  # the corpus protocol on the held-out scenes (configs/heldout.json)
         from ..service.bench.heldout import bench_heldout  # lazy: the server stack loads only for the command that runs
 
@@ -542,6 +549,9 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--cascades", default=None, help="overrides rig.shadow.cascades (K or auto)")
         sp.add_argument("--splits", choices=["practical", "log", "uniform", "optimized"], default=None)
         sp.add_argument("--lambda", dest="split_lambda", type=float, default=None, help="practical split weight")
+        sp.add_argument("--bias", choices=["fitted", "rule"], default=None,
+                        help="overrides rig.shadow.bias: fitted (default: chosen against the engine's depth test) or "
+                             "rule (a fixed rule, what an engine user sets by hand)")
 
     sp = sub.add_parser("coarse", help="render the coarse buffers for a rig and write them to a folder")
     scene_args(sp)
@@ -607,7 +617,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
     sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch", "security", "engine", "path",
-                                       "throughput", "inspect", "budget", "heldout", "limits", "hostile"])
+                                       "throughput", "inspect", "budget", "heldout", "limits", "hostile",
+                                       "engine-truth"])
     sp.add_argument("--frames", type=int, default=None, help="path: frames per path (default: configs/paths.json's samples); "
                     "throughput: frames of the long path (default 1000)")
     sp.add_argument("--paths", default=None, help="path: comma-separated path names from configs/paths.json")

@@ -70,7 +70,26 @@ class LightSpec(_Strict):
         return self
 
 
+class DepthPin(_Strict):
+    """Bias terms the user pins (the rest are fitted around them), in the units of a solution's depth block:
+    constant and slope_clamp in stored depth ([0, 1] over the map's depth range), slope_scaled times the
+    caster's stored-depth change per texel step, normal_offset in metres (the engine preset's unit with
+    output.engine)."""
+
+    mode: Literal["hardware", "linear"] | None = Field(None, description="the stored depth: window z (hardware) or "
+                                                       "light-space distance (linear: a custom light pass)")
+    constant: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] | None = None
+    slope_scaled: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] | None = None
+    slope_clamp: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] | None = None
+    normal_offset: Annotated[float, Field(ge=0, le=1e6, allow_inf_nan=False)] | None = None
+
+
 class ShadowSpec(_Strict):
+    bias: Literal["fitted", "rule"] = Field("fitted", description=(
+        "fitted: each map's depth bias is chosen to minimize the wrong pixels the engine's depth test predicts "
+        "(leaks at contacts and acne, with the terms the output engine applies); rule: a fixed rule (1.5 texels "
+        "at the 95th percentile receiver, slope-scaled 1), what an engine user sets by hand"))
+    depth: DepthPin | None = Field(None, description="bias terms to keep as given; the others are fitted around them")
     resolution: Resolution | None = Field(None, description="texels per map (width, height)")
     texel_budget: Annotated[int, Field(gt=0, le=16 * 16384 * 16384)] | None = Field(
         None, description="total texels per light (budget_scope light) or for the whole rig (budget_scope rig)")

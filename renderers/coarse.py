@@ -407,3 +407,38 @@ def fine_points(rs: RayScene, camera: Camera, lights: list[Light], hit: np.ndarr
     rec = [(mask_numpy(fac, size)[:n] & mask_numpy(inl, size)[:n])[keep] for _, fac, inl in tests]
     traced = vj.astype(np.int64) * grid.shape[1] + vi
     return FinePoints(f, pos, nn, dep, rec, n, grid.shape, traced[keep], traced)
+
+
+def subpixel_receivers(rs: RayScene, camera: Camera, light: Light, cells: np.ndarray, factor: int):
+    """Receivers inside the coarse pixels `cells` ((h, w) bool) at factor x factor sub-pixel centres: per sample
+    its cell's flat index, world position, geometric normal (towards the camera), view depth and whether its
+    shadow ray reaches the light (light_test); only light-facing receivers inside the light are kept. The
+    depth probe's finer samples along shadow boundaries, contacts and object edges (service.bias)."""
+    mi = mitsuba()
+    import drjit as dr  # lazy: after mitsuba(), which points Dr.Jit at its libLLVM (solvers.jit)
+
+    h, w = cells.shape
+    f = int(factor)
+    cj, ci = np.nonzero(cells)
+    if len(cj) == 0:
+        z = np.zeros(0)
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), z, np.zeros(0, bool)
+    sub = (np.arange(f) + 0.5)
+    sj, si = np.meshgrid(sub, sub, indexing="ij")
+    vj = (cj[:, None] * f + sj.ravel()[None, :]).ravel()  # fine-grid units: f per coarse pixel
+    vi = (ci[:, None] * f + si.ravel()[None, :]).ravel()
+    cell = np.repeat(cj * w + ci, f * f)
+    n = len(vj)
+    size, d = fine_ray_directions(mi, camera, vj, vi, f, w, h)
+    o = opaque3(mi, dr, mi.Point3f, camera.position - rs.origin)
+    fwd = opaque3(mi, dr, mi.Vector3f, camera.forward)
+    pi, ok, t, p, nrm = surface_hits(mi, dr, rs, mi.Ray3f(o, d), fwd, camera)
+    visible, facing, in_light = light_test(mi, dr, rs, light, p, nrm, ok, shadow_rays=True)
+    dr.eval(ok, p, nrm, visible, facing, in_light)
+    keep = ok.numpy().astype(bool)[:n]
+    pos = p.numpy()[:, :n].T.astype(np.float64) + rs.origin
+    nn = nrm.numpy()[:, :n].T.astype(np.float64)
+    rec = keep & mask_numpy(facing, size)[:n] & mask_numpy(in_light, size)[:n]
+    vis = mask_numpy(visible, size)[:n]
+    dep = (pos - camera.position) @ camera.forward
+    return cell[rec], pos[rec], nn[rec], dep[rec], vis[rec]

@@ -9,6 +9,7 @@ import dataclasses
 import numpy as np
 
 from ..solvers.depth_modes import stored_depth
+from ..solvers.engine_depth_test import engine_shadowed
 from ..solvers.lights import DirectionalLight, Light
 from ..solvers.shadow_map import ShadowMap, map_for_depth
 from .mitsuba_setup import mitsuba
@@ -30,7 +31,8 @@ DEPTH_RULE_ENGINE = (
     "{which}: what an engine does with each map's depth block: X' = X + normal_offset * N (N the receiver's "
     "geometric normal on its light-facing side), the nearest texel of X', D_rec = D(X') with D the mode's stored "
     "depth (hardware: window z (z_ndc + 1) / 2 of projection * view; linear: (-z_view - near) / (far - near)), "
-    "stored D = clamp(D(P) + min(slope_scaled * DZ, slope_clamp), 0, 1) rounded to float32, P the texel-centre "
+    "stored D = clamp(D(P) + min(slope_scaled * DZ, slope_clamp), 0, 1) rounded to the block's depth format (float32, "
+    "or unorm24 / unorm16 fixed point), P the texel-centre "
     "ray's first hit, DZ = max(|D(P_x) - D(P)|, |D(P_y) - D(P)|) with P_x, P_y the caster triangle's plane on the "
     "rays of texels (i + 1, j) and (i, j + 1) (a caster-side slope-scaled bias: glPolygonOffsetClamp, D3D "
     "SlopeScaledDepthBias), 0 for pancaked casters, 1 where nothing is hit; shadowed iff D_rec - (constant + slope "
@@ -40,8 +42,9 @@ DEPTH_RULE_ENGINE = (
 
 def engine_depth(smap: ShadowMap, depth: str) -> dict | None:
     """The numbers an engine applies for `smap` under `depth` (DEPTH_CHOICES): None for "ideal", else
-    {mode, constant, slope, normal_offset, near, far, slope_scaled, slope_clamp} from the map's depth block
-    ("solution": the block's own mode; a block without slope_scaled has none, without slope_clamp no clamp).
+    {mode, constant, slope, normal_offset, near, far, slope_scaled, slope_clamp, format} from the map's depth
+    block ("solution": the block's own mode; a block without slope_scaled has none, without slope_clamp no
+    clamp, without format float32: solvers.depth_modes.DEPTH_FORMATS).
     A map without a block is a ValueError."""
     if depth not in DEPTH_CHOICES:
         raise ValueError(f"depth must be one of {', '.join(DEPTH_CHOICES)}, got {depth!r}")
@@ -58,7 +61,8 @@ def engine_depth(smap: ShadowMap, depth: str) -> dict | None:
     out = {"mode": mode, "constant": float(b.get("constant", 0.0)), "slope": float(b.get("slope", 0.0)),
            "normal_offset": float(b.get("normal_offset", 0.0) or 0.0), "near": 0.0, "far": 1.0,
            "slope_scaled": float(b.get("slope_scaled", 0.0) or 0.0),
-           "slope_clamp": float(clamp) if clamp is not None else float("inf")}
+           "slope_clamp": float(clamp) if clamp is not None else float("inf"),
+           "format": block.get("format", "float32")}
     if mode == "linear":
         out["near"], out["far"] = float(b["near"]), float(b["far"])
     return out
@@ -265,7 +269,7 @@ def _engine_shadow_test(smap: ShadowMap, stored_map: np.ndarray, positions: np.n
         with np.errstate(divide="ignore", invalid="ignore"):
             tan_psi = np.sqrt(np.maximum(1.0 - c * c, 0.0)) / c
         tan_psi = np.where(np.isfinite(tan_psi), np.minimum(tan_psi, TAN_PSI_MAX), TAN_PSI_MAX)
-        shadowed[inside] = d_rec[inside] - (engine["constant"] + engine["slope"] * tan_psi) > stored
+        shadowed[inside] = engine_shadowed(d_rec[inside], stored, engine["constant"], engine["slope"], tan_psi)
     return shadowed, ~inside
 
 

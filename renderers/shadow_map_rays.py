@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..solvers.depth_modes import stored_depth
+from ..solvers.engine_depth_test import DZ_CAP, stored_with_bias, unorm_steps
 from ..solvers.jit import aligned
 from ..solvers.lights import DirectionalLight, Light
 from ..solvers.shadow_map import ShadowMap
@@ -103,7 +104,7 @@ def device_map(rs: RayScene, light: Light, smap: ShadowMap, pancake: bool = True
     F64 = mi.Float64
     w, h = smap.resolution
     n_total = int(w) * int(h)
-    radius = 0.5 * rs.extent * (1.0 + 1e-4) + 1e-6
+    radius = scene_radius(rs)
     do_pancake = pancake and isinstance(light, DirectionalLight)
     chunk = max(int(w), (RAY_CHUNK // max(int(w), 1)) * int(w))
     # Each chunk scatters into one buffer at opaque offsets (dr.concat would compile a kernel per
@@ -113,40 +114,76 @@ def device_map(rs: RayScene, light: Light, smap: ShadowMap, pancake: bool = True
     for first in range(0, n_total, chunk):
         count = min(chunk, n_total - first)
         near, dirn, length, idx = device_texel_rays(mi, dr, smap, rs.origin, dr.opaque(mi.UInt32, first), count)
-        ok = dr.isfinite(length) & (length > 0)
-        for r in range(3):
-            ok &= dr.isfinite(near[r])
-        # Start each ray where it enters the scene's bounding sphere (centred on the re-centred
-        # origin): nothing is hit before it, and float32 origins stay close to the geometry.
-        proj = -(near[0] * dirn[0] + near[1] * dirn[1] + near[2] * dirn[2])
-        rad = dr.opaque(F64, radius)
-        zero = dr.opaque(F64, 0.0)
-        safe_len = dr.select(ok, length, zero)
-        t0 = dr.clip(proj - rad, zero, safe_len)
-        t1 = dr.minimum(safe_len, proj + rad)
-        ok &= t1 > t0
-        org = mi.Point3f(*(mi.Float(near[r] + t0 * dirn[r]) for r in range(3)))
-        d32 = mi.Vector3f(*(mi.Float(dirn[r]) for r in range(3)))
-        maxt = mi.Float(dr.select(ok, t1 - t0, zero))
-        ray = mi.Ray3f(org, d32)
-        ray.maxt = maxt
-        active = ok & (maxt > 0)
-        pi = rs.scene.ray_intersect_preliminary(ray, coherent=False, active=active)
-        valid = pi.is_valid() & active
-        d_occ = dr.select(valid, F64(pi.t) + t0, dr.inf)
-        faced = valid
-        if do_pancake:
-            blocked = rs.scene.ray_test(mi.Ray3f(org, -d32), active & (t0 <= zero))
-            d_occ = dr.select(blocked, zero, d_occ)
-            faced &= ~blocked
-        d_occ = dr.select(ok, d_occ, dr.inf)
+        d_occ, prim = first_hits(mi, dr, rs, near, dirn, length, radius, do_pancake)
         dr.scatter(out, d_occ, idx)
         if prims:
-            dr.scatter(prim_out, dr.select(faced & ok, pi.prim_index, dr.opaque(mi.UInt32, NO_PRIM)), idx)
+            dr.scatter(prim_out, prim, idx)
             dr.eval(out, prim_out)
         else:
             dr.eval(out)
     return (out, prim_out) if prims else out
+
+
+def first_hits(mi, dr, rs: RayScene, near, dirn, length, radius: float, pancake: bool):
+    """(d_occluder, prim) of light rays given as Dr.Jit Float64 (near point, unit direction, segment length;
+    re-centred): each ray starts where it enters the scene's bounding sphere (`radius` about the re-centred
+    origin: nothing is hit before it, and float32 origins stay close to the geometry) and is cast with
+    `ray_intersect_preliminary`; d_occluder = distance from the near point to the first hit (inf: none);
+    with `pancake` (directional lights) a backwards `ray_test` from the near plane finds casters in front
+    of it: d_occluder 0 and prim NO_PRIM there, as for rays that hit nothing."""
+    F64 = mi.Float64
+    ok = dr.isfinite(length) & (length > 0)
+    for r in range(3):
+        ok &= dr.isfinite(near[r])
+    proj = -(near[0] * dirn[0] + near[1] * dirn[1] + near[2] * dirn[2])
+    rad = dr.opaque(F64, radius)
+    zero = dr.opaque(F64, 0.0)
+    safe_len = dr.select(ok, length, zero)
+    t0 = dr.clip(proj - rad, zero, safe_len)
+    t1 = dr.minimum(safe_len, proj + rad)
+    ok &= t1 > t0
+    org = mi.Point3f(*(mi.Float(near[r] + t0 * dirn[r]) for r in range(3)))
+    d32 = mi.Vector3f(*(mi.Float(dirn[r]) for r in range(3)))
+    maxt = mi.Float(dr.select(ok, t1 - t0, zero))
+    ray = mi.Ray3f(org, d32)
+    ray.maxt = maxt
+    active = ok & (maxt > 0)
+    pi = rs.scene.ray_intersect_preliminary(ray, coherent=False, active=active)
+    valid = pi.is_valid() & active
+    d_occ = dr.select(valid, F64(pi.t) + t0, dr.inf)
+    faced = valid
+    if pancake:
+        blocked = rs.scene.ray_test(mi.Ray3f(org, -d32), active & (t0 <= zero))
+        d_occ = dr.select(blocked, zero, d_occ)
+        faced &= ~blocked
+    d_occ = dr.select(ok, d_occ, dr.inf)
+    return d_occ, dr.select(faced & ok, pi.prim_index, dr.opaque(mi.UInt32, NO_PRIM))
+
+
+def scene_radius(rs: RayScene) -> float:
+    """The bounding sphere's radius first_hits starts rays on (a hair larger than half the extent)."""
+    return 0.5 * rs.extent * (1.0 + 1e-4) + 1e-6
+
+
+def texel_hits(rs: RayScene, light: Light, smap: ShadowMap, i: np.ndarray, j: np.ndarray, pancake: bool = True):
+    """device_map for the given texels only: (d_occluder, prim) NumPy (float64, int64 with -1 for none or
+    pancaked) of the texel-centre rays of texels (i, j) (the depth probe's sparse light pass)."""
+    mi = mitsuba()
+    import drjit as dr  # lazy: after mitsuba(), which points Dr.Jit at its libLLVM (solvers.jit)
+
+    w, h = smap.resolution
+    if len(i) == 0:
+        return np.zeros(0), np.zeros(0, np.int64)
+    A = opaque_matrix(mi, dr, inverse_matrix(smap, rs.origin))
+    s = mi.Float64(aligned((np.asarray(i, np.float64) + 0.5) / w, np.float64))
+    t = mi.Float64(aligned((np.asarray(j, np.float64) + 0.5) / h, np.float64))
+    near, dirn, length = device_rays_through(mi, dr, smap, A, s, t)
+    d_occ, prim = first_hits(mi, dr, rs, near, dirn, length, scene_radius(rs),
+                             pancake and isinstance(light, DirectionalLight))
+    dr.eval(d_occ, prim)
+    p = np.asarray(prim.numpy(), dtype=np.int64)
+    p[p == NO_PRIM] = -1
+    return np.asarray(d_occ.numpy(), dtype=np.float64), p
 
 
 def render_map(rs: RayScene, light: Light, smap: ShadowMap, pancake: bool = True, prims: bool = False):
@@ -175,42 +212,44 @@ def face_normals(rs: RayScene) -> np.ndarray:
     return cached
 
 
-DZ_CAP = 1e30  # DZ of a caster seen edge-on (its plane parallel to a neighbour's ray): the clamp m applies
-
-
-def engine_stored_map(rs: RayScene, smap: ShadowMap, d_occ: np.ndarray, prim: np.ndarray, engine: dict) -> np.ndarray:
-    """What the engine's light pass leaves in the depth buffer, (height, width) float64 holding float32
-    values (NumPy reference of device_engine_map): per texel, P = the texel-centre ray's first hit, D(P)
-    the mode's stored depth, the caster's plane (its triangle's geometric normal through P) intersected
-    with the rays of texels (i + 1, j) and (i, j + 1) at P_x, P_y (past the last column or row too: the
-    same projection continued), DZ = max(|D(P_x) - D(P)|, |D(P_y) - D(P)|), stored = clamp(D(P)
-    + min(k DZ, m), 0, 1) (k = slope_scaled, m = slope_clamp: OpenGL 4.6 §14.6.5 polygon offset,
-    D3D11 slope-scaled depth bias), 0 for a pancaked caster, 1 where nothing is hit."""
+def caster_depth(rs: RayScene, smap: ShadowMap, i: np.ndarray, j: np.ndarray, d_occ: np.ndarray, prim: np.ndarray,
+                 mode: str, near_d: float, far_d: float) -> tuple[np.ndarray, np.ndarray]:
+    """(D(P), DZ) per texel (i, j): P the texel-centre ray's first hit (d_occ along it; 0 where nothing is
+    hit), D the mode's stored depth, DZ = max(|D(P_x) - D(P)|, |D(P_y) - D(P)|) with P_x, P_y the caster's
+    plane (its triangle's geometric normal through P) on the rays of texels (i + 1, j) and (i, j + 1)
+    (past the last column or row too: the same projection continued); inf where that plane is edge-on."""
     w, h = smap.resolution
-    mode, near_d, far_d = engine["mode"], engine["near"], engine["far"]
-    k, m = float(engine.get("slope_scaled", 0.0)), float(engine.get("slope_clamp", np.inf))
-    jj, ii = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
-    ii, jj = ii.ravel(), jj.ravel()
     occ = np.asarray(d_occ, float).ravel()
     pr = np.asarray(prim).ravel()
     hit = np.isfinite(occ)
     faced = hit & (pr >= 0)
     with np.errstate(all="ignore"):
-        near, far = smap.texel_rays((ii + 0.5) / w, (jj + 0.5) / h)
+        near, far = smap.texel_rays((i + 0.5) / w, (j + 0.5) / h)
         dirn = (far - near) / np.maximum(np.linalg.norm(far - near, axis=-1, keepdims=True), 1e-300)
         P = near + np.where(hit, occ, 0.0)[:, None] * dirn
         D = stored_depth(smap, mode, P, near_d, far_d)
         nrm = face_normals(rs)[np.where(faced, pr, 0)]
         dz = np.zeros(len(occ))
         for di, dj in ((1, 0), (0, 1)):
-            n1, f1 = smap.texel_rays((ii + di + 0.5) / w, (jj + dj + 0.5) / h)
+            n1, f1 = smap.texel_rays((i + di + 0.5) / w, (j + dj + 0.5) / h)
             d1 = f1 - n1
             a = np.sum(nrm * (P - n1), axis=-1) / np.sum(nrm * d1, axis=-1)
             step = np.abs(stored_depth(smap, mode, n1 + a[:, None] * d1, near_d, far_d) - D)
             dz = np.maximum(dz, np.where(np.isfinite(step), step, np.inf))
-        off = np.minimum(k * np.minimum(dz, DZ_CAP), m) if k else np.zeros(len(occ))
-        stored = np.where(faced, np.clip(D + off, 0.0, 1.0), np.where(hit, 0.0, 1.0))
-    return stored.astype(np.float32).astype(np.float64).reshape(h, w)
+    return D, dz
+
+
+def engine_stored_map(rs: RayScene, smap: ShadowMap, d_occ: np.ndarray, prim: np.ndarray, engine: dict) -> np.ndarray:
+    """What the engine's light pass leaves in the depth buffer, (height, width) float64 (NumPy reference of
+    device_engine_map): caster_depth per texel, then stored_with_bias with the engine's slope_scaled,
+    slope_clamp and depth format."""
+    w, h = smap.resolution
+    jj, ii = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    ii, jj = ii.ravel(), jj.ravel()
+    occ, pr = np.asarray(d_occ, float).ravel(), np.asarray(prim).ravel()
+    D, dz = caster_depth(rs, smap, ii, jj, occ, pr, engine["mode"], engine["near"], engine["far"])
+    k, m = float(engine.get("slope_scaled", 0.0)), float(engine.get("slope_clamp", np.inf))
+    return stored_with_bias(D, dz, occ, pr, k, m, engine.get("format", "float32")).reshape(h, w)
 
 
 def device_points(mi, a: np.ndarray):
@@ -282,6 +321,16 @@ def device_engine_map(rs: RayScene, smap: ShadowMap, d_occ, prim, engine: dict):
         off = dr.minimum(dr.opaque(F64, k) * dr.minimum(dz, dr.opaque(F64, DZ_CAP)), dr.opaque(F64, m))
         D = D + off
     stored = dr.select(faced, dr.clip(D, zero, one), dr.select(hit, zero, one))
-    stored = F64(mi.Float(stored))  # a D32F depth buffer
+    stored = device_quantize(mi, dr, stored, engine.get("format", "float32"))
     dr.eval(stored)
     return stored
+
+
+def device_quantize(mi, dr, D, depth_format: str):
+    """quantize_depth in Dr.Jit: float32 rounding (D32F) or round(D (2^bits - 1)) / (2^bits - 1) (a
+    normalized fixed-point depth buffer)."""
+    steps = unorm_steps(depth_format)
+    if steps is None:
+        return mi.Float64(mi.Float(D))
+    q = dr.opaque(mi.Float64, float(steps))
+    return dr.round(D * q) / q

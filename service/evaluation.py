@@ -101,6 +101,8 @@ def check_depth_blocks(solution: dict, depth: str) -> None:
                                         f"{key}: expected a finite number, got {v!r:.40}")
             for key in ("slope_scaled", "slope_clamp"):  # the light pass's slope-scaled bias: optional
                 v = b[mode].get(key, 0.0)
+                if v is None and key == "slope_clamp":  # null: no clamp (renderers.depth_tests.engine_depth)
+                    continue
                 if not (_finite(v) and v >= 0):
                     raise SolutionError(f"{at}.depth.{mode}.{key}", f"{key}: expected a finite number >= 0, got "
                                         f"{v!r:.40}")

@@ -110,13 +110,8 @@ def light_json(light, maps: list[ShadowMap], total: dict, per_map: list[dict], o
         d["predicted_error"] = err
         if getattr(smap, "snap_note", None):
             d["texel_snap_note"] = smap.snap_note
-        lo_z, hi_z = smap.split
-        if smap.face is None and len(maps) > 1 and smap is not maps[-1]:
-            # Blend into the next cascade over the last 10% of this one's depth range (engines:
-            # three.js CSM, Bevy's overlap 0.2); 0 for the last cascade and for single maps.
-            d["blend_band"] = [float(hi_z - 0.1 * (hi_z - lo_z)), float(hi_z)]
-        else:
-            d["blend_band"] = None
+        # service.bias.set_blend_bands: into the next cascade over the last 10% of this one's depth range
+        d["blend_band"] = None if smap.blend_band is None else [float(v) for v in smap.blend_band]
         # Exact (world, column-vector, canonical OpenGL) matrices so `evaluate` reads back what was chosen,
         # and the lengths in world metres when the output's unit is another (maps_from_solution).
         d["internal"] = {"view": smap.view.tolist(), "projection": smap.projection.tolist()}

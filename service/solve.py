@@ -26,6 +26,7 @@ from ..solvers.shadow_map import ShadowMap
 from ..solvers.split_search import optimize_splits
 from ..solvers.stable_csm import stable_csm_maps
 from . import point_faces
+from .bias import choose_bias, set_blend_bands
 from .coarse_cache import cached_coarse_pass
 from .map_sizing import auto_cascades, rig_budget_split, smaller_resolution
 from .need import drop_empty_maps, light_need
@@ -57,6 +58,8 @@ class LightJob:
     common: dict  # map_options: the fit's keywords every method takes
     allow_log: bool
     budget_left: Callable[[], float | None]  # search_clock: the search time left of the whole solve's budget
+    rays: object = None  # the scene's RayScene (service.bias: the depth probe casts its texels' rays)
+    buffers: object = None  # the coarse pass (service.bias: its light-facing receivers and their visibility)
 
     def maps_for(self, k: int):
         """(maps, solver report or None) with k cascades."""
@@ -200,7 +203,8 @@ def _solve(entry: SceneEntry, rig: dict, request: SolveRequest) -> dict:
             continue
         job = LightJob(kind, request, previous, li, prob, resolved.camera, (lo, hi), resolved.shadow,
                        map_options(resolved.shadow, prob, split, li),
-                       bool(resolved.output.get("allow_log_warp", False)), search_clock(request.time_budget_ms, t0))
+                       bool(resolved.output.get("allow_log_warp", False)), search_clock(request.time_budget_ms, t0),
+                       entry.rays, buffers)
         light, info = _light_solution(job, need, resolved.output, entry.loaded.stage_to_world)
         per_light.append(light)
         if info is not None:
@@ -265,7 +269,11 @@ def _light_solution(job: LightJob, need, output: dict, stage_to_world) -> tuple[
         snap_maps(maps, job.prob)
     if info is not None and auto is not None:
         info["auto_cascades"] = auto
+    prediction = choose_bias(job.rays, job.prob.light, maps, job.buffers, job.light_index, job.shadow,
+                             output.get("engine"))
     total, per_map = maps_error(maps, job.prob.samples, job.camera.position)
+    total["aliasing_pixels"] = total.pop("misclassified_pixels")
+    total.update(prediction)
     out = light_json(job.prob.light, maps, total, per_map, output, stage_to_world, job.prob.samples)
     out["shadow"] = "map"
     out["need"] = need.to_json()
@@ -404,6 +412,7 @@ def solve_path(entry: SceneEntry, rigs: list[dict], solver: str | None = None,
         per_light, infos = [], []
         for li, (fp, res) in enumerate(zip(fps, results)):
             maps = res.maps[i]
+            set_blend_bands(maps)  # the path's held depth blocks stay (one bias per segment: no flicker)
             total, per_map = maps_error(maps, fp.samples, fp.camera.position)
             per_light.append(light_json(fp.light, maps, total, per_map, resolved.output,
                                         entry.loaded.stage_to_world, fp.samples))

@@ -190,7 +190,8 @@ def test_engine_modes_equal_ideal_for_an_orthographic_map_and_are_reported_for_a
     from shadowopt.service.solve import solve
 
     entry, rig, r = demo
-    maps = maps_from_solution(solve(entry, rig, SolveRequest(method="focused")))[0]
+    rule = {**rig, "shadow": {**(rig.get("shadow") or {}), "bias": "rule"}}  # the fixed rule: the ideal rule's engine form
+    maps = maps_from_solution(solve(entry, rule, SolveRequest(method="focused")))[0]
     assert maps[0].warp_kind == "none"
     ideal = evaluate(entry.rays, r.camera, r.lights[0], maps, depth="ideal")
     for depth in ("solution", "hardware", "linear"):
@@ -198,7 +199,7 @@ def test_engine_modes_equal_ideal_for_an_orthographic_map_and_are_reported_for_a
         assert res["depth"] == depth and res["depth_rule"].startswith(depth + ":")
         assert abs(res["misclassified_pixels"] - ideal["misclassified_pixels"]) <= 5, (depth, res, ideal)
     assert ideal["depth"] == "ideal" and "tau" in ideal["depth_rule"]
-    warped = maps_from_solution(solve(entry, rig, SolveRequest(method="optimized")))[0]
+    warped = maps_from_solution(solve(entry, rule, SolveRequest(method="optimized")))[0]
     assert warped[0].warp_kind == "perspective"
     w_ideal = evaluate(entry.rays, r.camera, r.lights[0], warped, depth="ideal")
     w_sol = evaluate(entry.rays, r.camera, r.lights[0], warped, depth="solution")
