@@ -18,10 +18,10 @@ from ..solvers.depth_modes import linear_range
 from ..solvers.shadow_map import ShadowMap
 
 BIAS_CHOICES = ("fitted", "rule")
-REFINE = 4  # sub-pixel samples per side in the coarse pixels refine_cells picks
+REFINE = 3  # sub-pixel samples per side in the coarse pixels refine_cells picks
 BLEND_FRACTION = 0.1  # a cascade blends into the next over the last 10% of its depth range
 PREDICTION_MODEL = ("the engine's depth test (evaluate --depth solution) at the coarse pass's light-facing receivers "
-                    "(4 x 4 sub-pixel samples along shadow boundaries and object edges), each standing for its share "
+                    "(3 x 3 sub-pixel samples along shadow boundaries and object edges), each standing for its share "
                     "of the rig's full-resolution pixels; wrongly lit + wrongly shadowed; a fitted constant is scored "
                     "cross-fitted (two folds, each with the constant fitted on the other)")
 
@@ -59,6 +59,13 @@ def receivers_of(rays: RayScene, light, buffers: CoarseBuffers, light_index: int
     receivers, one per coarse pixel, and in the pixels refine_cells picks REFINE x REFINE sub-pixel samples
     instead (renderers.coarse.subpixel_receivers); their exact visibility; the rig's full-resolution pixels
     each stands for ((W H) / (w h) per coarse pixel, shared by its samples)."""
+    memo = buffers.__dict__.setdefault("_probe_receivers", {})  # the same samples for every candidate's maps
+    if light_index not in memo:
+        memo[light_index] = _receivers(rays, light, buffers, light_index)
+    return memo[light_index]
+
+
+def _receivers(rays: RayScene, light, buffers: CoarseBuffers, light_index: int):
     lb = buffers.lights[light_index]
     mask = buffers.hit & lb.facing & lb.in_light
     W, H = (int(v) for v in buffers.camera.resolution)

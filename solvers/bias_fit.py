@@ -62,7 +62,11 @@ def bias_target(engine: str | None) -> dict:
 def fit_constant(margin: np.ndarray, lit: np.ndarray, a: np.ndarray, lo: float = 0.0) -> tuple[float, float]:
     """(c, wrong(c)): the least weighted count of wrong answers over c >= lo (module doc), c at the geometric
     middle of the best interval between sampled margins (the arithmetic one where it starts at or below 0;
-    twice the largest margin, or lo + 1e-7, past the last)."""
+    twice the largest margin, or lo + 1e-7, past the last).
+
+    Only margins in (lo, L] can change with c, L the largest margin of a lit receiver: at or below lo a
+    receiver is lit for every c (wrong if shadowed), and past L raising c only adds leaks, so the best c is
+    at most L, where every margin above it is a shadowed receiver answered right. Those few are sorted."""
     margin = np.asarray(margin, float)
     lit = np.asarray(lit, bool)
     a = np.asarray(a, float)
@@ -70,17 +74,22 @@ def fit_constant(margin: np.ndarray, lit: np.ndarray, a: np.ndarray, lo: float =
     # a non-finite margin: +inf (stored 0: a pancaked caster) is shadowed at every c, -inf / NaN never
     always = np.sum(a[~ok & (margin > 0) & lit]) + np.sum(a[~ok & ~(margin > 0) & ~lit])
     margin, lit, a = margin[ok], lit[ok], a[ok]
-    order = np.argsort(margin, kind="stable")
-    m, L, w = margin[order], lit[order], a[order]
+    always += float(np.sum(a[(margin <= lo) & ~lit]))  # lit by the engine at every c >= lo, truly shadowed
+    top = float(np.max(margin[lit])) if lit.any() else lo
+    above = margin > max(top, lo)
+    keep = (margin > lo) & ~above
+    if above.any():  # the first margin past L closes the last interval
+        keep[np.flatnonzero(above)[np.argmin(margin[above])]] = True
+    m, L, w = margin[keep], lit[keep], a[keep]
+    order = np.argsort(m, kind="stable")
+    m, L, w = m[order], L[order], w[order]
     n = len(m)
-    # cost_j: c in [m_j-1, m_j) ... with j points at or below c: shadowed ones among them wrong (lit), lit ones above wrong
+    # cost[j]: exactly the first j (sorted) at or below c: shadowed ones among them wrong (lit), lit ones above wrong
     shadow_below = np.concatenate([[0.0], np.cumsum(np.where(L, 0.0, w))])
     lit_above = np.sum(np.where(L, w, 0.0)) - np.concatenate([[0.0], np.cumsum(np.where(L, w, 0.0))])
-    cost = shadow_below + lit_above  # cost[j]: exactly the first j (sorted) at or below c
-    j0 = int(np.searchsorted(m, lo, side="right"))  # c >= lo puts at least these below
-    cost = cost.copy()
+    cost = shadow_below + lit_above
     cost[1:n][m[1:] <= m[:-1]] = np.inf  # no c separates equal margins
-    j = j0 + int(np.argmin(cost[j0:]))
+    j = int(np.argmin(cost))
     left = max(lo, float(m[j - 1])) if j > 0 else lo
     if j < n:
         right = float(m[j])
