@@ -65,7 +65,7 @@ def _compare(entry, rig, resolved, methods, screen, report_dir, grid_every, requ
                           f"{evaluation['wrongly_lit_pixels']} wrongly lit")
     sw, sh = gt.result["screen"]
     result = {"methods": out, "screen": [sw, sh], "rig_resolution": [int(v) for v in resolved.camera.resolution],
-              "depth": depth}
+              "depth": depth, "bias": (rig.get("shadow") or {}).get("bias", "fitted")}
     if report_dir:
         d = Path(report_dir)
         d.mkdir(parents=True, exist_ok=True)
@@ -87,16 +87,20 @@ def markdown_table(result: dict) -> str:
     converted = "" if at == rig else ", measured m also converted to the rig's pixels"
     depth = result.get("depth")
     depth_note = f" Depth test: {depth}." if depth else ""
+    if result.get("bias"):
+        depth_note += f" Bias: {result['bias']} (every method the same chooser)."
     lines = [f"Predicted error in the rig's {rig} pixels; measured at a {at} screen (pixel counts and measured m "
              f"in its pixels{converted}).{depth_note}", "",
-             f"| method | setup (ms) | predicted objective ({rig}) | predicted p95 m ({rig}) | "
+             f"| method | setup (ms) | predicted objective ({rig}) | predicted p95 m ({rig}) | predicted misclassified ({rig}) | "
              f"measured p95 m ({at}) |" + ("" if at == rig else f" measured p95 m ({rig}) |")
              + f" misclassified ({at}) | wrongly shadowed | wrongly lit | outside | receivers |",
-             "|---|---:|---:|---:|---:|" + ("" if at == rig else "---:|") + "---:|---:|---:|---:|---:|"]
+             "|---|---:|---:|---:|---:|---:|" + ("" if at == rig else "---:|") + "---:|---:|---:|---:|---:|"]
     for name, r in result["methods"].items():
         p, e = r["predicted_error"], r["evaluation"]
         conv = "" if at == rig else f" {e.get('measured_error_rig_pixels', {}).get('p95_m', float('nan')):.3g} |"
+        pm = p.get("misclassified_pixels")
         lines.append(f"| {name} | {r['setup_ms']:.1f} | {p['objective']:.4g} | {p['p95_m']:.3g} | "
+                     f"{'-' if pm is None else f'{pm:.0f}'} | "
                      f"{e['measured_error'].get('p95_m', float('nan')):.3g} |{conv} {e['misclassified_pixels']} | "
                      f"{e.get('wrongly_shadowed_pixels', '')} | {e.get('wrongly_lit_pixels', '')} | "
                      f"{e['outside_pixels']} | {e['receiver_pixels']} |")

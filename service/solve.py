@@ -314,8 +314,9 @@ def _light_solution(job: LightJob, need, output: dict, stage_to_world) -> tuple[
     if info is not None and auto is not None:
         info["auto_cascades"] = auto
     total, per_map = maps_error(maps, job.prob.samples, job.camera.position)
-    total["aliasing_pixels"] = total.pop("misclassified_pixels")
-    total.update(scored.prediction)
+    for err in (total, *per_map):  # the aliasing estimate (solvers.metric.predicted_misclassified) keeps its own name
+        err["aliasing_pixels"] = err.pop("misclassified_pixels", None)
+    total.update(scored.prediction)  # misclassified_pixels: the engine's depth test's count (service.bias)
     out = light_json(job.prob.light, maps, total, per_map, output, stage_to_world, job.prob.samples)
     out["shadow"] = "map"
     out["need"] = need.to_json()
