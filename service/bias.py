@@ -120,8 +120,9 @@ def _fitted_block(smap: ShadowMap, fit, depth_format: str) -> None:
     block = dict(smap.depth) if isinstance(smap.depth, dict) else {}
     for mode, (c, k, m, wrong) in fit.per_mode.items():
         entry = dict(block.get(mode) or {})
+        # no clamp: 1, the whole stored range (the same stored depth: the sum is clamped to [0, 1] anyway)
         entry.update(constant=float(c), slope=0.0, normal_offset=fit.normal_offset, slope_scaled=float(k),
-                     slope_clamp=None if m is None else float(m))
+                     slope_clamp=1.0 if m is None else min(float(m), 1.0))
         if mode == "linear":
             entry["near"], entry["far"] = linear_range(smap)
         block[mode] = entry

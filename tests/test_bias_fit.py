@@ -180,3 +180,16 @@ def test_rule_keeps_the_fixed_rule_and_still_predicts_with_the_engine_test(demo)
     assert pe["bias"] == "rule" and pe["misclassified_pixels"] >= 0
     for c in sol["lights"][0]["cascades"]:
         assert "chosen_by" not in c["depth"] and c["depth"]["hardware"]["slope_scaled"] == 1.0
+
+
+def test_the_cli_refuses_a_pinned_term_out_of_range_with_exit_2_naming_it(tmp_path, capsys):
+    from shadowopt.api.cli import main
+
+    rig = json.loads((REPO / "configs" / "demo_rig.json").read_text())
+    rig["shadow"]["depth"] = {"constant": float("nan")}
+    path = tmp_path / "rig.json"
+    path.write_text(json.dumps(rig).replace("NaN", "1e999"))  # JSON has no NaN: an overflowing number reads as inf
+    code = main(["optimize", str(REPO / "configs" / "demo_scene.usda"), "--rig", str(path)])
+    err = capsys.readouterr().err
+    assert code == 2 and "shadow.depth.constant" in err and "finite" in err, err
+    assert "Traceback" not in err

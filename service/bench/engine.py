@@ -123,7 +123,8 @@ def solve_for_listing(validate_rig, entry, rig: dict, cascades: int, map_res: in
     sols = {}
     for conv in dict.fromkeys(["opengl", *conventions]):
         api, rz = CONVENTIONS[conv]
-        r = dict(rig, shadow={"resolution": [map_res, map_res], "cascades": cascades},
+        bias = (rig.get("shadow") or {}).get("bias", "fitted")  # the rig's bias chooser (shadow.bias) is kept
+        r = dict(rig, shadow={"resolution": [map_res, map_res], "cascades": cascades, "bias": bias},
                  output={"convention": api, "layout": "column_major", "reversed_z": rz})
         sols[conv] = solve(entry, validate_rig(r), SolveRequest(method="optimized"))
         for c in sols[conv]["lights"][0]["cascades"]:
