@@ -143,8 +143,10 @@ def bench_json(capsys, *args) -> dict:
     from shadowopt.api.cli import main
 
     capsys.readouterr()
-    assert main(["bench", *args, "--no-write", "--json"]) == 0
-    return json.loads(capsys.readouterr().out)
+    code = main(["bench", *args, "--no-write", "--json"])
+    out = capsys.readouterr()
+    assert code == 0, (code, out.err[-3000:])
+    return json.loads(out.out)
 
 
 @pytest.mark.slow
