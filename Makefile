@@ -42,10 +42,12 @@ serve: setup
 # Every layer (TESTING.md: unit, server, browser, gl; slow ones included). Exit code 5 (no test collected) fails too.
 # The files run on two pytest-xdist workers (--dist loadfile: a file's module server is started once): on a quiet
 # 2-core machine 8 min 36 s against 11 min 10 s in one process (TESTING.md); TEST_JOBS=1 runs them in one process.
+# --no-loadscope-reorder: the files are handed out in tests/conftest.py's order (heavy_files_first: files with slow,
+# then server/browser/gl tests first), not xdist's most-tests-first, which left two of the longest files for the end.
 # The slowest 20 tests are printed at the end.
 TEST_JOBS ?= 2
 test: setup
-	$(PY) -m pytest -q --durations=20 $(if $(filter-out 0 1,$(TEST_JOBS)),-n $(TEST_JOBS) --dist loadfile)
+	$(PY) -m pytest -q --durations=20 $(if $(filter-out 0 1,$(TEST_JOBS)),-n $(TEST_JOBS) --dist loadfile --no-loadscope-reorder)
 
 # The unit layer without its slow tests: no server, browser or OpenGL (989 tests, 118 s on a quiet 2-core machine). One layer:
 # `$(PY) -m pytest -m server`; schemathesis' plugin is left out (only the server layer's fuzzing needs it).

@@ -27,6 +27,7 @@ def bench_trust(validate_rig, rigs: int | None = None, write: bool = True) -> di
     bar = progress(n * len(spec["methods"]) * len(spec["resolutions"]), "trust")
     for d in dirs:
         pred, meas, bnd = [], [], 0
+        screen = None  # the camera, screen and light are the rig's whatever the map: its pixels are traced once
         for res in spec["resolutions"]:
             rig = validate_rig({"camera": {**spec["camera"], "resolution": spec["screen"]},
                                 "lights": [{"type": "directional", "direction": d.tolist()}],
@@ -34,7 +35,9 @@ def bench_trust(validate_rig, rigs: int | None = None, write: bool = True) -> di
             resolved = resolve_rig(rig, entry.loaded)
             for m in spec["methods"]:
                 sol = solve(entry, rig, SolveRequest(method=m))
-                gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps_from_solution(sol)[0]).result
+                ev = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps_from_solution(sol)[0],
+                                      screen_buffers=screen)
+                screen, gt = ev.screen, ev.result
                 pred.append(sol["lights"][0]["predicted_error"]["objective"])
                 meas.append(gt["misclassified_pixels"])
                 bnd = max(gt["boundary_pixels"], 1)
