@@ -56,9 +56,9 @@ def depth_probe(rs: RayScene, light: Light, maps: list[ShadowMap], positions: np
     contains, per_map = [], []
     for smap, md in zip(maps, per_mode):
         near, far = linear_range(smap) if md == "linear" else (None, None)
-        s, t, _, cw = smap.map_coords(Xp)
-        with np.errstate(invalid="ignore"):
-            D = stored_depth(smap, md, Xp, near, far)
+        s, t, z, cw = smap.map_coords(Xp)
+        with np.errstate(invalid="ignore"):  # hardware: window z (depth_modes.hardware_depth) of these coordinates
+            D = 0.5 * (z + 1.0) if md == "hardware" else stored_depth(smap, md, Xp, near, far)
             ok = (cw > 0) & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (D >= 0) & (D <= 1)
         ok &= np.isfinite(s) & np.isfinite(t) & np.isfinite(D)
         contains.append(ok)

@@ -56,8 +56,8 @@ def refine_cells(buffers: CoarseBuffers, light_index: int) -> np.ndarray:
 
 def receivers_of(rays: RayScene, light, buffers: CoarseBuffers, light_index: int):
     """(positions, normals, view depths, lit, pixels) of the probe's samples: the coarse pass's light-facing
-    receivers, one per coarse pixel, and in the pixels refine_cells picks REFINE x REFINE sub-pixel samples
-    instead (renderers.coarse.subpixel_receivers); their exact visibility; the rig's full-resolution pixels
+    receivers on a checkerboard of the coarse pixels (each standing for two pixels' share), and in the pixels
+    refine_cells picks REFINE x REFINE sub-pixel samples instead (renderers.coarse.subpixel_receivers); their exact visibility; the rig's full-resolution pixels
     each stands for ((W H) / (w h) per coarse pixel, shared by its samples)."""
     memo = buffers.__dict__.setdefault("_probe_receivers", {})  # the same samples for every candidate's maps
     if light_index not in memo:
@@ -71,9 +71,10 @@ def _receivers(rays: RayScene, light, buffers: CoarseBuffers, light_index: int):
     W, H = (int(v) for v in buffers.camera.resolution)
     per_cell = W * H / float(buffers.width * buffers.height)
     fine = refine_cells(buffers, light_index)
-    plain = mask & ~fine
+    jj, ii = np.indices(mask.shape)
+    plain = mask & ~fine & ((jj + ii) % 2 == 0)  # away from edges: every other pixel (a checkerboard), twice the weight
     cell, pos, nrm, dep, vis = subpixel_receivers(rays, buffers.camera, light, fine, REFINE)
-    a = np.concatenate([np.full(int(plain.sum()), per_cell), np.full(len(cell), per_cell / REFINE ** 2)])
+    a = np.concatenate([np.full(int(plain.sum()), 2.0 * per_cell), np.full(len(cell), per_cell / REFINE ** 2)])
     return (np.concatenate([buffers.position[plain], pos]),
             np.concatenate([np.asarray(buffers.normal[plain], np.float64), nrm]),
             np.concatenate([buffers.depth[plain].astype(np.float64), dep]),
