@@ -153,7 +153,6 @@ def bench_engine_truth(validate_rig, lights: int | None = None, scenes: str | No
         text += "\n\nSkipped: " + "; ".join(f"{k} ({v})" for k, v in skipped.items())
     text += (f"\n\n{n} suns per scene (15-90 degrees elevation, seed 25), one 1024² map, {screen[0]}x{screen[1]} rig, "
              f"engine depth test (`evaluate --depth solution`); wall {time.perf_counter() - t0:.0f} s.")
-    print(text)
     out_dir = ROOT / "out" / "bench"
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "engine-truth.json").write_text(json.dumps({"scenes": per_scene, "raw": raw}, indent=1))
@@ -161,4 +160,4 @@ def bench_engine_truth(validate_rig, lights: int | None = None, scenes: str | No
         cmd = "shadowopt bench engine-truth" + (f" --lights {lights}" if lights else "") + (
             f" --scenes {scenes}" if scenes else "")
         write_section("engine-truth", text, cmd)
-    return {"scenes": per_scene}
+    return {"scenes": per_scene, "table": text}
