@@ -291,8 +291,10 @@ class ShadowMapSolution(_Open):
     split: tuple[float | None, float | None] = Field(description="the camera view-depth range this map serves, in "
                                                      "the solution's convention.length_unit (metres unless an engine "
                                                      "preset says otherwise; null: unbounded, e.g. a point light's faces)")
-    light_depth: tuple[float | None, float | None] | None = Field(None, description="the light view's near and "
-                                                                  "far depth")
+    light_depth: tuple[float | None, float | None] | None = Field(None, description="the least and greatest "
+                                                                  "depth along the light view's -Z over the map's "
+                                                                  "frustum (a warped map's frustum widens towards "
+                                                                  "its far end)")
     warp: Warp = Warp()
     depth_bias: dict = Field(default_factory=dict)
     depth: dict | None = Field(None, description=(

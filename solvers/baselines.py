@@ -43,7 +43,8 @@ off, is inside the depth range (engines that pancake, clamping casters in front 
 it, may tighten the near plane to the receivers; the evaluator can pancake as well); far is the
 farthest receiver or bounds corner. Warped maps are clipped in warped space by planes through the
 warp centre, fit to the receivers and to the bounds' corners slid into the receivers' range along
-the warp axis, which contains every caster on a receiver's light ray.
+the warp axis, which contains every caster on a receiver's light ray; their light_depth is that
+frustum's range along the light's -Z (ShadowMap.frustum_depth_range), which widens towards the far end.
 
 Depth bias, one rule for every method (the evaluator applies exactly this): with d the distance in
 metres along the texel's light ray, a receiver is shadowed iff
@@ -191,6 +192,7 @@ def _directional_map(method: str, camera: Camera, light: DirectionalLight, recei
         if use_log:
             smap.log_warp = padded_log(log_warp(y1 - y0, warp_n), resolution[1])
             smap.warp_kind = "log"
+        smap.light_depth = smap.frustum_depth_range() or ld  # the warped frustum widens towards its far end
     return smap
 
 
