@@ -10,6 +10,7 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
+from ..renderers.json_text import dumps  # standard JSON only: every JSON the CLI writes goes through it
 from .progress import progress_bar
 from .schemas import ConfigurationError, format_validation_error, validate_configurations
 from .schemas import validate_rig  # the rig validation (api.schemas); kept importable from here
@@ -90,7 +91,7 @@ def cmd_scene_info(args) -> int:
     info = entry.loaded.info()
     info["build_s"] = round(entry.build_s, 4)
     if args.json:
-        print(json.dumps(info, indent=2))
+        print(dumps(info, indent=2))
     else:
         lo, hi = info["bounds"]["min"], info["bounds"]["max"]
         print(f"{info['source']}: {info['triangles']} triangles in {info['prims']} prims, "
@@ -123,7 +124,7 @@ def cmd_coarse(args) -> int:
                            "facing_pixels": int(lb.facing.sum())} for lb in buffers.lights],
                "timings_ms": {k: round(v, 3) for k, v in buffers.timings_ms.items()}, "files": sorted(files)}
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print(dumps(summary, indent=2))
     else:
         print(f"wrote {len(files)} files to {args.out} ({buffers.width}x{buffers.height}, "
               f"{summary['hit_pixels']} hit pixels, {buffers.timings_ms['total']:.1f} ms)")
@@ -224,14 +225,14 @@ def cmd_bench(args) -> int:
     else:  # argparse restricts choices
         raise CliError(f"unknown benchmark {args.bench!r}")
     if args.json:
-        print(json.dumps(result, indent=2))
+        print(dumps(result, indent=2))
     else:
         print(result["table"])
     return 0
 
 
 def _write_or_print(obj: dict, out: str | None, as_json: bool, summary: str) -> None:
-    text = json.dumps(obj, indent=2)
+    text = dumps(obj, indent=2)
     if out:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         Path(out).write_text(text)
@@ -286,7 +287,7 @@ def cmd_evaluate(args) -> int:
     res = evaluate_solution(entry, rig, solution, screen=args.screen, heatmap_path=args.heatmap,
                             grid_every=args.grid, heatmap_mode=args.heatmap_mode, depth=args.depth)
     if args.json:
-        print(json.dumps(res, indent=2))
+        print(dumps(res, indent=2))
     else:
         print(f"depth test: {args.depth}" + (" (each map's depth block, in the mode it names)"
                                             if args.depth == "solution" else ""))
@@ -326,7 +327,7 @@ def cmd_analyze(args) -> int:
     res = analyze(args.f_over_n, args.theta_deg, args.gamma_deg, args.method, partitions=args.partitions)
     res = {k: float(v) for k, v in res.items()}
     if args.json:
-        print(json.dumps(res, indent=2))
+        print(dumps(res, indent=2))
     else:
         print(f"R_s = {res['R_s']:.4g}, R_t = {res['R_t']:.4g}, S = {res['S']:.4g}"
               + (f", maps = {res['maps']:g}" if "maps" in res else ""))
@@ -348,7 +349,7 @@ def cmd_compare(args) -> int:
     res = compare(entry, rig, methods, screen=args.screen, report_dir=args.report, grid_every=args.grid,
                   depth=args.depth)
     if args.json:
-        print(json.dumps(res, indent=2))
+        print(dumps(res, indent=2))
     else:
         print(markdown_table(res), end="")
         if args.report:
@@ -494,7 +495,7 @@ def cmd_pack(args) -> int:
 
     res = pack_stage(args.scene, args.out, allow_outside=args.allow_outside)
     if args.json:
-        print(json.dumps(res, indent=2))
+        print(dumps(res, indent=2))
     else:
         print(f"{args.out}: {res['entries']} entries ({res['layers']} layers), {res['bytes']} bytes")
         other = [a for a in res["assets"] if not a.lower().endswith((".usd", ".usda", ".usdc", ".usdz"))]

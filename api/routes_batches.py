@@ -1,7 +1,6 @@
 """The REST service's batch routes: create, status (with interpolation hints once done), results, cancel;
 the queue's capacity and per-tenant quota checks shared with the path route."""
 
-import json
 import threading
 from collections import OrderedDict
 from typing import Annotated
@@ -10,6 +9,7 @@ from fastapi import FastAPI, Query, Request
 from fastapi.responses import Response
 
 from . import schemas as S
+from ..renderers.json_text import dumps
 from ..service.batch_request import expand_configurations, expansion_shape
 from ..service.interpolation_hints import interpolation_hints
 from ..service.request_fields import BatchError
@@ -64,7 +64,7 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
         if svc.store.batch(tenant, batch_id) is None:
             raise batch_not_found(batch_id)
         rows = svc.store.results(tenant, batch_id, offset=offset, limit=limit)
-        body = "".join(json.dumps(REDACT.obj(finite(r)), separators=(",", ":")) + "\n" for r in rows)
+        body = "".join(dumps(REDACT.obj(finite(r)), separators=(",", ":")) + "\n" for r in rows)
         return Response(body, media_type="application/x-ndjson")
 
     @app.delete("/v1/batches/{batch_id}", summary="Cancel a batch (results so far are kept)",

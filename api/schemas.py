@@ -361,7 +361,10 @@ class Solution(_ReadAsDict, _Open):
     lights: list[LightSolution]
     timings_ms: dict
     provenance: dict
-    solver: dict | None = None
+    solver: dict | None = Field(None, description="the solver's report per light and cascade: which candidate won "
+                                "and by how much; a candidate's score (`baselines`, `receiver_h`) is null where it is "
+                                "infinite (the candidate leaves a receiver outside its map). Every number in a "
+                                "response is finite (standard JSON): a non-finite value is written as null")
     resolved: dict | None = Field(None, description="what was solved for: the camera (position, forward, up, "
                                   "fov_y_deg, near, far, resolution), each light (type, direction and/or position, "
                                   "cone_deg), in the world frame (+Y up, metres), and the output convention")

@@ -230,3 +230,24 @@ def test_the_readme_heatmap_example_runs_verbatim(tmp_path):
     assert "wrongly shadowed" in outs[1] and "in the rig's 1280x720 pixels" in outs[1]
     assert (tmp_path / "out" / "lispsm256_errors.png").stat().st_size > 1000
     assert {"heatmaps.png", "errors.png", "compare.md"} <= {f.name for f in (tmp_path / "out" / "compare256").iterdir()}
+
+
+def _strict_json(text: str):
+    """json.loads refusing NaN, Infinity and -Infinity (standard JSON, RFC 8259, has none)."""
+    def refuse(name):
+        raise ValueError(f"non-standard JSON constant {name}")
+    return json.loads(text, parse_constant=refuse)
+
+
+@pytest.mark.server
+def test_cli_json_is_standard_json_with_null_for_an_infinite_candidate_score(tmp_path):
+    """issue 25: with 4 cascades on the demo a candidate that leaves a receiver outside its map scores inf,
+    and the CLI printed `"uniform": Infinity` (solver.cascades[].receiver_h), which strict parsers refuse.
+    stdout and the --out file parse strictly; the score is null, as the schema's `solver` field says."""
+    out = tmp_path / "sol.json"
+    p = run("optimize", DEMO, "--rig", DEMO_RIG, "--cascades", "4", "--json", "--out", out, check=0)
+    sol = _strict_json(p.stdout)
+    assert _strict_json(out.read_text()) == sol
+    report = sol["solver"].get("lights", [sol["solver"]])[0]  # one light: its report is the solver block
+    scores = [v for c in report["cascades"] for key in ("baselines", "receiver_h") for v in (c.get(key) or {}).values()]
+    assert None in scores and all(v is None or v >= 0 for v in scores)
