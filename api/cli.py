@@ -11,6 +11,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from ..renderers.json_text import dumps  # standard JSON only: every JSON the CLI writes goes through it
+from ..service.methods import METHODS  # the one list of methods (no imports: --help stays light)
 from .progress import progress_bar
 from .schemas import ConfigurationError, format_validation_error, validate_configurations
 from .schemas import validate_rig  # the rig validation (api.schemas); kept importable from here
@@ -340,10 +341,9 @@ def cmd_compare(args) -> int:
     from ..service.pipeline import scene_entry
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    known = ("uniform", "focused", "lispsm", "logpsm", "optimized")
-    bad = [m for m in methods if m not in known]
+    bad = [m for m in methods if m not in METHODS]
     if bad or not methods:
-        raise CliError(f"--methods: unknown {', '.join(bad) or '(none given)'} (known: {', '.join(known)})")
+        raise CliError(f"--methods: unknown {', '.join(bad) or '(none given)'} (known: {', '.join(METHODS)})")
     rig = load_rig(args.rig, args)
     entry = scene_entry(args.scene, **_scene_options(args))
     res = compare(entry, rig, methods, screen=args.screen, report_dir=args.report, grid_every=args.grid,
@@ -369,7 +369,6 @@ def cmd_batch(args) -> int:
     from ..service.batch_request import expand_configurations
     from ..service.local_jobs import run_batch
     from ..service.request_fields import BatchError
-    from ..service.solve import METHODS
 
     raw = _read_json(args.configs, "--configs")
     request = {"configurations": raw} if isinstance(raw, list) else raw
@@ -413,7 +412,6 @@ def cmd_path(args) -> int:
     # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.local_jobs import run_path
     from ..service.paths import PathError, expand_path_with_notes, line_json
-    from ..service.solve import METHODS
 
     raw = _read_json(args.rig, "--rig")
     if not isinstance(raw, dict):
@@ -556,7 +554,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("optimize", help="compute a shadow setup (matrices, warp, splits) and its predicted error")
     scene_args(sp)
     rig_args(sp)
-    sp.add_argument("--method", choices=["uniform", "focused", "lispsm", "logpsm", "optimized", "stable_csm", "path"], default="optimized")
+    sp.add_argument("--method", choices=METHODS, default="optimized")
     sp.add_argument("--solver", default=None, help="optimizer for --method optimized (default nlopt:LN_BOBYQA; "
                     "gradient:linesearch, gradient:lbfgs, gradient:adam, nlopt:LN_COBYLA, nlopt:LN_SBPLX, "
                     "nlopt:GN_DIRECT_L, nlopt:LD_MMA, nlopt:LD_LBFGS)")
@@ -645,7 +643,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--backend", choices=["local", "ray"], default="local")
     sp.add_argument("--workers", type=int, default=2, help="worker processes (local) or Ray actors")
     sp.add_argument("--ray-address", default=None, help="a Ray cluster (default: a local Ray instance)")
-    sp.add_argument("--method", choices=["uniform", "focused", "lispsm", "logpsm", "optimized", "stable_csm", "path"], default=None,
+    sp.add_argument("--method", choices=METHODS, default=None,
                     help="default: the file's \"method\", else optimized")
     sp.add_argument("--solver", default=None, help="optimizer for --method optimized")
     sp.add_argument("--time-budget-ms", type=float, default=None, help="per configuration")

@@ -9,6 +9,8 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from ..service.methods import METHODS
+
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = tuple[Finite, Finite, Finite]
 Resolution = tuple[Annotated[int, Field(gt=0, le=16384)], Annotated[int, Field(gt=0, le=16384)]]
@@ -189,7 +191,7 @@ def format_validation_error(err) -> str:
 
 # --- REST API: requests and responses. Field names the clients rely on are fixed (additions only). ---
 
-Method = Literal["uniform", "focused", "lispsm", "logpsm", "optimized", "stable_csm", "path"]
+Method = Literal[METHODS]  # service.methods: the one list of methods
 BatchState = Literal["queued", "running", "done", "failed", "cancelled"]
 ObjectId = Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.-]+$")]
 

@@ -28,6 +28,7 @@ from ..solvers.stable_csm import stable_csm_maps
 from . import point_faces
 from .coarse_cache import cached_coarse_pass
 from .map_sizing import auto_cascades, rig_budget_split, smaller_resolution
+from .methods import BASELINE_METHODS, METHODS  # kept importable from here
 from .need import drop_empty_maps, light_need
 from .pipeline import coarse_pass
 from .receivers import LightProblem, light_problems
@@ -38,8 +39,6 @@ from .scenes import SceneEntry
 from .solution_check import validate_solution
 from .solution_json import jsonable, light_json, maps_error, no_map_json, solution_json
 
-BASELINE_METHODS = ("uniform", "focused", "lispsm", "logpsm")
-METHODS = BASELINE_METHODS + ("optimized", "stable_csm", "path")  # stable_csm: solvers.stable_csm (Valient 2008); path: solvers.path_optimize (previous= the previous frame)
 
 
 @dataclass

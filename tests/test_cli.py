@@ -251,3 +251,20 @@ def test_cli_json_is_standard_json_with_null_for_an_infinite_candidate_score(tmp
     report = sol["solver"].get("lights", [sol["solver"]])[0]  # one light: its report is the solver block
     scores = [v for c in report["cascades"] for key in ("baselines", "receiver_h") for v in (c.get(key) or {}).values()]
     assert None in scores and all(v is None or v >= 0 for v in scores)
+
+
+@pytest.mark.server
+def test_compare_accepts_every_method_optimize_accepts():
+    """issue 25: `compare --methods stable_csm` exited 2 ("unknown stable_csm") although optimize accepts it.
+    Every choice of `optimize --method` (read from its --help) is accepted by compare; an unknown name still
+    exits 2 naming the known ones."""
+    help_text = " ".join(run("optimize", "--help", check=0).stdout.split())
+    choices = help_text.split("--method {", 1)[1].split("}", 1)[0].split(",")
+    assert {"stable_csm", "path", "optimized"} <= set(choices)
+    res = json.loads(run("compare", DEMO, "--rig", DEMO_RIG, "--methods", "stable_csm,path", "--screen", "160x90",
+                         "--shadow-resolution", "256x256", "--cascades", "2", "--json", check=0).stdout)
+    assert set(res["methods"]) == {"stable_csm", "path"}
+    assert all(r["evaluation"]["receiver_pixels"] > 0 for r in res["methods"].values())
+    p = run("compare", DEMO, "--rig", DEMO_RIG, "--methods", "focused,nosuch", check=2)
+    known = p.stderr.split("(known: ", 1)[1].split(")", 1)[0].split(", ")
+    assert "nosuch" in p.stderr and sorted(known) == sorted(choices)
