@@ -250,16 +250,37 @@ def cmd_optimize(args) -> int:
     from ..service.solve import solve
 
     rig = load_rig(args.rig, args)
+    _check_options(args.method, rig["shadow"], solver=args.solver, time_budget_ms=args.time_budget_ms,
+                   previous=args.previous, hysteresis=args.hysteresis)
     entry = scene_entry(args.scene, **_scene_options(args))
     previous = _read_json(args.previous, "--previous") if args.previous else None
     sol = solve(entry, rig, SolveRequest(method=args.method, solver=args.solver, time_budget_ms=args.time_budget_ms,
-                                         previous=previous, hysteresis=args.hysteresis))
+                                         previous=previous,
+                                         hysteresis=0.8 if args.hysteresis is None else args.hysteresis))
     errs = [l["predicted_error"] for l in sol["lights"]]
     summary = "; ".join(f"light {k}: {len(l['cascades'])} map(s), predicted p95 m {e['p95_m']:.3g}, "
                         f"median m {e['median_m']:.3g} over {e['samples']} samples"
                         for k, (l, e) in enumerate(zip(sol["lights"], errs)))
     _write_or_print(sol, args.out, args.json, f"{args.method}: {summary}; {sol['timings_ms']['total']:.1f} ms")
     return 0
+
+
+# the CLI's flag for each field service.method_options names (a rig field without a flag is named as in the rig)
+OPTION_FLAGS = {"solver": "--solver", "time_budget_ms": "--time-budget-ms", "previous": "--previous",
+                "hysteresis": "--hysteresis", "rig.shadow.lambda": "--lambda (rig shadow.lambda)",
+                "rig.shadow.splits": "--splits (rig shadow.splits)"}
+
+
+def _check_options(method: str, shadow: dict | None, **given) -> None:
+    """service.method_options.check_options as a CLI error: exit 2 naming the flag and why it would be ignored."""
+    from ..service.method_options import OptionError, check_options  # lazy: the server stack loads per command
+
+    try:
+        check_options(method, shadow, **given)
+    except OptionError as e:
+        flag = OPTION_FLAGS.get(e.field) or ("rig " + e.field.removeprefix("rig.") if e.field.startswith("rig.")
+                                              else e.field)
+        raise CliError(f"{flag}: not used by --method {method}: {e.message}") from None
 
 
 def _read_json(path: str, flag: str) -> dict:
@@ -345,6 +366,8 @@ def cmd_compare(args) -> int:
     if bad or not methods:
         raise CliError(f"--methods: unknown {', '.join(bad) or '(none given)'} (known: {', '.join(METHODS)})")
     rig = load_rig(args.rig, args)
+    for m in methods:
+        _check_options(m, rig["shadow"])
     entry = scene_entry(args.scene, **_scene_options(args))
     res = compare(entry, rig, methods, screen=args.screen, report_dir=args.report, grid_every=args.grid,
                   depth=args.depth)
@@ -385,6 +408,9 @@ def cmd_batch(args) -> int:
     method = args.method or request.get("method") or "optimized"
     if method not in METHODS:
         raise CliError(f"--configs {args.configs}: method: unknown {method!r} (known: {', '.join(METHODS)})")
+    for c in configs:  # the batch's settings against each configuration's rig
+        _check_options(method, (c.get("rig") or {}).get("shadow"), solver=args.solver or request.get("solver"),
+                       time_budget_ms=args.time_budget_ms or request.get("time_budget_ms"))
     if args.workers < 1:
         raise CliError(f"--workers: must be at least 1, got {args.workers}")
     if args.backend == "ray":
@@ -441,6 +467,7 @@ def cmd_path(args) -> int:
     method = args.method or "optimized"
     if method not in METHODS:
         raise CliError(f"--method: unknown {method!r} (known: {', '.join(METHODS)})")
+    _check_options(method, None, solver=args.solver, time_budget_ms=args.time_budget_ms)
     if args.workers < 1:
         raise CliError(f"--workers: must be at least 1, got {args.workers}")
     for n in notes:
@@ -561,7 +588,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--time-budget-ms", type=float, default=None, help="return the best so far after this long")
     sp.add_argument("--previous", default=None, metavar="FILE", help="the previous frame's solution: kept (refit) "
                     "unless the new one's median h is below --hysteresis times its own (temporal stability)")
-    sp.add_argument("--hysteresis", type=float, default=0.8)
+    sp.add_argument("--hysteresis", type=float, default=None, help="with --previous and --method optimized (default 0.8)")
     sp.add_argument("--out", default=None, help="also write the solution JSON to this file")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_optimize)

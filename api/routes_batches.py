@@ -12,9 +12,10 @@ from . import schemas as S
 from ..renderers.json_text import dumps
 from ..service.batch_request import expand_configurations, expansion_shape
 from ..service.interpolation_hints import interpolation_hints
+from ..service.method_options import check_options
 from ..service.request_fields import BatchError
 from ..service.rigs import resolve_rig
-from .errors import AUTHED, ApiError, error_responses
+from .errors import AUTHED, ApiError, error_responses, solver_errors
 from .responses import REDACT, finite, json_response
 from .scene_loading import scene_entry_for
 from .service_state import Service
@@ -39,6 +40,10 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
             shape = expansion_shape(body)
         except BatchError as e:
             raise ApiError(422, e.code, f"{e.field}: {e.message}", e.field) from e
+        with solver_errors():  # the batch's settings against each configuration's rig: 422 naming the field
+            for c in configs:
+                check_options(req.method or "optimized", (c.get("rig") or {}).get("shadow"), solver=req.solver,
+                              time_budget_ms=req.time_budget_ms)
         settings = {"method": req.method, "solver": req.solver, "time_budget_ms": svc.time_budget(req.time_budget_ms),
                     "shape": list(shape) if shape else None}
         batch_id, configs = store_batch(svc, tenant, req.scene_id, configs, settings, entry)

@@ -87,7 +87,8 @@ class MethodKind:
                 opts["split_at"] = optimize_splits(
                     job.camera, prob.light, prob.samples, prob.receivers, (lo, hi), opts["resolution"],
                     opts["cascades"], texel_budget=opts["texel_budget"], receiver_slack=prob.receiver_slack,
-                    method=method if method in ("focused", "lispsm") else "lispsm").split_at
+                    method=method if method in ("focused", "lispsm") else
+                    "focused" if method == "stable_csm" else "lispsm").split_at  # stable_csm: unwarped maps
 
     def maps(self, job: LightJob):
         """(maps, solver report or None, auto_cascades report or None): at the rig's cascade count, or at the

@@ -268,3 +268,36 @@ def test_compare_accepts_every_method_optimize_accepts():
     p = run("compare", DEMO, "--rig", DEMO_RIG, "--methods", "focused,nosuch", check=2)
     known = p.stderr.split("(known: ", 1)[1].split(")", 1)[0].split(", ")
     assert "nosuch" in p.stderr and sorted(known) == sorted(choices)
+
+
+@pytest.mark.server
+def test_stable_csm_honours_optimized_splits():
+    """issue 25: `--method stable_csm --splits optimized` returned the practical splits (the search ran and its
+    splits were dropped). Its inner splits are now the split search's: the same ones focused gets from the
+    same search (an unwarped map's search), and not the practical ones."""
+    def splits(method, kind):
+        sol = json.loads(run("optimize", DEMO, "--rig", DEMO_RIG, "--method", method, "--cascades", "3", "--splits",
+                             kind, "--shadow-resolution", "512x512", "--json", check=0).stdout)
+        return [c["split"] for c in sol["lights"][0]["cascades"]]
+    practical, searched = splits("stable_csm", "practical"), splits("stable_csm", "optimized")
+    inner = [s[1] for s in searched[:-1]]
+    assert inner == pytest.approx([s[1] for s in splits("focused", "optimized")[:-1]], rel=1e-9)
+    assert not np.allclose(inner, [s[1] for s in practical[:-1]], rtol=0.05)
+    assert searched[0][0] == practical[0][0] and searched[-1][1] == practical[-1][1]
+
+
+@pytest.mark.server
+@pytest.mark.parametrize("args, flag", [
+    (["--method", "focused", "--solver", "nlopt:LN_BOBYQA"], "--solver"),
+    (["--method", "lispsm", "--time-budget-ms", "50"], "--time-budget-ms"),
+    (["--method", "stable_csm", "--previous", "prev.json"], "--previous"),
+    (["--hysteresis", "0.5"], "--hysteresis"),  # optimized without --previous: nothing to keep
+    (["--method", "path", "--previous", "prev.json", "--hysteresis", "0.5"], "--hysteresis"),
+    (["--method", "lispsm", "--cascades", "2", "--splits", "log", "--lambda", "0.9"], "--lambda"),
+])
+def test_an_option_the_method_would_ignore_exits_2_naming_it(args, flag):
+    """issue 25: options a method does not read were dropped silently (stable_csm and --splits optimized, a
+    baseline and --solver ...); now exit 2 naming the flag and why, before any work."""
+    p = run("optimize", DEMO, "--rig", DEMO_RIG, *args, check=2)
+    assert p.stderr.startswith(f"shadowopt: error: {flag}") and "not used by --method" in p.stderr, p.stderr
+    assert p.stdout == ""
