@@ -74,7 +74,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .cameras import Camera
-from .cascades import allocate, critical_factors, pixel_world_size, receiver_depth_range, split_depths
+from .cascades import (ONE_SIZE_PER_LIGHT, allocate, critical_factors, pixel_world_size, receiver_depth_range,
+                       split_depths)
 from .depth_modes import with_bias
 from .fitting import (PAD_TEXELS, box_corners, depth_range, extent_floor, frustum, light_plane_hull, min_area_rectangle,
                       ortho, padded, perspective_near, rotation_z, texel_margin, to_view)
@@ -393,5 +394,5 @@ def _allocate(maps: list[ShadowMap], camera: Camera, receivers: np.ndarray, dept
         rs, rt = critical_factors(per_s, per_t, pix)
         R_s.append(rs)
         R_t.append(rt)
-    for smap, r in zip(maps, allocate(np.array(R_s), np.array(R_t), budget)):
+    for smap, r in zip(maps, allocate(np.array(R_s), np.array(R_t), budget, shared=ONE_SIZE_PER_LIGHT)):
         smap.resolution = r
