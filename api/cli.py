@@ -10,6 +10,8 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
+from ..renderers.json_text import dumps  # standard JSON only: every JSON the CLI writes goes through it
+from ..service.methods import METHODS  # the one list of methods (no imports: --help stays light)
 from .progress import progress_bar
 from .schemas import ConfigurationError, format_validation_error, validate_configurations
 from .schemas import validate_rig  # the rig validation (api.schemas); kept importable from here
@@ -92,7 +94,7 @@ def cmd_scene_info(args) -> int:
     info = entry.loaded.info()
     info["build_s"] = round(entry.build_s, 4)
     if args.json:
-        print(json.dumps(info, indent=2))
+        print(dumps(info, indent=2))
     else:
         lo, hi = info["bounds"]["min"], info["bounds"]["max"]
         print(f"{info['source']}: {info['triangles']} triangles in {info['prims']} prims, "
@@ -125,7 +127,7 @@ def cmd_coarse(args) -> int:
                            "facing_pixels": int(lb.facing.sum())} for lb in buffers.lights],
                "timings_ms": {k: round(v, 3) for k, v in buffers.timings_ms.items()}, "files": sorted(files)}
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print(dumps(summary, indent=2))
     else:
         print(f"wrote {len(files)} files to {args.out} ({buffers.width}x{buffers.height}, "
               f"{summary['hit_pixels']} hit pixels, {buffers.timings_ms['total']:.1f} ms)")
@@ -231,14 +233,14 @@ def cmd_bench(args) -> int:
     else:  # argparse restricts choices
         raise CliError(f"unknown benchmark {args.bench!r}")
     if args.json:
-        print(json.dumps(result, indent=2))
+        print(dumps(result, indent=2))
     else:
         print(result["table"])
     return 0
 
 
 def _write_or_print(obj: dict, out: str | None, as_json: bool, summary: str) -> None:
-    text = json.dumps(obj, indent=2)
+    text = dumps(obj, indent=2)
     if out:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         Path(out).write_text(text)
@@ -255,16 +257,37 @@ def cmd_optimize(args) -> int:
     from ..service.solve import solve
 
     rig = load_rig(args.rig, args)
+    _check_options(args.method, rig["shadow"], solver=args.solver, time_budget_ms=args.time_budget_ms,
+                   previous=args.previous, hysteresis=args.hysteresis)
     entry = scene_entry(args.scene, **_scene_options(args))
     previous = _read_json(args.previous, "--previous") if args.previous else None
     sol = solve(entry, rig, SolveRequest(method=args.method, solver=args.solver, time_budget_ms=args.time_budget_ms,
-                                         previous=previous, hysteresis=args.hysteresis))
+                                         previous=previous,
+                                         hysteresis=0.8 if args.hysteresis is None else args.hysteresis))
     errs = [l["predicted_error"] for l in sol["lights"]]
     summary = "; ".join(f"light {k}: {len(l['cascades'])} map(s), predicted p95 m {e['p95_m']:.3g}, "
                         f"median m {e['median_m']:.3g} over {e['samples']} samples"
                         for k, (l, e) in enumerate(zip(sol["lights"], errs)))
     _write_or_print(sol, args.out, args.json, f"{args.method}: {summary}; {sol['timings_ms']['total']:.1f} ms")
     return 0
+
+
+# the CLI's flag for each field service.method_options names (a rig field without a flag is named as in the rig)
+OPTION_FLAGS = {"solver": "--solver", "time_budget_ms": "--time-budget-ms", "previous": "--previous",
+                "hysteresis": "--hysteresis", "rig.shadow.lambda": "--lambda (rig shadow.lambda)",
+                "rig.shadow.splits": "--splits (rig shadow.splits)"}
+
+
+def _check_options(method: str, shadow: dict | None, **given) -> None:
+    """service.method_options.check_options as a CLI error: exit 2 naming the flag and why it would be ignored."""
+    from ..service.method_options import OptionError, check_options  # lazy: the server stack loads per command
+
+    try:
+        check_options(method, shadow, **given)
+    except OptionError as e:
+        flag = OPTION_FLAGS.get(e.field) or ("rig " + e.field.removeprefix("rig.") if e.field.startswith("rig.")
+                                              else e.field)
+        raise CliError(f"{flag}: not used by --method {method}: {e.message}") from None
 
 
 def _read_json(path: str, flag: str) -> dict:
@@ -293,7 +316,7 @@ def cmd_evaluate(args) -> int:
     res = evaluate_solution(entry, rig, solution, screen=args.screen, heatmap_path=args.heatmap,
                             grid_every=args.grid, heatmap_mode=args.heatmap_mode, depth=args.depth)
     if args.json:
-        print(json.dumps(res, indent=2))
+        print(dumps(res, indent=2))
     else:
         print(f"depth test: {args.depth}" + (" (each map's depth block, in the mode it names)"
                                             if args.depth == "solution" else ""))
@@ -333,7 +356,7 @@ def cmd_analyze(args) -> int:
     res = analyze(args.f_over_n, args.theta_deg, args.gamma_deg, args.method, partitions=args.partitions)
     res = {k: float(v) for k, v in res.items()}
     if args.json:
-        print(json.dumps(res, indent=2))
+        print(dumps(res, indent=2))
     else:
         print(f"R_s = {res['R_s']:.4g}, R_t = {res['R_t']:.4g}, S = {res['S']:.4g}"
               + (f", maps = {res['maps']:g}" if "maps" in res else ""))
@@ -346,16 +369,17 @@ def cmd_compare(args) -> int:
     from ..service.pipeline import scene_entry
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    known = ("uniform", "focused", "lispsm", "logpsm", "optimized")
-    bad = [m for m in methods if m not in known]
+    bad = [m for m in methods if m not in METHODS]
     if bad or not methods:
-        raise CliError(f"--methods: unknown {', '.join(bad) or '(none given)'} (known: {', '.join(known)})")
+        raise CliError(f"--methods: unknown {', '.join(bad) or '(none given)'} (known: {', '.join(METHODS)})")
     rig = load_rig(args.rig, args)
+    for m in methods:
+        _check_options(m, rig["shadow"])
     entry = scene_entry(args.scene, **_scene_options(args))
     res = compare(entry, rig, methods, screen=args.screen, report_dir=args.report, grid_every=args.grid,
                   depth=args.depth)
     if args.json:
-        print(json.dumps(res, indent=2))
+        print(dumps(res, indent=2))
     else:
         print(markdown_table(res), end="")
         if args.report:
@@ -375,7 +399,6 @@ def cmd_batch(args) -> int:
     from ..service.batch_request import expand_configurations
     from ..service.local_jobs import run_batch
     from ..service.request_fields import BatchError
-    from ..service.solve import METHODS
 
     raw = _read_json(args.configs, "--configs")
     request = {"configurations": raw} if isinstance(raw, list) else raw
@@ -392,6 +415,9 @@ def cmd_batch(args) -> int:
     method = args.method or request.get("method") or "optimized"
     if method not in METHODS:
         raise CliError(f"--configs {args.configs}: method: unknown {method!r} (known: {', '.join(METHODS)})")
+    for c in configs:  # the batch's settings against each configuration's rig
+        _check_options(method, (c.get("rig") or {}).get("shadow"), solver=args.solver or request.get("solver"),
+                       time_budget_ms=args.time_budget_ms or request.get("time_budget_ms"))
     if args.workers < 1:
         raise CliError(f"--workers: must be at least 1, got {args.workers}")
     if args.backend == "ray":
@@ -419,7 +445,6 @@ def cmd_path(args) -> int:
     # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.local_jobs import run_path
     from ..service.paths import PathError, expand_path_with_notes, line_json
-    from ..service.solve import METHODS
 
     raw = _read_json(args.rig, "--rig")
     if not isinstance(raw, dict):
@@ -449,6 +474,7 @@ def cmd_path(args) -> int:
     method = args.method or "optimized"
     if method not in METHODS:
         raise CliError(f"--method: unknown {method!r} (known: {', '.join(METHODS)})")
+    _check_options(method, None, solver=args.solver, time_budget_ms=args.time_budget_ms)
     if args.workers < 1:
         raise CliError(f"--workers: must be at least 1, got {args.workers}")
     for n in notes:
@@ -501,7 +527,7 @@ def cmd_pack(args) -> int:
 
     res = pack_stage(args.scene, args.out, allow_outside=args.allow_outside)
     if args.json:
-        print(json.dumps(res, indent=2))
+        print(dumps(res, indent=2))
     else:
         print(f"{args.out}: {res['entries']} entries ({res['layers']} layers), {res['bytes']} bytes")
         other = [a for a in res["assets"] if not a.lower().endswith((".usd", ".usda", ".usdc", ".usdz"))]
@@ -565,14 +591,14 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("optimize", help="compute a shadow setup (matrices, warp, splits) and its predicted error")
     scene_args(sp)
     rig_args(sp)
-    sp.add_argument("--method", choices=["uniform", "focused", "lispsm", "logpsm", "optimized", "stable_csm", "path"], default="optimized")
+    sp.add_argument("--method", choices=METHODS, default="optimized")
     sp.add_argument("--solver", default=None, help="optimizer for --method optimized (default nlopt:LN_BOBYQA; "
                     "gradient:linesearch, gradient:lbfgs, gradient:adam, nlopt:LN_COBYLA, nlopt:LN_SBPLX, "
                     "nlopt:GN_DIRECT_L, nlopt:LD_MMA, nlopt:LD_LBFGS)")
     sp.add_argument("--time-budget-ms", type=float, default=None, help="return the best so far after this long")
     sp.add_argument("--previous", default=None, metavar="FILE", help="the previous frame's solution: kept (refit) "
                     "unless the new one's median h is below --hysteresis times its own (temporal stability)")
-    sp.add_argument("--hysteresis", type=float, default=0.8)
+    sp.add_argument("--hysteresis", type=float, default=None, help="with --previous and --method optimized (default 0.8)")
     sp.add_argument("--out", default=None, help="also write the solution JSON to this file")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_optimize)
@@ -655,7 +681,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--backend", choices=["local", "ray"], default="local")
     sp.add_argument("--workers", type=int, default=2, help="worker processes (local) or Ray actors")
     sp.add_argument("--ray-address", default=None, help="a Ray cluster (default: a local Ray instance)")
-    sp.add_argument("--method", choices=["uniform", "focused", "lispsm", "logpsm", "optimized", "stable_csm", "path"], default=None,
+    sp.add_argument("--method", choices=METHODS, default=None,
                     help="default: the file's \"method\", else optimized")
     sp.add_argument("--solver", default=None, help="optimizer for --method optimized")
     sp.add_argument("--time-budget-ms", type=float, default=None, help="per configuration")

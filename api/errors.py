@@ -14,6 +14,7 @@ from starlette.requests import ClientDisconnect
 
 from . import schemas as S
 from ..renderers.scene_data import SceneError
+from ..service.method_options import OptionError
 from ..service.rigs import RigError, SolutionError
 from .admission import ClientGone
 from .responses import redact
@@ -148,13 +149,13 @@ def scene_error(e, field: str) -> ApiError:
 
 @contextlib.contextmanager
 def solver_errors():
-    """RigError/SolutionError/SceneError and the solvers' ValueErrors -> 422 naming the field. Anything else
+    """RigError/SolutionError/OptionError/SceneError and the solvers' ValueErrors -> 422 naming the field. Anything else
     (a KeyError, TypeError, ... from a bug) is a 500 internal_error with the request id, logged."""
     try:
         yield
     except RigError as e:
         raise ApiError(422, e.code, f"rig.{e.field}: {e.message}", f"rig.{e.field}") from e
-    except SolutionError as e:
+    except (SolutionError, OptionError) as e:
         raise ApiError(422, e.code, str(e), e.field) from e
     except SceneError as e:
         raise scene_error(e, "scene_id") from e

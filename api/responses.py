@@ -1,11 +1,9 @@
 """What a client sees of the server's JSON: free text with no server paths (`redact`, `REDACT`) and numbers
 JSON can hold (`finite`), sent by `json_response`."""
 
-import json
-import math
-
 from fastapi.responses import Response
 
+from ..renderers.json_text import dumps, finite  # the one JSON writer's sanitiser (kept importable from here)
 from ..renderers.redaction import PathRedactor
 
 
@@ -55,21 +53,6 @@ def redact(text: str) -> str:
 
 # --- JSON output --------------------------------------------------------------------------------
 
-def finite(obj):
-    """NaN/inf -> None (JSON has neither), NumPy scalars -> Python numbers, tuples -> lists."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {str(k): finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [finite(v) for v in obj]
-    if obj is None or isinstance(obj, (str, int, bool)):
-        return obj
-    if hasattr(obj, "tolist"):  # numpy scalar or array
-        return finite(obj.tolist())
-    return str(obj)
-
-
 def json_response(obj, status: int = 200, headers=None) -> Response:
-    body = json.dumps(REDACT.obj(finite(obj)), separators=(",", ":"), allow_nan=False)
+    body = dumps(REDACT.obj(finite(obj)), separators=(",", ":"))
     return Response(body, status_code=status, media_type="application/json", headers=headers)

@@ -1,7 +1,6 @@
 """The REST service's batch routes: create, status (with interpolation hints once done), results, cancel;
 the queue's capacity and per-tenant quota checks shared with the path route."""
 
-import json
 import threading
 from collections import OrderedDict
 from typing import Annotated
@@ -10,11 +9,13 @@ from fastapi import FastAPI, Query, Request
 from fastapi.responses import Response
 
 from . import schemas as S
+from ..renderers.json_text import dumps
 from ..service.batch_request import expand_configurations, expansion_shape
 from ..service.interpolation_hints import interpolation_hints
+from ..service.method_options import check_options
 from ..service.request_fields import BatchError
 from ..service.rigs import resolve_rig
-from .errors import AUTHED, ApiError, error_responses
+from .errors import AUTHED, ApiError, error_responses, solver_errors
 from .responses import REDACT, finite, json_response
 from .scene_loading import scene_entry_for
 from .service_state import Service
@@ -39,6 +40,10 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
             shape = expansion_shape(body)
         except BatchError as e:
             raise ApiError(422, e.code, f"{e.field}: {e.message}", e.field) from e
+        with solver_errors():  # the batch's settings against each configuration's rig: 422 naming the field
+            for c in configs:
+                check_options(req.method or "optimized", (c.get("rig") or {}).get("shadow"), solver=req.solver,
+                              time_budget_ms=req.time_budget_ms)
         settings = {"method": req.method, "solver": req.solver, "time_budget_ms": svc.time_budget(req.time_budget_ms),
                     "shape": list(shape) if shape else None}
         batch_id, configs = store_batch(svc, tenant, req.scene_id, configs, settings, entry)
@@ -64,7 +69,7 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
         if svc.store.batch(tenant, batch_id) is None:
             raise batch_not_found(batch_id)
         rows = svc.store.results(tenant, batch_id, offset=offset, limit=limit)
-        body = "".join(json.dumps(REDACT.obj(finite(r)), separators=(",", ":")) + "\n" for r in rows)
+        body = "".join(dumps(REDACT.obj(finite(r)), separators=(",", ":")) + "\n" for r in rows)
         return Response(body, media_type="application/x-ndjson")
 
     @app.delete("/v1/batches/{batch_id}", summary="Cancel a batch (results so far are kept)",

@@ -13,8 +13,9 @@ from . import schemas as S
 from ..renderers.scene_data import SceneError
 from ..renderers.usd_animation import read_animation
 from ..service.isolation import run_isolated
+from ..service.method_options import check_options
 from ..service.paths import PathError, expand_path_with_notes, is_coherent, is_whole_path
-from .errors import AUTHED, ApiError, error_responses, scene_error
+from .errors import AUTHED, ApiError, error_responses, scene_error, solver_errors
 from .responses import json_response
 from .routes_batches import store_batch
 from .scene_loading import scene_entry_for, scene_not_found
@@ -29,6 +30,8 @@ def add_path_routes(app: FastAPI, svc: Service, Tenant) -> None:
     async def create_path(req: S.PathRequest, tenant: Tenant, request: Request):
         body = req.model_dump(by_alias=True, exclude_none=True,
                               exclude={"scene_id", "method", "solver", "time_budget_ms", "coherent"})
+        with solver_errors():  # a solver or time budget the method would ignore: 422 naming the field
+            check_options(req.method, None, solver=req.solver, time_budget_ms=req.time_budget_ms)
         async with svc.heavy(tenant, request) as ticket:
             entry = await scene_entry_for(svc, ticket, req.scene_id)
             # A usd_camera path reads the stage's animation: a stage load (an upload's in an isolated child

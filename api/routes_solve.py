@@ -11,6 +11,7 @@ from fastapi import FastAPI, Request
 from . import schemas as S
 from ..service.compare import compare as compare_methods
 from ..service.evaluation import evaluate_solution
+from ..service.method_options import check_options
 from ..service.request import SolveRequest
 from ..service.solve import solve
 from ..solvers.analysis import analyze as lloyd
@@ -57,6 +58,10 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
               response_model=S.Solution, responses=error_responses(*AUTHED, 404, 413, 422, 503), tags=["solve"])
     async def optimize(req: S.OptimizeRequest, tenant: Tenant, request: Request):
         rig = rig_dict(req.rig)
+        with solver_errors():  # an option the method would ignore: 422 naming the field
+            check_options(req.method, rig.get("shadow"), solver=req.solver, time_budget_ms=req.time_budget_ms,
+                          previous=req.previous,
+                          hysteresis=req.hysteresis if "hysteresis" in req.model_fields_set else None)
         budget = svc.time_budget(req.time_budget_ms)
         async with svc.heavy(tenant, request) as ticket:
             entry = await scene_entry_for(svc, ticket, req.scene_id)
@@ -98,6 +103,9 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
         check_eval_size(svc, rig, req.screen, {"lights": [{"cascades": [{"resolution": resolution}]}]}
                         if resolution is not None else None)
         methods = list(dict.fromkeys(req.methods))
+        with solver_errors():
+            for m in methods:
+                check_options(m, rig.get("shadow"))
         async with svc.heavy(tenant, request) as ticket:
             entry = await scene_entry_for(svc, ticket, req.scene_id)
             with solver_errors():

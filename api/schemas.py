@@ -9,6 +9,8 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from ..service.methods import METHODS
+
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = tuple[Finite, Finite, Finite]
 Resolution = tuple[Annotated[int, Field(gt=0, le=16384)], Annotated[int, Field(gt=0, le=16384)]]
@@ -208,7 +210,7 @@ def format_validation_error(err) -> str:
 
 # --- REST API: requests and responses. Field names the clients rely on are fixed (additions only). ---
 
-Method = Literal["uniform", "focused", "lispsm", "logpsm", "optimized", "stable_csm", "path"]
+Method = Literal[METHODS]  # service.methods: the one list of methods
 BatchState = Literal["queued", "running", "done", "failed", "cancelled"]
 ObjectId = Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.-]+$")]
 
@@ -310,8 +312,10 @@ class ShadowMapSolution(_Open):
     split: tuple[float | None, float | None] = Field(description="the camera view-depth range this map serves, in "
                                                      "the solution's convention.length_unit (metres unless an engine "
                                                      "preset says otherwise; null: unbounded, e.g. a point light's faces)")
-    light_depth: tuple[float | None, float | None] | None = Field(None, description="the light view's near and "
-                                                                  "far depth")
+    light_depth: tuple[float | None, float | None] | None = Field(None, description="the least and greatest "
+                                                                  "depth along the light view's -Z over the map's "
+                                                                  "frustum (a warped map's frustum widens towards "
+                                                                  "its far end)")
     warp: Warp = Warp()
     depth_bias: dict = Field(default_factory=dict)
     depth: dict | None = Field(None, description=(
@@ -378,7 +382,10 @@ class Solution(_ReadAsDict, _Open):
     lights: list[LightSolution]
     timings_ms: dict
     provenance: dict
-    solver: dict | None = None
+    solver: dict | None = Field(None, description="the solver's report per light and cascade: which candidate won "
+                                "and by how much; a candidate's score (`baselines`, `receiver_h`) is null where it is "
+                                "infinite (the candidate leaves a receiver outside its map). Every number in a "
+                                "response is finite (standard JSON): a non-finite value is written as null")
     resolved: dict | None = Field(None, description="what was solved for: the camera (position, forward, up, "
                                   "fov_y_deg, near, far, resolution), each light (type, direction and/or position, "
                                   "cone_deg), in the world frame (+Y up, metres), and the output convention")

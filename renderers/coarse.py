@@ -7,7 +7,6 @@ evaluation before the NumPy conversion. Neighbour tests (shadow boundaries) run 
 """
 from __future__ import annotations
 
-import json
 import pathlib
 import time
 from dataclasses import dataclass, field
@@ -16,6 +15,7 @@ import numpy as np
 
 from ..solvers.cameras import Camera
 from ..solvers.lights import DirectionalLight, Light, PointLight, SpotLight
+from .json_text import dumps
 from .mitsuba_setup import mitsuba
 from .previews import save_previews
 from .ray_scene import RayScene
@@ -137,7 +137,7 @@ class CoarseBuffers:
         meta = {"width": self.width, "height": self.height, "lights": len(self.lights),
                 "hit_pixels": int(self.hit.sum()), "timings_ms": self.timings_ms,
                 "files": sorted(written)}
-        (out / "coarse.json").write_text(json.dumps(meta, indent=2))
+        (out / "coarse.json").write_text(dumps(meta, indent=2))
         written.append("coarse.json")
         return written
 

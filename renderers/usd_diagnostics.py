@@ -1,6 +1,7 @@
 """usd-core's diagnostics and errors as scene warnings and messages.
 
-- usd-core's diagnostics (missing files, MaterialX it cannot read) become scene warnings (captured_stderr).
+- usd-core's diagnostics (missing files, MaterialX it cannot read) become scene warnings (captured_stderr): one
+  line per file usd-core cannot open, with the number of prims that name it (not one line per prim).
 - Tf errors' texts without the C++ location (tf_text, usd_error_text); warnings without repeats (dedupe).
 """
 from __future__ import annotations
@@ -43,8 +44,15 @@ def _redirect_fd2(sink: list[str]):
             sink.extend(_summarize_diagnostics(text))
 
 
+# usd-core's message for a composition arc to a file it cannot open: one per prim that names the file (a
+# material layer referenced by every piece of a model gives hundreds of lines that differ only in the prim)
+_CANNOT_OPEN = re.compile(r"^(?P<kind>[A-Za-z ]+): In <[^>]*>: Could not open asset @(?P<asset>[^@]*)@ ")
+
+
 def _summarize_diagnostics(text: str) -> list[str]:
-    out = []
+    """One line per diagnostic, without C++ locations, addresses and repeats; the prims that cannot open the
+    same file give one line (the first prim's) with how many prims name it."""
+    out, per_file = [], {}
     for line in text.splitlines():
         line = line.strip()
         if not line:
@@ -53,8 +61,18 @@ def _summarize_diagnostics(text: str) -> list[str]:
         line = re.sub(r" \(instantiating stage on stage @[^@]*@ <0x[0-9a-f]+>\)", "", line)
         line = re.sub(r" <0x[0-9a-f]+>", "", line)
         line = re.sub(r"anon:0x[0-9a-f]+:([^@\s]*?)\.checked\.usda", r"\1", line)
+        m = _CANNOT_OPEN.match(line)
+        if m:
+            key = (m["kind"], m["asset"].split(":SDF_FORMAT_ARGS:")[0])
+            if key in per_file:
+                per_file[key][1] += 1
+                continue
+            per_file[key] = [len(out), 1]
         if line not in out:
             out.append(line)
+    for (_, asset), (i, n) in per_file.items():
+        if n > 1:
+            out[i] += f" [one line for the {n} prims that name @{asset}@]"
     return out
 
 

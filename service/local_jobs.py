@@ -4,11 +4,11 @@ its result lines streamed (to a JSON-lines file, or to a callback in frame order
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import tempfile
 import time
 
+from ..renderers.json_text import dumps
 from ..renderers.scene_data import SceneError
 from .job_runner import BatchRunner
 from .job_workers import DEFAULT_METHOD
@@ -84,7 +84,7 @@ def run_batch(scene_path, configurations: list[dict], backend: str = "local", wo
 
         def write(lines):
             if out is not None:
-                out.writelines(json.dumps(line) + "\n" for line in lines)
+                out.writelines(dumps(line) + "\n" for line in lines)
                 out.flush()
 
         try:

@@ -21,11 +21,11 @@ service.solve.solve_path). The CLI's path runs in service.local_jobs.
 """
 from __future__ import annotations
 
-import json
 import math
 
 import numpy as np
 
+from ..renderers.json_text import dumps
 from .batch_request import MAX_CONFIGURATIONS
 from .interpolation import camera_path, light_set, light_slot
 from .request_fields import BatchError
@@ -223,4 +223,4 @@ def is_whole_path(method: str | None, coherent: bool | None) -> bool:
 def line_json(line: dict) -> str:
     """A result line as the CLI prints it: frame and time first, then the solution (or the error)."""
     head = {"frame": line.get("frame", line["index"]), "time": line.get("time")}
-    return json.dumps({**head, **{k: v for k, v in line.items() if k not in head}})
+    return dumps({**head, **{k: v for k, v in line.items() if k not in head}})

@@ -12,11 +12,13 @@ What differs between methods is gathered in one MethodKind per method (METHOD_KI
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from dataclasses import dataclass
 from typing import Callable
 
 from ..solvers.baselines import baseline
+from ..solvers.cascades import MAX_RES
 from ..solvers.depth_modes import with_bias
 from ..solvers.fitting import snap_to_texels
 from ..solvers.optimize import DEFAULT_METHOD as DEFAULT_SOLVER
@@ -30,7 +32,8 @@ from . import point_faces
 from .bias import choose_bias, set_blend_bands
 from .coarse_cache import cached_coarse_pass
 from .map_sizing import auto_cascades, rig_budget_split, smaller_resolution
-from .need import drop_empty_maps, light_need
+from .methods import BASELINE_METHODS, METHODS  # kept importable from here
+from .need import drop_empty_maps, light_need, receivers_per_map
 from .pipeline import coarse_pass
 from .receivers import LightProblem, light_problems
 from .request import SolveRequest
@@ -40,8 +43,6 @@ from .scenes import SceneEntry
 from .solution_check import validate_solution
 from .solution_json import jsonable, light_json, maps_error, no_map_json, solution_json
 
-BASELINE_METHODS = ("uniform", "focused", "lispsm", "logpsm")
-METHODS = BASELINE_METHODS + ("optimized", "stable_csm", "path")  # stable_csm: solvers.stable_csm (Valient 2008); path: solvers.path_optimize (previous= the previous frame)
 
 
 @dataclass
@@ -93,7 +94,8 @@ class MethodKind:
                 opts["split_at"] = optimize_splits(
                     job.camera, prob.light, prob.samples, prob.receivers, (lo, hi), opts["resolution"],
                     opts["cascades"], texel_budget=opts["texel_budget"], receiver_slack=prob.receiver_slack,
-                    method=method if method in ("focused", "lispsm") else "lispsm").split_at
+                    method=method if method in ("focused", "lispsm") else
+                    "focused" if method == "stable_csm" else "lispsm").split_at  # stable_csm: unwarped maps
 
     def maps(self, job: LightJob):
         """(maps, solver report or None, auto_cascades report or None): at the rig's cascade count, or at the
@@ -110,8 +112,11 @@ class MethodKind:
         """(maps, face_partitioning block or None): the cascades with no receivers dropped, a point light's cube
         partitioned by objective, the resolution lowered to what meets target_p95_m; `notes` get what changed."""
         prob, shadow, allow_log = job.prob, job.shadow, job.allow_log
+        n_fitted = len(maps)
         maps, dropped = drop_empty_maps(maps, prob.receivers, prob.receiver_slack, job.camera)
         notes += dropped
+        if dropped and job.common.get("texel_budget") and len(maps) < n_fitted:
+            notes.append(respend_budget(maps, n_fitted, prob))
         # A point light: Lloyd et al. 2007 face partitioning against the cube, by objective (service.point_faces)
         maps, fp_block = point_faces.choose(self.method, job.camera, prob, job.bounds, maps, allow_log, maps_error,
                                             job.camera.position, shadow.get("point_light_maps", "auto"))
@@ -314,6 +319,7 @@ def _light_solution(job: LightJob, need, output: dict, stage_to_world) -> tuple[
     if info is not None and auto is not None:
         info["auto_cascades"] = auto
     total, per_map = maps_error(maps, job.prob.samples, job.camera.position)
+    notes += unsampled_notes(maps, per_map, job.prob, job.camera)
     for err in (total, *per_map):  # the aliasing estimate (solvers.metric.predicted_misclassified) keeps its own name
         err["aliasing_pixels"] = err.pop("misclassified_pixels", None)
     total.update(scored.prediction)  # misclassified_pixels: the engine's depth test's count (service.bias)
@@ -327,6 +333,44 @@ def _light_solution(job: LightJob, need, output: dict, stage_to_world) -> tuple[
     if auto is not None:
         out["auto_cascades"] = auto
     return out, info
+
+
+def respend_budget(maps: list[ShadowMap], n_fitted: int, prob: LightProblem) -> str:
+    """The texels of the cascades dropped under a texel budget given to the kept ones: each side scaled by
+    sqrt(fitted / kept) (the shared size grows, its aspect kept; sides rounded down, at most MAX_RES), the depth
+    bias refitted to the new texels; maps snapped to a world texel grid (stable_csm) keep their size. Returns the
+    note saying so."""
+    before = tuple(maps[0].resolution)
+    if any(m.snapped for m in maps):  # stable_csm: the texel grid is fixed in the world at the fitted size
+        return (f"the {n_fitted - len(maps)} dropped cascades' texels are not used: the kept maps' texel grids are "
+                f"snapped in the world at their {before[0]}x{before[1]} texels")
+    grow = math.sqrt(n_fitted / len(maps))
+    for m in maps:
+        m.resolution = tuple(min(MAX_RES, int(r * grow)) for r in m.resolution)
+        with_bias(m, prob.receivers, prob.light)
+    w, h = maps[0].resolution
+    return (f"the {n_fitted - len(maps)} dropped cascades' texels go to the {len(maps)} kept: {w}x{h} each "
+            f"(from {before[0]}x{before[1]}), within the texel budget")
+
+
+def unsampled_notes(maps: list[ShadowMap], per_map: list[dict], prob: LightProblem, camera) -> list[str]:
+    """A note per cascade that no sample reaches (its predicted error counts nothing there) and per cascade kept
+    with no receiver (method path keeps every cascade's grid; a cascade count the target needs): what is served."""
+    if len(maps) < 2 or maps[0].face is not None:
+        return []
+    counts = receivers_per_map(maps, prob.receivers, prob.receiver_slack, camera)
+    out = []
+    for k, (m, err) in enumerate(zip(maps, per_map)):
+        if err.get("samples"):
+            continue
+        lo, hi = m.split
+        what = (f"{int(counts[k])} of the light's {len(prob.receivers)} visible receiver points are at that depth"
+                if counts[k] else "no visible receiver point is at that depth either: kept empty (method path "
+                "holds every cascade's texel grid from frame to frame)")
+        out.append(f"cascade {k} (view depth {lo:.4g}-{hi:.4g}) has no shadow-boundary sample of the coarse pass, so "
+                   f"its predicted error counts nothing there; {what}; it has the light's shared size "
+                   f"{m.resolution[0]}x{m.resolution[1]}")
+    return out
 
 
 def _solution(entry: SceneEntry, resolved: ResolvedRig, request: SolveRequest, kind: MethodKind, per_light: list,

@@ -43,7 +43,8 @@ off, is inside the depth range (engines that pancake, clamping casters in front 
 it, may tighten the near plane to the receivers; the evaluator can pancake as well); far is the
 farthest receiver or bounds corner. Warped maps are clipped in warped space by planes through the
 warp centre, fit to the receivers and to the bounds' corners slid into the receivers' range along
-the warp axis, which contains every caster on a receiver's light ray.
+the warp axis, which contains every caster on a receiver's light ray; their light_depth is that
+frustum's range along the light's -Z (ShadowMap.frustum_depth_range), which widens towards the far end.
 
 Depth bias, one rule for every method (the evaluator applies exactly this): with d the distance in
 metres along the texel's light ray, a receiver is shadowed iff
@@ -73,7 +74,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .cameras import Camera
-from .cascades import allocate, critical_factors, pixel_world_size, receiver_depth_range, split_depths
+from .cascades import (ONE_SIZE_PER_LIGHT, allocate, critical_factors, pixel_world_size, receiver_depth_range,
+                       split_depths)
 from .depth_modes import with_bias
 from .fitting import (PAD_TEXELS, box_corners, depth_range, extent_floor, frustum, light_plane_hull, min_area_rectangle,
                       ortho, padded, perspective_near, rotation_z, texel_margin, to_view)
@@ -191,6 +193,7 @@ def _directional_map(method: str, camera: Camera, light: DirectionalLight, recei
         if use_log:
             smap.log_warp = padded_log(log_warp(y1 - y0, warp_n), resolution[1])
             smap.warp_kind = "log"
+        smap.light_depth = smap.frustum_depth_range() or ld  # the warped frustum widens towards its far end
     return smap
 
 
@@ -391,5 +394,5 @@ def _allocate(maps: list[ShadowMap], camera: Camera, receivers: np.ndarray, dept
         rs, rt = critical_factors(per_s, per_t, pix)
         R_s.append(rs)
         R_t.append(rt)
-    for smap, r in zip(maps, allocate(np.array(R_s), np.array(R_t), budget)):
+    for smap, r in zip(maps, allocate(np.array(R_s), np.array(R_t), budget, shared=ONE_SIZE_PER_LIGHT)):
         smap.resolution = r

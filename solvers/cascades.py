@@ -7,6 +7,15 @@ import numpy as np
 
 SPLIT_KINDS = ("uniform", "log", "practical")
 MIN_RES, MAX_RES = 16, 16384
+# The cascades of one light share one texture size: every engine preset's target keeps a light's cascades in
+# one texture array or in equal atlas tiles (three.js CSM's shadowMapSize, Babylon's mapSize layers,
+# Filament's mapSize, Godot's and Unity's atlas tiles, Unreal's and Bevy's arrays:
+# ../shared/reference/engine-settings.md), and the generic presets' own light passes (docs/engine-integration.md)
+# sample a sampler2DArray / Texture2DArray, whose layers have one size. No preset states per-cascade sizes, so a
+# texel budget buys k equal maps (allocate(..., shared=True), allocate_mean(..., shared=True)); the per-cascade
+# allocations stay here as the math they are (Lloyd et al. 2007 eq. 83, the mean-h optimum) for a target that
+# could take them.
+ONE_SIZE_PER_LIGHT = True
 
 
 def _nan_to_num(x, **kw):
@@ -71,16 +80,21 @@ def critical_factors(per_s: np.ndarray, per_t: np.ndarray, pixel: np.ndarray, q:
     return max(rs, 1e-12), max(rt, 1e-12)
 
 
-def allocate(R_s: np.ndarray, R_t: np.ndarray, budget: int) -> list[tuple[int, int]]:
+def allocate(R_s: np.ndarray, R_t: np.ndarray, budget: int, shared: bool = False) -> list[tuple[int, int]]:
     """Lloyd et al. 2007 eq. 83: partition i gets σ_i = S_i / Σ S_j of the texel budget T (S = R_s R_t),
     with r_s = sqrt((R_s/R_t) σ T) and r_t = sqrt((R_t/R_s) σ T).
 
     Each side is kept in [MIN_RES, MAX_RES] (the other side then takes the partition's area, so the
     share σ_i T is kept where it can be); when the MIN_RES floor makes the maps exceed T, the shares
-    of the unfloored maps shrink until the total is within T. Sides are rounded down."""
+    of the unfloored maps shrink until the total is within T. Sides are rounded down.
+    `shared` (ONE_SIZE_PER_LIGHT): every map gets T / k texels at one aspect, max R_s / max R_t (the worst
+    map along s and along t then meet the same ratio of resolution to critical resolution)."""
     R_s = np.maximum(_nan_to_num(np.asarray(R_s, dtype=np.float64), nan=1.0, posinf=1e12), 1e-12)
     R_t = np.maximum(_nan_to_num(np.asarray(R_t, dtype=np.float64), nan=1.0, posinf=1e12), 1e-12)
     budget = max(int(budget), MIN_RES * MIN_RES * len(R_s))
+    if shared:  # one size for every map: the worst R_s / w and R_t / h over the maps are equalised
+        n = len(R_s)
+        return _sides(np.full(n, budget / n), np.full(n, float(R_s.max() / R_t.max())), budget)
     S = R_s * R_t
     return _sides(S / S.sum() * budget, R_s / R_t, budget)
 
@@ -114,7 +128,7 @@ def _sides(area: np.ndarray, aspect: np.ndarray, budget: int) -> list[tuple[int,
     return [(int(a), int(b)) for a, b in zip(w, h)]
 
 
-def allocate_mean(P, Q, budget: int) -> list[tuple[int, int]]:
+def allocate_mean(P, Q, budget: int, shared: bool = False) -> list[tuple[int, int]]:
     """Resolutions (w_k, h_k) minimising the mean-h objective sum_k (P_k / w_k^2 + Q_k / h_k^2) under
     sum_k w_k h_k <= T: the L1 counterpart of Lloyd et al. 2007 eq. 83 (which bounds the worst case).
 
@@ -127,17 +141,30 @@ def allocate_mean(P, Q, budget: int) -> list[tuple[int, int]]:
     equal) gives A_k = T sqrt(C_k) / S, S = sum_j sqrt(C_j), and the value S^2 / T (objective_mean).
     A side the ideal aspect puts below MIN_RES stays at MIN_RES; that map's cost is then
     Q MIN^2 / A^2 + P / MIN^2, its Lagrange area (2 Q MIN^2 / lam)^(1/3), and lam is found by
-    bisection so that the areas sum to T. No terms at all: the budget in equal squares."""
-    area, aspect = _mean_areas(P, Q, budget)
+    bisection so that the areas sum to T. No terms at all: the budget in equal squares.
+    `shared` (ONE_SIZE_PER_LIGHT): one size (w, h) for every map, w h = T / k: the objective is then
+    sum P / w^2 + sum Q / h^2, least at w / h = sqrt(sum P / sum Q), value 2 k sqrt(sum P sum Q) / T."""
+    area, aspect = (_shared_areas if shared else _mean_areas)(P, Q, budget)
     return _sides(area, aspect, max(int(budget), MIN_RES * MIN_RES * len(area)))
 
 
-def objective_mean(P, Q, budget: int) -> float:
+def objective_mean(P, Q, budget: int, shared: bool = False) -> float:
     """The value allocate_mean's areas reach before rounding: (sum_k sqrt(2 sqrt(P_k Q_k)))^2 / T when
-    no side is held at MIN_RES."""
+    no side is held at MIN_RES (shared: 2 k sqrt(sum P sum Q) / T, one size for every map)."""
     P = np.maximum(_nan_to_num(np.asarray(P, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
     Q = np.maximum(_nan_to_num(np.asarray(Q, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
-    return _value_at(P, Q, *_mean_areas(P, Q, budget))
+    return _value_at(P, Q, *(_shared_areas if shared else _mean_areas)(P, Q, budget))
+
+
+def _shared_areas(P, Q, budget):
+    """allocate_mean's areas and aspects with one size for every map: T / k each, w / h = sqrt(sum P / sum Q)."""
+    P = np.maximum(_nan_to_num(np.asarray(P, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
+    Q = np.maximum(_nan_to_num(np.asarray(Q, dtype=np.float64), nan=0.0, posinf=1e300), 0.0)
+    n = len(P)
+    T = float(max(int(budget), MIN_RES * MIN_RES * n))
+    sp, sq = float(np.sum(P)), float(np.sum(Q))
+    aspect = math.sqrt(sp / sq) if sq > 0 and sp > 0 else 1.0
+    return np.full(n, T / n), np.full(n, min(max(aspect, 1e-12), 1e12))
 
 
 def with_receivers(P, Q, W, Pr, Qr, N):

@@ -67,18 +67,12 @@ def hardware_depth(smap: ShadowMap, pts: np.ndarray) -> np.ndarray:
 
 
 def linear_range(smap: ShadowMap) -> tuple[float, float]:
-    """near, far: least and greatest -z_view over the map's eight frustum corners (the frustum is convex,
-    so the linear function -z_view is extreme at its corners)."""
-    s = np.array([0.0, 1.0, 0.0, 1.0])
-    t = np.array([0.0, 0.0, 1.0, 1.0])
-    with np.errstate(all="ignore"):
-        a, b = smap.texel_rays(s, t)
-    pts = np.vstack([a, b])
-    d = -(pts @ smap.view[2, :3] + smap.view[2, 3])
-    d = d[np.isfinite(d)]
-    if len(d) == 0:
+    """near, far: least and greatest -z_view over the map's eight frustum corners
+    (ShadowMap.frustum_depth_range; its light_depth when no corner is finite)."""
+    rng = smap.frustum_depth_range()
+    if rng is None:
         return float(smap.light_depth[0]), float(smap.light_depth[1])
-    return float(d.min()), float(d.max())
+    return rng
 
 
 def linear_depth(pts: np.ndarray, view: np.ndarray, near: float, far: float) -> np.ndarray:

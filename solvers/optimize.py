@@ -322,13 +322,15 @@ class Problem:
 
     # -------------------------------------------------------------- the family
     def fit(self, x):
-        """(view, projection, light_depth, n') of the map with projective parameters x = (φ, u)."""
+        """(view, projection, content depth, n') of the map with projective parameters x = (φ, u): the content
+        depth is [nearest fit point or scene corner, farthest fit point] along the light's -Z (the map's
+        light_depth is its frustum's range, map_for)."""
         view, proj, v, dv = self._fit(x)
         d = np.concatenate([-v[:, 2], -dv[:, 2]])
         u = float(x[1])
         y0, y1 = self._warp_range(v)
         n_prime = math.inf if abs(u) < 1e-12 else (y1 - y0) / math.expm1(u)
-        return view, proj, (float(d.min()), float(-v[:, 2].max())), n_prime
+        return view, proj, (float(d.min()), float(-v[:, 2].min())), n_prime
 
     def _fit(self, x, choice=None, fresh=False, value_only=False):
         """(view, projection, fit points and corners in the view) for x = (φ, u). affine="objective":
@@ -405,6 +407,7 @@ class Problem:
                          warp_kind="perspective" if warped else "none", n_prime=n_prime if warped else None)
         if self.log and warped:
             smap.log_warp, smap.warp_kind = self.log_warp_for(x), "log"
+        smap.light_depth = smap.frustum_depth_range() or ld  # what the (warped) frustum covers
         return smap
 
     def log_warp_for(self, x):

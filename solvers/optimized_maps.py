@@ -12,7 +12,7 @@ import numpy as np
 from .baselines import METHODS as BASELINES, fit_baseline
 from .cameras import Camera
 from .cascade_scores import cascade_terms, depth_shares, receiver_h, receiver_terms
-from .cascades import allocate_mean, mean_terms
+from .cascades import ONE_SIZE_PER_LIGHT, allocate_mean, mean_terms
 from .depth_modes import with_bias
 from .lights import DirectionalLight
 from .metric import per_sample_maps, predicted_error, predicted_objective, serial_kernels
@@ -70,7 +70,7 @@ def _reallocate(maps, subs, parts, camera, light, budget, total_weight, shares, 
     terms = cascade_terms(maps, subs, parts, camera, light, total_weight, shares)
     if terms is None:
         return  # a sample or receiver outside a map: keep the allocation it was scored at
-    for k, r in enumerate(allocate_mean(*terms, budget)):
+    for k, r in enumerate(allocate_mean(*terms, budget, shared=ONE_SIZE_PER_LIGHT)):
         for m in [maps[k]] + (also[k] if also else []):
             if m.face is None:
                 m.resolution = r

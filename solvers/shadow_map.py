@@ -49,7 +49,9 @@ class ShadowMap:
     projection: np.ndarray  # 4x4 light view -> canonical clip (warp folded in)
     resolution: tuple[int, int]  # texels (width, height)
     split: tuple[float, float] = (0.0, float("inf"))  # camera view-depth range this map serves
-    light_depth: tuple[float, float] = (0.0, 1.0)  # near, far distance along the light's -Z axis
+    # near, far distance along the light's -Z axis covered by the map: the least and greatest light-view depth
+    # over its frustum (frustum_depth_range; a warped map's frustum widens in depth towards its far end)
+    light_depth: tuple[float, float] = (0.0, 1.0)
     warp_kind: str = "none"  # none | perspective | log
     eta: float | None = None  # Lloyd's η (-1 uniform, 0 LiSPSM, 1 PSM-like)
     n_prime: float | None = None  # the perspective warp's near distance n' (None: no warp)
@@ -98,6 +100,21 @@ class ShadowMap:
             h = np.stack([x, y, np.full_like(x, z), np.ones_like(x)], axis=-1) @ inv.T
             ends.append(h[:, :3] / h[:, 3:4])
         return ends[0], ends[1]
+
+    def frustum_depth_range(self) -> tuple[float, float] | None:
+        """near, far: the least and greatest light-view depth -z_view over the map's eight frustum corners
+        (the rays through the map's corner texels between z_ndc = -1 and +1; the frustum is convex, so the
+        linear function -z_view is extreme at its corners). None when no corner is finite."""
+        s = np.array([0.0, 1.0, 0.0, 1.0])
+        t = np.array([0.0, 0.0, 1.0, 1.0])
+        with np.errstate(all="ignore"):
+            a, b = self.texel_rays(s, t)
+        pts = np.vstack([a, b])
+        d = -(pts @ self.view[2, :3] + self.view[2, 3])
+        d = d[np.isfinite(d)]
+        if len(d) == 0:
+            return None
+        return float(d.min()), float(d.max())
 
     def to_json(self) -> dict:
         warp = {"kind": self.warp_kind, "eta": self.eta, "n": self.n_prime,

@@ -23,7 +23,7 @@ import numpy as np
 
 from .baselines import fit_baseline
 from .cascade_scores import cascade_terms, depth_shares
-from .cascades import objective_mean, receiver_depth_range, split_depths
+from .cascades import ONE_SIZE_PER_LIGHT, objective_mean, receiver_depth_range, split_depths
 from .metric import predicted_error
 from .samples import Samples, seeded_rows
 
@@ -88,7 +88,7 @@ def optimize_splits(camera, light, samples: Samples, receivers: np.ndarray, cast
             subs.append(samples.subset(sel))
         terms = cascade_terms(fitted.maps, subs, fitted.parts, camera, light, total_w, depth_shares(fitted.maps, depth),
                               SEARCH_RECEIVER_TERMS)
-        v = objective_mean(*terms, texel_budget) if terms is not None else math.inf
+        v = objective_mean(*terms, texel_budget, shared=ONE_SIZE_PER_LIGHT) if terms is not None else math.inf
         return v if math.isfinite(v) else 1e300
 
     if k < 2 or len(samples) == 0 or z_hi <= z_lo * (1 + 1e-9):

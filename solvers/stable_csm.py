@@ -72,8 +72,11 @@ def shadow_distance(camera: Camera, corners: np.ndarray) -> float:
 
 def stable_csm_maps(camera: Camera, light, receivers: np.ndarray, casters_bounds, resolution=(2048, 2048),
                     cascades: int = 1, splits: str = "practical", split_lambda: float = 0.5,
-                    texel_budget: int | None = None, receiver_slack=None, **_ignored) -> list[ShadowMap]:
-    """The stable CSM maps of one directional light (module doc), biased like the baselines."""
+                    texel_budget: int | None = None, receiver_slack=None, split_at=None,
+                    **_ignored) -> list[ShadowMap]:
+    """The stable CSM maps of one directional light (module doc), biased like the baselines. `split_at`: the k - 1
+    inner split depths given explicitly (splits "optimized": the split search's), kept inside the shadow distance,
+    instead of `splits`."""
     if not isinstance(light, DirectionalLight):
         raise ValueError("stable_csm: only directional lights have cascades (use focused for spot and point lights)")
     receivers = np.asarray(receivers, dtype=np.float64).reshape(-1, 3)
@@ -90,6 +93,12 @@ def stable_csm_maps(camera: Camera, light, receivers: np.ndarray, casters_bounds
         res = (int(resolution[0]), int(resolution[1]))
     z = split_depths(camera.near, shadow_distance(camera, corners), k,
                      splits if splits in ("uniform", "log", "practical") else "practical", split_lambda)
+    if split_at is not None and k > 1:
+        inner = np.sort(np.asarray(split_at, dtype=np.float64).ravel())
+        if len(inner) != k - 1 or not np.all(np.isfinite(inner)):
+            raise ValueError(f"split_at: need {k - 1} finite inner split depths, got {len(inner)}")
+        span = z[-1] - z[0]
+        z[1:-1] = np.clip(inner, z[0] + 1e-6 * span, z[-1] - 1e-6 * span)
     view = world_light_view(light)
     near, far = depth_range(-to_view(view, corners)[:, 2], 0.01)
     depth = (receivers - camera.position) @ camera.forward if len(receivers) else np.zeros(0)

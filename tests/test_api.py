@@ -312,3 +312,19 @@ def test_solver_work_does_not_block_the_event_loop(api, scene, server):
     # answered while the evaluate ran in a worker thread: a blocked event loop would hold the first probe for
     # the whole evaluate, which would then be over (one or two probes in all); how fast is a benchmark's figure
     assert done["r"].status_code == 200 and len(latencies) >= 5, (latencies, evaluate_s)
+
+
+def test_an_option_the_method_would_ignore_is_422_naming_the_field(api, scene):
+    """issue 25: the REST equivalent of the CLI's refusal (service.method_options): 422 `unused_option` naming
+    the field, for the request's own fields and the rig's."""
+    sid = scene["scene_id"]
+    cases = [({"method": "focused", "solver": "nlopt:LN_BOBYQA"}, "solver"),
+             ({"method": "lispsm", "time_budget_ms": 50}, "time_budget_ms"),
+             ({"hysteresis": 0.5}, "hysteresis"),
+             ({"rig": {**TINY_RIG, "shadow": {"cascades": 2, "splits": "log", "lambda": 0.9}}}, "rig.shadow.lambda"),
+             ({"rig": {**TINY_RIG, "shadow": {"cascades": 2, "max_cascades": 3}}}, "rig.shadow.max_cascades")]
+    for body, field in cases:
+        err = error_of(api.post("/v1/optimize", json={"scene_id": sid, "rig": TINY_RIG, **body}), 422)
+        assert err["code"] == "unused_option" and err["field"] == field and err["message"].startswith(field), err
+    ok = api.post("/v1/optimize", json={"scene_id": sid, "rig": TINY_RIG, "method": "focused"})
+    assert ok.status_code == 200

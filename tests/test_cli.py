@@ -243,3 +243,74 @@ def test_the_readme_heatmap_example_runs_verbatim(tmp_path):
     assert "wrongly shadowed" in outs[1] and "in the rig's 1280x720 pixels" in outs[1]
     assert (tmp_path / "out" / "lispsm256_errors.png").stat().st_size > 1000
     assert {"heatmaps.png", "errors.png", "compare.md"} <= {f.name for f in (tmp_path / "out" / "compare256").iterdir()}
+
+
+def _strict_json(text: str):
+    """json.loads refusing NaN, Infinity and -Infinity (standard JSON, RFC 8259, has none)."""
+    def refuse(name):
+        raise ValueError(f"non-standard JSON constant {name}")
+    return json.loads(text, parse_constant=refuse)
+
+
+@pytest.mark.server
+def test_cli_json_is_standard_json_with_null_for_an_infinite_candidate_score(tmp_path):
+    """issue 25: with 4 cascades on the demo a candidate that leaves a receiver outside its map scores inf,
+    and the CLI printed `"uniform": Infinity` (solver.cascades[].receiver_h), which strict parsers refuse.
+    stdout and the --out file parse strictly; the score is null, as the schema's `solver` field says."""
+    out = tmp_path / "sol.json"
+    p = run("optimize", DEMO, "--rig", DEMO_RIG, "--cascades", "4", "--json", "--out", out, check=0)
+    sol = _strict_json(p.stdout)
+    assert _strict_json(out.read_text()) == sol
+    report = sol["solver"].get("lights", [sol["solver"]])[0]  # one light: its report is the solver block
+    scores = [v for c in report["cascades"] for key in ("baselines", "receiver_h") for v in (c.get(key) or {}).values()]
+    assert None in scores and all(v is None or v >= 0 for v in scores)
+
+
+@pytest.mark.server
+def test_compare_accepts_every_method_optimize_accepts():
+    """issue 25: `compare --methods stable_csm` exited 2 ("unknown stable_csm") although optimize accepts it.
+    Every choice of `optimize --method` (read from its --help) is accepted by compare; an unknown name still
+    exits 2 naming the known ones."""
+    help_text = " ".join(run("optimize", "--help", check=0).stdout.split())
+    choices = help_text.split("--method {", 1)[1].split("}", 1)[0].split(",")
+    assert {"stable_csm", "path", "optimized"} <= set(choices)
+    res = json.loads(run("compare", DEMO, "--rig", DEMO_RIG, "--methods", "stable_csm,path", "--screen", "160x90",
+                         "--shadow-resolution", "256x256", "--cascades", "2", "--json", check=0).stdout)
+    assert set(res["methods"]) == {"stable_csm", "path"}
+    assert all(r["evaluation"]["receiver_pixels"] > 0 for r in res["methods"].values())
+    p = run("compare", DEMO, "--rig", DEMO_RIG, "--methods", "focused,nosuch", check=2)
+    known = p.stderr.split("(known: ", 1)[1].split(")", 1)[0].split(", ")
+    assert "nosuch" in p.stderr and sorted(known) == sorted(choices)
+
+
+@pytest.mark.server
+def test_stable_csm_honours_optimized_splits():
+    """issue 25: `--method stable_csm --splits optimized` returned the practical splits (the search ran and its
+    splits were dropped). Its inner splits are now the split search's: the same ones focused gets from the
+    same search (an unwarped map's search), and not the practical ones."""
+    def splits(method, kind):
+        sol = json.loads(run("optimize", DEMO, "--rig", DEMO_RIG, "--method", method, "--cascades", "3", "--splits",
+                             kind, "--shadow-resolution", "512x512", "--json", check=0).stdout)
+        return [c["split"] for c in sol["lights"][0]["cascades"]]
+    practical, searched = splits("stable_csm", "practical"), splits("stable_csm", "optimized")
+    inner = [s[1] for s in searched[:-1]]
+    assert inner == pytest.approx([s[1] for s in splits("focused", "optimized")[:-1]], rel=1e-9)
+    assert not np.allclose(inner, [s[1] for s in practical[:-1]], rtol=0.05)
+    assert searched[0][0] == practical[0][0] and searched[-1][1] == practical[-1][1]
+
+
+@pytest.mark.server
+@pytest.mark.parametrize("args, flag", [
+    (["--method", "focused", "--solver", "nlopt:LN_BOBYQA"], "--solver"),
+    (["--method", "lispsm", "--time-budget-ms", "50"], "--time-budget-ms"),
+    (["--method", "stable_csm", "--previous", "prev.json"], "--previous"),
+    (["--hysteresis", "0.5"], "--hysteresis"),  # optimized without --previous: nothing to keep
+    (["--method", "path", "--previous", "prev.json", "--hysteresis", "0.5"], "--hysteresis"),
+    (["--method", "lispsm", "--cascades", "2", "--splits", "log", "--lambda", "0.9"], "--lambda"),
+])
+def test_an_option_the_method_would_ignore_exits_2_naming_it(args, flag):
+    """issue 25: options a method does not read were dropped silently (stable_csm and --splits optimized, a
+    baseline and --solver ...); now exit 2 naming the flag and why, before any work."""
+    p = run("optimize", DEMO, "--rig", DEMO_RIG, *args, check=2)
+    assert p.stderr.startswith(f"shadowopt: error: {flag}") and "not used by --method" in p.stderr, p.stderr
+    assert p.stdout == ""

@@ -634,3 +634,62 @@ def test_cg07_line_search_stops_when_no_step_improves():
     assert it == 1
     assert len(prob.seen) == 1 + len(CG07_ANGLES_DEG) + 6
     assert min(float(prob.value(x)) for x in list(prob.seen)) == pytest.approx(1.0)
+
+
+def _frustum_depth_by_hand(cascade: dict) -> tuple[float, float]:
+    """Least and greatest light-view depth over the map's eight clip-volume corners, from the solution's
+    own matrices (NDC corners through the inverse of projection * view; a log warp's t' in [0, 1] taken
+    back through t = (exp(t'/c0) - c2) / c1 first)."""
+    V = np.asarray(cascade["internal"]["view"], float)
+    P = np.asarray(cascade["internal"]["projection"], float)
+    log = cascade["warp"]["log"]
+    ys = [-1.0, 1.0]
+    if log is not None:
+        ys = [2.0 * (math.exp(tw / log["c0"]) - log["c2"]) / log["c1"] - 1.0 for tw in (0.0, 1.0)]
+    inv = np.linalg.inv(P @ V)
+    depths = []
+    for x in (-1.0, 1.0):
+        for y in ys:
+            for z in (-1.0, 1.0):
+                h = inv @ np.array([x, y, z, 1.0])
+                depths.append(-(V[2, :3] @ (h[:3] / h[3]) + V[2, 3]))
+    return min(depths), max(depths)
+
+
+def test_warped_maps_light_depth_is_the_range_their_frustum_covers():
+    """issue 25: on the demo's bench suns a warped map's light_depth was the receivers' nearest depth twice
+    (sun 2: [-172.23, -172.23], zero width). It is the light-view depth range of the map's frustum: equal to
+    the corners' range computed here from the matrices, with width, and holding every scene vertex the map
+    covers."""
+    from pathlib import Path  # lazy: only this test needs the repository path
+
+    from shadowopt.api.cli import validate_rig  # lazy: the service stack, for an end-to-end solve
+    from shadowopt.service.bench.definitions import hemisphere_directions  # lazy: as above
+    from shadowopt.service.pipeline import scene_entry  # lazy: as above
+    from shadowopt.service.request import SolveRequest  # lazy: as above
+    from shadowopt.service.solve import solve  # lazy: as above
+    from shadowopt.solvers.shadow_map import ShadowMap  # lazy: only this test reads maps back
+
+    entry = scene_entry(Path(__file__).resolve().parents[1] / "configs" / "demo_scene.usda")
+    verts = entry.loaded.geometry.vertices
+    rig = validate_rig({"camera": {"usd_path": "/World/Camera", "resolution": [640, 360]},
+                        "lights": [{"type": "directional", "direction": d.tolist()}
+                                   for d in hemisphere_directions(20, 5.0, seed=1)[:4]],
+                        "shadow": {"resolution": [400, 400], "cascades": 1}})
+    warped = 0
+    for method in ("optimized", "lispsm", "logpsm"):
+        sol = solve(entry, rig, SolveRequest(method))
+        for li, light in enumerate(sol["lights"]):
+            for c in light["cascades"]:
+                near, far = c["light_depth"]
+                lo, hi = _frustum_depth_by_hand(c)
+                assert far - near > 1.0, (method, li, near, far)
+                assert (near, far) == pytest.approx((lo, hi), rel=1e-6, abs=1e-6), (method, li)
+                smap = ShadowMap.from_json({**c, "view_matrix": c["internal"]["view"],
+                                            "projection_matrix": c["internal"]["projection"]})
+                s, t, _, _ = smap.map_coords(verts)
+                inside = (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1)
+                d = -(verts[inside] @ smap.view[2, :3] + smap.view[2, 3])
+                assert np.all((d >= near - 1e-6) & (d <= far + 1e-6)), (method, li)
+                warped += c["warp"]["kind"] != "none"
+    assert warped >= 6

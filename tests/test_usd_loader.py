@@ -544,3 +544,21 @@ def test_time_sampled_transforms_without_a_default_use_their_first_sample(tmp_pa
     assert np.allclose(np.add(*sc.geometry.bounds()) / 2, [10, 5, 0])
     assert any("/X: transform has only time samples" in w for w in sc.warnings)
     assert np.allclose(np.add(*load_scene(tmp_path / "anim_xf.usda", time_code=2).geometry.bounds()) / 2, [20, 5, 0])
+
+
+def test_a_missing_material_file_named_by_many_prims_is_one_warning_with_its_count(tmp_path):
+    """issue 25: a scene whose pieces all reference one missing look file printed one usd-core warning per prim
+    (teapotScene.usd: 548 lines, capped at 50 + "... and 499 more"); now one line per missing file, with the
+    number of prims that name it. A second missing file keeps its own line."""
+    n = 300
+    prims = "".join(f'def Mesh "Piece{i}" (\n    references = @looks/missing_look.usda@</Look>\n)\n{{\n'
+                    f'    int[] faceVertexCounts = [3]\n    int[] faceVertexIndices = [0, 1, 2]\n'
+                    f'    point3f[] points = [({i}, 0, 0), ({i + 1}, 0, 0), ({i}, 0, 1)]\n}}\n' for i in range(n))
+    other = 'def Xform "Lamp" (\n    references = @looks/other_missing.usda@</Look>\n)\n{\n}\n'
+    (tmp_path / "many.usda").write_text('#usda 1.0\n(\n    upAxis = "Y"\n    metersPerUnit = 1\n)\n' + prims + other)
+    sc = load_scene(tmp_path / "many.usda")
+    assert sc.geometry.triangle_count == n
+    about = [w for w in sc.warnings if "missing_look.usda" in w]
+    assert len(about) == 1 and f"the {n} prims" in about[0], sc.warnings[:3]
+    assert len([w for w in sc.warnings if "other_missing.usda" in w]) == 1
+    assert len(sc.warnings) == 2, sc.warnings

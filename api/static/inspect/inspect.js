@@ -187,8 +187,10 @@ async function optimize() {
   state.pending = false;
   const seq = ++state.seq;
   const preset = $("preset").value;
-  const base = { scene_id: state.sceneId, method: $("method").value, rig: rig(),
-                 time_budget_ms: +$("time-budget").value };
+  const method = $("method").value;
+  const base = { scene_id: state.sceneId, method, rig: rig() };
+  // only the searching methods take a time budget (the server refuses an option a method would ignore)
+  if (method === "optimized" || method === "path") base.time_budget_ms = +$("time-budget").value;
   const t0 = performance.now();
   try {
     const asked = structuredClone(base);
