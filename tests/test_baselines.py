@@ -661,6 +661,24 @@ def test_a_middle_cascade_is_fitted_to_its_slice_not_to_every_deeper_receiver():
             assert not inside.any(), (method, k, float(inside.mean()))
 
 
+def test_the_last_cascade_covers_receivers_beyond_the_far_plane():
+    """The splits divide the receivers' depth range kept within the camera's far plane, but a receiver given
+    beyond it (the service's receivers carry a margin) is still the last cascade's: its focused or LiSPSM map
+    holds every receiver deeper than the far plane (map coordinates in [0, 1]^2, w > 0)."""
+    from shadowopt.solvers.baselines import fit_baseline
+
+    cam = Camera.look([0, 2, 0], [0, -0.1, 1], near=0.1, far=60, resolution=(1280, 720))
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    pts, _ = ground_samples(cam, far=150.0)
+    beyond = pts[(pts - cam.position) @ cam.forward > cam.far]
+    assert len(beyond) > 10
+    for method in ("focused", "lispsm"):
+        fitted = fit_baseline(method, cam, sun, pts, bounds, (512, 512), cascades=3)
+        s, t, _, w = fitted.maps[-1].map_coords(beyond)
+        assert np.all((s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (w > 0)), method
+
+
 def test_texel_extents_of_an_orthographic_map_are_its_width_per_unit():
     """texel_extents: world metres per unit s and t, by central differences in the plane perpendicular to the
     light. An overhead orthographic map of half-size hw is 2 hw metres per unit on both axes, exactly; the

@@ -634,3 +634,43 @@ def test_cg07_line_search_stops_when_no_step_improves():
     assert it == 1
     assert len(prob.seen) == 1 + len(CG07_ANGLES_DEG) + 6
     assert min(float(prob.value(x)) for x in list(prob.seen)) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("method", ["gradient:lbfgs", "gradient:adam"])
+def test_torch_searches_leave_a_bound_the_objective_falls_away_from(method):
+    """The torch searches project the gradient on the problem's box: on a bound a component is dropped only when
+    its descent step would leave the box. So from a corner of [-1, 1]^2 they reach the interior minimum of
+    |x - (0.5, 0.5)|^2 (closed form), and a minimum beyond a bound (x_0 = 2) is found on that bound."""
+    from shadowopt.solvers.search_methods import search
+
+    class Bowl:  # the problem's interface (solvers.search_methods.Problem), f clipped into the box
+        def __init__(self, centre):
+            self.centre = np.asarray(centre, float)
+            self.lower, self.upper = np.full(2, -1.0), np.full(2, 1.0)
+            self.best = (math.inf, None)
+
+        def clip(self, x):
+            return np.clip(np.asarray(x, float), self.lower, self.upper)
+
+        def value(self, x):
+            x = self.clip(x)
+            f = float(np.sum((x - self.centre) ** 2))
+            if f < self.best[0]:
+                self.best = (f, x.copy())
+            return f
+
+        def gradient(self, x):
+            return 2.0 * (self.clip(x) - self.centre)
+
+        def value_and_grad(self, x):
+            return self.value(x), self.gradient(x)
+
+        def check_deadline(self):
+            pass
+
+    for centre, want in (((0.5, 0.5), (0.5, 0.5)), ((2.0, 0.5), (1.0, 0.5))):
+        for start in ((1.0, 1.0), (-1.0, -1.0), (0.0, -1.0)):
+            prob = Bowl(centre)
+            prob.value(np.array(start))
+            _, ok, _ = search(prob, method, np.array(start), 50, 10)
+            assert ok and prob.best[1] == pytest.approx(want, abs=2e-3), (centre, start, prob.best)
