@@ -753,3 +753,18 @@ def test_texel_extents_with_the_light_along_the_x_axis():
     per_s, per_t = texel_extents(sm, pts, sun)
     assert per_s == pytest.approx(np.full(50, 80.0), rel=1e-8)
     assert per_t == pytest.approx(np.full(50, 80.0), rel=1e-8)
+
+
+def test_lights_are_checked_when_made_and_cannot_change_afterwards():
+    """make() refuses a cone outside (0, 180] degrees and a non-finite position; every light is a frozen value,
+    so those checks hold for its whole life (and a light shared by several fits cannot change under them)."""
+    with pytest.raises(ValueError, match="cone_deg"):
+        SpotLight.make([0, 10, 0], [0, -1, 0], 190.0)
+    with pytest.raises(ValueError, match="finite"):
+        PointLight.make([0, np.inf, 0])
+    lights = {"cone_deg": SpotLight.make([0, 10, 0], [0, -1, 0], 40.0), "position": PointLight.make([0, 10, 0]),
+              "direction": DirectionalLight.make([0, -1, 0])}
+    for field, light in lights.items():
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(light, field, 200.0)
+    assert lights["cone_deg"].cone_deg == 40.0 and lights["position"].position.tolist() == [0.0, 10.0, 0.0]
