@@ -768,3 +768,19 @@ def test_lights_are_checked_when_made_and_cannot_change_afterwards():
         with pytest.raises(dataclasses.FrozenInstanceError):
             setattr(light, field, 200.0)
     assert lights["cone_deg"].cone_deg == 40.0 and lights["position"].position.tolist() == [0.0, 10.0, 0.0]
+
+
+def test_a_flat_scene_level_with_the_eye_gets_a_finite_warped_map():
+    """Under an overhead sun the light frame is centred on the camera, so receivers and casters all at the eye's
+    height have light-view depth 0 and one warped depth: the depth range has no extent of its own and keeps a
+    floor. LiSPSM and LogPSM still warp (the receivers reach 48 m ahead) and their maps are finite and hold every
+    receiver, at mid-depth."""
+    cam = Camera.look([0, 1.5, 0], [0, -0.05, 1], near=0.1, far=300, resolution=(1280, 720))
+    x, z = np.meshgrid(np.linspace(-5, 5, 11), np.linspace(2, 50, 25))
+    pts = np.column_stack([x.ravel(), np.full(x.size, 1.5), z.ravel()])
+    for method, kind in (("lispsm", "perspective"), ("logpsm", "log")):
+        (smap,) = baseline(method, cam, DirectionalLight.make([0, -1, 0]), pts, (pts.min(0), pts.max(0)), (512, 512))
+        assert smap.warp_kind == kind and np.isfinite(smap.matrix).all()
+        s, t, depth, w = smap.map_coords(pts)
+        assert np.all((s > 0) & (s < 1) & (t > 0) & (t < 1) & (w > 0)), method
+        assert depth == pytest.approx(np.zeros(len(pts)), abs=1e-6), method
