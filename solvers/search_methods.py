@@ -108,7 +108,9 @@ def _torch(name: str, prob: Problem, x, maxiter: int, lo, hi) -> int:
         opt.zero_grad()
         fv, g = prob.value_and_grad(p.detach().numpy())
         inside = ((p.detach() > lo_t) & (p.detach() < hi_t)).numpy()
-        g = np.where(inside | (np.sign(g) * np.sign(p.detach().numpy() - (lo + hi) / 2) < 0), g, 0.0)
+        # on a bound, keep a component only when the step -g leads back inside (g has the sign of the side
+        # the bound is on): the outward one is dropped, the inward one is what leaves the bound
+        g = np.where(inside | (np.sign(g) * np.sign((lo + hi) / 2 - p.detach().numpy()) < 0), g, 0.0)
         p.grad = torch.tensor(g / scale, dtype=torch.float64)
         return torch.tensor(fv / scale, dtype=torch.float64)
 

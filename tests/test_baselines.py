@@ -661,6 +661,24 @@ def test_a_middle_cascade_is_fitted_to_its_slice_not_to_every_deeper_receiver():
             assert not inside.any(), (method, k, float(inside.mean()))
 
 
+def test_the_last_cascade_covers_receivers_beyond_the_far_plane():
+    """The splits divide the receivers' depth range kept within the camera's far plane, but a receiver given
+    beyond it (the service's receivers carry a margin) is still the last cascade's: its focused or LiSPSM map
+    holds every receiver deeper than the far plane (map coordinates in [0, 1]^2, w > 0)."""
+    from shadowopt.solvers.baselines import fit_baseline
+
+    cam = Camera.look([0, 2, 0], [0, -0.1, 1], near=0.1, far=60, resolution=(1280, 720))
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    pts, _ = ground_samples(cam, far=150.0)
+    beyond = pts[(pts - cam.position) @ cam.forward > cam.far]
+    assert len(beyond) > 10
+    for method in ("focused", "lispsm"):
+        fitted = fit_baseline(method, cam, sun, pts, bounds, (512, 512), cascades=3)
+        s, t, _, w = fitted.maps[-1].map_coords(beyond)
+        assert np.all((s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (w > 0)), method
+
+
 def test_texel_extents_of_an_orthographic_map_are_its_width_per_unit():
     """texel_extents: world metres per unit s and t, by central differences in the plane perpendicular to the
     light. An overhead orthographic map of half-size hw is 2 hw metres per unit on both axes, exactly; the
@@ -735,3 +753,34 @@ def test_texel_extents_with_the_light_along_the_x_axis():
     per_s, per_t = texel_extents(sm, pts, sun)
     assert per_s == pytest.approx(np.full(50, 80.0), rel=1e-8)
     assert per_t == pytest.approx(np.full(50, 80.0), rel=1e-8)
+
+
+def test_lights_are_checked_when_made_and_cannot_change_afterwards():
+    """make() refuses a cone outside (0, 180] degrees and a non-finite position; every light is a frozen value,
+    so those checks hold for its whole life (and a light shared by several fits cannot change under them)."""
+    with pytest.raises(ValueError, match="cone_deg"):
+        SpotLight.make([0, 10, 0], [0, -1, 0], 190.0)
+    with pytest.raises(ValueError, match="finite"):
+        PointLight.make([0, np.inf, 0])
+    lights = {"cone_deg": SpotLight.make([0, 10, 0], [0, -1, 0], 40.0), "position": PointLight.make([0, 10, 0]),
+              "direction": DirectionalLight.make([0, -1, 0])}
+    for field, light in lights.items():
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(light, field, 200.0)
+    assert lights["cone_deg"].cone_deg == 40.0 and lights["position"].position.tolist() == [0.0, 10.0, 0.0]
+
+
+def test_a_flat_scene_level_with_the_eye_gets_a_finite_warped_map():
+    """Under an overhead sun the light frame is centred on the camera, so receivers and casters all at the eye's
+    height have light-view depth 0 and one warped depth: the depth range has no extent of its own and keeps a
+    floor. LiSPSM and LogPSM still warp (the receivers reach 48 m ahead) and their maps are finite and hold every
+    receiver, at mid-depth."""
+    cam = Camera.look([0, 1.5, 0], [0, -0.05, 1], near=0.1, far=300, resolution=(1280, 720))
+    x, z = np.meshgrid(np.linspace(-5, 5, 11), np.linspace(2, 50, 25))
+    pts = np.column_stack([x.ravel(), np.full(x.size, 1.5), z.ravel()])
+    for method, kind in (("lispsm", "perspective"), ("logpsm", "log")):
+        (smap,) = baseline(method, cam, DirectionalLight.make([0, -1, 0]), pts, (pts.min(0), pts.max(0)), (512, 512))
+        assert smap.warp_kind == kind and np.isfinite(smap.matrix).all()
+        s, t, depth, w = smap.map_coords(pts)
+        assert np.all((s > 0) & (s < 1) & (t > 0) & (t < 1) & (w > 0)), method
+        assert depth == pytest.approx(np.zeros(len(pts)), abs=1e-6), method

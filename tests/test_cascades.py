@@ -124,13 +124,16 @@ def test_texel_budget_buys_one_size_for_every_cascade_fit_to_the_worst_map():
 
 
 def test_allocation_never_exceeds_the_budget_when_a_side_hits_the_floor():
-    # A thin far cascade (R_s << R_t) would get a side below MIN_RES; flooring it must not overspend T.
+    # A thin far cascade (R_s << R_t) would get a side below MIN_RES; flooring it must not overspend T,
+    # and the other maps share what the floored ones leave: only the rounding down of each side is left
+    # over (less than one row and one column per map).
     from shadowopt.solvers.cascades import MIN_RES
 
     for R_s, R_t, T in (([1e6, 1.0, 1.0], [1.0, 1.0, 1.0], 3 * 512 * 512), ([547.0, 54.0, 1.0], [1404.0, 305.0, 400.0], 3 * 512 * 512),
                         ([5e4, 1e-9], [1e4, 3.0], 2 ** 20), ([1.0, 2.0, np.nan], [1.0, 1.0, np.inf], 2 ** 18)):
         r = allocate(np.array(R_s), np.array(R_t), T)
         assert sum(a * b for a, b in r) <= T, r
+        assert T - sum(a * b for a, b in r) < sum(a + b for a, b in r), r
         assert all(a >= MIN_RES and b >= MIN_RES for a, b in r)
     pts, _ = ground_samples(CAM)
     maps = baseline("focused", CAM, SUN, pts, BOUNDS, cascades=3, splits="uniform", texel_budget=3 * 512 * 512)

@@ -115,6 +115,14 @@ def test_a_warped_face_map_puts_each_receiver_on_its_own_light_ray(warp):
     assert (np.linalg.norm(to_light - (to_light * ray).sum(1, keepdims=True) * ray, axis=1) < 1e-5).all()
     half = light + 0.5 * (pts[idx] - light)
     assert (smap.map_coords(half)[2] < z).all()
+    if warp == "log":  # the log step pads t after the warp, beyond the u range the depth is fitted to
+        return
+    # every texel ray's depth range holds [near, far] along the face axis, out to the map's padded border
+    g = np.linspace(0.0, 1.0, 9)
+    gs, gt = (v.ravel() for v in np.meshgrid(g, g))
+    a, b = smap.texel_rays(gs, gt)
+    depth = lambda p: -(p @ smap.view[2, :3] + smap.view[2, 3])  # noqa: E731 distance along the face axis
+    assert (depth(a) <= near * (1 + 1e-9)).all() and (depth(b) >= far * (1 - 1e-9)).all()
 
 
 def test_face_shares_split_by_need_with_a_floor_and_the_total():

@@ -165,6 +165,11 @@ def test_samples_prefer_boundaries_and_fall_back_to_all_facing():
     s = select_samples(cam, light, pos, nrm, hit, np.zeros((3, 3), bool), boundary)
     assert s.kind == "none" and len(s) == 0
     assert predicted_error([], s)["samples"] == 0
+    # no sample: every per-sample array is empty with the columns of a non-empty one (so they stack)
+    full = select_samples(cam, light, pos, nrm, hit, hit, np.zeros((3, 3), bool))
+    for name in ("position", "normal", "dx", "dy", "pixel"):
+        assert getattr(s, name).shape == (0,) + getattr(full, name).shape[1:], name
+    assert s.view_depth.shape == s.weight.shape == (0,)
 
 
 def test_warped_moments_give_every_affine_parts_objective():

@@ -280,6 +280,27 @@ def test_spot_light_optical_axis_is_optimized_and_keeps_every_receiver(ground):
     assert np.all((s_ >= 0) & (s_ <= 1) & (t_ >= 0) & (t_ <= 1) & (np.abs(z_) <= 1) & (w_ > 0))
 
 
+def test_spot_tilt_turns_the_optical_axis_by_its_tangents(ground):
+    """SpotProblem's x = (alpha, beta) tilts the optical axis from the spot's axis a along the axis frame's right
+    and up vectors r, u: axis = normalise(a + alpha r + beta u), so it turns by atan(hypot(alpha, beta)) from a,
+    in the plane of a and alpha r + beta u (r, u, a read off the untilted map's view)."""
+    from shadowopt.solvers.lights import SpotLight
+    from shadowopt.solvers.optimize import SpotProblem
+
+    cam, pts, s = ground
+    L = SpotLight.make([0, 20, 20], [0.2, -1, 0.1], 70)
+    to = (pts - L.position) / np.linalg.norm(pts - L.position, axis=1)[:, None]
+    near_axis = to @ L.direction > math.cos(math.radians(40.0))  # still within 80 degrees of every tilted axis
+    prob = SpotProblem(cam, L, s.subset(near_axis), pts[near_axis], BOUNDS, (512, 512))
+    view0 = prob.fit(np.zeros(2))[0]
+    r, u, a = view0[0, :3], view0[1, :3], -view0[2, :3]
+    for x in ((0.3, 0.0), (0.0, -0.2), (0.25, 0.15)):
+        axis = -prob.fit(np.array(x))[0][2, :3]
+        assert math.acos(min(1.0, float(axis @ a))) == pytest.approx(math.atan(math.hypot(*x)), rel=1e-9), x
+        side = x[0] * r + x[1] * u
+        assert axis == pytest.approx((a + side) / np.linalg.norm(a + side), abs=1e-12), x
+
+
 def test_log_warp_family_is_searched_when_allowed(ground):
     """LogPSM's family (perspective part + log step on t): the search beats the LogPSM baseline map
     it starts from, and its result carries the log warp the metric scored."""
@@ -545,6 +566,19 @@ def test_parallelogram_fit_of_a_parallelogram_is_the_parallelogram_itself():
         assert np.all((r >= lo - 1e-12) & (r <= hi + 1e-12))
     C, lo, hi = affine_fit(q, "axis", (512, 512))
     assert np.prod(hi - lo) == pytest.approx(3.0, rel=1e-12)
+    # a map wider than tall puts its s axis across the wider pair of lines (and a taller one its t axis): a
+    # parallelogram with sides (0, 3) and (1, 1) is 1 wide between its vertical sides and 3 / sqrt(2) between the
+    # slanted ones
+    tall = np.array([[0.0, 0.0], [1.0, 1.0], [1.0, 4.0], [0.0, 3.0]])
+    for res, longer in (((1024, 512), 0), ((512, 1024), 1)):
+        C, lo, hi = affine_fit(tall, "parallelogram", res)
+        assert sorted(hi - lo) == pytest.approx([1.0, 3.0 / math.sqrt(2.0)], rel=1e-9)
+        assert int(np.argmax(hi - lo)) == longer, res
+    # a sliver (no two hull edges more than 1e-9 apart in angle) has no parallelogram: its axis box, which holds it
+    sliver = np.array([[0.0, 0.0], [1.0, 0.0], [0.5, 1e-12]])
+    C, lo, hi = affine_fit(sliver, "parallelogram", (512, 512))
+    assert np.array_equal(C, np.eye(4))
+    assert lo.shape == hi.shape == (2,) and np.array_equal(lo, [0.0, 0.0]) and np.array_equal(hi, [1.0, 1e-12])
 
 
 def test_optimized_map_depth_range_is_set_by_the_receivers_amid_a_small_caster():
@@ -693,3 +727,43 @@ def test_warped_maps_light_depth_is_the_range_their_frustum_covers():
                 assert np.all((d >= near - 1e-6) & (d <= far + 1e-6)), (method, li)
                 warped += c["warp"]["kind"] != "none"
     assert warped >= 6
+
+
+@pytest.mark.parametrize("method", ["gradient:lbfgs", "gradient:adam"])
+def test_torch_searches_leave_a_bound_the_objective_falls_away_from(method):
+    """The torch searches project the gradient on the problem's box: on a bound a component is dropped only when
+    its descent step would leave the box. So from a corner of [-1, 1]^2 they reach the interior minimum of
+    |x - (0.5, 0.5)|^2 (closed form), and a minimum beyond a bound (x_0 = 2) is found on that bound."""
+    from shadowopt.solvers.search_methods import search
+
+    class Bowl:  # the problem's interface (solvers.search_methods.Problem), f clipped into the box
+        def __init__(self, centre):
+            self.centre = np.asarray(centre, float)
+            self.lower, self.upper = np.full(2, -1.0), np.full(2, 1.0)
+            self.best = (math.inf, None)
+
+        def clip(self, x):
+            return np.clip(np.asarray(x, float), self.lower, self.upper)
+
+        def value(self, x):
+            x = self.clip(x)
+            f = float(np.sum((x - self.centre) ** 2))
+            if f < self.best[0]:
+                self.best = (f, x.copy())
+            return f
+
+        def gradient(self, x):
+            return 2.0 * (self.clip(x) - self.centre)
+
+        def value_and_grad(self, x):
+            return self.value(x), self.gradient(x)
+
+        def check_deadline(self):
+            pass
+
+    for centre, want in (((0.5, 0.5), (0.5, 0.5)), ((2.0, 0.5), (1.0, 0.5))):
+        for start in ((1.0, 1.0), (-1.0, -1.0), (0.0, -1.0)):
+            prob = Bowl(centre)
+            prob.value(np.array(start))
+            _, ok, _ = search(prob, method, np.array(start), 50, 10)
+            assert ok and prob.best[1] == pytest.approx(want, abs=2e-3), (centre, start, prob.best)

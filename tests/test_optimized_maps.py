@@ -62,6 +62,9 @@ def test_receivers_beside_the_samples():
     N = np.array([0.4, 0.3, 0.2, 0.1])
     P, Q = 0.37 * N * Pr, 0.37 * N * Qr  # the samples are the receivers, h 0.37x the proxy's
     assert allocate_mean(*with_receivers(P, Q, N, Pr, Qr, N), T) == allocate_mean(P, Q, T)
+    # the receivers' term is put on the samples' scale (kappa = 0.37 here): it counts as much as the samples
+    P2, Q2 = with_receivers(P, Q, N, Pr, Qr, N)
+    assert P2 == pytest.approx(2 * P, rel=1e-12) and Q2 == pytest.approx(2 * Q, rel=1e-12)
     P, Q, W = np.array([4e5, 9e5, 0.0, 1e1]), np.array([1e5, 9e5, 0.0, 1e1]), np.array([0.3, 0.7, 0.0, 1e-5])
     bare = allocate_mean(P, Q, T)
     assert bare[2][0] * bare[2][1] <= MIN_RES ** 2 and bare[3][0] * bare[3][1] < 0.01 * T

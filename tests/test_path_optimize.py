@@ -337,3 +337,51 @@ def test_segment_pass_finds_the_cheapest_cut(monkeypatch):
     assert report[0]["objective_sum"] == pytest.approx(best[0], rel=1e-12)
     assert report[0]["segments"] == best[1]
     assert best[0] == pytest.approx(3.6)
+
+
+def _wide_path_frame():
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    cam = Camera.look([0, 2, 0], [0, -0.1, 1], near=0.1, far=300, resolution=(640, 360))
+    pts, samples = ground_samples(cam, far=120.0, grid=(32, 18))
+    return cam, sun, samples, pts, bounds
+
+
+def test_a_held_texel_allocation_is_kept_only_within_the_rigs_texels():
+    """The next frame keeps the previous frame's resolutions (with its grids) while they fit in the texels the rig
+    gives, here one 512 x 256 map (no texel_budget): a held 256 x 256 is kept, a held 512 x 512 (twice the rig's
+    texels, though each side is within reason) is not."""
+    import json
+
+    from shadowopt.solvers.path_optimize import path_maps
+
+    cam, sun, samples, pts, bounds = _wide_path_frame()
+    _, sj = path_maps(cam, sun, samples, pts, bounds, None, resolution=(512, 256), cascades=1)
+    for held, want in (([256, 256], (256, 256)), ([512, 512], (512, 256))):
+        state = json.loads(json.dumps(sj["path"]))
+        state["cascades"][0]["resolution"] = held
+        maps, _ = path_maps(cam, sun, samples, pts, bounds, state, resolution=(512, 256), cascades=1)
+        assert tuple(maps[0].resolution) == want, held
+
+
+def test_a_path_maps_depth_is_the_warped_light_depth():
+    """A grid map stores the warped light depth z / w (Lloyd et al.'s warp: depth divided by the warp's w): a point
+    moved across the light and along a line of constant w (perpendicular to the light and to w's gradient) keeps
+    its stored depth, for the held grid's map as for the first frame's."""
+    import json
+
+    from shadowopt.solvers.path_optimize import path_maps
+
+    cam, sun, samples, pts, bounds = _wide_path_frame()
+    first, sj = path_maps(cam, sun, samples, pts, bounds, None, resolution=(512, 512), cascades=1)
+    held, _ = path_maps(cam, sun, samples, pts, bounds, json.loads(json.dumps(sj["path"])), resolution=(512, 512),
+                        cascades=1)
+    for smap in (first[0], held[0]):
+        grad_w = smap.matrix[3, :3]
+        e = np.cross(sun.direction, grad_w if np.linalg.norm(grad_w) > 1e-12 else smap.view[0, :3])
+        e /= np.linalg.norm(e)
+        _, _, z, w = smap.map_coords(pts)
+        for step in (-7.0, 3.0, 20.0):
+            _, _, z2, w2 = smap.map_coords(pts + step * e)
+            assert w2 == pytest.approx(w, rel=1e-9, abs=1e-12)
+            assert z2 == pytest.approx(z, rel=1e-9, abs=1e-12), step

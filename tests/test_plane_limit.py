@@ -63,12 +63,13 @@ def test_limit_closed_form_and_weights():
 def test_limit_is_the_optimum_of_its_relaxation():
     """An independent truth for the closed form: SciPy minimising the weighted mean of 2/d_i (the least
     h at texel density d_i) under the texel budget Σ a_i d_i / f_i = T reaches texel_limit, with
-    uneven pixels a_i, weights w_i and grazing factors f_i."""
+    uneven pixels a_i, weights w_i and grazing factors f_i (below 1 too: a normal turned towards the camera
+    raises |n.v|, so the turned plane claims less light-space area than the surface covers)."""
     from scipy.optimize import minimize as sp_minimize
 
     rng = np.random.default_rng(3)
     n, T = 12, 5000.0
-    a, w, f = rng.uniform(1, 4, n), rng.uniform(0.2, 3, n), rng.uniform(1, 5, n)
+    a, w, f = rng.uniform(1, 4, n), rng.uniform(0.2, 3, n), rng.uniform(0.2, 5, n)
     z = np.zeros((n, 3))
     s = Samples(z, z, z, z, np.ones(n), w, np.zeros((n, 2), int), "boundary", a, f)
     # in units of T (d = T x): the mean of 2 / x under Σ a_i x_i / f_i = 1 is T times the limit
