@@ -370,3 +370,22 @@ def test_a_malformed_slope_scaled_bias_is_refused_naming_the_field():
         with pytest.raises(SolutionError) as e:
             check_depth_blocks({"lights": [{"cascades": [{"depth": {**block, "hardware": hw}}]}]}, "hardware")
         assert e.value.field == f"solution.lights.0.cascades.0.depth.hardware.{key}"
+
+
+def test_texel_world_size_without_a_receiver_inside_is_the_maps_own():
+    """texel_world_size, the bias's texel scale: the 95th percentile over the points inside the map, and for a
+    map no point falls in (an empty cube face) the texel at the far end of its central light ray. An overhead
+    orthographic map of half-size hw at 1024 x 512 has texels of 2 hw / 512 m (the longer side) everywhere, so
+    both give that."""
+    from shadowopt.solvers.texel_size import texel_world_size
+
+    sun = DirectionalLight.make([0, -1, 0])
+    view = np.array([[1.0, 0, 0, 0], [0, 0, -1.0, 0], [0, 1.0, 0, -50.0], [0, 0, 0, 1.0]])  # looks down -y from y = 50
+    hw = 40.0
+    proj = np.diag([1 / hw, 1 / hw, -2 / 199.0, 1.0])
+    proj[2, 3] = -201 / 199.0
+    smap = ShadowMap(view, proj, (1024, 512))
+    rng = np.random.default_rng(2)
+    inside = np.column_stack([rng.uniform(-30, 30, 100), np.zeros(100), rng.uniform(-30, 30, 100)])
+    assert texel_world_size(smap, inside, sun) == pytest.approx(2 * hw / 512, rel=1e-6)
+    assert texel_world_size(smap, inside + [500.0, 0.0, 0.0], sun) == pytest.approx(2 * hw / 512, rel=1e-6)
