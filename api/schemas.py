@@ -9,7 +9,6 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from ..service.methods import METHODS
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = tuple[Finite, Finite, Finite]
@@ -210,7 +209,9 @@ def format_validation_error(err) -> str:
 
 # --- REST API: requests and responses. Field names the clients rely on are fixed (additions only). ---
 
-Method = Literal[METHODS]  # service.methods: the one list of methods
+# service.methods.METHODS, written out: the bare client reads this module without the service package
+# (tests/test_api.py checks the two lists are the same)
+Method = Literal["uniform", "focused", "lispsm", "logpsm", "optimized", "stable_csm", "path"]
 BatchState = Literal["queued", "running", "done", "failed", "cancelled"]
 ObjectId = Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.-]+$")]
 

@@ -296,8 +296,12 @@ def _engine_check(job: LightJob, output: dict, best: ScoredMaps) -> ScoredMaps:
     rivals (optimized: LiSPSM and focused, fitted as fairly, with the same bias chooser) returns the rival's maps
     where those predict fewer wrong pixels under that test, and says so in a note and in its report."""
     rivals = {}
+    common = dict(job.common)
+    if common.get("splits") == "optimized" and len(best.maps) > 1 and best.maps[0].face is None:
+        # the rivals take the search's splits: the comparison is of the maps, and the report's splits stay true
+        common.update(splits="practical", split_at=[float(m.split[1]) for m in best.maps[:-1]])
     for name in job.kind.rivals:
-        rival = _scored_maps(dataclasses.replace(job, kind=METHOD_KINDS[name]), output)
+        rival = _scored_maps(dataclasses.replace(job, kind=METHOD_KINDS[name], common=common), output)
         rivals[name] = rival.prediction["misclassified_pixels"]
         if rival.prediction["misclassified_pixels"] < best.prediction["misclassified_pixels"]:
             note = (f"the {name} baseline's maps predict fewer wrong pixels under the engine's depth test "

@@ -328,3 +328,13 @@ def test_an_option_the_method_would_ignore_is_422_naming_the_field(api, scene):
         assert err["code"] == "unused_option" and err["field"] == field and err["message"].startswith(field), err
     ok = api.post("/v1/optimize", json={"scene_id": sid, "rig": TINY_RIG, "method": "focused"})
     assert ok.status_code == 200
+
+
+def test_the_schemas_methods_are_the_services_methods():
+    """api.schemas writes the method list out (the bare client loads no service module): the same list."""
+    from typing import get_args
+
+    from shadowopt.api.schemas import Method
+    from shadowopt.service.methods import METHODS
+
+    assert get_args(Method) == METHODS

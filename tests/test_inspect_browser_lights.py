@@ -1,8 +1,8 @@
 """The inspector's lights in a real browser (the fixtures and helpers of tests/test_inspect_browser.py: Debian's
 chromium, headless, through Playwright, against a real uvicorn on 127.0.0.1 with tokens): the light picker lists
 the scene's lights; a spot light's map and a point light's cube faces or face-partitioned maps (faces of
-different sizes) are drawn with the document's shadow-lookup-local piece, and auto cascades of different sizes
-each with its own resolution; each render agrees with evaluate's shadowed/lit classification on >= 99% of the
+different sizes) are drawn with the document's shadow-lookup-local piece, and budgeted cascades (one size per light)
+drawn from their layers; each render agrees with evaluate's shadowed/lit classification on >= 99% of the
 receiver pixels (evaluate's own receivers: for the spot, those inside its cone). The scene is the demo scene
 with a spot and a point light added (tests/lights_scene.py, written to a temporary folder). Screenshots go where
 the other files' go."""
@@ -107,27 +107,18 @@ def test_point_light_cube_faces_agree_with_evaluate(page, server, shots):
     _choose(page, "#point-maps", "auto")
 
 
-def test_auto_cascades_of_different_sizes_agree_with_evaluate(page, server, shots):
-    """cascades "auto": the service sizes each cascade from the budget; each is drawn at its own resolution
-    (the array is the largest map's size, each map in its first rows and columns)."""
+def test_budgeted_cascades_share_one_size_and_agree_with_evaluate(page, server, shots):
+    """Cascades under a texel budget: the service gives one light's cascades one size (solvers.cascades
+    ONE_SIZE_PER_LIGHT: engines keep them in one texture array), the inspector draws each from its layer, and the
+    render agrees with evaluate."""
     _choose(page, "#light", "/World/Sun")
-    _choose(page, "#cascades", "auto")
-    tried = []
-    for elevation in (None, 20, 10, 35, 70):  # the sun where the service sizes the cascades differently
-        if elevation is not None:
-            n = _responses(page)
-            page.fill("#elevation", str(elevation))
-            _solved(page, n + 1)
-        maps = page.evaluate("window.inspector.state.renderSolution.lights[0].cascades")
-        sizes = [tuple(m["resolution"]) for m in maps]
-        tried.append((elevation, sizes))
-        if len(set(sizes)) >= 2:
-            break
-    print(f"auto cascades: {tried}")
-    assert len(set(sizes)) >= 2, tried  # different sizes, else this test tests nothing new
-    assert "different sizes" not in page.text_content("#render-note")
+    _choose(page, "#cascades", "3")
+    maps = page.evaluate("window.inspector.state.renderSolution.lights[0].cascades")
+    sizes = [tuple(m["resolution"]) for m in maps]
+    print(f"budgeted cascades: {sizes}")
+    assert len(sizes) >= 2 and len(set(sizes)) == 1, sizes
     agree, receivers, shadowed, _ = _agreement(page, server)
-    print(f"auto cascades: {agree:.4%} of {receivers} receiver pixels agree ({shadowed} map-shadowed)")
+    print(f"budgeted cascades: {agree:.4%} of {receivers} receiver pixels agree ({shadowed} map-shadowed)")
     assert shadowed > 0.005 * receivers and agree >= 0.99
     page.screenshot(path=str(shots / "lights-3-auto-cascades.png"))
     _choose(page, "#cascades", "1")

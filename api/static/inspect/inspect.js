@@ -200,7 +200,12 @@ async function optimize() {
     // in the world frame is solved beside it (its numbers are the preset's)
     const compare = $("compare").value;
     jobs.push(preset.startsWith("engine:") ? postOptimize(base) : Promise.resolve(null));
-    if (compare) jobs.push(postOptimize(Object.assign(structuredClone(base), { method: compare })));
+    if (compare) {  // the compared method, with the time budget only if it searches
+      const other = Object.assign(structuredClone(base), { method: compare });
+      if (compare === "optimized" || compare === "path") other.time_budget_ms = +$("time-budget").value;
+      else delete other.time_budget_ms;
+      jobs.push(postOptimize(other));
+    }
     const [sol, worldSol, compared] = await Promise.all(jobs);
     state.stats.lastOptimizeMs = performance.now() - t0;
     if (seq === state.seq) {
