@@ -1,0 +1,157 @@
+"""`optimize --emit`'s three.js module in the real engine: three.js r187 (npm, installed by `make setup` into
+out/web/node_modules) in Debian's Chromium headless through Playwright (SwiftShader WebGL2), the module imported as
+it is. The page (tests/three_harness/) draws the demo scene's own triangles with the rig's camera and sun, renders
+three's shadow term (a ShadowMaterial's alpha) and a view-depth pass, and the pixels are scored against the
+product's exact ray-traced visibility of the same screen (renderers.ground_truth.evaluate_buffers, what `evaluate
+--depth solution` runs). Only receivers where the rasterizer and the ray caster see the same surface (both hit,
+view depths within DEPTH_TOLERANCE) are compared; there three.js must misclassify at most 1.25x evaluate's count on
+the same pixels + 50 (issue 26), and dispose() must restore what the module changed."""
+from __future__ import annotations
+
+import base64
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.browser
+
+ROOT = Path(__file__).resolve().parents[1]
+THREE_MODULE = ROOT / "out" / "web" / "node_modules" / "three" / "build" / "three.module.js"
+HARNESS = Path(__file__).with_name("three_harness")
+DEMO = ROOT / "configs" / "demo_scene.usda"
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"]
+SCREEN = (320, 180)
+DEPTH_TOLERANCE = 0.01  # relative view-depth difference under which both renderers hit the same surface
+ORIGIN = "http://shadowopt.test"
+
+if not os.path.exists(CHROMIUM):
+    pytest.skip("Debian's chromium is absent (make setup installs it)", allow_module_level=True)
+if not THREE_MODULE.exists():
+    pytest.skip("three.js is absent (make setup: npm install --prefix out/web three@0.187.0)", allow_module_level=True)
+playwright = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (requirements.lock)")
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with playwright.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture(scope="module")
+def entry():
+    from shadowopt.service.pipeline import scene_entry
+
+    return scene_entry(str(DEMO))
+
+
+def _geometry(entry, sun_direction) -> bytes:
+    """The scene's triangles, unindexed, each with its flat normal turned to the light's side (x y z nx ny nz per
+    vertex, float32): the normal a closed, consistently wound mesh has on its lit side."""
+    g = entry.loaded.geometry
+    tri = np.asarray(g.vertices, np.float64)[np.asarray(g.faces)]  # (n, 3, 3)
+    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    nrm *= np.where(nrm @ -np.asarray(sun_direction) < 0, -1.0, 1.0)[:, None]
+    out = np.concatenate([tri, np.repeat(nrm[:, None, :], 3, axis=1)], axis=2)
+    return out.astype(np.float32).tobytes()
+
+
+def _solve_and_emit(tmp_path, rig: dict) -> tuple[dict, str]:
+    from shadowopt.api.cli import main
+
+    (tmp_path / "rig.json").write_text(json.dumps(rig))
+    sol, js = tmp_path / "solution.json", tmp_path / "apply.js"
+    assert main(["optimize", str(DEMO), "--rig", str(tmp_path / "rig.json"), "--out", str(sol),
+                 "--emit", str(js)]) == 0
+    return json.loads(sol.read_text()), js.read_text()
+
+
+def _render(browser, module_text: str, geometry: bytes, camera: dict, sun_direction) -> dict:
+    files = {"/index.html": (HARNESS / "index.html").read_bytes(), "/harness.js": (HARNESS / "harness.js").read_bytes(),
+             "/three.module.js": THREE_MODULE.read_bytes(), "/apply.js": module_text.encode(),
+             "/scene.bin": geometry}
+    types = {".html": "text/html", ".js": "text/javascript", ".bin": "application/octet-stream"}
+    ctx = browser.new_context()
+    page = ctx.new_page()
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+
+    def serve(route):
+        path = route.request.url.removeprefix(ORIGIN).split("?")[0]
+        build = THREE_MODULE.parent / path.lstrip("/")  # three.module.js imports ./three.core.js
+        if path in files:
+            route.fulfill(status=200, body=files[path], content_type=types[Path(path).suffix])
+        elif path.endswith(".js") and "/" not in path[1:] and build.is_file():
+            route.fulfill(status=200, body=build.read_bytes(), content_type="text/javascript")
+        else:
+            route.fulfill(status=404, body="")
+
+    page.route(ORIGIN + "/**", serve)
+    try:
+        page.goto(ORIGIN + "/index.html")
+        page.wait_for_function("() => window.harnessReady === true", timeout=30000)
+        out = page.evaluate("(p) => window.harness.render(p)", {
+            "screen": list(SCREEN), "geometry": "/scene.bin", "module": "/apply.js",
+            "sun_direction": list(sun_direction), "camera": camera})
+    finally:
+        ctx.close()
+    assert not errors, errors
+    W, H = SCREEN
+    out["alpha"] = np.frombuffer(base64.b64decode(out["alpha"]), np.uint8).reshape(H, W)[::-1]
+    out["depth"] = np.frombuffer(base64.b64decode(out["depth"]), np.float32).reshape(H, W)[::-1]
+    return out
+
+
+def _score(entry, rig: dict, solution: dict, three: dict) -> dict:
+    """evaluate's ground truth and verdicts of the screen, and three's verdicts, on the receivers both renderers
+    see the same surface at."""
+    from shadowopt.renderers.ground_truth import evaluate_buffers
+    from shadowopt.service.rigs import resolve_rig
+    from shadowopt.service.solution_json import maps_from_solution
+
+    resolved = resolve_rig(rig, entry.loaded)
+    gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps_from_solution(solution)[0],
+                          screen=SCREEN, depth="solution")
+    z3, zr = three["depth"].astype(np.float64), gt.screen.depth
+    with np.errstate(invalid="ignore"):
+        same = (z3 > 0) & gt.screen.hit & (np.abs(z3 - zr) <= DEPTH_TOLERANCE * zr)
+    keep = gt.receivers & same
+    three_shadowed = three["alpha"] > 127
+    exact = gt.exact_shadowed
+    wrong3 = keep & (three_shadowed != exact)
+    wrong_eval = keep & gt.misclassified
+    return {"receivers": int(gt.receivers.sum()), "compared": int(keep.sum()),
+            "exact_shadowed": int((keep & exact).sum()), "three_shadowed": int((keep & three_shadowed).sum()),
+            "three_wrong": int(wrong3.sum()), "three_wrongly_lit": int((wrong3 & exact).sum()),
+            "three_wrongly_shadowed": int((wrong3 & ~exact).sum()),
+            "evaluate_wrong_compared": int(wrong_eval.sum()), "evaluate_wrong": gt.result["misclassified_pixels"]}
+
+
+def test_emitted_module_in_three_js_misclassifies_about_what_evaluate_counts(browser, entry, tmp_path):
+    rig = {"camera": {"usd_path": "/World/Camera", "resolution": list(SCREEN)}, "lights": [{"usd_path": "/World/Sun"}],
+           "shadow": {"resolution": [1024, 1024], "cascades": 1}, "output": {"engine": "three"}}
+    solution, module = _solve_and_emit(tmp_path, rig)
+    cam = solution["resolved"]["camera"]
+    sun = solution["resolved"]["lights"][0]["direction"]
+    three = _render(browser, module, _geometry(entry, sun), cam, sun)
+    s = _score(entry, rig, solution, three)
+    print("three.js r187 vs evaluate --depth solution:", s)
+    # the comparison is of the scene, not of edges: most receivers are compared, many of them shadowed
+    assert s["compared"] >= 0.95 * s["receivers"], s
+    assert s["exact_shadowed"] >= 300 and s["three_shadowed"] >= 300, s
+    assert s["three_wrong"] <= 1.25 * s["evaluate_wrong_compared"] + 50, s
+    depth = solution["lights"][0]["cascades"][0]["depth"]["hardware"]
+    inst = three["installed"]
+    assert inst["type"] == 0 and inst["shadowMapSize"] == [1024, 1024], inst  # THREE.BasicShadowMap
+    assert inst["bias"] == pytest.approx(-depth["constant"]) and inst["normalBias"] == depth["normal_offset"], inst
+    assert inst["shadowSide"] == 2, inst  # THREE.DoubleSide
+    assert three["restored"] == {"type": three["defaults"]["type"], "enabled": three["defaults"]["enabled"],
+                                 "shadowSide": None, "bias": 0, "normalBias": 0, "castShadow": False}, three
