@@ -5,7 +5,8 @@ three's shadow term (a ShadowMaterial's alpha) and a view-depth pass, and the pi
 product's exact ray-traced visibility of the same screen (renderers.ground_truth.evaluate_buffers, what `evaluate
 --depth solution` runs). Only receivers where the rasterizer and the ray caster see the same surface (both hit,
 view depths within DEPTH_TOLERANCE) are compared; there three.js must misclassify at most 1.25x evaluate's count on
-the same pixels + 50 (issue 26), and dispose() must restore what the module changed."""
+the same pixels + 50 (issue 26), and dispose() must restore what the module changed. What three.js cannot take is
+refused with exit 2, naming the field and what is accepted (unit tests, no browser)."""
 from __future__ import annotations
 
 import base64
@@ -17,8 +18,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytestmark = pytest.mark.browser
-
 ROOT = Path(__file__).resolve().parents[1]
 THREE_MODULE = ROOT / "out" / "web" / "node_modules" / "three" / "build" / "three.module.js"
 HARNESS = Path(__file__).with_name("three_harness")
@@ -29,15 +28,15 @@ SCREEN = (320, 180)
 DEPTH_TOLERANCE = 0.01  # relative view-depth difference under which both renderers hit the same surface
 ORIGIN = "http://shadowopt.test"
 
-if not os.path.exists(CHROMIUM):
-    pytest.skip("Debian's chromium is absent (make setup installs it)", allow_module_level=True)
-if not THREE_MODULE.exists():
-    pytest.skip("three.js is absent (make setup: npm install --prefix out/web three@0.187.0)", allow_module_level=True)
-playwright = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (requirements.lock)")
 
 
 @pytest.fixture(scope="module")
 def browser():
+    if not os.path.exists(CHROMIUM):
+        pytest.skip("Debian's chromium is absent (make setup installs it)")
+    if not THREE_MODULE.exists():
+        pytest.skip("three.js is absent (make setup: npm install --prefix out/web three@0.187.0)")
+    playwright = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (requirements.lock)")
     with playwright.sync_playwright() as p:
         b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         yield b
@@ -135,6 +134,7 @@ def _score(entry, rig: dict, solution: dict, three: dict) -> dict:
             "evaluate_wrong_compared": int(wrong_eval.sum()), "evaluate_wrong": gt.result["misclassified_pixels"]}
 
 
+@pytest.mark.browser
 def test_emitted_module_in_three_js_misclassifies_about_what_evaluate_counts(browser, entry, tmp_path):
     rig = {"camera": {"usd_path": "/World/Camera", "resolution": list(SCREEN)}, "lights": [{"usd_path": "/World/Sun"}],
            "shadow": {"resolution": [1024, 1024], "cascades": 1}, "output": {"engine": "three"}}
@@ -155,3 +155,63 @@ def test_emitted_module_in_three_js_misclassifies_about_what_evaluate_counts(bro
     assert inst["shadowSide"] == 2, inst  # THREE.DoubleSide
     assert three["restored"] == {"type": three["defaults"]["type"], "enabled": three["defaults"]["enabled"],
                                  "shadowSide": None, "bias": 0, "normalBias": 0, "castShadow": False}, three
+
+
+def _rig(tmp_path, **over) -> str:
+    rig = {"camera": {"usd_path": "/World/Camera", "resolution": list(SCREEN)}, "lights": [{"usd_path": "/World/Sun"}],
+           "shadow": {"resolution": [512, 512], "cascades": 1}, "output": {"engine": "three"}}
+    for k, v in over.items():
+        rig[k] = {**rig.get(k, {}), **v}
+    (tmp_path / "rig.json").write_text(json.dumps(rig))
+    return str(tmp_path / "rig.json")
+
+
+@pytest.mark.parametrize("over, field, accepted", [
+    ({"output": {"engine": "unity"}}, "--emit", "accepted: three"),
+    ({"output": {"engine": None}}, "--emit", "accepted: three"),
+    ({"shadow": {"cascades": 4}}, "rig shadow.cascades", "accepted: 1"),
+])
+def test_emit_refuses_what_three_js_cannot_take_before_solving(tmp_path, capsys, over, field, accepted):
+    from shadowopt.api.cli import main
+
+    js = tmp_path / "apply.js"
+    code = main(["optimize", str(DEMO), "--rig", _rig(tmp_path, **over), "--emit", str(js)])
+    err = capsys.readouterr().err
+    assert code == 2 and f"error: {field}: " in err and accepted in err, err
+    assert not js.exists()
+
+
+def _solution(depth: dict, maps: int = 1, kind: str = "directional", engine: str = "three") -> dict:
+    smap = {"view_matrix": list(np.eye(4).ravel()), "projection_matrix": list(np.eye(4).ravel()),
+            "texture_matrix": list(np.eye(4).ravel()), "resolution": [512, 512], "depth": depth}
+    return {"resolved": {"output": {"engine": engine}, "lights": [{"direction": [0, -1, 0]}]},
+            "lights": [{"type": kind, "cascades": [smap] * maps}]}
+
+
+HW = {"constant": 1e-4, "slope": 0.0, "normal_offset": 0.0, "slope_scaled": 0.0, "slope_clamp": 1.0}
+
+
+@pytest.mark.parametrize("solution, field", [
+    (_solution({"mode": "linear", "hardware": HW}), "lights[0].cascades[0].depth.mode"),
+    (_solution({"mode": "hardware", "hardware": {**HW, "slope": 0.5}}), "lights[0].cascades[0].depth.hardware.slope"),
+    (_solution({"mode": "hardware", "hardware": {**HW, "slope_scaled": 2.0, "slope_clamp": 0.001}}),
+     "lights[0].cascades[0].depth.hardware.slope_clamp"),
+    (_solution({"mode": "hardware", "hardware": HW}, maps=2), "rig shadow.cascades"),
+    (_solution({"mode": "hardware", "hardware": HW}, kind="spot"), "rig lights[0]"),
+    (_solution({"mode": "hardware", "hardware": HW}, engine="unity"), "--emit"),
+])
+def test_a_solution_three_js_cannot_apply_is_refused_naming_its_field(solution, field):
+    from shadowopt.service.emit_three import EmitError, three_module
+
+    with pytest.raises(EmitError) as e:
+        three_module(solution)
+    assert e.value.field == field and "accepted: " in e.value.message
+
+
+def test_the_module_carries_the_depth_block_three_js_applies():
+    from shadowopt.service.emit_three import three_module
+
+    text = three_module(_solution({"mode": "hardware", "hardware": {**HW, "slope_scaled": 2.0}}))
+    data = json.loads(text.split("const SOLUTION = ", 1)[1].split(";\n", 1)[0])
+    assert data["maps"][0]["depth"] == {"mode": "hardware", "format": None, **HW, "slope_scaled": 2.0}
+    assert "export default function apply(THREE, ctx)" in text and data["three"] == "0.187.0"
