@@ -624,7 +624,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--out", default=None, help="also write the solution JSON to this file")
     sp.add_argument("--emit", default=None, metavar="FILE.js", help="also write an ES module that installs the "
                     "solution in the engine as it is (the rig's output.engine \"three\": three.js r187, one "
-                    "directional light, one map; docs/engine-integration.md)")
+                    "directional light, one map or cascades through three's CSM addon; docs/engines.md)")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_optimize)
 

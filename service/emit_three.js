@@ -58,43 +58,83 @@ export default function apply(THREE, ctx) {
 		set(light, "castShadow", false);
 		return { update() {}, dispose };
 	}
-	const map = SOLUTION.maps[0];
-	const shadow = light.shadow;
-	const cam = shadow.camera;
-	const view = new THREE.Matrix4().fromArray(map.view_matrix);  // column-major, as Matrix4.fromArray reads
-	const proj = new THREE.Matrix4().fromArray(map.projection_matrix);
-	const texture = new THREE.Matrix4().fromArray(map.texture_matrix);
-	const viewInverse = view.clone().invert();
-	const projInverse = proj.clone().invert();
-	const projView = proj.clone().multiply(view);
-
+	const maps = SOLUTION.maps;
 	const maxSize = renderer.capabilities.maxTextureSize;
-	if (map.resolution[0] > maxSize || map.resolution[1] > maxSize) {
-		console.warn(`shadowopt: the map is ${map.resolution[0]}x${map.resolution[1]}, this renderer's largest texture is ` +
-			`${maxSize}: three.js will shrink it and the solution's texels no longer hold`);
-	}
+	const install = (shadow, map) => {  // one map into one LightShadow: matrices, bias, normal bias, size
+		const cam = shadow.camera;
+		const view = new THREE.Matrix4().fromArray(map.view_matrix);  // column-major, as Matrix4.fromArray reads
+		const proj = new THREE.Matrix4().fromArray(map.projection_matrix);
+		const texture = new THREE.Matrix4().fromArray(map.texture_matrix);
+		const viewInverse = view.clone().invert();
+		const projInverse = proj.clone().invert();
+		const projView = proj.clone().multiply(view);
+		if (map.resolution[0] > maxSize || map.resolution[1] > maxSize) {
+			console.warn(`shadowopt: the map is ${map.resolution[0]}x${map.resolution[1]}, this renderer's largest texture ` +
+				`is ${maxSize}: three.js will shrink it and the solution's texels no longer hold`);
+		}
+		set(shadow, "bias", -map.depth.constant);
+		set(shadow, "normalBias", map.depth.normal_offset);
+		set(shadow, "mapSize", new THREE.Vector2(map.resolution[0], map.resolution[1]));
+		set(shadow, "updateMatrices", function () {
+			cam.projectionMatrix.copy(proj);
+			cam.projectionMatrixInverse.copy(projInverse);
+			cam.matrixWorldInverse.copy(view);
+			cam.matrixWorld.copy(viewInverse);
+			shadow.matrix.copy(texture);
+			shadow.getFrustum().setFromProjectionMatrix(projView, cam.coordinateSystem, false);
+		});
+		shadow.needsUpdate = true;
+	};
 	set(renderer.shadowMap, "enabled", true);
 	set(renderer.shadowMap, "type", THREE.BasicShadowMap);
-	set(light, "castShadow", true);
-	set(shadow, "bias", -map.depth.constant);
-	set(shadow, "normalBias", map.depth.normal_offset);
-	set(shadow, "mapSize", new THREE.Vector2(map.resolution[0], map.resolution[1]));
-	set(shadow, "updateMatrices", function () {
-		cam.projectionMatrix.copy(proj);
-		cam.projectionMatrixInverse.copy(projInverse);
-		cam.matrixWorldInverse.copy(view);
-		cam.matrixWorld.copy(viewInverse);
-		shadow.matrix.copy(texture);
-		shadow.getFrustum().setFromProjectionMatrix(projView, cam.coordinateSystem, false);
-	});
-
 	const materials = new Set(ctx.materials || []);
 	scene.traverse((o) => { if (o.isMesh) for (const m of [].concat(o.material)) if (m) materials.add(m); });
+
+	let shadows, csm = null;
+	if (maps.length === 1) {
+		set(light, "castShadow", true);
+		install(light.shadow, maps[0]);
+		shadows = [light.shadow];
+	} else {
+		// Cascades through three's CSM addon (examples/jsm/csm/CSM.js, CSMShader.js): one DirectionalLight per map,
+		// made by CSM; each light's shadow takes its map as above (CSM.update() only moves the lights, whose
+		// shadow cameras no longer follow them). CSM's patched shader serves cascade i where the view depth over
+		// (shadowFar - camera.near) lies in [breaks[i - 1], breaks[i]) (shadowFar = min(camera.far, maxFar)), with
+		// fade off: the breaks are each blend band's midpoint, where evaluate switches maps, over that span, and
+		// past the far plane for the last. The user's light is hidden (CSM's lights light the scene in its place,
+		// with its colour and intensity); every material is set up for CSM.
+		const CSM = ctx.CSM, camera = ctx.camera;
+		if (!CSM || !camera) throw new Error(`shadowopt: this solution has ${maps.length} cascades: pass three's CSM addon ` +
+			"class (three/addons/csm/CSM.js) as ctx.CSM and the camera as ctx.camera");
+		const span = camera.far - camera.near;
+		const breaks = maps.map((m, i) => i < maps.length - 1
+			? (m.blend_band ? (m.blend_band[0] + m.blend_band[1]) / 2 : m.split[1]) / span
+			: camera.far / span + 1);
+		const chunks = ["lights_fragment_begin", "lights_pars_begin"].map((c) => [c, THREE.ShaderChunk[c]]);
+		for (const [c, text] of chunks) set(THREE.ShaderChunk, c, text);  // CSM replaces them; dispose puts them back
+		const d = SOLUTION.direction;
+		csm = new CSM({ camera, parent: scene, cascades: maps.length, maxFar: camera.far, mode: "custom",
+			customSplitsCallback: (n, near, far, target) => { for (const b of breaks) target.push(b); },
+			shadowMapSize: maps[0].resolution[0], lightDirection: new THREE.Vector3(d[0], d[1], d[2]).normalize(),
+			lightIntensity: light.intensity });
+		csm.fade = false;
+		csm.lights.forEach((l, i) => { l.color.copy(light.color); install(l.shadow, maps[i]); });
+		set(light, "visible", false);
+		for (const m of materials) {
+			set(m, "onBeforeCompile", m.onBeforeCompile);
+			set(m, "defines", { ...(m.defines || {}) });
+			csm.setupMaterial(m);
+			m.needsUpdate = true;
+		}
+		csm.update();
+		shadows = csm.lights.map((l) => l.shadow);
+	}
+
 	for (const m of materials) set(m, "shadowSide", THREE.DoubleSide);
 
 	const gl = renderer.getContext();
 	const clamp = gl.getExtension("EXT_depth_clamp");
-	const k = map.depth.slope_scaled;
+	const k = maps[0].depth.slope_scaled;  // one for every map (service/emit_three.py checks)
 	const offsetMaterials = new Map();
 	const offsetMaterial = (base) => {  // the mesh's own custom depth material with the offset, or a plain one
 		if (!offsetMaterials.has(base)) {
@@ -118,10 +158,19 @@ export default function apply(THREE, ctx) {
 			set(o, "onAfterShadow", function (...args) { gl.disable(clamp.DEPTH_CLAMP_EXT); return after.apply(this, args); });
 		}
 	});
-	shadow.needsUpdate = true;
+	const disposeAll = () => {
+		if (csm) {
+			for (const l of csm.lights) l.shadow.dispose();
+			csm.dispose();
+			csm.remove();
+		}
+		dispose();
+		for (const m of materials) m.needsUpdate = true;
+	};
 	return {
-		update() { shadow.needsUpdate = true; },
-		dispose,
+		update() { if (csm) csm.update(); for (const s of shadows) s.needsUpdate = true; },
+		dispose: disposeAll,
 		depthClamp: Boolean(clamp),
+		csm,
 	};
 }

@@ -2,12 +2,12 @@
 
 The module (service/emit_three.js, its header says what goes where in three.js r187) exports
 `apply(THREE, ctx)`, ctx = {renderer, scene, camera, light, materials, CSM}, which installs one directional light's
-single map: the solution's view and projection, its depth block with three's signs and units, the map size,
-nearest-texel lookups and both faces, and returns {update(), dispose()}. What three.js cannot take is refused
+maps: the solution's view and projection, its depth block with three's signs and units, the map size, nearest-texel
+lookups and both faces, and returns {update(), dispose()}; cascades go through three's CSM addon (ctx.CSM), whose
+lights take the maps and whose shader selects them by the solution's splits. What three.js cannot take is refused
 here (EmitError: the CLI's exit 2, naming the field and what is accepted): another output engine, more than one
-light, a light that is not directional, more than one map (three's CSM addon assigns its own matrices, and a
-directional light per cascade would shadow every pixel with every cascade), the linear depth mode, a receiver-side
-slope term and a clamped caster slope term (three has neither).
+light, a light that is not directional, the linear depth mode, a receiver-side slope term, a clamped caster slope
+term (three has neither) and cascades with different caster slope terms (one depth material per mesh).
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from pathlib import Path
 THREE_VERSION = "0.187.0"  # the three.js release the module is written and tested for (Makefile: make setup)
 EMIT_ENGINES = ("three",)
 TEMPLATE = Path(__file__).with_name("emit_three.js")
-MAP_FIELDS = ("view_matrix", "projection_matrix", "texture_matrix", "resolution", "split", "light_depth")
+MAP_FIELDS = ("view_matrix", "projection_matrix", "texture_matrix", "resolution", "split", "blend_band", "light_depth")
 DEPTH_FIELDS = ("constant", "slope", "normal_offset", "slope_scaled", "slope_clamp")
 
 
@@ -34,11 +34,10 @@ def check_engine(rig: dict) -> None:
     if engine not in EMIT_ENGINES:
         raise EmitError("--emit", f"writes code for output.engine {' or '.join(map(repr, EMIT_ENGINES))} only "
                         f"(accepted: {', '.join(EMIT_ENGINES)}); the rig's output.engine is {engine!r}")
-    cascades = (rig.get("shadow") or {}).get("cascades", 1)
-    if isinstance(cascades, int) and cascades > 1:
-        raise EmitError("rig shadow.cascades", f"--emit writes one map per light for three.js (accepted: 1), got "
-                        f"{cascades}: three's CSM addon assigns its own cascade matrices and has no public route "
-                        f"for the solution's")
+    lights = rig.get("lights") or []
+    if len(lights) != 1:
+        raise EmitError("rig lights", f"--emit writes a module for one light (ctx.light; accepted: 1), the rig has "
+                        f"{len(lights)}")
 
 
 def three_module(solution: dict) -> str:
@@ -56,9 +55,10 @@ def three_module(solution: dict) -> str:
         raise EmitError("rig lights[0]", f"--emit writes a module for a directional light (accepted: directional), "
                         f"got {light.get('type')!r}")
     maps = light.get("cascades") or []
-    if len(maps) > 1:
-        raise EmitError("rig shadow.cascades", f"--emit writes one map per light for three.js (accepted: 1), the "
-                        f"solution has {len(maps)}")
+    slopes = sorted({float(((m.get("depth") or {}).get("hardware") or {}).get("slope_scaled", 0.0)) for m in maps})
+    if len(slopes) > 1:
+        raise EmitError("lights[0].cascades[].depth.hardware.slope_scaled", f"three.js's light pass takes one "
+                        f"polygon offset per mesh for every cascade (accepted: one value), got {slopes}")
     data = {"engine": "three", "three": THREE_VERSION, "method": solution.get("method"),
             "software": (solution.get("provenance") or {}).get("software"),
             "scene_hash": (solution.get("provenance") or {}).get("scene_hash"),

@@ -20,6 +20,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 THREE_MODULE = ROOT / "out" / "web" / "node_modules" / "three" / "build" / "three.module.js"
+ADDONS = THREE_MODULE.parents[1] / "examples" / "jsm"  # three/addons/ (the CSM addon)
 HARNESS = Path(__file__).with_name("three_harness")
 DEMO = ROOT / "configs" / "demo_scene.usda"
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -94,7 +95,7 @@ def _solve_and_emit(tmp_path, rig: dict) -> tuple[dict, str]:
     return json.loads(sol.read_text()), js.read_text()
 
 
-def _render(browser, module_text: str, geometry: bytes, camera: dict, sun_direction) -> dict:
+def _render(browser, module_text: str, geometry: bytes, camera: dict, sun_direction, classify: str = "shadow") -> dict:
     files = {"/index.html": (HARNESS / "index.html").read_bytes(), "/harness.js": (HARNESS / "harness.js").read_bytes(),
              "/three.module.js": THREE_MODULE.read_bytes(), "/apply.js": module_text.encode(),
              "/scene.bin": geometry}
@@ -108,10 +109,13 @@ def _render(browser, module_text: str, geometry: bytes, camera: dict, sun_direct
     def serve(route):
         path = route.request.url.removeprefix(ORIGIN).split("?")[0]
         build = THREE_MODULE.parent / path.lstrip("/")  # three.module.js imports ./three.core.js
+        addon = ADDONS / path.removeprefix("/addons/")
         if path in files:
             route.fulfill(status=200, body=files[path], content_type=types[Path(path).suffix])
         elif path.endswith(".js") and "/" not in path[1:] and build.is_file():
             route.fulfill(status=200, body=build.read_bytes(), content_type="text/javascript")
+        elif path.startswith("/addons/csm/") and path.endswith(".js") and ".." not in path and addon.is_file():
+            route.fulfill(status=200, body=addon.read_bytes(), content_type="text/javascript")
         else:
             route.fulfill(status=404, body="")
 
@@ -121,7 +125,7 @@ def _render(browser, module_text: str, geometry: bytes, camera: dict, sun_direct
         page.wait_for_function("() => window.harnessReady === true", timeout=30000)
         out = page.evaluate("(p) => window.harness.render(p)", {
             "screen": list(SCREEN), "geometry": "/scene.bin", "module": "/apply.js",
-            "sun_direction": list(sun_direction), "camera": camera})
+            "sun_direction": list(sun_direction), "camera": camera, "classify": classify})
     finally:
         ctx.close()
     assert not errors, errors
@@ -166,32 +170,44 @@ PINNED = {"fitted": None, "slope_scaled": {"constant": 0.0, "slope_scaled": 2.0,
 @pytest.mark.browser
 @pytest.mark.parametrize("pinned", PINNED)
 def test_emitted_module_in_three_js_misclassifies_about_what_evaluate_counts(browser, entry, tmp_path, pinned):
+    _check_in_three(browser, entry, tmp_path, {"resolution": [1024, 1024], "cascades": 1, "depth": PINNED[pinned]})
+
+
+@pytest.mark.browser
+def test_emitted_cascades_through_three_js_csm_addon(browser, entry, tmp_path):
+    """Three cascades: CSM's lights take the maps, its shader selects them at the solution's splits."""
+    _check_in_three(browser, entry, tmp_path, {"resolution": [512, 512], "cascades": 3}, classify="lambert")
+
+
+def _check_in_three(browser, entry, tmp_path, shadow: dict, classify: str = "shadow") -> None:
     rig = {"camera": {"usd_path": "/World/Camera", "resolution": list(SCREEN)}, "lights": [{"usd_path": "/World/Sun"}],
-           "shadow": {"resolution": [1024, 1024], "cascades": 1, "depth": PINNED[pinned]}, "output": {"engine": "three"}}
+           "shadow": shadow, "output": {"engine": "three"}}
     solution, module = _solve_and_emit(tmp_path, rig)
     cam = solution["resolved"]["camera"]
     sun = solution["resolved"]["lights"][0]["direction"]
-    three = _render(browser, module, _geometry(entry, sun), cam, sun)
+    three = _render(browser, module, _geometry(entry, sun), cam, sun, classify)
     s = _score(entry, rig, solution, three)
     print("three.js r187 vs evaluate --depth solution:", s)
-    # the comparison is of the scene, not of edges: most receivers are compared, many of them shadowed
+    # the comparison is of the scene, not of edges: most receivers are compared, hundreds of them shadowed
     assert s["compared"] >= 0.95 * s["receivers"], s
     assert s["exact_shadowed"] >= 300 and s["three_shadowed"] >= 300, s
     assert s["three_wrong"] <= 1.25 * s["evaluate_wrong_compared"] + 50, s
-    depth = solution["lights"][0]["cascades"][0]["depth"]["hardware"]
+    maps = solution["lights"][0]["cascades"]
     inst = three["installed"]
-    assert inst["type"] == 0 and inst["shadowMapSize"] == [1024, 1024], inst  # THREE.BasicShadowMap
-    assert inst["bias"] == pytest.approx(-depth["constant"]) and inst["normalBias"] == depth["normal_offset"], inst
-    assert inst["shadowSide"] == 2, inst  # THREE.DoubleSide
+    assert inst["type"] == 0 and inst["shadowMapSize"] == [m["resolution"] for m in maps], inst  # BasicShadowMap
+    assert inst["bias"] == pytest.approx([-m["depth"]["hardware"]["constant"] for m in maps]), inst
+    assert inst["normalBias"] == [m["depth"]["hardware"]["normal_offset"] for m in maps], inst
+    assert inst["shadowSide"] == 2 and inst["lightVisible"] == (len(maps) == 1), inst  # THREE.DoubleSide
     assert three["restored"] == {"type": three["defaults"]["type"], "enabled": three["defaults"]["enabled"],
-                                 "shadowSide": None, "bias": 0, "normalBias": 0, "castShadow": False}, three
+                                 "shadowSide": None, "bias": 0, "normalBias": 0, "castShadow": False,
+                                 "lightVisible": True, "lights": 1, "defines": 0, "chunksRestored": True}, three
 
 
 def _rig(tmp_path, **over) -> str:
     rig = {"camera": {"usd_path": "/World/Camera", "resolution": list(SCREEN)}, "lights": [{"usd_path": "/World/Sun"}],
            "shadow": {"resolution": [512, 512], "cascades": 1}, "output": {"engine": "three"}}
     for k, v in over.items():
-        rig[k] = {**rig.get(k, {}), **v}
+        rig[k] = {**rig.get(k, {}), **v} if isinstance(v, dict) else v
     (tmp_path / "rig.json").write_text(json.dumps(rig))
     return str(tmp_path / "rig.json")
 
@@ -199,7 +215,7 @@ def _rig(tmp_path, **over) -> str:
 @pytest.mark.parametrize("over, field, accepted", [
     ({"output": {"engine": "unity"}}, "--emit", "accepted: three"),
     ({"output": {"engine": None}}, "--emit", "accepted: three"),
-    ({"shadow": {"cascades": 4}}, "rig shadow.cascades", "accepted: 1"),
+    ({"lights": [{"usd_path": "/World/Sun"}, {"usd_path": "/World/Sun"}]}, "rig lights", "accepted: 1"),
 ])
 def test_emit_refuses_what_three_js_cannot_take_before_solving(tmp_path, capsys, over, field, accepted):
     from shadowopt.api.cli import main
@@ -226,7 +242,9 @@ HW = {"constant": 1e-4, "slope": 0.0, "normal_offset": 0.0, "slope_scaled": 0.0,
     (_solution({"mode": "hardware", "hardware": {**HW, "slope": 0.5}}), "lights[0].cascades[0].depth.hardware.slope"),
     (_solution({"mode": "hardware", "hardware": {**HW, "slope_scaled": 2.0, "slope_clamp": 0.001}}),
      "lights[0].cascades[0].depth.hardware.slope_clamp"),
-    (_solution({"mode": "hardware", "hardware": HW}, maps=2), "rig shadow.cascades"),
+    (_solution({"mode": "hardware", "hardware": HW}, maps=2) | {"lights": [{"type": "directional", "cascades": [
+        {"depth": {"mode": "hardware", "hardware": HW}}, {"depth": {"mode": "hardware", "hardware": {**HW, "slope_scaled": 1.0}}}]}]},
+     "lights[0].cascades[].depth.hardware.slope_scaled"),
     (_solution({"mode": "hardware", "hardware": HW}, kind="spot"), "rig lights[0]"),
     (_solution({"mode": "hardware", "hardware": HW}, engine="unity"), "--emit"),
 ])

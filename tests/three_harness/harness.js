@@ -1,11 +1,14 @@
 // The test's three.js page (tests/test_three_module.py): the scene's triangles, the rig's camera and sun, the
 // emitted module imported as it is, then two renders into render targets read back:
-// - shadow: a ShadowMaterial (opaque, both sides) whose alpha is exactly 1 - three's shadow term
+// - shadow, one map: a ShadowMaterial (opaque, both sides) whose alpha is exactly 1 - three's shadow term
 //   (ShaderLib/shadow.glsl.js: opacity * (1.0 - getShadowMask())), so alpha > 0.5 is "shadowed" with no
 //   lighting model or threshold on shading in between;
+// - shadow, cascades: ShadowMaterial's getShadowMask multiplies every light's term, but CSM selects the cascade in
+//   the lighting code (CSMShader.js lights_fragment_begin), so a white MeshLambertMaterial (no ambient light) is
+//   drawn into a float target twice, receiving shadows and not, and "shadowed" is a ratio under one half;
 // - depth: the same triangles' view depth (-z in the camera's view space) in a float target, 0 where nothing is hit,
 //   so the test compares only pixels where three's rasterizer and the ray caster see the same surface.
-export async function render(THREE, p) {
+export async function render(THREE, CSM, p) {
 	const [W, H] = p.screen;
 	const canvas = document.getElementById("c");
 	const renderer = new THREE.WebGLRenderer({ canvas, antialias: false });
@@ -21,7 +24,9 @@ export async function render(THREE, p) {
 	const geometry = new THREE.BufferGeometry();
 	geometry.setAttribute("position", new THREE.BufferAttribute(pos, 3));
 	geometry.setAttribute("normal", new THREE.BufferAttribute(nrm, 3));
-	const material = new THREE.ShadowMaterial({ color: 0x000000, opacity: 1, transparent: false, side: THREE.DoubleSide });
+	const lambert = p.classify === "lambert";
+	const material = lambert ? new THREE.MeshLambertMaterial({ color: 0xffffff, side: THREE.DoubleSide })
+		: new THREE.ShadowMaterial({ color: 0x000000, opacity: 1, transparent: false, side: THREE.DoubleSide });
 	const mesh = new THREE.Mesh(geometry, material);
 	mesh.frustumCulled = false;
 	const scene = new THREE.Scene();
@@ -42,15 +47,33 @@ export async function render(THREE, p) {
 	camera.updateMatrixWorld(true);
 
 	const mod = await import(p.module);
-	const handle = mod.default(THREE, { renderer, scene, camera, light, materials: [material], CSM: null });
+	const handle = mod.default(THREE, { renderer, scene, camera, light, materials: [material], CSM });
 	if (handle.update) handle.update();
 
-	const shadowTarget = new THREE.WebGLRenderTarget(W, H, { type: THREE.UnsignedByteType });
 	renderer.setClearColor(0x000000, 0);
-	renderer.setRenderTarget(shadowTarget);
-	renderer.render(scene, camera);
-	const rgba = new Uint8Array(4 * W * H);
-	renderer.readRenderTargetPixels(shadowTarget, 0, 0, W, H, rgba);
+	const shadowed = new Uint8Array(W * H);  // 255: three shadows the pixel
+	if (lambert) {
+		const pass = (receive) => {
+			mesh.receiveShadow = receive;
+			const target = new THREE.WebGLRenderTarget(W, H, { type: THREE.FloatType });
+			renderer.setRenderTarget(target);
+			renderer.render(scene, camera);
+			const out = new Float32Array(4 * W * H);
+			renderer.readRenderTargetPixels(target, 0, 0, W, H, out);
+			target.dispose();
+			return out;
+		};
+		const lit = pass(true), unshadowed = pass(false);
+		mesh.receiveShadow = true;
+		for (let i = 0; i < W * H; i++) shadowed[i] = lit[4 * i] < 0.5 * unshadowed[4 * i] ? 255 : 0;
+	} else {
+		const shadowTarget = new THREE.WebGLRenderTarget(W, H, { type: THREE.UnsignedByteType });
+		renderer.setRenderTarget(shadowTarget);
+		renderer.render(scene, camera);
+		const rgba = new Uint8Array(4 * W * H);
+		renderer.readRenderTargetPixels(shadowTarget, 0, 0, W, H, rgba);
+		for (let i = 0; i < W * H; i++) shadowed[i] = rgba[4 * i + 3];
+	}
 
 	const depthTarget = new THREE.WebGLRenderTarget(W, H, { type: THREE.FloatType });
 	scene.overrideMaterial = new THREE.ShaderMaterial({
@@ -65,15 +88,19 @@ export async function render(THREE, p) {
 	renderer.setRenderTarget(null);
 	scene.overrideMaterial = null;
 
-	const shadowMapSize = light.shadow.map ? [light.shadow.map.width, light.shadow.map.height] : null;
-	const installed = { type: renderer.shadowMap.type, bias: light.shadow.bias, normalBias: light.shadow.normalBias,
-		shadowSide: material.shadowSide, shadowMapSize, depthClamp: Boolean(handle.depthClamp) };
+	const shadows = handle.csm ? handle.csm.lights.map((l) => l.shadow) : [light.shadow];
+	const installed = { type: renderer.shadowMap.type, bias: shadows.map((s) => s.bias),
+		normalBias: shadows.map((s) => s.normalBias), shadowSide: material.shadowSide,
+		shadowMapSize: shadows.map((s) => s.map ? [s.map.width, s.map.height] : null), depthClamp: Boolean(handle.depthClamp),
+		lightVisible: light.visible };
 	if (handle.dispose) handle.dispose();
 	const restored = { type: renderer.shadowMap.type, enabled: renderer.shadowMap.enabled, shadowSide: material.shadowSide,
-		bias: light.shadow.bias, normalBias: light.shadow.normalBias, castShadow: mesh.castShadow };
+		bias: light.shadow.bias, normalBias: light.shadow.normalBias, castShadow: mesh.castShadow,
+		lightVisible: light.visible, lights: scene.children.filter((o) => o.isLight).length,
+		defines: Object.keys(material.defines || {}).length, chunksRestored: !THREE.ShaderChunk.lights_fragment_begin.includes("CSM") };
 	// rows bottom-up as WebGL reads them; one byte per pixel: the shadow alpha; one float per pixel: the depth
-	const alpha = new Uint8Array(W * H), z = new Float32Array(W * H);
-	for (let i = 0; i < W * H; i++) { alpha[i] = rgba[4 * i + 3]; z[i] = depth[4 * i + 1] > 0.5 ? depth[4 * i] : 0; }
+	const alpha = shadowed, z = new Float32Array(W * H);
+	for (let i = 0; i < W * H; i++) z[i] = depth[4 * i + 1] > 0.5 ? depth[4 * i] : 0;
 	const b64 = (a) => { let s = ""; const u = new Uint8Array(a.buffer); for (let i = 0; i < u.length; i += 0x8000) s += String.fromCharCode(...u.subarray(i, i + 0x8000)); return btoa(s); };
 	renderer.dispose();
 	return { alpha: b64(alpha), depth: b64(z), installed, restored, defaults };
