@@ -25,6 +25,8 @@
 // - depth clamping in the light pass where the browser has EXT_depth_clamp (casters in front of the map's near
 //   plane are pancaked onto it, which the solution's light_depth assumes): enabled around each mesh's shadow
 //   draw (Object3D.onBeforeShadow / onAfterShadow), so the camera's own pass is untouched.
+// - cascades: through three's CSM addon (ctx.CSM, examples/jsm/csm/): its lights take the maps, its shader selects
+//   them by the solution's splits (below).
 // dispose() restores every property it changed (renderer.shadowMap.enabled and type, the light's castShadow and
 // shadow fields, the meshes' castShadow, receiveShadow, customDepthMaterial and shadow hooks, the materials'
 // shadowSide). update() asks for the map to be redrawn (for a renderer.shadowMap.autoUpdate = false page).
@@ -118,7 +120,7 @@ export default function apply(THREE, ctx) {
 			shadowMapSize: maps[0].resolution[0], lightDirection: new THREE.Vector3(d[0], d[1], d[2]).normalize(),
 			lightIntensity: light.intensity });
 		csm.fade = false;
-		csm.lights.forEach((l, i) => { l.color.copy(light.color); install(l.shadow, maps[i]); });
+		csm.lights.forEach((l, i) => { l.color.copy(light.color); l.intensity = light.intensity; install(l.shadow, maps[i]); });
 		set(light, "visible", false);
 		for (const m of materials) {
 			set(m, "onBeforeCompile", m.onBeforeCompile);

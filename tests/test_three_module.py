@@ -1,7 +1,8 @@
 """`optimize --emit`'s three.js module in the real engine: three.js r187 (npm, installed by `make setup` into
 out/web/node_modules) in Debian's Chromium headless through Playwright (SwiftShader WebGL2), the module imported as
 it is. The page (tests/three_harness/) draws the demo scene's own triangles with the rig's camera and sun, renders
-three's shadow term (a ShadowMaterial's alpha) and a view-depth pass, and the pixels are scored against the
+three's shadow term (a ShadowMaterial's alpha; with cascades, through three's CSM addon, a white Lambert material
+with and without shadows, since CSM selects the cascade in the lighting code) and a view-depth pass, and the pixels are scored against the
 product's exact ray-traced visibility of the same screen (renderers.ground_truth.evaluate_buffers, what `evaluate
 --depth solution` runs). Only receivers where the rasterizer and the ray caster see the same surface (both hit,
 view depths within DEPTH_TOLERANCE) are compared; there three.js must misclassify at most 1.25x evaluate's count on
