@@ -32,7 +32,7 @@ $(THREE_STAMP):
 	  $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq nodejs npm >/dev/null; }
 	@echo "setup: npm install three@$(THREE_VERSION) into $(WEB)"
 	@mkdir -p $(WEB)
-	@npm install --prefix $(WEB) --save-exact --no-audit --no-fund --ignore-scripts three@$(THREE_VERSION) >>$(LOG) 2>&1 || { cat $(LOG); exit 1; }
+	@npm install --prefix $(WEB) --save-exact --no-audit --no-fund --ignore-scripts three@$(THREE_VERSION) >$(WEB)/npm.log 2>&1 || { cat $(WEB)/npm.log; exit 1; }
 	@rm -f $(WEB)/.three-*
 	@touch $@
 
