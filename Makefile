@@ -17,9 +17,24 @@ export DRJIT_LIBLLVM_PATH ?= $(firstword $(wildcard /usr/lib/*-linux-gnu/libLLVM
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
+# three.js, pinned, for the emitted module's browser test (tests/test_three_module.py): npm's package into out/web,
+# outside git; no binary is downloaded. Re-run only when the pin changes (the stamp names the version).
+THREE_VERSION := 0.187.0
+WEB := out/web
+THREE_STAMP := $(WEB)/.three-$(THREE_VERSION)
+
 .PHONY: setup serve test test-fast bench demo clean mutate
 
-setup: $(STAMP)
+setup: $(STAMP) $(THREE_STAMP)
+
+$(THREE_STAMP):
+	@command -v npm >/dev/null 2>&1 || { echo "setup: apt-get install nodejs npm"; \
+	  $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq nodejs npm >/dev/null; }
+	@echo "setup: npm install three@$(THREE_VERSION) into $(WEB)"
+	@mkdir -p $(WEB)
+	@npm install --prefix $(WEB) --save-exact --no-audit --no-fund --ignore-scripts three@$(THREE_VERSION) >$(WEB)/npm.log 2>&1 || { cat $(WEB)/npm.log; exit 1; }
+	@rm -f $(WEB)/.three-*
+	@touch $@
 
 $(STAMP): requirements.lock pyproject.toml
 	@missing=""; for p in $(APT_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \

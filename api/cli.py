@@ -259,6 +259,8 @@ def cmd_optimize(args) -> int:
     rig = load_rig(args.rig, args)
     _check_options(args.method, rig["shadow"], solver=args.solver, time_budget_ms=args.time_budget_ms,
                    previous=args.previous, hysteresis=args.hysteresis)
+    if args.emit:
+        _emit(rig, None, args.emit)  # refuse an engine or rig --emit cannot serve before solving
     entry = scene_entry(args.scene, **_scene_options(args))
     previous = _read_json(args.previous, "--previous") if args.previous else None
     sol = solve(entry, rig, SolveRequest(method=args.method, solver=args.solver, time_budget_ms=args.time_budget_ms,
@@ -269,7 +271,27 @@ def cmd_optimize(args) -> int:
                         f"median m {e['median_m']:.3g} over {e['samples']} samples"
                         for k, (l, e) in enumerate(zip(sol["lights"], errs)))
     _write_or_print(sol, args.out, args.json, f"{args.method}: {summary}; {sol['timings_ms']['total']:.1f} ms")
+    if args.emit:
+        _emit(rig, sol, args.emit)
+        print(f"three.js module written to {args.emit}", file=sys.stderr)
     return 0
+
+
+def _emit(rig: dict, sol: dict | None, path: str) -> None:
+    """--emit: service.emit_three's checks as exit 2 (sol None: the rig's only, before solving), else the module."""
+    from ..service.emit_three import EmitError, check_engine, three_module  # lazy: only with --emit
+
+    try:
+        if sol is None:
+            check_engine(rig)
+            return
+        text = three_module(sol)
+    except EmitError as e:
+        raise CliError(str(e)) from None
+    try:
+        Path(path).write_text(text)
+    except OSError as e:
+        raise CliError(f"--emit: cannot write {path!r}: {e.strerror}") from e
 
 
 # the CLI's flag for each field service.method_options names (a rig field without a flag is named as in the rig)
@@ -600,6 +622,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "unless the new one's median h is below --hysteresis times its own (temporal stability)")
     sp.add_argument("--hysteresis", type=float, default=None, help="with --previous and --method optimized (default 0.8)")
     sp.add_argument("--out", default=None, help="also write the solution JSON to this file")
+    sp.add_argument("--emit", default=None, metavar="FILE.js", help="also write an ES module that installs the "
+                    "solution in the engine as it is (the rig's output.engine \"three\": three.js r187, one "
+                    "directional light, one map or cascades through three's CSM addon; docs/engines.md)")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_optimize)
 
