@@ -321,3 +321,26 @@ def test_aligned_copies_are_64_byte_aligned_equal_and_cost_at_most_64_bytes_more
         assert b.dtype == dtype and b.shape == shape and np.array_equal(b, a.astype(dtype))
         assert b.ctypes.data % 64 == 0
         assert b.nbytes <= b.base.nbytes <= b.nbytes + 64
+
+
+def test_limit_angle_turns_a_normal_in_its_plane_to_exactly_the_limit_and_keeps_it_unit():
+    """samples.limit_angle: a normal farther than max_deg from `toward` ends a unit vector at exactly max_deg
+    from it, in the plane of the two and on the normal's side; a normal within the limit is untouched."""
+    from shadowopt.solvers.samples import limit_angle
+
+    rng = np.random.default_rng(7)
+    n = rng.normal(size=(500, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    to = rng.normal(size=(500, 3))
+    to /= np.linalg.norm(to, axis=1, keepdims=True)
+    out = limit_angle(n, to, 60.0)
+    before = np.degrees(np.arccos(np.clip(np.sum(n * to, 1), -1, 1)))
+    after = np.degrees(np.arccos(np.clip(np.sum(out * to, 1), -1, 1)))
+    far = before > 60.0
+    assert 100 < far.sum() < 500
+    assert np.allclose(np.linalg.norm(out, axis=1), 1.0, atol=1e-12)
+    assert np.allclose(after[far], 60.0, atol=1e-6) and np.array_equal(out[~far], n[~far])
+    plane_normal = np.cross(n[far], to[far])
+    assert np.allclose(np.sum(out[far] * plane_normal, 1), 0.0, atol=1e-9)  # in the plane of n and toward
+    side = lambda v: v - np.sum(v * to[far], 1, keepdims=True) * to[far]  # noqa: E731 (the part across toward)
+    assert np.all(np.sum(side(out[far]) * side(n[far]), 1) > 0)  # turned towards `toward`, not past it

@@ -767,3 +767,21 @@ def test_torch_searches_leave_a_bound_the_objective_falls_away_from(method):
             prob.value(np.array(start))
             _, ok, _ = search(prob, method, np.array(start), 50, 10)
             assert ok and prob.best[1] == pytest.approx(want, abs=2e-3), (centre, start, prob.best)
+
+
+def test_a_square_maps_parallelogram_puts_s_along_the_normal_nearer_warped_x():
+    """affine="parallelogram" on a square map: the two normals are ordered so that s (the first row of C)
+    is the one with the larger |x| component, each row with a positive diagonal, whatever the order of the
+    hull's edges (the parallelogram turned by quarter turns and mirrored)."""
+    from shadowopt.solvers.optimize import affine_fit
+
+    base = np.array([[0.0, 0.0], [2.0, 0.0], [3.0, 1.5], [1.0, 1.5]])  # edge normals (0, 1) and (-0.6, 0.8)
+    for k in range(4):
+        c, s = math.cos(k * math.pi / 2 + 0.3), math.sin(k * math.pi / 2 + 0.3)
+        for mirror in (1.0, -1.0):
+            q = base * [mirror, 1.0] @ np.array([[c, s], [-s, c]])
+            C, lo, hi = affine_fit(q, "parallelogram", (512, 512))
+            A = C[:2, :2]
+            assert abs(A[0, 0]) >= abs(A[1, 0]), (k, mirror, A)
+            assert A[0, 0] >= 0 and A[1, 1] >= 0
+            assert np.prod(hi - lo) / abs(np.linalg.det(A)) == pytest.approx(3.0, rel=1e-9)  # still the fit
