@@ -785,3 +785,53 @@ def test_a_square_maps_parallelogram_puts_s_along_the_normal_nearer_warped_x():
             assert abs(A[0, 0]) >= abs(A[1, 0]), (k, mirror, A)
             assert A[0, 0] >= 0 and A[1, 1] >= 0
             assert np.prod(hi - lo) / abs(np.linalg.det(A)) == pytest.approx(3.0, rel=1e-9)  # still the fit
+
+
+def test_a_spot_searchs_time_ms_is_its_own_wall_time_in_milliseconds(ground, monkeypatch):
+    """OptimizeResult.time_ms of a spot light's search (solvers.optimize._minimize_spot's path): at least the
+    time its objective evaluations took, at most the call's wall time, both measured here in milliseconds."""
+    import time
+
+    from shadowopt.solvers.lights import SpotLight
+    from shadowopt.solvers.optimize import Problem
+
+    spent = []
+    value = Problem.value
+
+    def timed(self, x):
+        t = time.perf_counter()
+        try:
+            return value(self, x)
+        finally:
+            spent.append((time.perf_counter() - t) * 1e3)
+
+    monkeypatch.setattr(Problem, "value", timed)
+    cam, pts, s = ground
+    L = SpotLight.make([0, 20, 20], [0.5, -1, 0.3], 70)
+    t0 = time.perf_counter()
+    r = minimize(cam, L, s, pts, BOUNDS, (256, 256), maxiter=10)
+    wall_ms = (time.perf_counter() - t0) * 1e3
+    assert len(spent) > 0 and sum(spent) <= r.time_ms <= wall_ms
+
+
+def test_objective_affine_fit_of_a_triangular_receiver_patch():
+    """The fewest fit points the "objective" affine fit takes: receivers whose hull seen from the light is a
+    triangle (three hull edges, six candidate normals). Its value is finite and no worse than the axis box's."""
+    from shadowopt.solvers.optimize import Problem
+
+    cam = Camera.look_at([0, 2, 0], [0, 0, 30], near=0.1, far=200, resolution=(1280, 720))
+    pts, s = ground_samples(cam, grid=(48, 27))
+    tri = np.array([[-6.0, 0.0, 8.0], [7.0, 0.0, 12.0], [1.0, 0.0, 40.0]])
+    e1, e2 = tri[1] - tri[0], tri[2] - tri[0]
+    lam = np.linalg.lstsq(np.column_stack([e1[[0, 2]], e2[[0, 2]]]), (pts - tri[0])[:, [0, 2]].T, rcond=None)[0]
+    inside = (lam[0] > 0.01) & (lam[1] > 0.01) & (lam.sum(0) < 0.99)
+    assert inside.sum() > 30
+    sub = s.subset(inside)
+    sun = DirectionalLight.make([1, -1, 0])
+    bounds = (np.array([-150, 0, -150.0]), np.array([150, 10, 150.0]))
+    obj = Problem(cam, sun, sub, tri, bounds, (1024, 1024), affine="objective")
+    box = Problem(cam, sun, sub, tri, bounds, (1024, 1024), affine="axis")
+    assert obj.n_hull == 3
+    for x in ([0.0, 0.0], [0.1, 1.0], [0.3, 2.0]):
+        x = np.array(x)
+        assert math.isfinite(obj.value(x)) and obj.value(x) <= box.value(x) * (1 + 1e-9)
