@@ -835,3 +835,69 @@ def test_objective_affine_fit_of_a_triangular_receiver_patch():
     for x in ([0.0, 0.0], [0.1, 1.0], [0.3, 2.0]):
         x = np.array(x)
         assert math.isfinite(obj.value(x)) and obj.value(x) <= box.value(x) * (1 + 1e-9)
+
+
+class _Valley:
+    """The search problem's interface (solvers.search_methods.Problem) on Rosenbrock's valley in [-1, 1]^2 (minimum
+    1 at (0.5, 0.25)), recording every point evaluated."""
+
+    def __init__(self):
+        self.lower, self.upper = np.full(2, -1.0), np.full(2, 1.0)
+        self.best = (math.inf, None)
+        self.xs = []
+
+    def clip(self, x):
+        return np.clip(np.asarray(x, float), self.lower, self.upper)
+
+    @staticmethod
+    def f(x):
+        return 1.0 + (0.5 - x[0]) ** 2 + 100.0 * (x[1] - x[0] ** 2) ** 2
+
+    def value(self, x):
+        x = self.clip(x)
+        self.xs.append(x.copy())
+        f = self.f(x)
+        if f < self.best[0]:
+            self.best = (f, x.copy())
+        return f
+
+    def gradient(self, x):
+        x = self.clip(x)
+        return np.array([-2.0 * (0.5 - x[0]) - 400.0 * x[0] * (x[1] - x[0] ** 2), 200.0 * (x[1] - x[0] ** 2)])
+
+    def value_and_grad(self, x):
+        return self.value(x), self.gradient(x)
+
+    def check_deadline(self):
+        pass
+
+
+def test_direct_is_polished_from_its_best_point_with_twice_maxiter_evaluations():
+    """nlopt:GN_DIRECT_L: max(4 maxiter, 60) global evaluations, then a BOBYQA polish from the best point DIRECT
+    found with 2 maxiter evaluations (a curved valley it cannot finish sooner); the count search reports is both."""
+    from shadowopt.solvers.search_methods import search
+
+    prob = _Valley()
+    prob.value(np.zeros(2))
+    prob.xs.clear()
+    it, ok, _ = search(prob, "nlopt:GN_DIRECT_L", np.zeros(2), 5, 10)
+    direct = 60
+    assert ok and it == len(prob.xs) == direct + 2 * 5
+    best_of_direct = min(prob.xs[:direct], key=_Valley.f)
+    assert np.array_equal(prob.xs[direct], best_of_direct)  # the polish starts where DIRECT was best
+
+
+def test_every_gradient_search_starts_on_the_same_side_of_the_tie_at_phi_0():
+    """phi = 0 is a symmetric tie of the affine fit: every gradient-based search (torch's L-BFGS and Adam, Chong
+    & Gortler's line search, NLopt's gradient methods) starts from the same point just beside it."""
+    from shadowopt.solvers.search_methods import search
+
+    firsts = {}
+    for method in ("gradient:lbfgs", "gradient:adam", "gradient:linesearch", "nlopt:LD_MMA", "nlopt:LD_LBFGS"):
+        prob = _Valley()
+        prob.value(np.array([0.0, 0.5]))
+        prob.xs.clear()
+        search(prob, method, np.array([0.0, 0.5]), 5, 10)
+        firsts[method] = prob.xs[0]
+    assert all(x[0] != 0.0 for x in firsts.values()), firsts
+    assert all(np.array_equal(x, firsts["nlopt:LD_MMA"]) for x in firsts.values()), firsts
