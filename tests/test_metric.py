@@ -289,12 +289,13 @@ def test_coarse_samples_stand_for_the_whole_screen_in_full_resolution_pixels():
 
 def test_cube_face_samples_are_scored_on_the_face_their_dominant_axis_points_into():
     """A point light's six 90-degree faces: a sample belongs to the face along the largest component of its
-    offset from the light (the cube-map rule), whatever its coordinates on the other faces."""
+    offset from the light (the cube-map rule), whatever its coordinates on the other faces; in the metric
+    (per_sample_maps) and in the evaluator (shadow_map.serving_maps)."""
     from shadowopt.solvers.fitting import frustum as gl_frustum
     from shadowopt.solvers.light_frames import CUBE_FACES, cube_face_views
 
     light = np.array([0.5, 3.0, -1.0])
-    maps = [ShadowMap(view, gl_frustum(-0.1, 0.1, -0.1, 0.1, 0.1, 50.0), (256, 256), light_depth=(0.1, 50.0), face=f)
+    maps = [ShadowMap(view, gl_frustum(-0.1, 0.1, -0.1, 0.1, 0.1, 500.0), (256, 256), light_depth=(0.1, 500.0), face=f)
             for f, view in cube_face_views(light).items()]
     cam = Camera.look_at([0, 2, 0], [0, 0, 20], resolution=(640, 480))
     rng = np.random.default_rng(3)
@@ -307,6 +308,9 @@ def test_cube_face_samples_are_scored_on_the_face_their_dominant_axis_points_int
     axes = np.array([fwd for fwd, _ in CUBE_FACES.values()], float)
     truth = np.argmax(d @ axes.T, axis=1)  # the face whose forward axis has the largest dot product
     assert len(d) > 200 and np.array_equal(idx, truth)
+    from shadowopt.solvers.shadow_map import serving_maps  # the evaluator's choice of face (depth unused for faces)
+
+    assert np.array_equal(serving_maps(maps, pts, s.view_depth), truth)
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32, np.int64, np.uint32])

@@ -901,3 +901,18 @@ def test_every_gradient_search_starts_on_the_same_side_of_the_tie_at_phi_0():
         firsts[method] = prob.xs[0]
     assert all(x[0] != 0.0 for x in firsts.values()), firsts
     assert all(np.array_equal(x, firsts["nlopt:LD_MMA"]) for x in firsts.values()), firsts
+
+
+def test_rectangle_fit_puts_the_longer_side_along_the_maps_longer_side():
+    """affine="rectangle" (Chong & Gortler 2007 §2.3, the minimum-area rectangle): the fitted box is the
+    rectangle itself (extents 4 x 1 for a 4 x 1 rectangle turned by any angle), its long side along s on a map
+    wider than tall and along t on a taller one."""
+    from shadowopt.solvers.optimize import affine_fit
+
+    rect = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 4.0], [0.0, 4.0]])  # long along y
+    for ang in (0.0, 0.2, 1.0, 2.5):
+        c, s = math.cos(ang), math.sin(ang)
+        q = rect @ np.array([[c, s], [-s, c]])
+        for res, want in (((1024, 512), [4.0, 1.0]), ((512, 1024), [1.0, 4.0])):
+            C, lo, hi = affine_fit(q, "rectangle", res)
+            assert hi - lo == pytest.approx(want, rel=1e-9), (ang, res, hi - lo)
