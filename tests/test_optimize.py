@@ -916,3 +916,35 @@ def test_rectangle_fit_puts_the_longer_side_along_the_maps_longer_side():
         for res, want in (((1024, 512), [4.0, 1.0]), ((512, 1024), [1.0, 4.0])):
             C, lo, hi = affine_fit(q, "rectangle", res)
             assert hi - lo == pytest.approx(want, rel=1e-9), (ang, res, hi - lo)
+
+
+def test_cg07_line_search_tries_the_papers_rotation_angles_along_the_negative_gradient():
+    """Chong & Gortler 2007 §3: each iteration tries the sphere rotations -10, 3, 5, 9, 16, 23, 30, 40 and 50
+    degrees along the negative gradient (the negative one for forced exploration; ../shared/reference/
+    digest-chong-gortler2007-hwsm-lispsm.md), 4 (phi, u) units per radian.
+    On a plane f = 1 + g.x far from any bound the first iteration's points are exactly those steps."""
+    from shadowopt.solvers.search_methods import cg07_linesearch
+
+    class Plane:
+        g = np.array([3.0, -4.0])
+
+        def __init__(self):
+            self.xs = []
+
+        def value(self, x):
+            self.xs.append(np.asarray(x, float).copy())
+            return 100.0 + float(self.g @ x)
+
+        def gradient(self, x):
+            return self.g.copy()
+
+        def clip(self, x):
+            return np.clip(x, -1e3, 1e3)
+
+    prob = Plane()
+    x0 = np.array([0.5, 0.25])
+    cg07_linesearch(prob, x0, 1)
+    d = -Plane.g / 5.0
+    want = [x0 + math.radians(a) * 4 * d for a in (-10, 3, 5, 9, 16, 23, 30, 40, 50)]
+    assert len(prob.xs) >= 10
+    assert np.allclose(prob.xs[1:10], want, rtol=0, atol=1e-12)
