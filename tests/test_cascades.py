@@ -313,7 +313,9 @@ def test_a_budgets_shared_size_takes_its_aspect_from_each_cascades_own_receivers
     pixel sizes of each slice's receivers, then cascades.allocate."""
     from shadowopt.solvers.texel_size import texel_extents
 
-    pts, _ = ground_samples(CAM, grid=(64, 36))
+    ground, _ = ground_samples(CAM, grid=(64, 36))
+    pole = np.column_stack([np.full(60, 1.0), np.linspace(0.0, 30.0, 60), np.full(60, 8.0)])  # 30 m tall, 8 m ahead
+    pts = np.vstack([ground, pole])  # a sun from behind sees its upper part on far ground's light rays (far maps)
     depth = (pts - CAM.position) @ CAM.forward
     T = 3 * 700 * 500
     for sun in (SUN, DirectionalLight.make([0.9, -0.3, 0.1]), DirectionalLight.make([0.0, -0.4, 1.0]),
