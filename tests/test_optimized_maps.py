@@ -220,3 +220,21 @@ def test_receiver_terms_count_receivers_on_the_maps_edges_and_refuse_one_off_it(
         assert np.isfinite(P) and P > 0 and P == pytest.approx(Q, rel=1e-9), side
     off = np.vstack([edges, [[1.01 * hw, 0.0, 0.0]]])
     assert receiver_terms(smap, off, cam, sun, 100) == (np.inf, np.inf)
+
+
+def test_a_receiver_listed_twice_changes_no_map():
+    """Receivers are a set of points: listing one twice (or three times) gives the same cascades, the same
+    choices and the same matrices. Here the rig's only receiver, 20 m ahead, under a sun from the side: its depth
+    range [d, 1.001 d] puts it in the first cascade only, and the second is fitted to its samples alone."""
+    from shadowopt.solvers.optimized_maps import optimized_maps
+
+    pts, samples = ground_samples(CAM, grid=(48, 27))
+    r = pts[np.argmin(np.abs(samples.view_depth - 20.0))][None]
+    sun = DirectionalLight.make([0.6, -0.5, -0.2])
+    runs = []
+    for rr in (r, np.vstack([r, r]), np.vstack([r, r, r])):
+        maps, sj = optimized_maps(CAM, sun, samples, rr, BOUNDS, resolution=(256, 256), cascades=2)
+        runs.append(([m.split for m in maps], [e["chosen"] for e in sj["cascades"]], [m.matrix for m in maps]))
+    for splits, chosen, mats in runs[1:]:
+        assert splits == runs[0][0] and chosen == runs[0][1]
+        assert all(np.allclose(a, b, rtol=1e-9, atol=1e-12) for a, b in zip(mats, runs[0][2]))
