@@ -684,7 +684,7 @@ def test_texel_extents_of_an_orthographic_map_are_its_width_per_unit():
     """texel_extents: world metres per unit s and t, by central differences in the plane perpendicular to the
     light. An overhead orthographic map of half-size hw is 2 hw metres per unit on both axes, exactly; the
     difference step scales with the points' extent, so scenes of 2 km to 40 km agree with the closed form to
-    1e-8 (a step fixed near 1e-9 m leaves roundoff of ~2e-6 there)."""
+    1e-8 (a step fixed near 1e-9 m leaves roundoff of ~2e-6 there). Points off the map get NaN."""
     from shadowopt.solvers.texel_size import texel_extents
     from shadowopt.solvers.shadow_map import ShadowMap
 
@@ -701,6 +701,9 @@ def test_texel_extents_of_an_orthographic_map_are_its_width_per_unit():
         per_s, per_t = texel_extents(sm, pts, sun)
         assert per_s == pytest.approx(np.full(200, 2 * hw), rel=1e-8)
         assert per_t == pytest.approx(np.full(200, 2 * hw), rel=1e-8)
+        out = np.array([[1.5 * hw, 0.0, 0.0], [0.0, 0.0, -1.2 * hw], [-1.01 * hw, 0.0, 0.5 * hw]])  # off the map
+        per_s, per_t = texel_extents(sm, np.vstack([pts[:2], out]), sun)
+        assert np.all(np.isfinite(per_s[:2])) and np.all(np.isnan(per_s[2:])) and np.all(np.isnan(per_t[2:]))
 
 
 def test_perspective_light_near_plane_rule():

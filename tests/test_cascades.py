@@ -291,3 +291,43 @@ def test_a_budget_gives_one_size_per_light_and_an_empty_slice_is_dropped_with_a_
     for k, c in enumerate(cascades):
         if c["predicted_error"]["samples"] == 0:
             assert any(n.startswith(f"cascade {k} (view depth {c['split'][0]:.4g}-") for n in notes), (k, notes)
+
+
+def test_cascade_splits_tile_the_view_from_the_eye_to_the_far_plane():
+    """fit_baseline's cascades serve [0, split_1], [split_1, split_2] ... [split_k-1, camera.far]: contiguous, the
+    first from the eye and the last to the far plane, whatever the receivers' depth range (here 2-150 m of
+    0.1-300), with the standard splits and with explicit ones."""
+    pts, _ = ground_samples(CAM)
+    for kw in ({"splits": "practical"}, {"splits": "log"}, {"split_at": [6.0, 20.0, 60.0]}):
+        maps = baseline("focused", CAM, SUN, pts, BOUNDS, (256, 256), cascades=4, **kw)
+        ends = [m.split for m in maps]
+        assert ends[0][0] == 0.0 and ends[-1][1] == CAM.far, (kw, ends)
+        assert all(a[1] == b[0] for a, b in zip(ends, ends[1:])), (kw, ends)
+    assert [m.split[1] for m in maps[:-1]] == [6.0, 20.0, 60.0]
+
+
+def test_a_budgets_shared_size_takes_its_aspect_from_each_cascades_own_receivers():
+    """Under a texel budget (one size per light, cascades.ONE_SIZE_PER_LIGHT) fit_baseline gives every cascade
+    T / k texels at the aspect max R_s / max R_t, each map's critical factors (Lloyd et al. 2007 §4) estimated
+    from the receivers of its own depth slice. Truth: those factors recomputed here from texel_extents and the
+    pixel sizes of each slice's receivers, then cascades.allocate."""
+    from shadowopt.solvers.texel_size import texel_extents
+
+    ground, _ = ground_samples(CAM, grid=(64, 36))
+    pole = np.column_stack([np.full(60, 1.0), np.linspace(0.0, 30.0, 60), np.full(60, 8.0)])  # 30 m tall, 8 m ahead
+    pts = np.vstack([ground, pole])  # a sun from behind sees its upper part on far ground's light rays (far maps)
+    depth = (pts - CAM.position) @ CAM.forward
+    T = 3 * 700 * 500
+    for sun in (SUN, DirectionalLight.make([0.9, -0.3, 0.1]), DirectionalLight.make([0.0, -0.4, 1.0]),
+                DirectionalLight.make([0.0, -0.3, -1.0]), DirectionalLight.make([0.2, -1.0, 0.05])):
+        maps = baseline("focused", CAM, sun, pts, BOUNDS, cascades=3, texel_budget=T)
+        R_s, R_t = [], []
+        for m in maps:
+            sel = (depth >= m.split[0]) & (depth <= m.split[1])
+            assert 0 < sel.sum() <= 4000
+            per_s, per_t = texel_extents(m, pts[sel], sun)
+            rs, rt = critical_factors(per_s, per_t, pixel_world_size(CAM, pts[sel]))
+            R_s.append(rs)
+            R_t.append(rt)
+        want = allocate(np.array(R_s), np.array(R_t), T, shared=True)
+        assert [tuple(m.resolution) for m in maps] == want

@@ -192,3 +192,20 @@ def test_face_resolutions_split_the_texels_by_the_probed_need(monkeypatch):
     # when a share rounds down)
     assert mis == [8.0, 1.0] and len(probes) == 1
     assert res[0][0] in (199, 200) and res[3][0] in (99, 100) and res[0][0] == res[0][1]
+
+
+def test_warp_axis_is_the_direction_the_view_depth_grows_along():
+    """face_partition.warp_axis: the angle of the least-squares depth gradient in the (a, b) plane; None when
+    the depth is flat. Receivers on a line b = 0 whose depth falls along +a: the axis points along -a (pi)."""
+    import math
+
+    from shadowopt.solvers.face_partition import warp_axis
+
+    a = np.linspace(-1.0, 1.0, 9)
+    ab = np.column_stack([a, np.zeros_like(a)])
+    assert warp_axis(ab, 10.0 - 2.0 * a) == pytest.approx(math.pi)
+    assert warp_axis(ab, 10.0 + 2.0 * a) == pytest.approx(0.0, abs=1e-12)
+    ab2 = np.column_stack([a, a[::-1] * 0.5 + np.cos(3 * a)])
+    g = np.array([0.3, -1.2])
+    assert warp_axis(ab2, 4.0 + ab2 @ g) == pytest.approx(math.atan2(g[1], g[0]))
+    assert warp_axis(ab, np.full(len(a), 10.0)) is None

@@ -285,3 +285,66 @@ def test_coarse_samples_stand_for_the_whole_screen_in_full_resolution_pixels():
         half[:, : wdt // 2] = True  # the boundary samples alone: their share of the screen
         s = select_samples(cam, light, pos, nrm, ones, ones, half)
         assert float(np.sum(s.pixels)) == pytest.approx(res[0] * res[1] * half.sum() / half.size, rel=1e-12)
+
+
+def test_cube_face_samples_are_scored_on_the_face_their_dominant_axis_points_into():
+    """A point light's six 90-degree faces: a sample belongs to the face along the largest component of its
+    offset from the light (the cube-map rule), whatever its coordinates on the other faces; in the metric
+    (per_sample_maps) and in the evaluator (shadow_map.serving_maps)."""
+    from shadowopt.solvers.fitting import frustum as gl_frustum
+    from shadowopt.solvers.light_frames import CUBE_FACES, cube_face_views
+
+    light = np.array([0.5, 3.0, -1.0])
+    maps = [ShadowMap(view, gl_frustum(-0.1, 0.1, -0.1, 0.1, 0.1, 500.0), (256, 256), light_depth=(0.1, 500.0), face=f)
+            for f, view in cube_face_views(light).items()]
+    cam = Camera.look_at([0, 2, 0], [0, 0, 20], resolution=(640, 480))
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(400, 3))
+    m = np.abs(d).max(1, keepdims=True)
+    d = d[(np.sort(np.abs(d), 1)[:, -2:-1] < 0.9 * m).ravel()]  # clear of the faces' shared edges
+    pts = light + d * rng.uniform(1.0, 20.0, size=(len(d), 1))
+    s = samples_on_plane(cam, pts, [0.0, 1.0, 0.0])
+    _, _, idx = per_sample_maps(maps, s)
+    axes = np.array([fwd for fwd, _ in CUBE_FACES.values()], float)
+    truth = np.argmax(d @ axes.T, axis=1)  # the face whose forward axis has the largest dot product
+    assert len(d) > 200 and np.array_equal(idx, truth)
+    from shadowopt.solvers.shadow_map import serving_maps  # the evaluator's choice of face (depth unused for faces)
+
+    assert np.array_equal(serving_maps(maps, pts, s.view_depth), truth)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.int64, np.uint32])
+def test_aligned_copies_are_64_byte_aligned_equal_and_cost_at_most_64_bytes_more(dtype):
+    """solvers.jit.aligned (every array handed to Dr.Jit in a hot path): the same values and shape, at a
+    64-byte boundary, in a buffer at most one 64-byte line larger than the data."""
+    from shadowopt.solvers.jit import aligned
+
+    for shape in [(1,), (3, 4), (1000, 3)]:
+        a = np.arange(int(np.prod(shape))).reshape(shape)
+        b = aligned(a, dtype)
+        assert b.dtype == dtype and b.shape == shape and np.array_equal(b, a.astype(dtype))
+        assert b.ctypes.data % 64 == 0
+        assert b.nbytes <= b.base.nbytes <= b.nbytes + 64
+
+
+def test_limit_angle_turns_a_normal_in_its_plane_to_exactly_the_limit_and_keeps_it_unit():
+    """samples.limit_angle: a normal farther than max_deg from `toward` ends a unit vector at exactly max_deg
+    from it, in the plane of the two and on the normal's side; a normal within the limit is untouched."""
+    from shadowopt.solvers.samples import limit_angle
+
+    rng = np.random.default_rng(7)
+    n = rng.normal(size=(500, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    to = rng.normal(size=(500, 3))
+    to /= np.linalg.norm(to, axis=1, keepdims=True)
+    out = limit_angle(n, to, 60.0)
+    before = np.degrees(np.arccos(np.clip(np.sum(n * to, 1), -1, 1)))
+    after = np.degrees(np.arccos(np.clip(np.sum(out * to, 1), -1, 1)))
+    far = before > 60.0
+    assert 100 < far.sum() < 500
+    assert np.allclose(np.linalg.norm(out, axis=1), 1.0, atol=1e-12)
+    assert np.allclose(after[far], 60.0, atol=1e-6) and np.array_equal(out[~far], n[~far])
+    plane_normal = np.cross(n[far], to[far])
+    assert np.allclose(np.sum(out[far] * plane_normal, 1), 0.0, atol=1e-9)  # in the plane of n and toward
+    side = lambda v: v - np.sum(v * to[far], 1, keepdims=True) * to[far]  # noqa: E731 (the part across toward)
+    assert np.all(np.sum(side(out[far]) * side(n[far]), 1) > 0)  # turned towards `toward`, not past it

@@ -767,3 +767,184 @@ def test_torch_searches_leave_a_bound_the_objective_falls_away_from(method):
             prob.value(np.array(start))
             _, ok, _ = search(prob, method, np.array(start), 50, 10)
             assert ok and prob.best[1] == pytest.approx(want, abs=2e-3), (centre, start, prob.best)
+
+
+def test_a_square_maps_parallelogram_puts_s_along_the_normal_nearer_warped_x():
+    """affine="parallelogram" on a square map: the two normals are ordered so that s (the first row of C)
+    is the one with the larger |x| component, each row with a positive diagonal, whatever the order of the
+    hull's edges (the parallelogram turned by quarter turns and mirrored)."""
+    from shadowopt.solvers.optimize import affine_fit
+
+    base = np.array([[0.0, 0.0], [2.0, 0.0], [3.0, 1.5], [1.0, 1.5]])  # edge normals (0, 1) and (-0.6, 0.8)
+    for k in range(4):
+        c, s = math.cos(k * math.pi / 2 + 0.3), math.sin(k * math.pi / 2 + 0.3)
+        for mirror in (1.0, -1.0):
+            q = base * [mirror, 1.0] @ np.array([[c, s], [-s, c]])
+            C, lo, hi = affine_fit(q, "parallelogram", (512, 512))
+            A = C[:2, :2]
+            assert abs(A[0, 0]) >= abs(A[1, 0]), (k, mirror, A)
+            assert A[0, 0] >= 0 and A[1, 1] >= 0
+            assert np.prod(hi - lo) / abs(np.linalg.det(A)) == pytest.approx(3.0, rel=1e-9)  # still the fit
+
+
+def test_a_spot_searchs_time_ms_is_its_own_wall_time_in_milliseconds(ground, monkeypatch):
+    """OptimizeResult.time_ms of a spot light's search (solvers.optimize._minimize_spot's path): at least the
+    time its objective evaluations took, at most the call's wall time, both measured here in milliseconds."""
+    import time
+
+    from shadowopt.solvers.lights import SpotLight
+    from shadowopt.solvers.optimize import Problem
+
+    spent = []
+    value = Problem.value
+
+    def timed(self, x):
+        t = time.perf_counter()
+        try:
+            return value(self, x)
+        finally:
+            spent.append((time.perf_counter() - t) * 1e3)
+
+    monkeypatch.setattr(Problem, "value", timed)
+    cam, pts, s = ground
+    L = SpotLight.make([0, 20, 20], [0.5, -1, 0.3], 70)
+    t0 = time.perf_counter()
+    r = minimize(cam, L, s, pts, BOUNDS, (256, 256), maxiter=10)
+    wall_ms = (time.perf_counter() - t0) * 1e3
+    assert len(spent) > 0 and sum(spent) <= r.time_ms <= wall_ms
+
+
+def test_objective_affine_fit_of_a_triangular_receiver_patch():
+    """The fewest fit points the "objective" affine fit takes: receivers whose hull seen from the light is a
+    triangle (three hull edges, six candidate normals). Its value is finite and no worse than the axis box's."""
+    from shadowopt.solvers.optimize import Problem
+
+    cam = Camera.look_at([0, 2, 0], [0, 0, 30], near=0.1, far=200, resolution=(1280, 720))
+    pts, s = ground_samples(cam, grid=(48, 27))
+    tri = np.array([[-6.0, 0.0, 8.0], [7.0, 0.0, 12.0], [1.0, 0.0, 40.0]])
+    e1, e2 = tri[1] - tri[0], tri[2] - tri[0]
+    lam = np.linalg.lstsq(np.column_stack([e1[[0, 2]], e2[[0, 2]]]), (pts - tri[0])[:, [0, 2]].T, rcond=None)[0]
+    inside = (lam[0] > 0.01) & (lam[1] > 0.01) & (lam.sum(0) < 0.99)
+    assert inside.sum() > 30
+    sub = s.subset(inside)
+    sun = DirectionalLight.make([1, -1, 0])
+    bounds = (np.array([-150, 0, -150.0]), np.array([150, 10, 150.0]))
+    obj = Problem(cam, sun, sub, tri, bounds, (1024, 1024), affine="objective")
+    box = Problem(cam, sun, sub, tri, bounds, (1024, 1024), affine="axis")
+    assert obj.n_hull == 3
+    for x in ([0.0, 0.0], [0.1, 1.0], [0.3, 2.0]):
+        x = np.array(x)
+        assert math.isfinite(obj.value(x)) and obj.value(x) <= box.value(x) * (1 + 1e-9)
+
+
+class _Valley:
+    """The search problem's interface (solvers.search_methods.Problem) on Rosenbrock's valley in [-1, 1]^2 (minimum
+    1 at (0.5, 0.25)), recording every point evaluated."""
+
+    def __init__(self):
+        self.lower, self.upper = np.full(2, -1.0), np.full(2, 1.0)
+        self.best = (math.inf, None)
+        self.xs = []
+
+    def clip(self, x):
+        return np.clip(np.asarray(x, float), self.lower, self.upper)
+
+    @staticmethod
+    def f(x):
+        return 1.0 + (0.5 - x[0]) ** 2 + 100.0 * (x[1] - x[0] ** 2) ** 2
+
+    def value(self, x):
+        x = self.clip(x)
+        self.xs.append(x.copy())
+        f = self.f(x)
+        if f < self.best[0]:
+            self.best = (f, x.copy())
+        return f
+
+    def gradient(self, x):
+        x = self.clip(x)
+        return np.array([-2.0 * (0.5 - x[0]) - 400.0 * x[0] * (x[1] - x[0] ** 2), 200.0 * (x[1] - x[0] ** 2)])
+
+    def value_and_grad(self, x):
+        return self.value(x), self.gradient(x)
+
+    def check_deadline(self):
+        pass
+
+
+def test_direct_is_polished_from_its_best_point_with_twice_maxiter_evaluations():
+    """nlopt:GN_DIRECT_L: max(4 maxiter, 60) global evaluations, then a BOBYQA polish from the best point DIRECT
+    found with 2 maxiter evaluations (a curved valley it cannot finish sooner); the count search reports is both."""
+    from shadowopt.solvers.search_methods import search
+
+    prob = _Valley()
+    prob.value(np.zeros(2))
+    prob.xs.clear()
+    it, ok, _ = search(prob, "nlopt:GN_DIRECT_L", np.zeros(2), 5, 10)
+    direct = 60
+    assert ok and it == len(prob.xs) == direct + 2 * 5
+    best_of_direct = min(prob.xs[:direct], key=_Valley.f)
+    assert np.array_equal(prob.xs[direct], best_of_direct)  # the polish starts where DIRECT was best
+
+
+def test_every_gradient_search_starts_on_the_same_side_of_the_tie_at_phi_0():
+    """phi = 0 is a symmetric tie of the affine fit: every gradient-based search (torch's L-BFGS and Adam, Chong
+    & Gortler's line search, NLopt's gradient methods) starts from the same point just beside it."""
+    from shadowopt.solvers.search_methods import search
+
+    firsts = {}
+    for method in ("gradient:lbfgs", "gradient:adam", "gradient:linesearch", "nlopt:LD_MMA", "nlopt:LD_LBFGS"):
+        prob = _Valley()
+        prob.value(np.array([0.0, 0.5]))
+        prob.xs.clear()
+        search(prob, method, np.array([0.0, 0.5]), 5, 10)
+        firsts[method] = prob.xs[0]
+    assert all(x[0] != 0.0 for x in firsts.values()), firsts
+    assert all(np.array_equal(x, firsts["nlopt:LD_MMA"]) for x in firsts.values()), firsts
+
+
+def test_rectangle_fit_puts_the_longer_side_along_the_maps_longer_side():
+    """affine="rectangle" (Chong & Gortler 2007 §2.3, the minimum-area rectangle): the fitted box is the
+    rectangle itself (extents 4 x 1 for a 4 x 1 rectangle turned by any angle), its long side along s on a map
+    wider than tall and along t on a taller one."""
+    from shadowopt.solvers.optimize import affine_fit
+
+    rect = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 4.0], [0.0, 4.0]])  # long along y
+    for ang in (0.0, 0.2, 1.0, 2.5):
+        c, s = math.cos(ang), math.sin(ang)
+        q = rect @ np.array([[c, s], [-s, c]])
+        for res, want in (((1024, 512), [4.0, 1.0]), ((512, 1024), [1.0, 4.0])):
+            C, lo, hi = affine_fit(q, "rectangle", res)
+            assert hi - lo == pytest.approx(want, rel=1e-9), (ang, res, hi - lo)
+
+
+def test_cg07_line_search_tries_the_papers_rotation_angles_along_the_negative_gradient():
+    """Chong & Gortler 2007 §3: each iteration tries the sphere rotations -10, 3, 5, 9, 16, 23, 30, 40 and 50
+    degrees along the negative gradient (the negative one for forced exploration; ../shared/reference/
+    digest-chong-gortler2007-hwsm-lispsm.md), 4 (phi, u) units per radian.
+    On a plane f = 1 + g.x far from any bound the first iteration's points are exactly those steps."""
+    from shadowopt.solvers.search_methods import cg07_linesearch
+
+    class Plane:
+        g = np.array([3.0, -4.0])
+
+        def __init__(self):
+            self.xs = []
+
+        def value(self, x):
+            self.xs.append(np.asarray(x, float).copy())
+            return 100.0 + float(self.g @ x)
+
+        def gradient(self, x):
+            return self.g.copy()
+
+        def clip(self, x):
+            return np.clip(x, -1e3, 1e3)
+
+    prob = Plane()
+    x0 = np.array([0.5, 0.25])
+    cg07_linesearch(prob, x0, 1)
+    d = -Plane.g / 5.0
+    want = [x0 + math.radians(a) * 4 * d for a in (-10, 3, 5, 9, 16, 23, 30, 40, 50)]
+    assert len(prob.xs) >= 10
+    assert np.allclose(prob.xs[1:10], want, rtol=0, atol=1e-12)

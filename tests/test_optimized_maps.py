@@ -194,3 +194,47 @@ def test_receiver_terms_do_not_depend_on_an_earlier_call_with_fewer_receivers():
     few = receiver_terms(smap, other, cam, sun, 50)
     assert few != want  # a subset scores differently, so the check below can fail
     assert receiver_terms(smap, other, cam, sun, 5000) == want
+
+
+def test_receiver_terms_count_receivers_on_the_maps_edges_and_refuse_one_off_it():
+    """receiver_terms (the receivers' mean h terms, P / w^2 + Q / h^2): a receiver on any of the map's four edges
+    is inside it (finite terms; an overhead orthographic map is 2 hw metres per unit along s and t, so P = Q),
+    and one receiver 1% beyond an edge makes them infinite."""
+    from shadowopt.solvers.cascade_scores import receiver_terms
+    from shadowopt.solvers.shadow_map import ShadowMap
+
+    hw = 20.0
+    view = np.array([[1.0, 0, 0, 0], [0, 0, -1.0, 0], [0, 1.0, 0, -50.0], [0, 0, 0, 1.0]])  # down -y from y = 50
+    proj = np.diag([1 / hw, 1 / hw, -2 / 199.0, 1.0])
+    proj[2, 3] = -201 / 199.0
+    smap = ShadowMap(view, proj, (512, 512))
+    sun = DirectionalLight.make([0.0, -1.0, 0.0])
+    cam = Camera.look([0, 30, -60], [0, -0.5, 1], near=0.1, far=300, resolution=(640, 360))
+    u = np.linspace(-hw, hw, 7)
+    edges = np.vstack([np.column_stack([np.full(7, hw), np.zeros(7), u]), np.column_stack([np.full(7, -hw), np.zeros(7), u]),
+                       np.column_stack([u, np.zeros(7), np.full(7, hw)]), np.column_stack([u, np.zeros(7), np.full(7, -hw)])])
+    s, t, _, _ = smap.map_coords(edges)
+    assert np.all(np.isclose(s, 0) | np.isclose(s, 1) | np.isclose(t, 0) | np.isclose(t, 1))
+    for side in range(4):
+        P, Q = receiver_terms(smap, edges[7 * side:7 * side + 7].copy(), cam, sun, 100)
+        assert np.isfinite(P) and P > 0 and P == pytest.approx(Q, rel=1e-9), side
+    off = np.vstack([edges, [[1.01 * hw, 0.0, 0.0]]])
+    assert receiver_terms(smap, off, cam, sun, 100) == (np.inf, np.inf)
+
+
+def test_a_receiver_listed_twice_changes_no_map():
+    """Receivers are a set of points: listing one twice (or three times) gives the same cascades, the same
+    choices and the same matrices. Here the rig's only receiver, 20 m ahead, under a sun from the side: its depth
+    range [d, 1.001 d] puts it in the first cascade only, and the second is fitted to its samples alone."""
+    from shadowopt.solvers.optimized_maps import optimized_maps
+
+    pts, samples = ground_samples(CAM, grid=(48, 27))
+    r = pts[np.argmin(np.abs(samples.view_depth - 20.0))][None]
+    sun = DirectionalLight.make([0.6, -0.5, -0.2])
+    runs = []
+    for rr in (r, np.vstack([r, r]), np.vstack([r, r, r])):
+        maps, sj = optimized_maps(CAM, sun, samples, rr, BOUNDS, resolution=(256, 256), cascades=2)
+        runs.append(([m.split for m in maps], [e["chosen"] for e in sj["cascades"]], [m.matrix for m in maps]))
+    for splits, chosen, mats in runs[1:]:
+        assert splits == runs[0][0] and chosen == runs[0][1]
+        assert all(np.allclose(a, b, rtol=1e-9, atol=1e-12) for a, b in zip(mats, runs[0][2]))

@@ -385,3 +385,24 @@ def test_a_path_maps_depth_is_the_warped_light_depth():
             _, _, z2, w2 = smap.map_coords(pts + step * e)
             assert w2 == pytest.approx(w, rel=1e-9, abs=1e-12)
             assert z2 == pytest.approx(z, rel=1e-9, abs=1e-12), step
+
+
+def test_each_cascade_is_fitted_to_the_samples_and_receivers_of_its_own_split():
+    """cascade_fits: cascade k gets exactly the samples whose view depth lies in its split, and (with no slack)
+    the receivers whose camera depth does, the first and last cascades unbounded on their outer side."""
+    from shadowopt.solvers.path_optimize import cascade_fits
+    from shadowopt.solvers.shadow_map import ShadowMap
+
+    cam = Camera.look_at([0, 2, 0], [0, 0, 20], resolution=(640, 480))
+    pts, s = ground_samples(cam, far=60.0, grid=(40, 30))
+    splits = [(0.1, 5.0), (5.0, 20.0), (20.0, 40.0)]
+    maps = [ShadowMap(np.eye(4), np.eye(4), (64, 64), split=sp) for sp in splits]
+    light = DirectionalLight(direction=np.array([-0.3, -0.8, 0.5]) / np.linalg.norm([-0.3, -0.8, 0.5]))
+    fits = cascade_fits(cam, light, s, pts, (pts.min(0) - 1, pts.max(0) + 1), maps)
+    depth = (pts - cam.position) @ cam.forward  # the receivers are the samples' points
+    for k, ((lo, hi), cf) in enumerate(zip(splits, fits)):
+        inside = (s.view_depth >= lo) & (s.view_depth <= hi)
+        assert 0 < inside.sum() < len(s)
+        assert np.array_equal(cf.sub.position, s.position[inside])
+        r_lo, r_hi = (lo if k else -np.inf), (hi if k < 2 else np.inf)
+        assert np.array_equal(cf.part, pts[(depth >= r_lo) & (depth <= r_hi)])

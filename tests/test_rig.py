@@ -107,3 +107,14 @@ def test_rig_that_does_not_fit_the_scene_names_the_field():
 def test_bundled_demo_rig_is_valid():
     raw = json.loads((Path(__file__).resolve().parents[1] / "configs" / "demo_rig.json").read_text())
     assert validated(raw)["camera"]["usd_path"] == "/World/Camera"
+
+
+def test_a_camera_refuses_a_resolution_without_pixels_on_either_axis():
+    """solvers.cameras.Camera.look (every rig's camera): a width or height of zero or below is refused with the
+    resolution it was given; 1 x 1 is a camera."""
+    from shadowopt.solvers.cameras import Camera
+
+    for res in ((0, 720), (1280, 0), (-4, 720), (1280, -4)):
+        with pytest.raises(ValueError, match=r"resolution must be positive, got \(" + str(res[0])):
+            Camera.look([0, 2, 0], [0, 0, 1], resolution=res)
+    assert Camera.look([0, 2, 0], [0, 0, 1], resolution=(1, 1)).resolution == (1, 1)

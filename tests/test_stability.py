@@ -194,3 +194,26 @@ def test_stable_csm_slice_sphere_encloses_the_slice_and_touches_a_corner():
         centre, r = slice_sphere(cam, z0, z1)
         dist = np.linalg.norm(corners - centre, axis=1)
         assert dist.max() == pytest.approx(r, rel=1e-9)
+
+
+def test_stable_csm_takes_explicit_inner_splits_inside_its_shadow_distance():
+    """stable_csm_maps(split_at=...) (splits "optimized": the split search's depths): the cascades end at the
+    given inner depths, in order, whatever order they come in; a depth beyond the shadow distance is pulled
+    just inside it (1e-6 of the span), and a wrong count or a non-finite depth is refused."""
+    from shadowopt.solvers.fitting import box_corners
+    from shadowopt.solvers.stable_csm import shadow_distance, stable_csm_maps
+
+    cam = Camera.look([0, 2, 0], [0, -0.1, 1], near=0.1, far=300, resolution=(1280, 720))
+    sun = DirectionalLight.make([-0.3, -0.8, 0.5])
+    bounds = (np.array([-150.0, 0.0, -150.0]), np.array([150.0, 10.0, 150.0]))
+    pts, _ = ground_samples(cam, far=150.0)
+    maps = stable_csm_maps(cam, sun, pts, bounds, (512, 512), cascades=3, split_at=[40.0, 7.5])
+    assert [m.split for m in maps] == [(0.0, 7.5), (7.5, 40.0), (40.0, 300.0)]
+    dist = shadow_distance(cam, box_corners(*bounds))
+    assert 40.0 < dist < 1e4
+    maps = stable_csm_maps(cam, sun, pts, bounds, (512, 512), cascades=3, split_at=[10.0, 2 * dist])
+    span = dist - cam.near
+    assert maps[1].split == (10.0, pytest.approx(dist - 1e-6 * span, rel=1e-12))
+    for bad in ([10.0], [10.0, np.nan]):
+        with pytest.raises(ValueError, match="split_at: need 2 finite inner split depths"):
+            stable_csm_maps(cam, sun, pts, bounds, (512, 512), cascades=3, split_at=bad)
