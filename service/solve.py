@@ -294,8 +294,11 @@ def _scored_maps(job: LightJob, output: dict) -> ScoredMaps:
 def _engine_check(job: LightJob, output: dict, best: ScoredMaps) -> ScoredMaps:
     """The search minimizes the aliasing metric; what the user sees is the engine's depth test. A method with
     rivals (optimized: LiSPSM and focused, fitted as fairly, with the same bias chooser) returns the rival's maps
-    where those predict fewer wrong pixels under that test, and says so in a note and in its report."""
+    where those predict fewer wrong pixels under that test, and says so in a note and in its report. Directional
+    lights only (a spot's or a point light's baselines are the same perspective maps the search starts from)."""
     rivals = {}
+    if job.prob.light.kind != "directional":  # a spot's or point light's rivals are the same kind of perspective map
+        return best
     common = dict(job.common)
     if common.get("splits") == "optimized" and len(best.maps) > 1 and best.maps[0].face is None:
         # the rivals take the search's splits: the comparison is of the maps, and the report's splits stay true
