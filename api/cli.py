@@ -169,6 +169,10 @@ def cmd_bench(args) -> int:
 
         result = bench_engine_truth(validate_rig, lights=args.lights, scenes=args.scenes, screen=args.screen,
                                     write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
+    elif args.bench == "solve-time":  # optimize's time per light, fitted bias against the rule
+        from ..service.bench.solve_time import bench_solve_time  # lazy: the server stack loads only for the command that runs
+
+        result = bench_solve_time(validate_rig, runs=args.runs or 3, write=not args.no_write)
     elif args.bench == "heldout":  # the corpus protocol on the held-out scenes (configs/heldout.json)
         from ..service.bench.heldout import bench_heldout  # lazy: the server stack loads only for the command that runs
 
@@ -669,7 +673,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
     sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch", "security", "engine", "path",
                                        "throughput", "inspect", "budget", "heldout", "limits", "hostile",
-                                       "engine-truth"])
+                                       "engine-truth", "solve-time"])
     sp.add_argument("--frames", type=int, default=None, help="path: frames per path (default: configs/paths.json's samples); "
                     "throughput: frames of the long path (default 1000)")
     sp.add_argument("--paths", default=None, help="path: comma-separated path names from configs/paths.json")

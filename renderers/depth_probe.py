@@ -14,26 +14,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..solvers.depth_modes import MODES, linear_range, stored_depth
+from ..solvers.depth_modes import MODES, linear_range, stored_depth, window_depth
 from ..solvers.engine_depth_test import DepthProbe
-from ..solvers.lights import DirectionalLight, Light
+from ..solvers.lights import Light
 from ..solvers.shadow_map import ShadowMap
-from .depth_tests import TAN_PSI_MAX, engine_cascades
+from .depth_tests import engine_cascades, tan_psi_clamped
 from .ray_scene import RayScene
 from .shadow_map_rays import caster_depth, texel_hits
-
-
-def _tan_psi(light: Light, X: np.ndarray, N: np.ndarray) -> np.ndarray:
-    """min(tan psi, TAN_PSI_MAX), psi between the unit normals and the direction to the light."""
-    if isinstance(light, DirectionalLight):
-        to_l = np.broadcast_to(-np.asarray(light.direction, float), X.shape)
-    else:
-        v = np.asarray(light.position, float) - X
-        to_l = v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-300)
-    c = np.clip(np.sum(N * to_l, axis=-1), 0.0, 1.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.sqrt(np.maximum(1.0 - c * c, 0.0)) / c
-    return np.where(np.isfinite(t), np.minimum(t, TAN_PSI_MAX), TAN_PSI_MAX)
 
 
 def depth_probe(rs: RayScene, light: Light, maps: list[ShadowMap], positions: np.ndarray, normals: np.ndarray,
@@ -58,7 +45,7 @@ def depth_probe(rs: RayScene, light: Light, maps: list[ShadowMap], positions: np
         near, far = linear_range(smap) if md == "linear" else (None, None)
         s, t, z, cw = smap.map_coords(Xp)
         with np.errstate(invalid="ignore"):  # hardware: window z (depth_modes.hardware_depth) of these coordinates
-            D = 0.5 * (z + 1.0) if md == "hardware" else stored_depth(smap, md, Xp, near, far)
+            D = window_depth(z) if md == "hardware" else stored_depth(smap, md, Xp, near, far)
             ok = (cw > 0) & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (D >= 0) & (D <= 1)
         ok &= np.isfinite(s) & np.isfinite(t) & np.isfinite(D)
         contains.append(ok)
@@ -89,4 +76,4 @@ def depth_probe(rs: RayScene, light: Light, maps: list[ShadowMap], positions: np
                                far if far is not None else 1.0)
         d_cast[sel], dz[sel], d_occ[sel], prim[sel] = Dc[back], dzc[back], occ[back], pr[back]
     return DepthProbe(mode if isinstance(mode, str) else "solution", np.asarray(idx, np.int64), inside, d_rec, d_cast, dz, d_occ, prim,
-                      _tan_psi(light, Xp, N))
+                      tan_psi_clamped(light, Xp, N))

@@ -8,7 +8,7 @@ import dataclasses
 
 import numpy as np
 
-from ..solvers.depth_modes import stored_depth
+from ..solvers.depth_modes import light_ray_dirs, stored_depth
 from ..solvers.engine_depth_test import engine_shadowed
 from ..solvers.lights import DirectionalLight, Light
 from ..solvers.shadow_map import ShadowMap, map_for_depth
@@ -207,11 +207,13 @@ def _device_engine_lookup(mi, dr, rs: RayScene, light: Light, smap: ShadowMap, s
     return shadowed.numpy().astype(bool), inside.numpy().astype(bool), u.numpy(), vv.numpy()
 
 
-def _to_light(light: Light, positions: np.ndarray) -> np.ndarray:
-    if isinstance(light, DirectionalLight):
-        return np.broadcast_to(-light.direction, positions.shape)
-    v = light.position - positions
-    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-300)
+def tan_psi_clamped(light: Light, positions: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """min(tan psi, TAN_PSI_MAX) in NumPy, psi between the unit normals and the direction to the light (the
+    reference of _device_tan_psi; TAN_PSI_MAX where the normal faces away or is edge-on)."""
+    c = np.clip(-np.sum(np.asarray(normals, float) * light_ray_dirs(light, positions), axis=-1), 0.0, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tan_psi = np.sqrt(np.maximum(1.0 - c * c, 0.0)) / c
+    return np.where(np.isfinite(tan_psi), np.minimum(tan_psi, TAN_PSI_MAX), TAN_PSI_MAX)
 
 
 def shadow_test(smap: ShadowMap, d_occ: np.ndarray, positions: np.ndarray, normals: np.ndarray,
@@ -236,10 +238,7 @@ def shadow_test(smap: ShadowMap, d_occ: np.ndarray, positions: np.ndarray, norma
         dirn /= np.maximum(np.linalg.norm(dirn, axis=-1, keepdims=True), 1e-300)
         X = positions[inside]
         d_rec = np.sum((X - near) * dirn, axis=-1)
-        c = np.clip(np.sum(normals[inside] * _to_light(light, X), axis=-1), 0.0, 1.0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tan_psi = np.sqrt(np.maximum(1.0 - c * c, 0.0)) / c
-        tan_psi = np.where(np.isfinite(tan_psi), np.minimum(tan_psi, TAN_PSI_MAX), TAN_PSI_MAX)
+        tan_psi = tan_psi_clamped(light, X, normals[inside])
         bias = float(smap.depth_bias.get("constant", 0.0)) + float(smap.depth_bias.get("slope", 0.0)) * tan_psi
         kc, ks = float(smap.depth_bias.get("constant_texels", 0.0)), float(smap.depth_bias.get("slope_texels", 0.0))
         if kc or ks:
@@ -265,10 +264,7 @@ def _engine_shadow_test(smap: ShadowMap, stored_map: np.ndarray, positions: np.n
         j = np.clip(np.floor(t[inside] * h).astype(np.int64), 0, h - 1)
         stored = stored_map[j, i]
         X = Xp[inside]
-        c = np.clip(np.sum(np.asarray(normals, float)[inside] * _to_light(light, X), axis=-1), 0.0, 1.0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tan_psi = np.sqrt(np.maximum(1.0 - c * c, 0.0)) / c
-        tan_psi = np.where(np.isfinite(tan_psi), np.minimum(tan_psi, TAN_PSI_MAX), TAN_PSI_MAX)
+        tan_psi = tan_psi_clamped(light, X, np.asarray(normals, float)[inside])
         shadowed[inside] = engine_shadowed(d_rec[inside], stored, engine["constant"], engine["slope"], tan_psi)
     return shadowed, ~inside
 

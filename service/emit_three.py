@@ -34,10 +34,13 @@ def check_engine(rig: dict) -> None:
     if engine not in EMIT_ENGINES:
         raise EmitError("--emit", f"writes code for output.engine {' or '.join(map(repr, EMIT_ENGINES))} only "
                         f"(accepted: {', '.join(EMIT_ENGINES)}); the rig's output.engine is {engine!r}")
-    lights = rig.get("lights") or []
+    _one_light(rig.get("lights") or [], "rig")
+
+
+def _one_light(lights: list, what: str) -> None:
     if len(lights) != 1:
-        raise EmitError("rig lights", f"--emit writes a module for one light (ctx.light; accepted: 1), the rig has "
-                        f"{len(lights)}")
+        raise EmitError("rig lights", f"--emit writes a module for one light (ctx.light; accepted: 1), the {what} "
+                        f"has {len(lights)}")
 
 
 def three_module(solution: dict) -> str:
@@ -47,9 +50,7 @@ def three_module(solution: dict) -> str:
         raise EmitError("--emit", f"the solution was not solved for output.engine 'three' (accepted: three), its "
                         f"output is {output.get('engine')!r}")
     lights = solution.get("lights") or []
-    if len(lights) != 1:
-        raise EmitError("rig lights", f"--emit writes a module for one light (ctx.light; accepted: 1), the "
-                        f"solution has {len(lights)}")
+    _one_light(lights, "solution")
     light = lights[0]
     if light.get("type") != "directional":
         raise EmitError("rig lights[0]", f"--emit writes a module for a directional light (accepted: directional), "

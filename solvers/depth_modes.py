@@ -60,10 +60,15 @@ TAN_PSI_MAX = 10.0  # slope clamp m = TAN_PSI_MAX k Q (the ideal rule's tan(psi)
 MIN_ULPS = 8.0  # hardware needs its constant bias at the 5th-percentile receiver >= this many float32 steps
 
 
+def window_depth(z_ndc: np.ndarray) -> np.ndarray:
+    """Window z (z_ndc + 1) / 2 (OpenGL 4.6 §13.8 with glDepthRange(0, 1))."""
+    return 0.5 * (np.asarray(z_ndc) + 1.0)
+
+
 def hardware_depth(smap: ShadowMap, pts: np.ndarray) -> np.ndarray:
-    """Window z (z_ndc + 1) / 2 of P V X (OpenGL 4.6 §13.8 with glDepthRange(0, 1))."""
+    """window_depth of P V X."""
     _, _, z, _ = smap.map_coords(np.asarray(pts, float).reshape(-1, 3))
-    return 0.5 * (z + 1.0)
+    return window_depth(z)
 
 
 def linear_range(smap: ShadowMap) -> tuple[float, float]:
