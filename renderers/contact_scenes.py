@@ -7,10 +7,9 @@ Regenerate by hand: .venv/bin/python -m shadowopt.renderers.contact_scenes [DIR]
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
-from .corpus import MeshAccumulator, build_text, ensure_file, new_stage, write_all
+from .corpus import MeshAccumulator, build_text, ensure_file, new_stage, out_folder, write_all
 
 CONTACT_VERSION = 1
 
@@ -114,8 +113,7 @@ CAMERAS = {
 
 
 def default_dir() -> Path:
-    env = os.environ.get("SHADOWOPT_CONTACT_DIR")
-    return Path(env) if env else Path(__file__).resolve().parents[1] / "out" / "contact"
+    return out_folder("SHADOWOPT_CONTACT_DIR", "contact")
 
 
 def scene_text(builder: str) -> str:

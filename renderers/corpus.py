@@ -400,9 +400,14 @@ BUILDERS = {
 }
 
 
+def out_folder(env: str, name: str) -> Path:
+    """The folder a scene generator writes to: $env when set, else out/<name>/ in the repository."""
+    value = os.environ.get(env)
+    return Path(value) if value else Path(__file__).resolve().parents[1] / "out" / name
+
+
 def default_cache_dir() -> Path:
-    env = os.environ.get("SHADOWOPT_CORPUS_DIR")
-    return Path(env) if env else Path(__file__).resolve().parents[1] / "out" / "corpus"
+    return out_folder("SHADOWOPT_CORPUS_DIR", "corpus")
 
 
 def scene_text(builder: str) -> str:

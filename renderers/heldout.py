@@ -28,13 +28,12 @@ nested transformed Xforms (parking lot), a USD camera looking up (bridge).
 from __future__ import annotations
 
 import math
-import os
 import random
 from pathlib import Path
 
 from pxr import Gf, UsdGeom, Vt
 
-from .corpus import build_text, ensure_file, new_stage, write_all
+from .corpus import build_text, ensure_file, new_stage, out_folder, write_all
 from .demo_scene import define_camera
 
 HELDOUT_VERSION = 1  # bump when a builder changes on purpose
@@ -491,8 +490,7 @@ BUILDERS = {
 
 
 def default_dir() -> Path:
-    env = os.environ.get("SHADOWOPT_HELDOUT_DIR")
-    return Path(env) if env else Path(__file__).resolve().parents[1] / "out" / "heldout"
+    return out_folder("SHADOWOPT_HELDOUT_DIR", "heldout")
 
 
 def scene_text(builder: str) -> str:
