@@ -22,10 +22,15 @@ PORT ?= 8000
 THREE_VERSION := 0.187.0
 WEB := out/web
 THREE_STAMP := $(WEB)/.three-$(THREE_VERSION)
+# Babylon.js, pinned, for the emitted Babylon module's browser test (tests/test_babylon_module.py): npm's
+# @babylonjs/core (ES modules, no dependencies, no install script) into the same out/web; its stamp names the version.
+# After three's rule (order-only), so that two npm installs never run in the same prefix at once under make -j.
+BABYLON_VERSION := 9.35.0
+BABYLON_STAMP := $(WEB)/.babylon-$(BABYLON_VERSION)
 
 .PHONY: setup serve test test-fast bench demo clean mutate
 
-setup: $(STAMP) $(THREE_STAMP)
+setup: $(STAMP) $(THREE_STAMP) $(BABYLON_STAMP)
 
 $(THREE_STAMP):
 	@command -v npm >/dev/null 2>&1 || { echo "setup: apt-get install nodejs npm"; \
@@ -34,6 +39,12 @@ $(THREE_STAMP):
 	@mkdir -p $(WEB)
 	@npm install --prefix $(WEB) --save-exact --no-audit --no-fund --ignore-scripts three@$(THREE_VERSION) >$(WEB)/npm.log 2>&1 || { cat $(WEB)/npm.log; exit 1; }
 	@rm -f $(WEB)/.three-*
+	@touch $@
+
+$(BABYLON_STAMP): | $(THREE_STAMP)
+	@echo "setup: npm install @babylonjs/core@$(BABYLON_VERSION) into $(WEB)"
+	@npm install --prefix $(WEB) --save-exact --no-audit --no-fund --ignore-scripts @babylonjs/core@$(BABYLON_VERSION) >$(WEB)/npm-babylon.log 2>&1 || { cat $(WEB)/npm-babylon.log; exit 1; }
+	@rm -f $(WEB)/.babylon-*
 	@touch $@
 
 $(STAMP): requirements.lock pyproject.toml
