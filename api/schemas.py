@@ -136,7 +136,7 @@ class OutputSpec(_Strict):
     frame: Literal["world", "stage"] = "world"
     reversed_z: bool = Field(False, description="reversed depth: the light's near plane at depth 1 and its far "
                              "plane at 0 (clear to 0, compare greater), in the projection and texture matrices")
-    engine: Literal["opengl", "d3d", "vulkan", "unity", "unreal", "godot", "three", "bevy", "filament"] | None = Field(
+    engine: Literal["opengl", "d3d", "vulkan", "unity", "unreal", "godot", "three", "bevy", "filament", "babylon"] | None = Field(
         None, description="an engine preset: the matrices take points in that engine's world frame and units, "
         "and every length of the solution is in those units (docs/engines.md)")
     allow_log_warp: bool = False

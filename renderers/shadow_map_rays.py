@@ -327,10 +327,10 @@ def device_engine_map(rs: RayScene, smap: ShadowMap, d_occ, prim, engine: dict):
 
 
 def device_quantize(mi, dr, D, depth_format: str):
-    """quantize_depth in Dr.Jit: float32 rounding (D32F) or round(D (2^bits - 1)) / (2^bits - 1) (a
-    normalized fixed-point depth buffer)."""
+    """quantize_depth in Dr.Jit: float32 rounding (D32F), float16 rounding (a half-float target) or
+    round(D (2^bits - 1)) / (2^bits - 1) (a normalized fixed-point depth buffer)."""
     steps = unorm_steps(depth_format)
     if steps is None:
-        return mi.Float64(mi.Float(D))
+        return mi.Float64(mi.Float16(D) if depth_format == "float16" else mi.Float(D))
     q = dr.opaque(mi.Float64, float(steps))
     return dr.round(D * q) / q

@@ -24,7 +24,13 @@ buffer, window z only. Engines whose bias is one setting per light that they sca
 (Godot, Unity URP, Unreal, Bevy, Filament) get one constant for all the light's maps, in stored depth (the
 emitted settings convert it), with the slope term they apply fixed (Filament polygonOffsetSlope 2; Unreal
 and URP a fixed slope bias; Godot and Bevy none) and their buffer's format (16-bit for Filament, Godot and
-URP by default, 32-bit float for Unreal and Bevy).
+URP by default, 32-bit float for Unreal and Bevy). Babylon.js (9.35, one map through
+ShadowLight.customProjectionMatrixBuilder): a constant per map (ShadowGenerator.bias, added to the caster's stored
+metric), no slope term in that path, a half-float map (Lights/Shadows/shadowGenerator.js), and the linear mode only:
+Babylon stores and compares the depth row's value before the divide by w (Shaders/ShadersInclude/
+shadowMapVertexMetric.js, shadowsVertex.js: (clip z + 1) / 2 interpolated as a varying), so the emitted module puts
+the linear depth in the projection's depth row (service/emit_babylon.py); its normalBias moves casters, not
+receivers, so the receivers' normal offset stays 0 (the module refuses another).
 """
 from __future__ import annotations
 
@@ -47,6 +53,7 @@ BIAS_TARGETS: dict[str | None, dict] = {
     "unity": {"modes": ("hardware",), "slopes": (2.5,), "clamps": (None,), "per_map": False, "format": "unorm16"},
     "unreal": {"modes": ("hardware",), "slopes": (1.0,), "clamps": (None,), "per_map": False, "format": "float32"},
     "bevy": {"modes": ("hardware",), "slopes": (0.0,), "clamps": (None,), "per_map": False, "format": "float32"},
+    "babylon": {"modes": ("linear",), "slopes": (0.0,), "clamps": (None,), "per_map": True, "format": "float16"},
 }
 for _generic in ("opengl", "d3d", "vulkan"):
     BIAS_TARGETS[_generic] = BIAS_TARGETS[None]

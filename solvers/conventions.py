@@ -211,7 +211,7 @@ def export_matrices(view: np.ndarray, proj_canonical: np.ndarray, convention: st
 # E = engine_from_world, F = diag(1, 1, -1, 1) for view "+z" (else identity), U = diag(1/m, 1/m, 1/m, 1) with
 # m = metres_per_unit (the light view space in engine units, so the view matrix is rigid there).
 # ---------------------------------------------------------------------------------------------------
-ENGINES = ("opengl", "d3d", "vulkan", "unity", "unreal", "godot", "three", "bevy", "filament")
+ENGINES = ("opengl", "d3d", "vulkan", "unity", "unreal", "godot", "three", "bevy", "filament", "babylon")
 _RH_Y_UP_M = {"axes": ("x", "y", "z"), "metres_per_unit": 1.0, "view": "-z", "layout": "column_major"}
 ENGINE_PRESETS: dict[str, dict] = {
     "opengl": {**_RH_Y_UP_M, "convention": "opengl", "reversed_z": False, "texture_origin": "bottom-left",
@@ -275,6 +275,18 @@ ENGINE_PRESETS: dict[str, dict] = {
                          "on Metal, Vulkan and WebGPU textureSpaceFlipped folds v -> 1 - v in, the shader's "
                          "uvToRenderTargetUV); "
                          "filament::math::mat4f is column-major; right-handed, +Y up, metres"},
+    # Babylon.js 9.35 (@babylonjs/core), WebGL2 engine; every file named is in that package
+    "babylon": {"convention": "opengl", "reversed_z": False, "texture_origin": "bottom-left", "projection": "clip",
+                "layout": "column_major", "axes": ("-x", "y", "z"), "metres_per_unit": 1.0, "view": "+z",
+                "docs": "Babylon.js 9.35 (@babylonjs/core), WebGL2 engine: left-handed, +Y up; a right-handed asset "
+                        "is placed as Babylon's glTF loader places it (its __root__ node turned 180 degrees about Y "
+                        "and scaled (1, 1, -1): x -> -x); clip z in [-1, 1] (Engines/abstractEngine.pure.js "
+                        "isNDCHalfZRange = false, useReverseDepthBuffer = false; only the WebGPU engine takes "
+                        "[0, 1]); light views by Matrix.LookAtLHToRef (Maths/math.vector.pure.js: the light looks "
+                        "down +Z); the lookup uv = 0.5 clip.xy / w + 0.5 (Shaders/ShadersInclude/"
+                        "shadowsFragmentFunctions.js computeShadow: rows from the bottom); Matrix.m and "
+                        "Matrix.FromArray hold the 16 numbers with the translation in m[12..14], the column-major "
+                        "order of these column-vector matrices"},
 }
 _FLIP_Z = np.diag([1.0, 1.0, -1.0, 1.0])
 

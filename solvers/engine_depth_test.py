@@ -15,15 +15,19 @@ DZ_CAP = 1e30  # DZ of a caster seen edge-on (its plane parallel to a neighbour'
 # The depth buffer's format: what the light pass's stored depth is rounded to. float32: D32F (the generic
 # presets); unorm24 / unorm16: normalized fixed point with 2^bits - 1 steps (OpenGL 4.6 §2.3.5.2, D3D11 UNORM
 # conversion: round(D (2^bits - 1))): three.js's WebGL depth texture (DEPTH24), Filament's DEPTH16 (ShadowMap),
-# Godot's and URP's 16-bit shadow atlases by default (../shared/reference/engine-settings.md).
-DEPTH_FORMATS = ("float32", "unorm24", "unorm16")
+# Godot's and URP's 16-bit shadow atlases by default (../shared/reference/engine-settings.md). float16: IEEE half
+# precision (round to nearest), Babylon.js's default shadow map, a half-float colour target holding the depth metric
+# (@babylonjs/core 9.35 Lights/Shadows/shadowGenerator.js _createInstance: TEXTURETYPE_HALF_FLOAT when the device
+# renders and filters half floats).
+DEPTH_FORMATS = ("float32", "unorm24", "unorm16", "float16")
+FLOAT_FORMATS = {"float32": np.float32, "float16": np.float16}
 
 
 def unorm_steps(depth_format: str) -> int | None:
-    """2^bits - 1 of a normalized fixed-point format, None for float32."""
+    """2^bits - 1 of a normalized fixed-point format, None for a floating-point one (FLOAT_FORMATS)."""
     if depth_format not in DEPTH_FORMATS:
         raise ValueError(f"depth format must be one of {', '.join(DEPTH_FORMATS)}, got {depth_format!r}")
-    return {"float32": None, "unorm24": (1 << 24) - 1, "unorm16": (1 << 16) - 1}[depth_format]
+    return {"unorm24": (1 << 24) - 1, "unorm16": (1 << 16) - 1}.get(depth_format)
 
 
 def quantize_depth(D: np.ndarray, depth_format: str = "float32") -> np.ndarray:
@@ -31,7 +35,7 @@ def quantize_depth(D: np.ndarray, depth_format: str = "float32") -> np.ndarray:
     steps = unorm_steps(depth_format)
     D = np.asarray(D, dtype=np.float64)
     if steps is None:
-        return D.astype(np.float32).astype(np.float64)
+        return D.astype(FLOAT_FORMATS[depth_format]).astype(np.float64)
     return np.rint(D * steps) / steps
 
 

@@ -58,8 +58,17 @@ def test_unorm_depth_formats_round_to_their_steps():
     q24 = quantize_depth(D, "unorm24")
     assert np.max(np.abs(q24 - D)) <= 0.5 / (2 ** 24 - 1) + 1e-15
     assert np.array_equal(quantize_depth(D, "float32"), D.astype(np.float32).astype(np.float64))
-    with pytest.raises(ValueError, match="float32, unorm24, unorm16"):
+    with pytest.raises(ValueError, match="float32, unorm24, unorm16, float16"):
         quantize_depth(D, "unorm8")
+
+
+def test_half_float_depth_keeps_11_significant_bits():
+    """Babylon.js's half-float map: in [0.5, 1) a step is 2^-11, so a value is within 2^-12 of its own; 0.1 is
+    within 2^-15 (IEEE 754 binary16, round to nearest)."""
+    D = np.array([0.1, 0.5, 0.7, 0.99999, 1.0])
+    q = quantize_depth(D, "float16")
+    assert np.all(np.abs(q - D) <= np.where(D >= 0.5, 2.0 ** -12, 2.0 ** -15))
+    assert q[-2] == 1.0 and q[1] == 0.5 and q[2] * 2 ** 11 == round(q[2] * 2 ** 11)
 
 
 # --- on the demo scene ------------------------------------------------------------------------------

@@ -36,6 +36,9 @@ TO_ENGINE = {
     "three": lambda x, y, z: (x, y, z),  # right-handed, +Y up, metres
     "bevy": lambda x, y, z: (x, y, z),  # right-handed, +Y up, metres
     "filament": lambda x, y, z: (x, y, z),  # right-handed, +Y up, metres
+    # Babylon.js: left-handed, +Y up, metres; its glTF loader places a right-handed asset under a root node turned
+    # 180 degrees about Y and scaled (1, 1, -1): x -> -x
+    "babylon": lambda x, y, z: (-x, y, z),
 }
 UNIT = {e: (100.0 if e == "unreal" else 1.0) for e in ENGINES}  # engine units per metre
 
@@ -58,6 +61,9 @@ TEXTURE = {
     "bevy": lambda t, d: (1 - t, 1 - d),
     # Filament ShadowMap::getTextureCoordsMapping: v = 0.5 y + 0.5, depth mapped to [1, 0]
     "filament": lambda t, d: (t, 1 - d),
+    # Babylon.js WebGL2: uv = 0.5 clip.xy / w + 0.5 (shadowsFragmentFunctions.js), depth (z + 1) / 2 (directional
+    # depthValues (1, 2): directionalLight.pure.js getDepthMinZ / getDepthMaxZ)
+    "babylon": lambda t, d: (t, d),
 }
 # Which engines take the OpenGL-convention projection in their API and convert it to their GPU clip
 # themselves (Unity: Camera.projectionMatrix / CommandBuffer.SetViewProjectionMatrices and
@@ -66,7 +72,7 @@ TEXTURE = {
 OPENGL_PROJECTION = {"unity", "filament"}
 # The light view space each engine's view matrices map to: OpenGL's eye space looks down -Z (three.js,
 # Godot, Bevy, Filament, Unity's worldToCameraMatrix); Unreal's view space is left-handed, looking down +Z.
-LOOKS_DOWN_PLUS_Z = {"unreal"}
+LOOKS_DOWN_PLUS_Z = {"unreal", "babylon"}  # Babylon: Matrix.LookAtLHToRef
 
 
 def decode(flat, engine: str):
@@ -132,7 +138,7 @@ def test_engine_frame_points_land_on_documented_texels_and_depths(engine, kind):
         ndc = c[:3] / c[3]
         if engine in OPENGL_PROJECTION:  # OpenGL NDC; the engine reverses depth itself
             assert ndc == pytest.approx([2 * s - 1, 2 * t_gl - 1, 2 * D - 1], abs=1e-9)
-        elif engine in ("opengl", "three"):  # window z = (z_ndc + 1)/2
+        elif engine in ("opengl", "three", "babylon"):  # window z = (z_ndc + 1)/2
             assert ndc == pytest.approx([2 * s - 1, 2 * t_gl - 1, 2 * want_depth - 1], abs=1e-9)
         else:  # NDC z in [0, 1] is the stored depth; Vulkan-style clip (Vulkan, Godot) has y down
             y_ndc = -(2 * t_gl - 1) if engine in ("vulkan", "godot") else 2 * t_gl - 1
@@ -195,7 +201,7 @@ def test_every_preset_reads_back_exactly_and_states_its_convention(demo, world_s
     sol = json.loads(json.dumps(solve(demo, _rig({"engine": engine}), SolveRequest("focused"))))  # through JSON, as served
     conv = sol["convention"]
     assert conv["engine"] == engine and conv["frame"] == "engine"
-    assert (conv["handedness"], conv["up_axis"]) == {"unity": ("left", "+Y"), "unreal": ("left", "+Z")}.get(
+    assert (conv["handedness"], conv["up_axis"]) == {"unity": ("left", "+Y"), "unreal": ("left", "+Z"), "babylon": ("left", "+Y")}.get(
         engine, ("right", "+Y"))
     assert conv["length_unit"] == ("centimetres" if engine == "unreal" else "metres")
     assert conv["reversed_z"] == (TEXTURE[engine](0.0, 0.0)[1] == 1.0)
