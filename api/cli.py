@@ -276,26 +276,27 @@ def cmd_optimize(args) -> int:
                         for k, (l, e) in enumerate(zip(sol["lights"], errs)))
     _write_or_print(sol, args.out, args.json, f"{args.method}: {summary}; {sol['timings_ms']['total']:.1f} ms")
     if args.emit:
-        _emit(rig, sol, args.emit)
-        print(f"three.js module written to {args.emit}", file=sys.stderr)
+        print(f"{_emit(rig, sol, args.emit)} module written to {args.emit}", file=sys.stderr)
     return 0
 
 
-def _emit(rig: dict, sol: dict | None, path: str) -> None:
-    """--emit: service.emit_three's checks as exit 2 (sol None: the rig's only, before solving), else the module."""
-    from ..service.emit_three import EmitError, check_engine, three_module  # lazy: only with --emit
+def _emit(rig: dict, sol: dict | None, path: str) -> str:
+    """--emit: service.emit's checks as exit 2 (sol None: the rig's only, before solving), else the module written;
+    returns the engine's name."""
+    from ..service.emit import ENGINE_NAMES, EmitError, check_rig, module  # lazy: only with --emit
 
     try:
+        engine = check_rig(rig)
         if sol is None:
-            check_engine(rig)
-            return
-        text = three_module(sol)
+            return ENGINE_NAMES[engine]
+        text = module(sol)
     except EmitError as e:
         raise CliError(str(e)) from None
     try:
         Path(path).write_text(text)
     except OSError as e:
         raise CliError(f"--emit: cannot write {path!r}: {e.strerror}") from e
+    return ENGINE_NAMES[engine]
 
 
 # the CLI's flag for each field service.method_options names (a rig field without a flag is named as in the rig)
@@ -628,7 +629,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--out", default=None, help="also write the solution JSON to this file")
     sp.add_argument("--emit", default=None, metavar="FILE.js", help="also write an ES module that installs the "
                     "solution in the engine as it is (the rig's output.engine \"three\": three.js r187, one "
-                    "directional light, one map or cascades through three's CSM addon; docs/engines.md)")
+                    "directional light, one map or cascades through three's CSM addon; \"babylon\": Babylon.js "
+                    "9.35, one directional light, one map; docs/engines.md)")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_optimize)
 
