@@ -327,7 +327,8 @@ class ShadowMapSolution(_Open):
         "DZ = max(|dD/dx|, |dD/dy|) per texel of the caster (hardware: glPolygonOffsetClamp(slope_scaled, 0, "
         "slope_clamp), D3D SlopeScaledDepthBias and DepthBiasClamp). Shadowed iff D(X') - (constant + slope * "
         "min(tan psi, 10)) > stored D, X' = X + normal_offset * N (metres along the receiver's light-facing "
-        "normal); constant, slope and slope_clamp are in stored-depth units"))
+        "normal); constant, slope and slope_clamp are in stored-depth units. constant_side caster (output.engine "
+        "babylon): the constant is added to the caster's D before the depth format rounds it, and is 0 at the lookup"))
     blend_band: tuple[float, float] | None = Field(None, description="[start, end] camera depth where this "
                                                    "cascade blends into the next; null for the last or only map")
     face: str | None = None

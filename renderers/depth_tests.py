@@ -32,7 +32,8 @@ DEPTH_RULE_ENGINE = (
     "geometric normal on its light-facing side), the nearest texel of X', D_rec = D(X') with D the mode's stored "
     "depth (hardware: window z (z_ndc + 1) / 2 of projection * view; linear: (-z_view - near) / (far - near)), "
     "stored D = clamp(D(P) + min(slope_scaled * DZ, slope_clamp), 0, 1) rounded to the block's depth format (float32, "
-    "or unorm24 / unorm16 fixed point), P the texel-centre "
+    "float16, or unorm24 / unorm16 fixed point; with constant_side caster the constant is added to D(P) before the "
+    "rounding and is 0 at the lookup), P the texel-centre "
     "ray's first hit, DZ = max(|D(P_x) - D(P)|, |D(P_y) - D(P)|) with P_x, P_y the caster triangle's plane on the "
     "rays of texels (i + 1, j) and (i, j + 1) (a caster-side slope-scaled bias: glPolygonOffsetClamp, D3D "
     "SlopeScaledDepthBias), 0 for pancaked casters, 1 where nothing is hit; shadowed iff D_rec - (constant + slope "
@@ -42,7 +43,8 @@ DEPTH_RULE_ENGINE = (
 
 def engine_depth(smap: ShadowMap, depth: str) -> dict | None:
     """The numbers an engine applies for `smap` under `depth` (DEPTH_CHOICES): None for "ideal", else
-    {mode, constant, slope, normal_offset, near, far, slope_scaled, slope_clamp, format} from the map's depth
+    {mode, constant, slope, normal_offset, near, far, slope_scaled, slope_clamp, format, caster_constant} from the map's
+    depth
     block ("solution": the block's own mode; a block without slope_scaled has none, without slope_clamp no
     clamp, without format float32: solvers.depth_modes.DEPTH_FORMATS).
     A map without a block is a ValueError."""
@@ -62,7 +64,9 @@ def engine_depth(smap: ShadowMap, depth: str) -> dict | None:
            "normal_offset": float(b.get("normal_offset", 0.0) or 0.0), "near": 0.0, "far": 1.0,
            "slope_scaled": float(b.get("slope_scaled", 0.0) or 0.0),
            "slope_clamp": float(clamp) if clamp is not None else float("inf"),
-           "format": block.get("format", "float32")}
+           "format": block.get("format", "float32"), "caster_constant": 0.0}
+    if b.get("constant_side", "receiver") == "caster":  # added to the stored depth before rounding (CONSTANT_SIDES)
+        out["caster_constant"], out["constant"] = out["constant"], 0.0
     if mode == "linear":
         out["near"], out["far"] = float(b["near"]), float(b["far"])
     return out

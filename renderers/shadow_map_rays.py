@@ -249,7 +249,8 @@ def engine_stored_map(rs: RayScene, smap: ShadowMap, d_occ: np.ndarray, prim: np
     occ, pr = np.asarray(d_occ, float).ravel(), np.asarray(prim).ravel()
     D, dz = caster_depth(rs, smap, ii, jj, occ, pr, engine["mode"], engine["near"], engine["far"])
     k, m = float(engine.get("slope_scaled", 0.0)), float(engine.get("slope_clamp", np.inf))
-    return stored_with_bias(D, dz, occ, pr, k, m, engine.get("format", "float32")).reshape(h, w)
+    return stored_with_bias(D, dz, occ, pr, k, m, engine.get("format", "float32"),
+                            float(engine.get("caster_constant", 0.0))).reshape(h, w)
 
 
 def device_points(mi, a: np.ndarray):
@@ -320,6 +321,8 @@ def device_engine_map(rs: RayScene, smap: ShadowMap, d_occ, prim, engine: dict):
             dz = dr.maximum(dz, dr.select(dr.isfinite(step), step, dr.inf))
         off = dr.minimum(dr.opaque(F64, k) * dr.minimum(dz, dr.opaque(F64, DZ_CAP)), dr.opaque(F64, m))
         D = D + off
+    if engine.get("caster_constant"):  # a caster-side constant, before the rounding (engine_depth_test.CONSTANT_SIDES)
+        D = D + dr.opaque(F64, float(engine["caster_constant"]))
     stored = dr.select(faced, dr.clip(D, zero, one), dr.select(hit, zero, one))
     stored = device_quantize(mi, dr, stored, engine.get("format", "float32"))
     dr.eval(stored)

@@ -102,7 +102,7 @@ def choose_bias(rays: RayScene, light, maps: list[ShadowMap], buffers: CoarseBuf
     if choice == "fitted" and maps:
         fits = fit_bias(probes, lit, a, len(maps), engine, pinned)
         for smap, fit in zip(maps, fits):
-            _fitted_block(smap, fit, target["format"])
+            _fitted_block(smap, fit, target["format"], target.get("constant_side"))
     fmt = maps[0].depth.get("format", "float32") if maps and isinstance(maps[0].depth, dict) else "float32"
     own = [m.depth["mode"] for m in maps]  # evaluate --depth solution: each map in its own mode
     probe = probes[own[0]] if len(set(own)) == 1 and own[0] in probes else depth_probe(rays, light, maps, pos, nrm,
@@ -116,8 +116,9 @@ def choose_bias(rays: RayScene, light, maps: list[ShadowMap], buffers: CoarseBuf
             "outside_pixels": wrong["outside"], "bias": choice, "model": PREDICTION_MODEL}
 
 
-def _fitted_block(smap: ShadowMap, fit, depth_format: str) -> None:
-    """The map's depth block from the fit: both modes' terms (each mode's own best), the chosen mode, the format."""
+def _fitted_block(smap: ShadowMap, fit, depth_format: str, constant_side: str | None = None) -> None:
+    """The map's depth block from the fit: both modes' terms (each mode's own best), the chosen mode, the format,
+    and where the constant acts when the target says (solvers.engine_depth_test.CONSTANT_SIDES)."""
     block = dict(smap.depth) if isinstance(smap.depth, dict) else {}
     for mode, (c, k, m, wrong) in fit.per_mode.items():
         entry = dict(block.get(mode) or {})
@@ -126,6 +127,8 @@ def _fitted_block(smap: ShadowMap, fit, depth_format: str) -> None:
                      slope_clamp=1.0 if m is None else min(float(m), 1.0))
         if mode == "linear":
             entry["near"], entry["far"] = linear_range(smap)
+        if constant_side:
+            entry["constant_side"] = constant_side
         block[mode] = entry
     block["mode"] = fit.mode
     block["format"] = depth_format

@@ -23,7 +23,7 @@ import time
 from ..renderers.depth_tests import DEPTH_CHOICES
 from ..renderers.ground_truth import evaluate_buffers
 from ..renderers.heatmap import HEATMAP_MODES, heatmap_with_legend, misclassified_split
-from ..solvers.engine_depth_test import DEPTH_FORMATS
+from ..solvers.engine_depth_test import CONSTANT_SIDES, DEPTH_FORMATS
 from ..solvers.metric import error_stats
 from .request_cost import WorkLimit, check_eval_work, flush_if_large
 from .rigs import SolutionError, resolve_rig
@@ -107,6 +107,10 @@ def check_depth_blocks(solution: dict, depth: str) -> None:
                 if not (_finite(v) and v >= 0):
                     raise SolutionError(f"{at}.depth.{mode}.{key}", f"{key}: expected a finite number >= 0, got "
                                         f"{v!r:.40}")
+            side = b[mode].get("constant_side", "receiver")
+            if side not in CONSTANT_SIDES:
+                raise SolutionError(f"{at}.depth.{mode}.constant_side", f"constant_side: expected one of "
+                                    f"{', '.join(CONSTANT_SIDES)}, got {side!r:.40}")
             fmt = b.get("format", "float32")
             if fmt not in DEPTH_FORMATS:
                 raise SolutionError(f"{at}.depth.format", f"format: expected one of {', '.join(DEPTH_FORMATS)}, got "

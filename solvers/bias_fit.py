@@ -30,7 +30,9 @@ metric), no slope term in that path, a half-float map (Lights/Shadows/shadowGene
 Babylon stores and compares the depth row's value before the divide by w (Shaders/ShadersInclude/
 shadowMapVertexMetric.js, shadowsVertex.js: (clip z + 1) / 2 interpolated as a varying), so the emitted module puts
 the linear depth in the projection's depth row (service/emit_babylon.py); its normalBias moves casters, not
-receivers, so the receivers' normal offset stays 0 (the module refuses another).
+receivers, so the receivers' normal offset stays 0 (the module refuses another). Its constant is added to the
+caster's metric before the half float rounds it (engine_depth_test.CONSTANT_SIDES), so the count is no longer a step
+function of margins fixed in advance: the constant fitted as a receiver-side one is refined over CASTER_GRID times it.
 """
 from __future__ import annotations
 
@@ -53,10 +55,12 @@ BIAS_TARGETS: dict[str | None, dict] = {
     "unity": {"modes": ("hardware",), "slopes": (2.5,), "clamps": (None,), "per_map": False, "format": "unorm16"},
     "unreal": {"modes": ("hardware",), "slopes": (1.0,), "clamps": (None,), "per_map": False, "format": "float32"},
     "bevy": {"modes": ("hardware",), "slopes": (0.0,), "clamps": (None,), "per_map": False, "format": "float32"},
-    "babylon": {"modes": ("linear",), "slopes": (0.0,), "clamps": (None,), "per_map": True, "format": "float16"},
+    "babylon": {"modes": ("linear",), "slopes": (0.0,), "clamps": (None,), "per_map": True, "format": "float16",
+                "constant_side": "caster"},
 }
 for _generic in ("opengl", "d3d", "vulkan"):
     BIAS_TARGETS[_generic] = BIAS_TARGETS[None]
+CASTER_GRID = tuple(2.0 ** (i / 4) for i in range(-8, 9))  # a caster-side constant: these multiples of the fitted one
 PINNABLE = ("mode", "constant", "slope_scaled", "slope_clamp", "normal_offset")
 
 
@@ -165,13 +169,31 @@ def _best_terms(probe: DepthProbe, sel: np.ndarray, lit: np.ndarray, a: np.ndarr
         for m in clamps:
             stored = probe.stored(k, np.inf if m is None else m, depth_format)[sel]
             margin = probe.d_rec[sel] - stored
-            if pinned.get("constant") is not None:
+            if target.get("constant_side") == "caster":
+                c, wrong = _caster_constant(probe, sel, lit, a, k, m, depth_format, pinned.get("constant"),
+                                            None if pinned.get("constant") is not None else
+                                            fit_constant(margin, lit[sel], a[sel])[0])
+            elif pinned.get("constant") is not None:
                 c = float(pinned["constant"])
                 wrong = float(np.sum(a[sel] * (engine_shadowed(probe.d_rec[sel], stored, c) != ~lit[sel])))
             else:
                 c, wrong = fit_constant(margin, lit[sel], a[sel])
             if best is None or wrong < best[3] - 1e-9:
                 best = (c, float(k), m, wrong)
+    return best
+
+
+def _caster_constant(probe: DepthProbe, sel: np.ndarray, lit: np.ndarray, a: np.ndarray, k: float, m, depth_format: str,
+                     pinned: float | None, fitted: float | None) -> tuple[float, float]:
+    """(c, wrong) of a caster-side constant (CONSTANT_SIDES): the pinned one, or the best of CASTER_GRID times the
+    receiver-side fit, each scored with c added before the rounding and a comparison without bias."""
+    cands = [float(pinned)] if pinned is not None else [fitted * g for g in CASTER_GRID]
+    best = None
+    for c in cands:
+        stored = probe.stored(k, np.inf if m is None else m, depth_format, c)[sel]
+        wrong = float(np.sum(a[sel] * ((probe.d_rec[sel] > stored) != ~lit[sel])))
+        if best is None or wrong < best[1] - 1e-9:
+            best = (c, wrong)
     return best
 
 
@@ -214,15 +236,18 @@ def fit_bias(probes: dict[str, DepthProbe], lit: np.ndarray, pixels: np.ndarray,
 
 def probe_shadowed(probe: DepthProbe, terms: list[dict], depth_format: str) -> np.ndarray:
     """The engine's answer at the probe's receivers for each map's terms ({constant, slope, slope_scaled,
-    slope_clamp}: a depth block's mode entry): shadowed or not (receivers no map serves: lit)."""
+    slope_clamp, constant_side}: a depth block's mode entry): shadowed or not (receivers no map serves: lit)."""
     shadowed = np.zeros(len(probe.map_index), bool)
     for k, t in enumerate(terms):
         sel = (probe.map_index == k) & probe.inside
         if not sel.any():
             continue
         m = t.get("slope_clamp")
-        stored = probe.stored(float(t.get("slope_scaled") or 0.0), np.inf if m is None else float(m), depth_format)
-        shadowed[sel] = engine_shadowed(probe.d_rec[sel], stored[sel], float(t.get("constant", 0.0)),
+        caster = t.get("constant_side", "receiver") == "caster"  # engine_depth_test.CONSTANT_SIDES
+        c = float(t.get("constant", 0.0))
+        stored = probe.stored(float(t.get("slope_scaled") or 0.0), np.inf if m is None else float(m), depth_format,
+                              c if caster else 0.0)
+        shadowed[sel] = engine_shadowed(probe.d_rec[sel], stored[sel], 0.0 if caster else c,
                                         float(t.get("slope", 0.0)), probe.tan_psi[sel])
     return shadowed
 

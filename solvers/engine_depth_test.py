@@ -21,6 +21,11 @@ DZ_CAP = 1e30  # DZ of a caster seen edge-on (its plane parallel to a neighbour'
 # renders and filters half floats).
 DEPTH_FORMATS = ("float32", "unorm24", "unorm16", "float16")
 FLOAT_FORMATS = {"float32": np.float32, "float16": np.float16}
+# Where a depth block's constant acts (its mode entry's `constant_side`): "receiver" (default), subtracted from the
+# receiver's depth at the lookup; "caster", added to the caster's stored depth before the buffer rounds it (Babylon.js:
+# Shaders/ShadersInclude/shadowMapVertexMetric.js adds its bias to the stored metric; with a half-float map the
+# rounding then sees D + constant: quantize(D + c) is not quantize(D) + c).
+CONSTANT_SIDES = ("receiver", "caster")
 
 
 def unorm_steps(depth_format: str) -> int | None:
@@ -40,15 +45,16 @@ def quantize_depth(D: np.ndarray, depth_format: str = "float32") -> np.ndarray:
 
 
 def stored_with_bias(D: np.ndarray, dz: np.ndarray, d_occ: np.ndarray, prim: np.ndarray, k: float, m: float,
-                     depth_format: str = "float32") -> np.ndarray:
-    """What the light pass stores per texel: clamp(D + min(k DZ, m), 0, 1) for a hit caster (k =
-    slope_scaled, m = slope_clamp: OpenGL 4.6 §14.6.5 polygon offset, D3D11 slope-scaled depth bias), 0 for a
-    pancaked one, 1 where nothing is hit; rounded to the depth buffer's format (quantize_depth)."""
+                     depth_format: str = "float32", caster_constant: float = 0.0) -> np.ndarray:
+    """What the light pass stores per texel: clamp(D + min(k DZ, m) + caster_constant, 0, 1) for a hit caster (k =
+    slope_scaled, m = slope_clamp: OpenGL 4.6 §14.6.5 polygon offset, D3D11 slope-scaled depth bias;
+    caster_constant: a caster-side constant, CONSTANT_SIDES), 0 for a pancaked one, 1 where nothing is hit; rounded
+    to the depth buffer's format (quantize_depth)."""
     hit = np.isfinite(np.asarray(d_occ, float))
     faced = hit & (np.asarray(prim) >= 0)
     with np.errstate(all="ignore"):
         off = np.minimum(k * np.minimum(dz, DZ_CAP), m) if k else np.zeros(len(D))
-        stored = np.where(faced, np.clip(D + off, 0.0, 1.0), np.where(hit, 0.0, 1.0))
+        stored = np.where(faced, np.clip(D + off + caster_constant, 0.0, 1.0), np.where(hit, 0.0, 1.0))
     return quantize_depth(stored, depth_format)
 
 
@@ -78,5 +84,5 @@ class DepthProbe:
     prim: np.ndarray
     tan_psi: np.ndarray
 
-    def stored(self, k: float, m: float, depth_format: str) -> np.ndarray:
-        return stored_with_bias(self.d_cast, self.dz, self.d_occ, self.prim, k, m, depth_format)
+    def stored(self, k: float, m: float, depth_format: str, caster_constant: float = 0.0) -> np.ndarray:
+        return stored_with_bias(self.d_cast, self.dz, self.d_occ, self.prim, k, m, depth_format, caster_constant)

@@ -64,6 +64,7 @@ def test_emitted_module_in_babylon_js_misclassifies_about_what_evaluate_counts(b
     assert inst["filter"] == 0 and inst["mapSize"] == smap["resolution"][0] and inst["builder"] and inst["receive"], inst
     assert inst["bias"] == pytest.approx(smap["depth"]["linear"]["constant"]) and inst["normalBias"] == 0, inst
     assert smap["depth"]["mode"] == "linear" and smap["depth"]["format"] == "float16" and inst["halfFloat"], smap
+    assert smap["depth"]["linear"]["constant_side"] == "caster", smap  # ShadowGenerator.bias: before the rounding
     assert out["restored"] == {"builder": True, "receive": False, "generator": False}, out["restored"]
 
 

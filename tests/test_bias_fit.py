@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from shadowopt.solvers.bias_fit import BIAS_TARGETS, fit_constant, probe_shadowed
-from shadowopt.solvers.engine_depth_test import engine_shadowed, quantize_depth
+from shadowopt.solvers.engine_depth_test import DepthProbe, engine_shadowed, quantize_depth
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -202,3 +202,17 @@ def test_the_cli_refuses_a_pinned_term_out_of_range_with_exit_2_naming_it(tmp_pa
     err = capsys.readouterr().err
     assert code == 2 and "shadow.depth.constant" in err and "finite" in err, err
     assert "Traceback" not in err
+
+
+def test_a_caster_side_constant_is_rounded_with_the_casters_depth():
+    """Babylon.js adds its bias to the caster's metric before the half-float map rounds it (constant_side caster):
+    a caster 0.4 steps above a grid value with a constant of 0.3 steps stores the next value up, so a receiver 0.4
+    steps behind it is lit, where a receiver-side constant (rounding the caster down, then subtracting) shadows it."""
+    step = 2.0 ** -12  # float16 in [0.25, 0.5)
+    q = 0.3 - (0.3 % step)
+    one = np.ones(1)
+    probe = DepthProbe("linear", np.zeros(1, int), np.ones(1, bool), np.array([q + 0.8 * step]),
+                       np.array([q + 0.4 * step]), np.zeros(1), one, np.zeros(1, int), np.zeros(1))
+    terms = {"constant": 0.3 * step, "slope": 0.0, "slope_scaled": 0.0, "slope_clamp": 1.0}
+    assert probe_shadowed(probe, [terms], "float16")[0]
+    assert not probe_shadowed(probe, [{**terms, "constant_side": "caster"}], "float16")[0]
