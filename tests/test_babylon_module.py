@@ -10,15 +10,12 @@ refused with exit 2, naming the field and what is accepted (unit tests, no brows
 from __future__ import annotations
 
 import json
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-from web_engine_kit import DEMO, ROOT, SCREEN, geometry, launch_browser, render_page, score, solve_and_emit
+from web_engine_kit import (BABYLON, DEMO, SCREEN, babylon_fallback, babylon_files, geometry, launch_browser,
+                            render_page, score, solve_and_emit)
 
-BABYLON = ROOT / "out" / "web" / "node_modules" / "@babylonjs" / "core"
-HARNESS = Path(__file__).with_name("babylon_harness")
 TO_BABYLON = (-1.0, 1.0, 1.0)  # solvers.conventions.ENGINE_PRESETS["babylon"] axes ("-x", "y", "z")
 
 
@@ -45,14 +42,8 @@ def test_emitted_module_in_babylon_js_misclassifies_about_what_evaluate_counts(b
     for k in ("position", "forward", "up"):
         cam[k] = _to_babylon(cam[k])
     sun = solution["resolved"]["lights"][0]["direction"]
-    files = {"/index.html": (HARNESS / "index.html").read_bytes(), "/harness.js": (HARNESS / "harness.js").read_bytes(),
-             "/apply.js": module.encode(), "/scene.bin": geometry(entry, sun, TO_BABYLON)}
-
-    def fallback(path):  # the package's ES modules, and the shaders it imports on demand
-        f = BABYLON / path.removeprefix("/babylon/")
-        return f.read_bytes() if path.startswith("/babylon/") and path.endswith(".js") and f.is_file() else None
-
-    out = render_page(browser, files, fallback, {"screen": list(SCREEN), "geometry": "/scene.bin", "module": "/apply.js",
+    files = babylon_files(**{"/apply.js": module.encode(), "/scene.bin": geometry(entry, sun, TO_BABYLON)})
+    out = render_page(browser, files, babylon_fallback, {"screen": list(SCREEN), "geometry": "/scene.bin", "module": "/apply.js",
                                                  "sun_direction": _to_babylon(sun), "camera": cam})
     s = score(entry, rig, solution, out)
     print("Babylon.js 9.35 vs evaluate --depth solution:", s)

@@ -77,11 +77,11 @@ def solve_and_emit(tmp_path, rig: dict, *extra: str) -> tuple[dict, str]:
     return json.loads(sol.read_text()), js.read_text()
 
 
-def render_page(browser, files: dict, fallback, params: dict) -> dict:
+def render_page(browser, files: dict, fallback, params: dict, call: str = "render") -> dict:
     """Open ORIGIN/index.html with `files` (path -> bytes) served and `fallback(path)` (bytes or None) for the rest,
-    wait for window.harnessReady, run window.harness.render(params), and decode its `alpha` (uint8: 255 where the
-    engine shadows) and `depth` (float32 view depth, 0 where nothing is hit) into (H, W) arrays, top row first.
-    No page error or console error may occur."""
+    wait for window.harnessReady, run window.harness[call](params), and decode its `alpha` (uint8: 255 where the
+    engine shadows) and `depth` (float32 view depth, 0 where nothing is hit), when it has them, into (H, W) arrays,
+    top row first. No page error or console error may occur."""
     ctx = browser.new_context()
     page = ctx.new_page()
     errors = []
@@ -102,14 +102,32 @@ def render_page(browser, files: dict, fallback, params: dict) -> dict:
     try:
         page.goto(ORIGIN + "/index.html")
         page.wait_for_function("() => window.harnessReady === true", timeout=30000)
-        out = page.evaluate("(p) => window.harness.render(p)", params)
+        out = page.evaluate("([c, p]) => window.harness[c](p)", [call, params])
     finally:
         ctx.close()
     assert not errors, errors
+    if "alpha" not in out:
+        return out
     W, H = params["screen"]
     out["alpha"] = np.frombuffer(base64.b64decode(out["alpha"]), np.uint8).reshape(H, W)[::-1]
     out["depth"] = np.frombuffer(base64.b64decode(out["depth"]), np.float32).reshape(H, W)[::-1]
     return out
+
+
+BABYLON = ROOT / "out" / "web" / "node_modules" / "@babylonjs" / "core"
+BABYLON_HARNESS = Path(__file__).with_name("babylon_harness")
+
+
+def babylon_files(**extra: bytes) -> dict:
+    """The Babylon.js page's own files (tests/babylon_harness/) and `extra` ("/apply.js": ..., "/scene.bin": ...)."""
+    return {"/index.html": (BABYLON_HARNESS / "index.html").read_bytes(),
+            "/harness.js": (BABYLON_HARNESS / "harness.js").read_bytes(), **extra}
+
+
+def babylon_fallback(path: str):
+    """@babylonjs/core's ES modules under /babylon/ (the page's import map), and the shaders they import on demand."""
+    f = BABYLON / path.removeprefix("/babylon/")
+    return f.read_bytes() if path.startswith("/babylon/") and path.endswith(".js") and f.is_file() else None
 
 
 def score(entry, rig: dict, solution: dict, rendered: dict, screen=SCREEN) -> dict:

@@ -20,8 +20,56 @@ import "@babylonjs/core/Lights/Shadows/shadowGeneratorSceneComponent.js";
 import { Matrix, Vector3 } from "@babylonjs/core/Maths/math.vector.js";
 import { Color3, Color4 } from "@babylonjs/core/Maths/math.color.js";
 import { Constants } from "@babylonjs/core/Engines/constants.js";
+import { CascadedShadowGenerator } from "@babylonjs/core/Lights/Shadows/cascadedShadowGenerator.js";
+import { MeshBuilder } from "@babylonjs/core/Meshes/meshBuilder.js";
 
 const BABYLON = { Matrix, Vector3, ShadowGenerator, Constants };
+
+function babylonCamera(scene, cam) {  // the rig's camera, already in Babylon's frame
+	const camera = new FreeCamera("camera", new Vector3(...cam.position), scene);
+	camera.upVector = new Vector3(...cam.up);
+	camera.setTarget(new Vector3(cam.position[0] + cam.forward[0], cam.position[1] + cam.forward[1], cam.position[2] + cam.forward[2]));
+	camera.fovMode = FreeCamera.FOVMODE_VERTICAL_FIXED;
+	camera.fov = cam.fov_y_deg * Math.PI / 180;
+	camera.minZ = cam.near; camera.maxZ = cam.far;
+	scene.activeCamera = camera;
+	return camera;
+}
+
+// tests/test_engine_fit_babylon.py: Babylon's own CascadedShadowGenerator for each of p.runs' settings, with one box
+// caster (its render list's bounding box tightens each cascade's depth range): its cascades' transform matrices
+// (getCascadeTransformMatrix, Matrix.m order) after one render, and what numCascades and shadowMaxZ hold.
+export async function fitCascades(p) {
+	const [W, H] = p.screen;
+	const canvas = document.getElementById("c");
+	canvas.width = W; canvas.height = H;
+	const engine = new Engine(canvas, false, {}, false);
+	engine.setHardwareScalingLevel(1);
+	engine.setSize(W, H);
+	const results = [];
+	for (const s of p.runs) {
+		const scene = new Scene(engine);
+		const camera = babylonCamera(scene, p.camera);
+		const d = p.sun_direction;
+		const light = new DirectionalLight("sun", new Vector3(d[0], d[1], d[2]), scene);
+		const [lo, hi] = p.casters_box;
+		const box = MeshBuilder.CreateBox("casters", { width: hi[0] - lo[0], height: hi[1] - lo[1], depth: hi[2] - lo[2] }, scene);
+		box.position = new Vector3((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, (lo[2] + hi[2]) / 2);
+		const csm = new CascadedShadowGenerator(s.mapSize, light, undefined, camera);
+		csm.numCascades = s.numCascades; csm.lambda = s.lambda; csm.shadowMaxZ = s.shadowMaxZ;
+		csm.stabilizeCascades = s.stabilizeCascades; csm.depthClamp = s.depthClamp; csm.bias = s.bias;
+		csm.filter = s.filter === "NONE" ? ShadowGenerator.FILTER_NONE : ShadowGenerator.FILTER_PCF;
+		csm.addShadowCaster(box);
+		await scene.whenReadyAsync();
+		scene.render();
+		const out = { numCascades: csm.numCascades, shadowMaxZ: csm.shadowMaxZ, transforms: [] };
+		for (let i = 0; i < csm.numCascades; i++) out.transforms.push(Array.from(csm.getCascadeTransformMatrix(i).m));
+		results.push(out);
+		scene.dispose();
+	}
+	engine.dispose();
+	return { runs: results };
+}
 
 export async function render(p) {
 	const [W, H] = p.screen;
@@ -59,14 +107,7 @@ export async function render(p) {
 	light.intensity = 1;
 	light.specular = new Color3(0, 0, 0);
 
-	const cam = p.camera;  // Babylon's frame
-	const camera = new FreeCamera("camera", new Vector3(...cam.position), scene);
-	camera.upVector = new Vector3(...cam.up);
-	camera.setTarget(new Vector3(cam.position[0] + cam.forward[0], cam.position[1] + cam.forward[1], cam.position[2] + cam.forward[2]));
-	camera.fovMode = FreeCamera.FOVMODE_VERTICAL_FIXED;
-	camera.fov = cam.fov_y_deg * Math.PI / 180;
-	camera.minZ = cam.near; camera.maxZ = cam.far;
-	scene.activeCamera = camera;
+	const camera = babylonCamera(scene, p.camera);
 
 	const mod = await import(p.module);
 	const handle = mod.default(BABYLON, { engine, scene, camera, light, meshes: [mesh] });
