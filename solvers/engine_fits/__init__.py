@@ -22,17 +22,23 @@ exactly this interface, which service.tune relies on:
    "<mode>": {"constant", "slope", "normal_offset", "slope_scaled", "slope_clamp"}} with the product's
   conventions (receiver shadowed iff D_rec - constant > stored + min(slope_scaled DZ, slope_clamp);
   normal_offset in metres along the receiver's normal).
-- Optional, where the engine draws only some faces into the map: `faces(settings) -> "both" | "back"`.
+- `faces(settings) -> "both" | "back"`: the faces the engine draws into its maps with these settings (the
+  scoring casts double-sided rays: "both" only, so far).
+- `DEPTH_FORMAT` (the depth block's format) and `SHADOW_MAP_TYPE` (the engine's filter the module sets, the one
+  the emulation scores: nearest-texel where the engine offers it).
+- Used by the search (service.tune_search, engine-specific): `effective(settings)` (the values the engine really
+  holds, e.g. three's `||` defaults) and, for three, `light_depth_reach(camera, light, settings)`.
+Register a module in ENGINE_MODULES below (a static import: tests/test_layout.py follows imports).
 
 Where an emulation is approximate, its module says so in a comment at that step, and docs/tune.md lists it.
 """
 from __future__ import annotations
 
-from importlib import import_module
-
+from . import three_csm
 from .knobs import Knob, validate_settings
 
-ENGINE_MODULES = {"three": "three_csm"}  # --engine name -> module in this package (babylon, filament: to come)
+# --engine name -> module; a new engine's module is imported above and added here (babylon, filament: to come)
+ENGINE_MODULES = {three_csm.ENGINE: three_csm}
 ENGINES = tuple(ENGINE_MODULES)
 
 
@@ -40,7 +46,7 @@ def engine_module(engine: str):
     """The emulation module of `engine` (ValueError naming `engine` and listing the accepted ones otherwise)."""
     if engine not in ENGINE_MODULES:
         raise ValueError(f"engine: {engine!r} has no emulation (accepted: {', '.join(ENGINES)})")
-    return import_module(f".{ENGINE_MODULES[engine]}", __name__)
+    return ENGINE_MODULES[engine]
 
 
 __all__ = ["Knob", "validate_settings", "ENGINE_MODULES", "ENGINES", "engine_module"]

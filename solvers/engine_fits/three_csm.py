@@ -227,3 +227,17 @@ def fitted_slices(camera: Camera, settings: dict) -> list[tuple[float, float]]:
     b = breaks(s["cascades"], camera.near, F, s["mode"])
     edges = np.concatenate([[camera.near / F], b[:-1]]) * F
     return [(float(lo), float(hi)) for lo, hi in zip(edges, b * F)]
+
+
+def light_depth_reach(camera: Camera, light: DirectionalLight, settings: dict) -> float:
+    """The light camera distance the deepest slice corner lies at, lightMargin + the slice's depth along the light
+    (CSM.js update: the camera sits lightMargin beyond the slice box's light-most z): a lightFar below it loses the
+    slice's far receivers (their window depth exceeds 1: lit)."""
+    s = effective(validate(settings))
+    R = look_at_rotation(light.direction)
+    cam_to_world = np.linalg.inv(camera.view_matrix())
+    reach = 0.0
+    for lo, hi in slices(camera, settings):
+        z = (np.vstack([lo, hi]) @ cam_to_world[:3, :3].T + cam_to_world[:3, 3]) @ R[:, 2]
+        reach = max(reach, float(z.max() - z.min()) + s["lightMargin"])
+    return reach
