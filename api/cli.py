@@ -302,10 +302,15 @@ def cmd_tune(args) -> int:
     # lazy: the server stack (an extra) loads only for the command that runs, not for --help
     from ..service.pipeline import scene_entry
     from ..service.tune import TuneError, tune
+    from ..solvers.engine_fits import engine_module
 
+    fixed = dict(_knob_arg(t) for t in args.set or [])
+    try:  # an unknown engine or knob, a value out of range: exit 2 naming it, before any work
+        engine_module(args.engine).validate(fixed)
+    except ValueError as e:
+        raise CliError(str(e)) from None
     rig = load_rig(args.rig, args)
     poses = _tune_poses(rig, args.poses) if args.poses else None
-    fixed = dict(_knob_arg(t) for t in args.set or [])
     entry = scene_entry(args.scene, **_scene_options(args))
     try:
         res = tune(entry, rig, args.engine, poses=poses, fixed=fixed)

@@ -66,8 +66,8 @@ def search(mod, poses, fixed: dict) -> dict:
     reach = max(p.scene_far for p in poses)
     diag = max(max(p.scene_diagonal for p in poses), 1.0)
     base = defaults(mod, poses, size0)
-    d_probes = [probe_pose(mod, p, {**base, **fixed}) for p in poses]
-    d_settings = mod.validate({**base, **fixed})
+    d_probes = [probe_pose(mod, p, base) for p in poses]  # the engine's defaults: the caller's pins left out
+    d_settings = base
     d_pred = predict(mod, [pr for _, pr in d_probes], poses, -mod.effective(d_settings)["shadowBias"], False)
 
     def candidate(**knobs) -> dict:
