@@ -169,6 +169,11 @@ def cmd_bench(args) -> int:
 
         result = bench_engine_truth(validate_rig, lights=args.lights, scenes=args.scenes, screen=args.screen,
                                     write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
+    elif args.bench == "engines":  # tune's settings, the defaults and a hand grid in real three.js
+        from ..service.bench.engines import bench_engines  # lazy: the server stack loads only for the command that runs
+
+        result = bench_engines(validate_rig, lights=args.lights, scenes=args.scenes, screen=args.screen,
+                               write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "solve-time":  # optimize's time per light, fitted bias against the rule
         from ..service.bench.solve_time import bench_solve_time  # lazy: the server stack loads only for the command that runs
 
@@ -747,7 +752,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
     sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch", "security", "engine", "path",
                                        "throughput", "inspect", "budget", "heldout", "limits", "hostile",
-                                       "engine-truth", "solve-time"])
+                                       "engine-truth", "solve-time", "engines"])
     sp.add_argument("--frames", type=int, default=None, help="path: frames per path (default: configs/paths.json's samples); "
                     "throughput: frames of the long path (default 1000)")
     sp.add_argument("--paths", default=None, help="path: comma-separated path names from configs/paths.json")
