@@ -318,7 +318,9 @@ def cmd_tune(args) -> int:
     poses = _tune_poses(rig, args.poses) if args.poses else None
     entry = scene_entry(args.scene, **_scene_options(args))
     try:
-        res = tune(entry, rig, args.engine, poses=poses, fixed=fixed)
+        res = tune(entry, rig, args.engine, poses=poses, fixed=fixed,
+                   camera_path=_read_json(args.camera_path, "--camera-path") if args.camera_path else None,
+                   sun_arc=_read_json(args.sun_arc, "--sun-arc") if args.sun_arc else None)
     except TuneError as e:
         raise CliError(str(e)) from None
     s, p, d = res["settings"], res["predicted"], res["defaults"]["predicted"]
@@ -703,6 +705,10 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--engine", default="three", help="the engine whose cascades to tune (accepted: three)")
     sp.add_argument("--poses", default=None, metavar="FILE.json", help="more camera poses (a JSON list of camera "
                     "objects like the rig's): one setting for all of them")
+    sp.add_argument("--camera-path", default=None, metavar="FILE.json", help="more poses along a camera path "
+                    "({\"poses\": [...]} or {\"keyframes\": [...], \"samples\": N}, over the rig's camera)")
+    sp.add_argument("--sun-arc", default=None, metavar="FILE.json", help="every camera under each sun of an arc "
+                    "({\"azimuth_deg\": [a, b], \"elevation_deg\": [a, b], \"samples\": N}); at most 16 poses in all")
     sp.add_argument("--set", action="append", metavar="KNOB=VALUE", help="pin a knob (the engine's own name, e.g. "
                     "cascades=4); repeatable")
     sp.add_argument("--out", default=None, help="also write the result JSON to this file")

@@ -489,6 +489,10 @@ class TuneRequest(_SceneRequest):
                                   "4}); the search leaves them")
     poses: list[CameraSpec] | None = Field(None, max_length=16, description="more camera poses (as rig.camera): "
                                            "one setting serves them all, scored by the sum of their wrong pixels")
+    camera_path: CameraPath | None = Field(None, description="more poses along a camera path (poses, or keyframes "
+                                           "+ samples, over rig.camera)")
+    sun_arc: SunArc | None = Field(None, description="score every camera under each sun of this arc (the rig's "
+                                   "light replaced); at most 16 cameras x suns in all")
 
 
 class TunePrediction(_Open):

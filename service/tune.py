@@ -14,24 +14,44 @@ from __future__ import annotations
 import time
 
 from ..solvers.engine_fits import engine_module
+from .interpolation import camera_path as path_cameras
+from .interpolation import sun_arc as arc_directions
+from .request_fields import BatchError
 from .tune_score import Pose, TuneError, cascades_json
 from .tune_search import search
 
+MAX_POSES = 16  # cameras x suns scored per request (each ~1-2 s)
 
-def pose_rigs(rig: dict, poses: list[dict] | None) -> list[dict]:
-    """The rig itself, then one rig per extra pose (its camera replaced)."""
-    out = [rig]
+
+def pose_rigs(rig: dict, poses: list[dict] | None, camera_path: dict | None = None,
+              sun_arc: dict | None = None) -> list[dict]:
+    """The rig itself, then one rig per extra pose (its camera replaced): `poses` (camera objects), a
+    `camera_path` (poses, or keyframes + samples, over the rig's camera: service.interpolation), each for every
+    direction of a `sun_arc` (the rig's light replaced by a directional light) when one is given."""
+    cams = [rig["camera"]]
     for k, cam in enumerate(poses or []):
         if not isinstance(cam, dict):
             raise TuneError(f"poses[{k}]", f"expected a camera object like the rig's camera, got {cam!r:.60}")
-        out.append({**rig, "camera": cam})
-    return out
+        cams.append(cam)
+    try:
+        if camera_path is not None:
+            cams += path_cameras(camera_path, rig["camera"])
+        suns = arc_directions(sun_arc) if sun_arc is not None else None
+    except BatchError as e:
+        raise TuneError(e.field, e.message) from None
+    lights = [rig["lights"]] if suns is None else [[{"type": "directional", "direction": d}] for d in suns]
+    if len(cams) * len(lights) > MAX_POSES:
+        raise TuneError("poses", f"tune scores at most {MAX_POSES} poses (cameras x suns) per request (accepted: "
+                        f"1-{MAX_POSES}), got {len(cams)} x {len(lights)}")
+    return [{**rig, "camera": cam, "lights": ls} for ls in lights for cam in cams]
 
 
-def tune(entry, rig: dict, engine: str, poses: list[dict] | None = None, fixed: dict | None = None) -> dict:
-    """The engine's settings that predict the fewest wrong pixels over the rig's pose and `poses` (camera dicts,
-    validated like the rig's camera), the engine's defaults beside them, and what the engine fits (module doc).
-    `fixed`: knobs the caller pins (validated; the search leaves them)."""
+def tune(entry, rig: dict, engine: str, poses: list[dict] | None = None, fixed: dict | None = None,
+         camera_path: dict | None = None, sun_arc: dict | None = None) -> dict:
+    """The engine's settings that predict the fewest wrong pixels over the rig's pose, `poses` (camera dicts,
+    validated like the rig's camera), a `camera_path` and a `sun_arc` (pose_rigs), the engine's defaults beside
+    them, and what the engine fits (module doc). `fixed`: knobs the caller pins (validated; the search leaves
+    them)."""
     try:
         mod = engine_module(engine)
     except ValueError as e:
@@ -41,8 +61,9 @@ def tune(entry, rig: dict, engine: str, poses: list[dict] | None = None, fixed: 
     except ValueError as e:
         field, msg = str(e).split(": ", 1)
         raise TuneError(field, msg) from None
+    rigs = pose_rigs(rig, poses, camera_path, sun_arc)
     t0 = time.perf_counter()
-    ps = [Pose(entry, r) for r in pose_rigs(rig, poses)]
+    ps = [Pose(entry, r) for r in rigs]
     t1 = time.perf_counter()
     result = search(mod, ps, fixed_settings)
     t2 = time.perf_counter()
