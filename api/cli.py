@@ -320,7 +320,8 @@ def cmd_tune(args) -> int:
     try:
         res = tune(entry, rig, args.engine, poses=poses, fixed=fixed,
                    camera_path=_read_json(args.camera_path, "--camera-path") if args.camera_path else None,
-                   sun_arc=_read_json(args.sun_arc, "--sun-arc") if args.sun_arc else None)
+                   sun_arc=_read_json(args.sun_arc, "--sun-arc") if args.sun_arc else None,
+                   time_budget_ms=args.time_budget_ms)
     except TuneError as e:
         raise CliError(str(e)) from None
     s, p, d = res["settings"], res["predicted"], res["defaults"]["predicted"]
@@ -709,6 +710,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "({\"poses\": [...]} or {\"keyframes\": [...], \"samples\": N}, over the rig's camera)")
     sp.add_argument("--sun-arc", default=None, metavar="FILE.json", help="every camera under each sun of an arc "
                     "({\"azimuth_deg\": [a, b], \"elevation_deg\": [a, b], \"samples\": N}); at most 16 poses in all")
+    sp.add_argument("--time-budget-ms", type=float, default=None, help="the search's time (default 1600 per pose "
+                    "less the coarse passes); past it no new candidate is scored (the answer's search.complete)")
     sp.add_argument("--set", action="append", metavar="KNOB=VALUE", help="pin a knob (the engine's own name, e.g. "
                     "cascades=4); repeatable")
     sp.add_argument("--out", default=None, help="also write the result JSON to this file")

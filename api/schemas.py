@@ -493,6 +493,9 @@ class TuneRequest(_SceneRequest):
                                            "+ samples, over rig.camera)")
     sun_arc: SunArc | None = Field(None, description="score every camera under each sun of this arc (the rig's "
                                    "light replaced); at most 16 cameras x suns in all")
+    time_budget_ms: Annotated[float, Field(gt=0, le=600_000, allow_inf_nan=False)] | None = Field(
+        None, description="the search's time (default 1600 ms per pose less the coarse passes, capped by the "
+        "server's time budget); past it no new candidate is scored (the answer's search.complete)")
 
 
 class TunePrediction(_Open):

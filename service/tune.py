@@ -21,6 +21,7 @@ from .tune_score import Pose, TuneError, cascades_json
 from .tune_search import search
 
 MAX_POSES = 16  # cameras x suns scored per request (each ~1-2 s)
+SEARCH_BUDGET_S = 1.6  # per pose: the search takes no new candidate past it (the answer within ~2 s per pose)
 
 
 def pose_rigs(rig: dict, poses: list[dict] | None, camera_path: dict | None = None,
@@ -47,11 +48,12 @@ def pose_rigs(rig: dict, poses: list[dict] | None, camera_path: dict | None = No
 
 
 def tune(entry, rig: dict, engine: str, poses: list[dict] | None = None, fixed: dict | None = None,
-         camera_path: dict | None = None, sun_arc: dict | None = None) -> dict:
+         camera_path: dict | None = None, sun_arc: dict | None = None, time_budget_ms: float | None = None) -> dict:
     """The engine's settings that predict the fewest wrong pixels over the rig's pose, `poses` (camera dicts,
     validated like the rig's camera), a `camera_path` and a `sun_arc` (pose_rigs), the engine's defaults beside
     them, and what the engine fits (module doc). `fixed`: knobs the caller pins (validated; the search leaves
-    them)."""
+    them). `time_budget_ms`: the search's time (default SEARCH_BUDGET_S per pose, less the coarse passes); past
+    it no new candidate is scored."""
     try:
         mod = engine_module(engine)
     except ValueError as e:
@@ -65,7 +67,8 @@ def tune(entry, rig: dict, engine: str, poses: list[dict] | None = None, fixed: 
     t0 = time.perf_counter()
     ps = [Pose(entry, r) for r in rigs]
     t1 = time.perf_counter()
-    result = search(mod, ps, fixed_settings)
+    budget = time_budget_ms / 1e3 if time_budget_ms is not None else SEARCH_BUDGET_S * len(ps) - (t1 - t0)
+    result = search(mod, ps, fixed_settings, budget)
     t2 = time.perf_counter()
     maps = mod.fit(ps[0].camera, ps[0].light, result["settings"])
     emulated = {"cascades": cascades_json(maps), "shadow_map_type": mod.SHADOW_MAP_TYPE,
@@ -75,7 +78,9 @@ def tune(entry, rig: dict, engine: str, poses: list[dict] | None = None, fixed: 
     direction = [float(v) for v in ps[0].light.direction]
     return {"engine": mod.ENGINE, "engine_version": mod.VERSION, "settings": result["settings"],
             "predicted": result["predicted"], "defaults": result["defaults"], "emulated": emulated,
-            "light_direction": direction, "poses": len(ps), "candidates": result["candidates"],
+            "light_direction": direction, "poses": len(ps),
+            "search": {"candidates": result["candidates"], "complete": result["complete"],
+                       "budget_ms": budget * 1e3},
             "snippet": snippet(mod, result["settings"], direction),
             "timings_ms": {"coarse": (t1 - t0) * 1e3, "search": (t2 - t1) * 1e3, "total": (t2 - t0) * 1e3,
                            "per_pose": (t2 - t0) * 1e3 / len(ps)}}
