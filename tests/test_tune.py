@@ -222,3 +222,23 @@ def test_a_sun_arc_scores_each_sun_and_too_many_poses_or_a_point_light_are_refus
     (tmp_path / "rig.json").write_text(json.dumps(point))
     assert main(["tune", str(DEMO), "--rig", str(tmp_path / "rig.json")]) == 2
     assert "error: rig.lights: tune fits an engine's cascades for one directional light" in capsys.readouterr().err
+
+
+def test_the_client_tunes_and_names_a_bad_knob(tmp_path, monkeypatch, entry):
+    """client.tune (AsyncClient over the app in process): the answer, and a 422 as a ClientError naming the field."""
+    from shadowopt.api.client import AsyncClient, ClientError
+
+    app = _app(tmp_path, monkeypatch, entry)
+    rig = {"camera": {"usd_path": "/World/Camera", "resolution": [160, 90]}, "lights": [{"usd_path": "/World/Sun"}],
+           "shadow": {"resolution": [512, 512]}, "coarse_long_side": 64}
+
+    async def go():
+        async with AsyncClient("http://t", transport=httpx.ASGITransport(app=app)) as c:
+            res = await c.tune("0123456789abcdef", rig, settings={"cascades": 2, "mode": "uniform"})
+            with pytest.raises(ClientError) as e:
+                await c.tune("0123456789abcdef", rig, settings={"lightMargin": -1})
+            return res, e.value
+
+    res, err = asyncio.run(go())
+    assert res["settings"]["cascades"] == 2 and res["settings"]["mode"] == "uniform"
+    assert err.status == 422 and err.field == "settings.lightMargin" and "a number in [0, 1e+06]" in err.message
