@@ -1,6 +1,6 @@
 """`optimize --emit`'s three.js module in the real engine: three.js r187 (npm, installed by `make setup` into
 out/web/node_modules) in Debian's Chromium headless through Playwright (SwiftShader WebGL2), the module imported as
-it is. The page (tests/three_harness/) draws the demo scene's own triangles with the rig's camera and sun, renders
+it is. The page (service/bench/three_page.py, three_harness/) draws the demo scene's own triangles with the rig's camera and sun, renders
 three's shadow term (a ShadowMaterial's alpha; with cascades, through three's CSM addon, a white Lambert material
 with and without shadows, since CSM selects the cascade in the lighting code) and a view-depth pass, and the pixels are scored against the
 product's exact ray-traced visibility of the same screen (renderers.ground_truth.evaluate_buffers, what `evaluate
@@ -11,48 +11,15 @@ refused with exit 2, naming the field and what is accepted (unit tests, no brows
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from web_engine_kit import DEMO, ROOT, SCREEN, geometry, launch_browser, render_page, score, solve_and_emit
+from three_page import DEMO, SCREEN, browser, entry, render, scene_geometry  # noqa: F401 (fixtures)
+from web_engine_kit import score, solve_and_emit
 
-THREE_MODULE = ROOT / "out" / "web" / "node_modules" / "three" / "build" / "three.module.js"
-ADDONS = THREE_MODULE.parents[1] / "examples" / "jsm"  # three/addons/ (the CSM addon)
-HARNESS = Path(__file__).with_name("three_harness")
+
 METHOD = []
-
-
-@pytest.fixture(scope="module")
-def browser():
-    yield from launch_browser(THREE_MODULE, "three.js (npm install --prefix out/web three@0.187.0)")
-
-
-@pytest.fixture(scope="module")
-def entry():
-    from shadowopt.service.pipeline import scene_entry
-
-    return scene_entry(str(DEMO))
-
-
-def _render(browser, module_text: str, geometry_bytes: bytes, camera: dict, sun_direction, classify: str = "shadow") -> dict:
-    files = {"/index.html": (HARNESS / "index.html").read_bytes(), "/harness.js": (HARNESS / "harness.js").read_bytes(),
-             "/three.module.js": THREE_MODULE.read_bytes(), "/apply.js": module_text.encode(),
-             "/scene.bin": geometry_bytes}
-
-    def fallback(path):
-        build = THREE_MODULE.parent / path.lstrip("/")  # three.module.js imports ./three.core.js
-        addon = ADDONS / path.removeprefix("/addons/")
-        if path.endswith(".js") and "/" not in path[1:] and build.is_file():
-            return build.read_bytes()
-        if path.startswith("/addons/csm/") and path.endswith(".js") and addon.is_file():
-            return addon.read_bytes()
-        return None
-
-    return render_page(browser, files, fallback, {
-        "screen": list(SCREEN), "geometry": "/scene.bin", "module": "/apply.js",
-        "sun_direction": list(sun_direction), "camera": camera, "classify": classify})
 
 
 # the rig's shadow.depth: none (the fitted constant; three's fit has no slope term and no normal offset), and each
@@ -80,7 +47,7 @@ def _check_in_three(browser, entry, tmp_path, shadow: dict, classify: str = "sha
     solution, module = solve_and_emit(tmp_path, rig, *METHOD)
     cam = solution["resolved"]["camera"]
     sun = solution["resolved"]["lights"][0]["direction"]
-    three = _render(browser, module, geometry(entry, sun), cam, sun, classify)
+    three = render(browser, module, scene_geometry(entry, sun), cam, sun, classify)
     s = score(entry, rig, solution, three)
     print("three.js r187 vs evaluate --depth solution:", s)
     # the comparison is of the scene, not of edges: most receivers are compared, hundreds of them shadowed

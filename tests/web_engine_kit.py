@@ -1,69 +1,46 @@
-"""What the real-engine browser tests share (tests/test_three_module.py, tests/test_babylon_module.py): Debian's
-Chromium through Playwright, the demo scene's triangles for a page, `optimize --emit`, a page whose files are served
-by page.route, and the score of an engine's shadowed pixels against the product's exact ray-traced visibility of
-the same screen (renderers.ground_truth.evaluate_buffers, what `evaluate --depth solution` runs)."""
+"""What the real-engine browser tests share beyond the three.js page (service/bench/three_page.py, tests/three_page.py):
+`optimize --emit` in process, a page whose files are served by page.route, the Babylon.js page's files, and the score
+of an engine's shadowed pixels against the product's exact ray-traced visibility of the same screen
+(renderers.ground_truth.evaluate_buffers, what `evaluate --depth solution` runs). tests/test_three_module.py and
+tests/test_babylon_module.py use it; Chromium and the scene's triangles come from service.bench.three_page."""
 from __future__ import annotations
 
 import base64
 import json
-import os
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from shadowopt.service.bench import three_page
+
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "configs" / "demo_scene.usda"
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"]
 SCREEN = (320, 180)
 DEPTH_TOLERANCE = 0.01  # relative view-depth difference under which both renderers hit the same surface
-ORIGIN = "http://shadowopt.test"
+ORIGIN = three_page.ORIGIN
 TYPES = {".html": "text/html", ".js": "text/javascript", ".bin": "application/octet-stream"}
-MAX_EDGE = 4.0  # metres
 
 
 def launch_browser(engine_file: Path, what: str):
-    """A module-scoped fixture's body: Chromium headless, skipped when it, the engine or Playwright is absent."""
-    if not os.path.exists(CHROMIUM):
+    """A module-scoped fixture's body: Chromium headless (three_page.chromium), skipped when it, the engine or
+    Playwright is absent."""
+    if not Path(three_page.CHROMIUM).exists():
         pytest.skip("Debian's chromium is absent (make setup installs it)")
     if not engine_file.exists():
         pytest.skip(f"{what} is absent (make setup installs it into out/web)")
-    playwright = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (requirements.lock)")
-    with playwright.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+    pytest.importorskip("playwright.sync_api", reason="playwright is not installed (requirements.lock)")
+    if not three_page.THREE_MODULE.exists():  # three_page.chromium() asks for three.js too (make setup installs both)
+        pytest.skip("three.js is absent (make setup installs it into out/web)")
+    with three_page.chromium() as b:
         yield b
-        b.close()
 
 
 def geometry(entry, sun_direction, axes=(1.0, 1.0, 1.0)) -> bytes:
-    """The scene's triangles, unindexed, each with its flat normal turned to the light's side (x y z nx ny nz per
-    vertex, float32), in an engine frame whose coordinates are the world's times `axes` (Babylon: (-1, 1, 1)): the
-    normal a closed, consistently wound mesh has on its lit side. Triangles longer than MAX_EDGE are split into
-    coplanar pieces (the same surfaces): SwiftShader interpolates the varyings of a huge triangle clipped by the near
-    plane (the demo's 300 m ground) a few tenths of a percent off (view depth 69.06 against the exact 68.90 m),
-    which moved three's shadow lookups and added ~20 wrongly lit pixels per sun."""
-    g = entry.loaded.geometry
-    tri = _split(np.asarray(g.vertices, np.float64)[np.asarray(g.faces)])  # (n, 3, 3)
-    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
-    nrm *= np.where(nrm @ -np.asarray(sun_direction) < 0, -1.0, 1.0)[:, None]
-    out = np.concatenate([tri, np.repeat(nrm[:, None, :], 3, axis=1)], axis=2) * np.tile(np.asarray(axes, float), 2)
-    return out.astype(np.float32).tobytes()
-
-
-def _split(tri: np.ndarray) -> np.ndarray:
-    """Each triangle in four at its edge midpoints until no edge is longer than MAX_EDGE."""
-    done = []
-    while len(tri):
-        edge = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
-        done.append(tri[edge <= MAX_EDGE])
-        t = tri[edge > MAX_EDGE]
-        a, b, c = t[:, 0], t[:, 1], t[:, 2]
-        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
-        tri = np.concatenate([np.stack(q, axis=1) for q in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
-    return np.concatenate(done)
+    """three_page.scene_geometry (the scene's split triangles with their lit-side flat normals, x y z nx ny nz per
+    vertex, float32) in an engine frame whose coordinates are the world's times `axes` (Babylon: (-1, 1, 1))."""
+    data = np.frombuffer(three_page.scene_geometry(entry, sun_direction), np.float32).reshape(-1, 6)
+    return (data * np.tile(np.asarray(axes, np.float32), 2)).astype(np.float32).tobytes()
 
 
 def solve_and_emit(tmp_path, rig: dict, *extra: str) -> tuple[dict, str]:

@@ -34,11 +34,12 @@ Where an emulation is approximate, its module says so in a comment at that step,
 """
 from __future__ import annotations
 
-from . import three_csm
+from . import babylon, three_csm
 from .knobs import Knob, validate_settings
 
-# --engine name -> module; a new engine's module is imported above and added here (babylon, filament: to come)
-ENGINE_MODULES = {three_csm.ENGINE: three_csm}
+# --engine name -> module; a new engine's module is imported above and added here (filament: to come). babylon: the
+# emulation (fit, KNOBS) is here; service.tune_search has no search for it yet (tune refuses it, naming the engine)
+ENGINE_MODULES = {three_csm.ENGINE: three_csm, babylon.ENGINE: babylon}
 ENGINES = tuple(ENGINE_MODULES)
 
 
