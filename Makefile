@@ -22,10 +22,15 @@ PORT ?= 8000
 THREE_VERSION := 0.187.0
 WEB := out/web
 THREE_STAMP := $(WEB)/.three-$(THREE_VERSION)
+# Filament's web build, pinned, for the emitted Filament module's browser test (tests/test_filament_module.py):
+# filament.js + filament.wasm + filament.d.ts as npm ships them (its one dependency gl-matrix comes along); no
+# matc, no binary downloaded. The stamp names the version.
+FILAMENT_VERSION := 1.53.4
+FILAMENT_STAMP := $(WEB)/.filament-$(FILAMENT_VERSION)
 
 .PHONY: setup serve test test-fast bench demo clean mutate
 
-setup: $(STAMP) $(THREE_STAMP)
+setup: $(STAMP) $(THREE_STAMP) $(FILAMENT_STAMP)
 
 $(THREE_STAMP):
 	@command -v npm >/dev/null 2>&1 || { echo "setup: apt-get install nodejs npm"; \
@@ -34,6 +39,12 @@ $(THREE_STAMP):
 	@mkdir -p $(WEB)
 	@npm install --prefix $(WEB) --save-exact --no-audit --no-fund --ignore-scripts three@$(THREE_VERSION) >$(WEB)/npm.log 2>&1 || { cat $(WEB)/npm.log; exit 1; }
 	@rm -f $(WEB)/.three-*
+	@touch $@
+
+$(FILAMENT_STAMP): | $(THREE_STAMP)
+	@echo "setup: npm install filament@$(FILAMENT_VERSION) into $(WEB)"
+	@npm install --prefix $(WEB) --save-exact --no-audit --no-fund --ignore-scripts filament@$(FILAMENT_VERSION) >$(WEB)/npm-filament.log 2>&1 || { cat $(WEB)/npm-filament.log; exit 1; }
+	@rm -f $(WEB)/.filament-*
 	@touch $@
 
 $(STAMP): requirements.lock pyproject.toml
