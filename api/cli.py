@@ -276,26 +276,31 @@ def cmd_optimize(args) -> int:
                         for k, (l, e) in enumerate(zip(sol["lights"], errs)))
     _write_or_print(sol, args.out, args.json, f"{args.method}: {summary}; {sol['timings_ms']['total']:.1f} ms")
     if args.emit:
-        _emit(rig, sol, args.emit)
-        print(f"three.js module written to {args.emit}", file=sys.stderr)
+        label = _emit(rig, sol, args.emit)
+        print(f"{label} module written to {args.emit}", file=sys.stderr)
     return 0
 
 
-def _emit(rig: dict, sol: dict | None, path: str) -> None:
-    """--emit: service.emit_three's checks as exit 2 (sol None: the rig's only, before solving), else the module."""
-    from ..service.emit_three import EmitError, check_engine, three_module  # lazy: only with --emit
+def _emit(rig: dict, sol: dict | None, path: str) -> str:
+    """--emit: service.emit_three's checks as exit 2 (sol None: the rig's only, before solving), else the module of
+    the rig's output.engine (three.js: service.emit_three; Filament's settings: service.emit_filament); its label."""
+    # lazy: only with --emit
+    from ..service.emit_filament import filament_module
+    from ..service.emit_three import EmitError, check_engine, three_module
 
     try:
         if sol is None:
             check_engine(rig)
-            return
-        text = three_module(sol)
+            return ""
+        engine = ((sol.get("resolved") or {}).get("output") or {}).get("engine")
+        text, label = (filament_module(sol), "Filament") if engine == "filament" else (three_module(sol), "three.js")
     except EmitError as e:
         raise CliError(str(e)) from None
     try:
         Path(path).write_text(text)
     except OSError as e:
         raise CliError(f"--emit: cannot write {path!r}: {e.strerror}") from e
+    return label
 
 
 # the CLI's flag for each field service.method_options names (a rig field without a flag is named as in the rig)
@@ -628,7 +633,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--out", default=None, help="also write the solution JSON to this file")
     sp.add_argument("--emit", default=None, metavar="FILE.js", help="also write an ES module that installs the "
                     "solution in the engine as it is (the rig's output.engine \"three\": three.js r187, one "
-                    "directional light, one map or cascades through three's CSM addon; docs/engines.md)")
+                    "directional light, one map or cascades through three's CSM addon; \"filament\": the light's "
+                    "ShadowOptions for Filament's web build, which takes no matrix; docs/engines.md)")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_optimize)
 

@@ -15,7 +15,7 @@ import json
 from pathlib import Path
 
 THREE_VERSION = "0.187.0"  # the three.js release the module is written and tested for (Makefile: make setup)
-EMIT_ENGINES = ("three",)
+EMIT_ENGINES = ("three", "filament")  # filament: service.emit_filament (settings, no matrices)
 TEMPLATE = Path(__file__).with_name("emit_three.js")
 MAP_FIELDS = ("view_matrix", "projection_matrix", "texture_matrix", "resolution", "split", "blend_band", "light_depth")
 DEPTH_FIELDS = ("constant", "slope", "normal_offset", "slope_scaled", "slope_clamp")
@@ -29,15 +29,15 @@ class EmitError(ValueError):
 
 
 def check_engine(rig: dict) -> None:
-    """Before solving: the rig's output.engine must be one --emit writes code for."""
+    """Before solving: the rig's output.engine must be one --emit writes code for, with one light."""
     engine = (rig.get("output") or {}).get("engine")
     if engine not in EMIT_ENGINES:
         raise EmitError("--emit", f"writes code for output.engine {' or '.join(map(repr, EMIT_ENGINES))} only "
                         f"(accepted: {', '.join(EMIT_ENGINES)}); the rig's output.engine is {engine!r}")
-    _one_light(rig.get("lights") or [], "rig")
+    one_light(rig.get("lights") or [], "rig")
 
 
-def _one_light(lights: list, what: str) -> None:
+def one_light(lights: list, what: str) -> None:
     if len(lights) != 1:
         raise EmitError("rig lights", f"--emit writes a module for one light (ctx.light; accepted: 1), the {what} "
                         f"has {len(lights)}")
@@ -50,7 +50,7 @@ def three_module(solution: dict) -> str:
         raise EmitError("--emit", f"the solution was not solved for output.engine 'three' (accepted: three), its "
                         f"output is {output.get('engine')!r}")
     lights = solution.get("lights") or []
-    _one_light(lights, "solution")
+    one_light(lights, "solution")
     light = lights[0]
     if light.get("type") != "directional":
         raise EmitError("rig lights[0]", f"--emit writes a module for a directional light (accepted: directional), "

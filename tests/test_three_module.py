@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from web_scene import vertex_stream
 
 ROOT = Path(__file__).resolve().parents[1]
 THREE_MODULE = ROOT / "out" / "web" / "node_modules" / "three" / "build" / "three.module.js"
@@ -50,37 +51,6 @@ def entry():
     from shadowopt.service.pipeline import scene_entry
 
     return scene_entry(str(DEMO))
-
-
-def _geometry(entry, sun_direction) -> bytes:
-    """The scene's triangles, unindexed, each with its flat normal turned to the light's side (x y z nx ny nz per
-    vertex, float32): the normal a closed, consistently wound mesh has on its lit side. Triangles longer than
-    MAX_EDGE are split into coplanar pieces (the same surfaces): SwiftShader interpolates the varyings of a huge
-    triangle clipped by the near plane (the demo's 300 m ground) a few tenths of a percent off (view depth 69.06
-    against the exact 68.90 m), which moved three's shadow lookups and added ~20 wrongly lit pixels per sun."""
-    g = entry.loaded.geometry
-    tri = _split(np.asarray(g.vertices, np.float64)[np.asarray(g.faces)])  # (n, 3, 3)
-    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
-    nrm *= np.where(nrm @ -np.asarray(sun_direction) < 0, -1.0, 1.0)[:, None]
-    out = np.concatenate([tri, np.repeat(nrm[:, None, :], 3, axis=1)], axis=2)
-    return out.astype(np.float32).tobytes()
-
-
-MAX_EDGE = 4.0  # metres
-
-
-def _split(tri: np.ndarray) -> np.ndarray:
-    """Each triangle in four at its edge midpoints until no edge is longer than MAX_EDGE."""
-    done = []
-    while len(tri):
-        edge = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
-        done.append(tri[edge <= MAX_EDGE])
-        t = tri[edge > MAX_EDGE]
-        a, b, c = t[:, 0], t[:, 1], t[:, 2]
-        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
-        tri = np.concatenate([np.stack(q, axis=1) for q in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
-    return np.concatenate(done)
 
 
 METHOD = []
@@ -186,7 +156,7 @@ def _check_in_three(browser, entry, tmp_path, shadow: dict, classify: str = "sha
     solution, module = _solve_and_emit(tmp_path, rig)
     cam = solution["resolved"]["camera"]
     sun = solution["resolved"]["lights"][0]["direction"]
-    three = _render(browser, module, _geometry(entry, sun), cam, sun, classify)
+    three = _render(browser, module, vertex_stream(entry, sun), cam, sun, classify)
     s = _score(entry, rig, solution, three)
     print("three.js r187 vs evaluate --depth solution:", s)
     # the comparison is of the scene, not of edges: most receivers are compared, hundreds of them shadowed

@@ -1,0 +1,84 @@
+"""The scene's triangles as the browser engines' tests (tests/test_three_module.py, tests/test_filament_module.py) draw
+them: split into small coplanar pieces, each with its flat normal turned to the light's side; as three's vertex stream
+or as a binary glTF (the form Filament's web build loads with its built-in materials)."""
+from __future__ import annotations
+
+import json
+import struct
+
+import numpy as np
+
+MAX_EDGE = 4.0  # metres
+
+
+def scene_triangles(entry, sun_direction) -> tuple[np.ndarray, np.ndarray]:
+    """(triangles (n, 3, 3), flat unit normals (n, 3)) of the scene, each normal turned to the light's side: the normal
+    a closed, consistently wound mesh has on its lit side. Triangles longer than MAX_EDGE are split into coplanar
+    pieces (the same surfaces): SwiftShader interpolates the varyings of a huge triangle clipped by the near plane
+    (the demo's 300 m ground) a few tenths of a percent off (view depth 69.06 against the exact 68.90 m), which moved
+    three's shadow lookups and added ~20 wrongly lit pixels per sun."""
+    g = entry.loaded.geometry
+    tri = split_triangles(np.asarray(g.vertices, np.float64)[np.asarray(g.faces)])  # (n, 3, 3)
+    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    nrm *= np.where(nrm @ -np.asarray(sun_direction) < 0, -1.0, 1.0)[:, None]
+    return tri, nrm
+
+
+def vertex_stream(entry, sun_direction) -> bytes:
+    """x y z nx ny nz per vertex, float32, unindexed (three.js harness)."""
+    tri, nrm = scene_triangles(entry, sun_direction)
+    out = np.concatenate([tri, np.repeat(nrm[:, None, :], 3, axis=1)], axis=2)
+    return out.astype(np.float32).tobytes()
+
+
+def split_triangles(tri: np.ndarray) -> np.ndarray:
+    """Each triangle in four at its edge midpoints until no edge is longer than MAX_EDGE."""
+    done = []
+    while len(tri):
+        edge = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
+        done.append(tri[edge <= MAX_EDGE])
+        t = tri[edge > MAX_EDGE]
+        a, b, c = t[:, 0], t[:, 1], t[:, 2]
+        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
+        tri = np.concatenate([np.stack(q, axis=1) for q in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+    return np.concatenate(done)
+
+
+def glb(tri: np.ndarray, nrm: np.ndarray, ids: bool = False) -> bytes:
+    """A binary glTF 2.0 of the triangles (one mesh, unshared vertices, flat normals, indexed 0..3n-1), double-sided.
+    ids False: a white, fully rough dielectric (lit by the scene's lights, receiving shadows). ids True: unlit
+    (KHR_materials_unlit) with each triangle's index + 1 in its vertex colour (r + 256 g + 65536 b, unsigned bytes),
+    so that a render without post-processing reads back which triangle covers each pixel."""
+    n = len(tri)
+    pos = tri.reshape(-1, 3).astype(np.float32)
+    nor = np.repeat(nrm, 3, axis=0).astype(np.float32)
+    index = np.arange(3 * n, dtype=np.uint32)
+    arrays = [(pos, 5126, "VEC3", 34962), (nor, 5126, "VEC3", 34962), (index, 5125, "SCALAR", 34963)]
+    if ids:
+        k = np.arange(1, n + 1, dtype=np.uint32)
+        rgba = np.stack([k & 255, (k >> 8) & 255, (k >> 16) & 255, np.full(n, 255, np.uint32)], axis=1).astype(np.uint8)
+        arrays.append((np.repeat(rgba, 3, axis=0), 5121, "VEC4", 34962))
+    blob, views, accessors = b"", [], []
+    for a, ctype, kind, target in arrays:
+        views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": a.nbytes, "target": target})
+        acc = {"bufferView": len(views) - 1, "componentType": ctype, "count": len(a), "type": kind}
+        if kind == "VEC3" and ctype == 5126 and not accessors:
+            acc |= {"min": pos.min(axis=0).tolist(), "max": pos.max(axis=0).tolist()}
+        if ctype == 5121:
+            acc["normalized"] = True
+        accessors.append(acc)
+        blob += a.tobytes() + b"\0" * (-a.nbytes % 4)
+    attributes = {"POSITION": 0, "NORMAL": 1} | ({"COLOR_0": 3} if ids else {})
+    material = {"pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 1], "metallicFactor": 0.0,
+                                         "roughnessFactor": 1.0}, "doubleSided": True}
+    doc = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
+           "meshes": [{"primitives": [{"attributes": attributes, "indices": 2, "material": 0}]}],
+           "materials": [material | ({"extensions": {"KHR_materials_unlit": {}}} if ids else {})],
+           "accessors": accessors, "bufferViews": views, "buffers": [{"byteLength": len(blob)}]}
+    if ids:
+        doc["extensionsUsed"] = ["KHR_materials_unlit"]
+    js = json.dumps(doc).encode()
+    js += b" " * (-len(js) % 4)
+    body = struct.pack("<II", len(js), 0x4E4F534A) + js + struct.pack("<II", len(blob), 0x004E4942) + blob
+    return struct.pack("<III", 0x46546C67, 2, 12 + len(body)) + body
