@@ -303,6 +303,65 @@ def _emit(rig: dict, sol: dict | None, path: str) -> str:
     return label
 
 
+def cmd_tune(args) -> int:
+    # lazy: the server stack (an extra) loads only for the command that runs, not for --help
+    from ..service.pipeline import scene_entry
+    from ..service.tune import TuneError, tune
+    from ..solvers.engine_fits import engine_module
+
+    fixed = dict(_knob_arg(t) for t in args.set or [])
+    try:  # an unknown engine or knob, a value out of range: exit 2 naming it, before any work
+        engine_module(args.engine).validate(fixed)
+    except ValueError as e:
+        raise CliError(str(e)) from None
+    rig = load_rig(args.rig, args)
+    poses = _tune_poses(rig, args.poses) if args.poses else None
+    entry = scene_entry(args.scene, **_scene_options(args))
+    try:
+        res = tune(entry, rig, args.engine, poses=poses, fixed=fixed)
+    except TuneError as e:
+        raise CliError(str(e)) from None
+    s, p, d = res["settings"], res["predicted"], res["defaults"]["predicted"]
+    _write_or_print(res, args.out, args.json,
+                    f"{res['engine']} {res['engine_version']}: " + ", ".join(f"{k}={v}" for k, v in s.items())
+                    + f"; predicted {p['misclassified_pixels']:.0f} wrong pixels (defaults: "
+                    f"{d['misclassified_pixels']:.0f}); {res['timings_ms']['total']:.0f} ms\n{res['snippet']}")
+    if args.emit:
+        from ..service.emit_tune_three import tune_module  # lazy: only with --emit
+
+        try:
+            Path(args.emit).write_text(tune_module(res))
+        except OSError as e:
+            raise CliError(f"--emit: cannot write {args.emit!r}: {e.strerror}") from e
+        print(f"three.js module written to {args.emit}", file=sys.stderr)
+    return 0
+
+
+def _knob_arg(text: str) -> tuple[str, object]:
+    """--set KNOB=VALUE: VALUE read as JSON (numbers, true, false), else as a string."""
+    name, sep, value = text.partition("=")
+    if not sep or not name:
+        raise CliError(f"--set: expected KNOB=VALUE, got {text!r}")
+    try:
+        return name, json.loads(value)
+    except json.JSONDecodeError:
+        return name, value
+
+
+def _tune_poses(rig: dict, path: str) -> list[dict]:
+    """--poses FILE.json: a list of camera objects (as the rig's camera), each validated in the rig."""
+    poses = _read_json(path, "--poses")
+    if not isinstance(poses, list) or not poses:
+        raise CliError(f"--poses: {path} must hold a non-empty JSON list of camera objects")
+    out = []
+    for k, cam in enumerate(poses):
+        try:
+            out.append(validate_rig({**rig, "camera": cam})["camera"])
+        except ValidationError as e:
+            raise CliError(f"--poses: pose {k}: {format_validation_error(e)}") from e
+    return out
+
+
 # the CLI's flag for each field service.method_options names (a rig field without a flag is named as in the rig)
 OPTION_FLAGS = {"solver": "--solver", "time_budget_ms": "--time-budget-ms", "previous": "--previous",
                 "hysteresis": "--hysteresis", "rig.shadow.lambda": "--lambda (rig shadow.lambda)",
@@ -637,6 +696,21 @@ def build_parser() -> argparse.ArgumentParser:
                     "ShadowOptions for Filament's web build, which takes no matrix; docs/engines.md)")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_optimize)
+
+    sp = sub.add_parser("tune", help="an engine's own cascade settings (three.js CSM) that predict the fewest wrong "
+                        "pixels, against the engine's defaults (docs/tune.md)")
+    scene_args(sp)
+    rig_args(sp)
+    sp.add_argument("--engine", default="three", help="the engine whose cascades to tune (accepted: three)")
+    sp.add_argument("--poses", default=None, metavar="FILE.json", help="more camera poses (a JSON list of camera "
+                    "objects like the rig's): one setting for all of them")
+    sp.add_argument("--set", action="append", metavar="KNOB=VALUE", help="pin a knob (the engine's own name, e.g. "
+                    "cascades=4); repeatable")
+    sp.add_argument("--out", default=None, help="also write the result JSON to this file")
+    sp.add_argument("--emit", default=None, metavar="FILE.js", help="also write an ES module that builds the tuned "
+                    "CSM instance from ctx.CSM (export default function apply(THREE, ctx))")
+    sp.add_argument("--json", action="store_true")
+    sp.set_defaults(func=cmd_tune)
 
     sp = sub.add_parser("evaluate", help="measure a solution against exact ray-traced shadows")
     scene_args(sp)

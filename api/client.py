@@ -261,6 +261,12 @@ class _Calls:
         return _Call("POST", "/v1/compare", json=body)
 
     @staticmethod
+    def tune(scene_id, rig, engine, settings, poses, options):
+        body = _drop_none({"scene_id": scene_id, "rig": rig_json(rig), "engine": engine, "settings": plain(settings),
+                           "poses": plain(poses), **options})
+        return _Call("POST", "/v1/tune", json=body)
+
+    @staticmethod
     def analyze(options):
         return _Call("POST", "/v1/analyze", json=_drop_none(options))
 
@@ -487,6 +493,13 @@ class Client(_Base):
         """`POST /v1/compare`: methods side by side (predicted and measured error, setup time)."""
         return self._call(_Calls.compare(scene_id, rig, methods, options))
 
+    def tune(self, scene_id: str, rig: dict | Rig, engine: str = "three", settings: dict | None = None,
+             poses: list[dict] | None = None, **options) -> dict:
+        """`POST /v1/tune`: the engine's own cascade settings (its own knob names) that predict the fewest wrong
+        pixels over the rig's pose and `poses`, with `predicted`, `defaults`, `emulated` cascades and a JS
+        `snippet`; `settings` pins knobs (docs/tune.md)."""
+        return self._call(_Calls.tune(scene_id, rig, engine, settings, poses, options))
+
     def analyze(self, **options) -> dict:
         """`POST /v1/analyze` (scene-independent), e.g. `analyze(f_over_n=100, theta_deg=30, gamma_deg=90,
         method="perspective")`."""
@@ -655,6 +668,10 @@ class AsyncClient(_Base):
                        time_budget_ms: float | None = None, previous: dict | Solution | None = None,
                        **options) -> Solution:
         return await self._call(_Calls.optimize(scene_id, rig, method, solver, time_budget_ms, previous, options))
+
+    async def tune(self, scene_id: str, rig: dict | Rig, engine: str = "three", settings: dict | None = None,
+                   poses: list[dict] | None = None, **options) -> dict:
+        return await self._call(_Calls.tune(scene_id, rig, engine, settings, poses, options))
 
     async def evaluate(self, scene_id: str, rig: dict | Rig, solution: dict | Solution, **options) -> dict:
         return await self._call(_Calls.evaluate(scene_id, rig, solution, options))

@@ -14,6 +14,8 @@ from ..service.evaluation import evaluate_solution
 from ..service.method_options import check_options
 from ..service.request import SolveRequest
 from ..service.solve import solve
+from ..service.tune import tune
+from ..solvers.engine_fits import engine_module
 from ..solvers.analysis import analyze as lloyd
 from .errors import AUTHED, ApiError, error_responses, solver_errors
 from .responses import json_response
@@ -72,6 +74,21 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
                     hysteresis=req.hysteresis, cache_tenant=tenant))  # service.coarse_cache
             svc.metrics.optimize.observe(time.perf_counter() - t0, req.method)
         return json_response(sol)
+
+    @app.post("/v1/tune", summary="An engine's own cascade settings (three.js CSM) that predict the fewest wrong "
+              "pixels, beside the engine's defaults", response_model=S.TuneResult,
+              responses=error_responses(*AUTHED, 404, 413, 422, 503), tags=["solve"])
+    async def tune_engine(req: S.TuneRequest, tenant: Tenant, request: Request):
+        rig = rig_dict(req.rig)
+        poses = [p.model_dump(by_alias=True) for p in req.poses or []]
+        with solver_errors():  # an unknown engine or knob, a value out of range: 422 naming it, before any work
+            engine_module(req.engine).validate(req.settings or {})
+        async with svc.heavy(tenant, request) as ticket:
+            entry = await scene_entry_for(svc, ticket, req.scene_id)
+            with solver_errors():
+                res = await svc.in_slot(svc.admission.solve, ticket, tune, entry, rig, req.engine, poses,
+                                        req.settings or {})
+        return json_response(res)
 
     @app.post("/v1/evaluate", summary="Measure a solution against exact ray-traced shadows (optional heatmap PNG)",
               response_model=S.Evaluation, responses=error_responses(*AUTHED, 404, 413, 422, 503), tags=["solve"])

@@ -480,6 +480,40 @@ class Comparison(_Open):
     methods: dict
 
 
+class TuneRequest(_SceneRequest):
+    """`POST /v1/tune`: an engine's own cascade settings for the rig's one directional light (docs/tune.md)."""
+
+    engine: Annotated[str, Field(max_length=32)] = Field("three", description="the engine whose own cascades are "
+                                                         "emulated and tuned (accepted: three)")
+    settings: dict | None = Field(None, description="knobs to pin, under the engine's own names (e.g. {\"cascades\": "
+                                  "4}); the search leaves them")
+    poses: list[CameraSpec] | None = Field(None, max_length=16, description="more camera poses (as rig.camera): "
+                                           "one setting serves them all, scored by the sum of their wrong pixels")
+
+
+class TunePrediction(_Open):
+    """Wrong pixels the emulated engine's depth test predicts at the rig's screen (summed over the poses)."""
+
+    misclassified_pixels: float
+    wrongly_lit: float
+    wrongly_shadowed: float
+
+
+class TuneResult(_Open):
+    """The tuned `settings` (the engine's own names) and their `predicted` wrong pixels; `defaults` (the engine's
+    defaults with maxFar = the scene's reach and the solution's map size) with theirs; `emulated.cascades` (each
+    cascade's near and far view depth where the engine selects it, and its light matrices); `snippet` (JS)."""
+
+    engine: str
+    engine_version: str
+    settings: dict
+    predicted: TunePrediction
+    defaults: dict
+    emulated: dict
+    snippet: str
+    timings_ms: dict
+
+
 class AnalyzeRequest(_Strict):
     """Lloyd et al.'s scene-independent factors for one view frustum and light angle."""
 

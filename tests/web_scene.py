@@ -1,6 +1,6 @@
-"""The scene's triangles as the browser engines' tests (tests/test_three_module.py, tests/test_filament_module.py) draw
-them: split into small coplanar pieces, each with its flat normal turned to the light's side; as three's vertex stream
-or as a binary glTF (the form Filament's web build loads with its built-in materials)."""
+"""The scene's triangles as the browser engines' tests draw them (tests/three_page.py's vertex stream for three.js,
+tests/test_filament_module.py's binary glTF, the form Filament's web build loads with its built-in materials): split
+into small coplanar pieces, each with its flat normal turned to the light's side."""
 from __future__ import annotations
 
 import json
@@ -18,21 +18,14 @@ def scene_triangles(entry, sun_direction) -> tuple[np.ndarray, np.ndarray]:
     (the demo's 300 m ground) a few tenths of a percent off (view depth 69.06 against the exact 68.90 m), which moved
     three's shadow lookups and added ~20 wrongly lit pixels per sun."""
     g = entry.loaded.geometry
-    tri = split_triangles(np.asarray(g.vertices, np.float64)[np.asarray(g.faces)])  # (n, 3, 3)
+    tri = split_long_triangles(np.asarray(g.vertices, np.float64)[np.asarray(g.faces)])  # (n, 3, 3)
     nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
     nrm *= np.where(nrm @ -np.asarray(sun_direction) < 0, -1.0, 1.0)[:, None]
     return tri, nrm
 
 
-def vertex_stream(entry, sun_direction) -> bytes:
-    """x y z nx ny nz per vertex, float32, unindexed (three.js harness)."""
-    tri, nrm = scene_triangles(entry, sun_direction)
-    out = np.concatenate([tri, np.repeat(nrm[:, None, :], 3, axis=1)], axis=2)
-    return out.astype(np.float32).tobytes()
-
-
-def split_triangles(tri: np.ndarray) -> np.ndarray:
+def split_long_triangles(tri: np.ndarray) -> np.ndarray:
     """Each triangle in four at its edge midpoints until no edge is longer than MAX_EDGE."""
     done = []
     while len(tri):

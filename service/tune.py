@@ -1,0 +1,80 @@
+"""`shadowopt tune`: the settings of an engine's own cascades that predict the fewest wrong pixels (issue 26, part 2).
+
+An engine user who does not install a custom matrix sets the engine's knobs by hand. Tune emulates the engine's
+own fit from those knobs (solvers.engine_fits: one module per engine) and scores each candidate by the product's one
+metric, exactly as a solve's prediction does (service.bias): the engine's depth test (renderers.depth_probe) at the
+coarse pass's light-facing receivers (service.bias.receivers_of), each standing for its share of the rig's
+full-resolution pixels, wrong answers counted by solvers.bias_fit.probe_wrong. The bias constant is found exactly
+by solvers.bias_fit.fit_constant over one value for every cascade (CSM sets one shadowBias for all its lights) and
+scored cross-fitted (bias_fit.cross_fitted), as the solve's fitted constant is. One setting serves every pose (a
+setting holds for a whole level): the score is the sum over the poses. The search itself: service.tune_search.
+"""
+from __future__ import annotations
+
+import time
+
+from ..solvers.engine_fits import engine_module
+from .tune_score import Pose, TuneError, cascades_json
+from .tune_search import search
+
+
+def pose_rigs(rig: dict, poses: list[dict] | None) -> list[dict]:
+    """The rig itself, then one rig per extra pose (its camera replaced)."""
+    out = [rig]
+    for k, cam in enumerate(poses or []):
+        if not isinstance(cam, dict):
+            raise TuneError(f"poses[{k}]", f"expected a camera object like the rig's camera, got {cam!r:.60}")
+        out.append({**rig, "camera": cam})
+    return out
+
+
+def tune(entry, rig: dict, engine: str, poses: list[dict] | None = None, fixed: dict | None = None) -> dict:
+    """The engine's settings that predict the fewest wrong pixels over the rig's pose and `poses` (camera dicts,
+    validated like the rig's camera), the engine's defaults beside them, and what the engine fits (module doc).
+    `fixed`: knobs the caller pins (validated; the search leaves them)."""
+    try:
+        mod = engine_module(engine)
+    except ValueError as e:
+        raise TuneError("engine", str(e).split(": ", 1)[1]) from None
+    try:
+        fixed_settings = {k: v for k, v in mod.validate(fixed or {}).items() if k in (fixed or {})}
+    except ValueError as e:
+        field, msg = str(e).split(": ", 1)
+        raise TuneError(field, msg) from None
+    t0 = time.perf_counter()
+    ps = [Pose(entry, r) for r in pose_rigs(rig, poses)]
+    t1 = time.perf_counter()
+    result = search(mod, ps, fixed_settings)
+    t2 = time.perf_counter()
+    maps = mod.fit(ps[0].camera, ps[0].light, result["settings"])
+    emulated = {"cascades": cascades_json(maps), "shadow_map_type": mod.SHADOW_MAP_TYPE,
+                "faces": mod.faces(result["settings"])}
+    if len(ps) > 1:
+        emulated["poses"] = [{"cascades": cascades_json(mod.fit(p.camera, p.light, result["settings"]))} for p in ps]
+    direction = [float(v) for v in ps[0].light.direction]
+    return {"engine": mod.ENGINE, "engine_version": mod.VERSION, "settings": result["settings"],
+            "predicted": result["predicted"], "defaults": result["defaults"], "emulated": emulated,
+            "light_direction": direction, "poses": len(ps), "candidates": result["candidates"],
+            "snippet": snippet(mod, result["settings"], direction),
+            "timings_ms": {"coarse": (t1 - t0) * 1e3, "search": (t2 - t1) * 1e3, "total": (t2 - t0) * 1e3,
+                           "per_pose": (t2 - t0) * 1e3 / len(ps)}}
+
+
+def snippet(mod, settings: dict, direction: list[float]) -> str:
+    """A few lines of JS that set the engine's knobs (three.js: a CSM instance)."""
+    if mod.ENGINE != "three":  # pragma: no cover - one engine so far
+        return ""
+    s = settings
+    d = ", ".join(f"{v:.6g}" for v in direction)
+    return "\n".join([
+        "import { CSM } from 'three/addons/csm/CSM.js';",
+        "renderer.shadowMap.enabled = true; renderer.shadowMap.type = THREE.BasicShadowMap;",
+        f"const csm = new CSM({{ camera, parent: scene, cascades: {s['cascades']}, mode: '{s['mode']}', "
+        f"maxFar: {s['maxFar']:.6g}, shadowMapSize: {s['shadowMapSize']}, shadowBias: {s['shadowBias']:.6g}, "
+        f"lightNear: {s['lightNear']:.6g}, lightFar: {s['lightFar']:.6g}, lightMargin: {s['lightMargin']:.6g}, "
+        f"lightDirection: new THREE.Vector3({d}) }});",
+        f"csm.fade = false; csm.lights.forEach((l) => {{ l.shadow.normalBias = {s['shadowNormalBias']:.6g}; }});",
+        "scene.traverse((o) => { if (!o.isMesh) return; o.castShadow = o.receiveShadow = true;",
+        f"  o.material.shadowSide = THREE.{s['shadowSide']}; csm.setupMaterial(o.material); }});",
+        "// each frame, before renderer.render(scene, camera): csm.update();",
+    ])
