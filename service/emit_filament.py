@@ -39,6 +39,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from ..solvers.engine_fits import filament as filament_fit
 from .emit_three import EmitError, one_light
 
 FILAMENT_VERSION = "1.53.4"  # the Filament.js release the module is written and tested for (Makefile: make setup)
@@ -100,7 +101,7 @@ def shadow_options(maps: list[dict], camera: dict) -> dict | None:
     far = float(camera.get("far") or 0.0)
     split_far = float((maps[-1].get("split") or [0.0, 0.0])[1])
     warp = (maps[0].get("warp") or {}).get("kind")
-    return {"mapSize": int(size[0]), "shadowCascades": len(maps),
+    options = {"mapSize": int(size[0]), "shadowCascades": len(maps),
             "constantBias": 0.0,
             "polygonOffsetConstant": depth["constant"] * UNORM16_STEPS,
             "polygonOffsetSlope": depth["slope_scaled"],
@@ -109,6 +110,12 @@ def shadow_options(maps: list[dict], camera: dict) -> dict | None:
             "lispsm": warp not in (None, "none"),
             "shadowFar": split_far if 0.0 < split_far < far else 0.0,
             "screenSpaceContactShadows": False}
+    try:  # the ranges Filament accepts, as the emulation of its fit (solvers.engine_fits.filament) knows them
+        filament_fit.validate({k: v for k, v in options.items() if k in filament_fit.KNOBS})
+    except ValueError as e:
+        knob, message = str(e).split(": ", 1)
+        raise EmitError(f"shadowOptions.{knob.removeprefix('settings.')}", message) from None
+    return options
 
 
 def _depth(smap: dict, k: int) -> dict:

@@ -11,7 +11,8 @@ Filament fits its light matrices itself and the module carries settings only (se
 even those cannot be applied (LightManager.setShadowOptions throws embind's UnboundTypeError, google/filament issue
 10043). So the browser case asserts what holds there: the module says so (an Error, or applied: false with
 acceptDefaults), undoes what it set, and Filament's own shadows with its default settings are real shadows, whose
-wrong pixels are counted and printed beside evaluate's count for the solution. What Filament cannot take is refused
+wrong pixels are counted and printed beside evaluate's count for the solution, and compared with the emulation of
+Filament's fit with the same defaults (solvers.engine_fits.filament). What Filament cannot take is refused
 with exit 2, naming the field and what is accepted (unit tests, no browser)."""
 from __future__ import annotations
 
@@ -108,10 +109,14 @@ def _score(entry, rig: dict, solution: dict, tri: np.ndarray, nrm: np.ndarray, f
     from shadowopt.renderers.ground_truth import evaluate_buffers
     from shadowopt.service.rigs import resolve_rig
     from shadowopt.service.solution_json import maps_from_solution
+    from shadowopt.solvers.engine_fits import filament as filament_fit
 
     resolved = resolve_rig(rig, entry.loaded)
-    gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps_from_solution(solution)[0],
-                          screen=SCREEN, depth="solution")
+    cam, light = resolved.camera, resolved.lights[0]
+    gt = evaluate_buffers(entry.rays, cam, light, maps_from_solution(solution)[0], screen=SCREEN, depth="solution")
+    # the emulation of Filament's own fit with its default settings (what 1.53.4 renders), scored the same way
+    emulated = filament_fit.fit(cam, light, {}, filament_fit.scene_boxes(tri))
+    ge = evaluate_buffers(entry.rays, cam, light, emulated, screen=SCREEN, depth="solution", screen_buffers=gt.screen)
     k = fil["ids"] - 1
     drawn = (k >= 0) & (k < len(tri))
     kk = np.where(drawn, k, 0)
@@ -129,10 +134,13 @@ def _score(entry, rig: dict, solution: dict, tri: np.ndarray, nrm: np.ndarray, f
             "filament_shadowed": int((keep & shadowed).sum()), "filament_wrong": int(wrong.sum()),
             "filament_wrongly_lit": int((wrong & exact).sum()), "filament_wrongly_shadowed": int((wrong & ~exact).sum()),
             "evaluate_wrong_compared": int((keep & gt.misclassified).sum()),
+            "emulated_defaults_wrong": int((keep & ge.misclassified).sum()),
+            "emulated_vs_filament_disagree": int((keep & ((exact ^ ge.misclassified) != shadowed)).sum()),
             "evaluate_wrong": gt.result["misclassified_pixels"]}
 
 
 @pytest.mark.browser
+@pytest.mark.slow
 def test_filament_js_renders_its_own_shadows_and_the_module_says_what_it_could_not_apply(browser, tmp_path):
     from shadowopt.service.pipeline import scene_entry
 
@@ -158,6 +166,10 @@ def test_filament_js_renders_its_own_shadows_and_the_module_says_what_it_could_n
     # Filament's own fit with its defaults shadows mostly where the exact visibility does: fewer wrong pixels than
     # either trivial answer (all lit, all shadowed)
     assert s["filament_wrong"] < 0.5 * min(s["exact_shadowed"], s["compared"] - s["exact_shadowed"]), s
+    # the emulation of its fit (solvers.engine_fits.filament) with the same defaults predicts about what it shows
+    # (issue 26's faithfulness bound: within 1.3x + 50 pixels, both ways)
+    assert s["filament_wrong"] <= 1.3 * s["emulated_defaults_wrong"] + 50, s
+    assert s["emulated_defaults_wrong"] <= 1.3 * s["filament_wrong"] + 50, s
 
 
 def _solution(depth: dict, maps: int = 1, kind: str = "directional", engine: str = "filament", **smap) -> dict:
