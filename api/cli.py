@@ -285,12 +285,14 @@ def _emit(rig: dict, sol: dict | None, path: str) -> str:
     """--emit: service.emit_three's checks as exit 2 (sol None: the rig's only, before solving), else the module of
     the rig's output.engine (three.js: service.emit_three; Filament's settings: service.emit_filament); its label."""
     # lazy: only with --emit
-    from ..service.emit_filament import filament_module
+    from ..service.emit_filament import check_rig, filament_module
     from ..service.emit_three import EmitError, check_engine, three_module
 
     try:
         if sol is None:
             check_engine(rig)
+            if (rig.get("output") or {}).get("engine") == "filament":
+                check_rig(rig)
             return ""
         engine = ((sol.get("resolved") or {}).get("output") or {}).get("engine")
         text, label = (filament_module(sol), "Filament") if engine == "filament" else (three_module(sol), "three.js")

@@ -49,6 +49,15 @@ MAX_CASCADES = 1  # the web build cannot set cascadeSplitPositions (module doc);
 DEPTH_FIELDS = ("constant", "slope", "normal_offset", "slope_scaled", "slope_clamp")
 
 
+def check_rig(rig: dict) -> None:
+    """Before solving: a rig asking for several cascades gets a solution the web build cannot apply (its splits)."""
+    cascades = (rig.get("shadow") or {}).get("cascades", 1)
+    if isinstance(cascades, int) and not isinstance(cascades, bool) and cascades > MAX_CASCADES:
+        raise EmitError("rig shadow.cascades", f"Filament's web build cannot set cascadeSplitPositions (filament.d.ts "
+                        f"{FILAMENT_VERSION}), so a cascaded solution cannot be applied (accepted: {MAX_CASCADES}), "
+                        f"got {cascades}")
+
+
 def filament_module(solution: dict) -> str:
     """The ES module's text for a solution solved with output.engine "filament" (module doc; EmitError otherwise)."""
     output = (solution.get("resolved") or {}).get("output") or {}

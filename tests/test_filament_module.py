@@ -216,3 +216,15 @@ def test_a_solution_filament_cannot_apply_is_refused_naming_its_field(solution, 
     with pytest.raises(EmitError) as e:
         filament_module(solution)
     assert e.value.field == field and "accepted: " in e.value.message
+
+
+def test_emit_refuses_a_cascaded_filament_rig_before_solving(tmp_path, capsys):
+    from shadowopt.api.cli import main
+
+    rig = {**RIG, "shadow": {"resolution": [1024, 1024], "cascades": 3}}
+    (tmp_path / "rig.json").write_text(json.dumps(rig))
+    js = tmp_path / "apply.js"
+    code = main(["optimize", str(DEMO), "--rig", str(tmp_path / "rig.json"), "--emit", str(js)])
+    err = capsys.readouterr().err
+    assert code == 2 and "error: rig shadow.cascades: " in err and "accepted: 1" in err, err
+    assert not js.exists()
