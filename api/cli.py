@@ -169,6 +169,11 @@ def cmd_bench(args) -> int:
 
         result = bench_engine_truth(validate_rig, lights=args.lights, scenes=args.scenes, screen=args.screen,
                                     write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
+    elif args.bench == "engines":  # tune's settings, the defaults and a hand grid in real three.js
+        from ..service.bench.engines import bench_engines  # lazy: the server stack loads only for the command that runs
+
+        result = bench_engines(validate_rig, lights=args.lights, scenes=args.scenes, screen=args.screen,
+                               write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
     elif args.bench == "solve-time":  # optimize's time per light, fitted bias against the rule
         from ..service.bench.solve_time import bench_solve_time  # lazy: the server stack loads only for the command that runs
 
@@ -320,7 +325,10 @@ def cmd_tune(args) -> int:
     poses = _tune_poses(rig, args.poses) if args.poses else None
     entry = scene_entry(args.scene, **_scene_options(args))
     try:
-        res = tune(entry, rig, args.engine, poses=poses, fixed=fixed)
+        res = tune(entry, rig, args.engine, poses=poses, fixed=fixed,
+                   camera_path=_read_json(args.camera_path, "--camera-path") if args.camera_path else None,
+                   sun_arc=_read_json(args.sun_arc, "--sun-arc") if args.sun_arc else None,
+                   time_budget_ms=args.time_budget_ms)
     except TuneError as e:
         raise CliError(str(e)) from None
     s, p, d = res["settings"], res["predicted"], res["defaults"]["predicted"]
@@ -706,6 +714,12 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--engine", default="three", help="the engine whose cascades to tune (accepted: three)")
     sp.add_argument("--poses", default=None, metavar="FILE.json", help="more camera poses (a JSON list of camera "
                     "objects like the rig's): one setting for all of them")
+    sp.add_argument("--camera-path", default=None, metavar="FILE.json", help="more poses along a camera path "
+                    "({\"poses\": [...]} or {\"keyframes\": [...], \"samples\": N}, over the rig's camera)")
+    sp.add_argument("--sun-arc", default=None, metavar="FILE.json", help="every camera under each sun of an arc "
+                    "({\"azimuth_deg\": [a, b], \"elevation_deg\": [a, b], \"samples\": N}); at most 16 poses in all")
+    sp.add_argument("--time-budget-ms", type=float, default=None, help="the search's time (default 1600 per pose "
+                    "less the coarse passes); past it no new candidate is scored (the answer's search.complete)")
     sp.add_argument("--set", action="append", metavar="KNOB=VALUE", help="pin a knob (the engine's own name, e.g. "
                     "cascades=4); repeatable")
     sp.add_argument("--out", default=None, help="also write the result JSON to this file")
@@ -755,7 +769,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("bench", help="run a benchmark, print its table and write it to BENCHMARKS.md")
     sp.add_argument("bench", choices=["coarse", "quality", "solvers", "trust", "load", "batch", "security", "engine", "path",
                                        "throughput", "inspect", "budget", "heldout", "limits", "hostile",
-                                       "engine-truth", "solve-time"])
+                                       "engine-truth", "solve-time", "engines"])
     sp.add_argument("--frames", type=int, default=None, help="path: frames per path (default: configs/paths.json's samples); "
                     "throughput: frames of the long path (default 1000)")
     sp.add_argument("--paths", default=None, help="path: comma-separated path names from configs/paths.json")

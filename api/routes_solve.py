@@ -87,7 +87,10 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
             entry = await scene_entry_for(svc, ticket, req.scene_id)
             with solver_errors():
                 res = await svc.in_slot(svc.admission.solve, ticket, tune, entry, rig, req.engine, poses,
-                                        req.settings or {})
+                                        req.settings or {},
+                                        req.camera_path.model_dump(exclude_none=True) if req.camera_path else None,
+                                        req.sun_arc.model_dump(exclude_none=True) if req.sun_arc else None,
+                                        svc.time_budget(req.time_budget_ms) if req.time_budget_ms else None)
         return json_response(res)
 
     @app.post("/v1/evaluate", summary="Measure a solution against exact ray-traced shadows (optional heatmap PNG)",

@@ -489,6 +489,13 @@ class TuneRequest(_SceneRequest):
                                   "4}); the search leaves them")
     poses: list[CameraSpec] | None = Field(None, max_length=16, description="more camera poses (as rig.camera): "
                                            "one setting serves them all, scored by the sum of their wrong pixels")
+    camera_path: CameraPath | None = Field(None, description="more poses along a camera path (poses, or keyframes "
+                                           "+ samples, over rig.camera)")
+    sun_arc: SunArc | None = Field(None, description="score every camera under each sun of this arc (the rig's "
+                                   "light replaced); at most 16 cameras x suns in all")
+    time_budget_ms: Annotated[float, Field(gt=0, le=600_000, allow_inf_nan=False)] | None = Field(
+        None, description="the search's time (default 1600 ms per pose less the coarse passes, capped by the "
+        "server's time budget); past it no new candidate is scored (the answer's search.complete)")
 
 
 class TunePrediction(_Open):

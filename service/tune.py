@@ -14,24 +14,46 @@ from __future__ import annotations
 import time
 
 from ..solvers.engine_fits import engine_module
+from .interpolation import camera_path as path_cameras
+from .interpolation import sun_arc as arc_directions
+from .request_fields import BatchError
 from .tune_score import Pose, TuneError, cascades_json
 from .tune_search import search
 
+MAX_POSES = 16  # cameras x suns scored per request (each ~1-2 s)
+SEARCH_BUDGET_S = 1.6  # per pose: the search takes no new candidate past it (the answer within ~2 s per pose)
 
-def pose_rigs(rig: dict, poses: list[dict] | None) -> list[dict]:
-    """The rig itself, then one rig per extra pose (its camera replaced)."""
-    out = [rig]
+
+def pose_rigs(rig: dict, poses: list[dict] | None, camera_path: dict | None = None,
+              sun_arc: dict | None = None) -> list[dict]:
+    """The rig itself, then one rig per extra pose (its camera replaced): `poses` (camera objects), a
+    `camera_path` (poses, or keyframes + samples, over the rig's camera: service.interpolation), each for every
+    direction of a `sun_arc` (the rig's light replaced by a directional light) when one is given."""
+    cams = [rig["camera"]]
     for k, cam in enumerate(poses or []):
         if not isinstance(cam, dict):
             raise TuneError(f"poses[{k}]", f"expected a camera object like the rig's camera, got {cam!r:.60}")
-        out.append({**rig, "camera": cam})
-    return out
+        cams.append(cam)
+    try:
+        if camera_path is not None:
+            cams += path_cameras(camera_path, rig["camera"])
+        suns = arc_directions(sun_arc) if sun_arc is not None else None
+    except BatchError as e:
+        raise TuneError(e.field, e.message) from None
+    lights = [rig["lights"]] if suns is None else [[{"type": "directional", "direction": d}] for d in suns]
+    if len(cams) * len(lights) > MAX_POSES:
+        raise TuneError("poses", f"tune scores at most {MAX_POSES} poses (cameras x suns) per request (accepted: "
+                        f"1-{MAX_POSES}), got {len(cams)} x {len(lights)}")
+    return [{**rig, "camera": cam, "lights": ls} for ls in lights for cam in cams]
 
 
-def tune(entry, rig: dict, engine: str, poses: list[dict] | None = None, fixed: dict | None = None) -> dict:
-    """The engine's settings that predict the fewest wrong pixels over the rig's pose and `poses` (camera dicts,
-    validated like the rig's camera), the engine's defaults beside them, and what the engine fits (module doc).
-    `fixed`: knobs the caller pins (validated; the search leaves them)."""
+def tune(entry, rig: dict, engine: str, poses: list[dict] | None = None, fixed: dict | None = None,
+         camera_path: dict | None = None, sun_arc: dict | None = None, time_budget_ms: float | None = None) -> dict:
+    """The engine's settings that predict the fewest wrong pixels over the rig's pose, `poses` (camera dicts,
+    validated like the rig's camera), a `camera_path` and a `sun_arc` (pose_rigs), the engine's defaults beside
+    them, and what the engine fits (module doc). `fixed`: knobs the caller pins (validated; the search leaves
+    them). `time_budget_ms`: the search's time (default SEARCH_BUDGET_S per pose, less the coarse passes); past
+    it no new candidate is scored."""
     try:
         mod = engine_module(engine)
     except ValueError as e:
@@ -41,10 +63,12 @@ def tune(entry, rig: dict, engine: str, poses: list[dict] | None = None, fixed: 
     except ValueError as e:
         field, msg = str(e).split(": ", 1)
         raise TuneError(field, msg) from None
+    rigs = pose_rigs(rig, poses, camera_path, sun_arc)
     t0 = time.perf_counter()
-    ps = [Pose(entry, r) for r in pose_rigs(rig, poses)]
+    ps = [Pose(entry, r) for r in rigs]
     t1 = time.perf_counter()
-    result = search(mod, ps, fixed_settings)
+    budget = time_budget_ms / 1e3 if time_budget_ms is not None else SEARCH_BUDGET_S * len(ps) - (t1 - t0)
+    result = search(mod, ps, fixed_settings, budget)
     t2 = time.perf_counter()
     maps = mod.fit(ps[0].camera, ps[0].light, result["settings"])
     emulated = {"cascades": cascades_json(maps), "shadow_map_type": mod.SHADOW_MAP_TYPE,
@@ -54,7 +78,9 @@ def tune(entry, rig: dict, engine: str, poses: list[dict] | None = None, fixed: 
     direction = [float(v) for v in ps[0].light.direction]
     return {"engine": mod.ENGINE, "engine_version": mod.VERSION, "settings": result["settings"],
             "predicted": result["predicted"], "defaults": result["defaults"], "emulated": emulated,
-            "light_direction": direction, "poses": len(ps), "candidates": result["candidates"],
+            "light_direction": direction, "poses": len(ps),
+            "search": {"candidates": result["candidates"], "complete": result["complete"],
+                       "budget_ms": budget * 1e3},
             "snippet": snippet(mod, result["settings"], direction),
             "timings_ms": {"coarse": (t1 - t0) * 1e3, "search": (t2 - t1) * 1e3, "total": (t2 - t0) * 1e3,
                            "per_pose": (t2 - t0) * 1e3 / len(ps)}}

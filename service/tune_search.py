@@ -10,18 +10,23 @@ three.js (CSM addon): two stages, each candidate scored at every pose with the b
    past the map's far plane; lightNear 1 (the default); mode practical;
 2. the KEEP best so far x the other modes (uniform, logarithmic);
 3. the KEEP best so far x shadowNormalBias (0.5, 1, 2 of the first cascade's texel side).
-About 22 candidates, ~50 ms each on this project's machine for one pose (the depth probe's texel rays dominate).
+About 22 candidates, ~50 ms each on this project's machine for the demo's pose (the depth probe's texel rays
+dominate, more with more receivers and texels); a time budget (service.tune: SEARCH_BUDGET_S per pose) stops
+the search early, stage 1 ordered by cascade count (3, CSM's default, then 4, 2, 1); the answer's `search.complete` says whether
+every planned candidate was scored.
 Knobs the caller pins keep their value throughout. The chosen candidate's prediction is cross-fitted
 (bias_fit.cross_fitted), as the solve's fitted constant is; the defaults' is their own bias's, no fit.
 """
 from __future__ import annotations
 
+import json
 import math
+import time
 
 from .tune_score import best_constant, predict, probe_pose
 
 MAX_SIZE = 8192  # a map side WebGL 2 renderers take everywhere (MAX_TEXTURE_SIZE >= 8192 on desktop GPUs)
-CASCADES = (1, 2, 3, 4)
+STAGE1_CASCADES = (3, 4, 2, 1)
 MODES = ("practical", "uniform", "logarithmic")
 FAR_FRACTIONS = (1.0, 0.5, 0.25)
 NORMAL_TEXELS = (0.0, 0.5, 1.0, 2.0)
@@ -58,7 +63,10 @@ def score(mod, poses, settings: dict, fixed: dict) -> tuple[float, float, list]:
     return wrong, c, probes
 
 
-def search(mod, poses, fixed: dict) -> dict:
+def search(mod, poses, fixed: dict, budget_s: float | None = None) -> dict:
+    """The best candidate (module doc) and the defaults' prediction. `budget_s`: the search stops taking new
+    candidates once it has run this long (at least one is scored); the answer says how many it scored."""
+    t0 = time.perf_counter()
     if mod.ENGINE != "three":  # pragma: no cover - one engine so far
         raise ValueError(f"engine: no search for {mod.ENGINE!r}")
     size0 = rig_size(poses)
@@ -78,31 +86,34 @@ def search(mod, poses, fixed: dict) -> dict:
             s["lightFar"] = float(min(mod.KNOBS["lightFar"].domain[1], math.ceil(need * 1.02 + s["lightNear"])))
         return mod.validate(s)
 
-    tried = []
+    tried, seen, planned = [], set(), []
 
     def run(s: dict) -> None:
-        wrong, c, _ = score(mod, poses, s, fixed)
-        tried.append((wrong, c, s))
+        key = json.dumps(s, sort_keys=True)
+        if key in seen or (tried and budget_s is not None and time.perf_counter() - t0 > budget_s):
+            return
+        seen.add(key)
+        wrong, c, probes = score(mod, poses, s, fixed)
+        tried.append((wrong, c, s, probes))
 
-    for n in CASCADES:
+    for n in STAGE1_CASCADES:  # CSM's own count first, for a search the budget cuts short
         for frac in FAR_FRACTIONS:
             run(candidate(cascades=n, mode=MODES[0], maxFar=max(reach * frac, 0.02),
                           shadowMapSize=budget_size(n, budget)))
     if "mode" not in fixed:
-        for _, _, s in sorted(tried, key=lambda t: t[0])[:KEEP]:
+        for _, _, s, _ in sorted(tried, key=lambda t: t[0])[:KEEP]:
             for mode in MODES[1:]:
                 run(mod.validate({**s, "mode": mode}))
     if "shadowNormalBias" not in fixed:
-        for _, _, s in sorted(tried, key=lambda t: t[0])[:KEEP]:
+        for _, _, s, _ in sorted(tried, key=lambda t: t[0])[:KEEP]:
             first = mod.fit(poses[0].camera, poses[0].light, s)[0]
             tau = 2.0 / (first.projection[0, 0] * first.resolution[0])  # the first cascade's texel side, metres
             for k in NORMAL_TEXELS[1:]:
                 run(mod.validate({**s, "shadowNormalBias": float(k * tau)}))
-    allc = tried
-    wrong, c, best = min(allc, key=lambda t: t[0])
-    if "shadowBias" not in fixed:
+    wrong, c, best, probes = min(tried, key=lambda t: t[0])
+    if "shadowBias" not in fixed:  # the bias changes no map: the candidate's probes serve
         best = mod.validate({**best, "shadowBias": -c if c != 0 else mod.KNOBS["shadowBias"].default})
-    probes = [probe_pose(mod, p, best)[1] for p in poses]
     pred = predict(mod, probes, poses, -mod.effective(best)["shadowBias"], "shadowBias" not in fixed)
-    return {"settings": best, "predicted": pred, "candidates": len(allc),
+    return {"settings": best, "predicted": pred, "candidates": len(tried),
+            "complete": len(seen) == len(set(planned)),
             "defaults": {"settings": d_settings, "predicted": d_pred}}

@@ -1,6 +1,6 @@
 """`optimize --emit`'s three.js module in the real engine: three.js r187 (npm, installed by `make setup` into
 out/web/node_modules) in Debian's Chromium headless through Playwright (SwiftShader WebGL2), the module imported as
-it is. The page (tests/three_harness/) draws the demo scene's own triangles with the rig's camera and sun, renders
+it is. The page (service/bench/three_page.py, three_harness/) draws the demo scene's own triangles with the rig's camera and sun, renders
 three's shadow term (a ShadowMaterial's alpha; with cascades, through three's CSM addon, a white Lambert material
 with and without shadows, since CSM selects the cascade in the lighting code) and a view-depth pass, and the pixels are scored against the
 product's exact ray-traced visibility of the same screen (renderers.ground_truth.evaluate_buffers, what `evaluate

@@ -200,3 +200,25 @@ def test_the_docs_example_runs_verbatim(tmp_path, monkeypatch, capsys):
     data = json.loads(module.split("const TUNED = ", 1)[1].split(";\n", 1)[0])
     assert data["settings"] == res["settings"] and data["three"] == "0.187.0"
     assert res["predicted"]["misclassified_pixels"] < res["defaults"]["predicted"]["misclassified_pixels"]
+
+
+def test_a_sun_arc_scores_each_sun_and_too_many_poses_or_a_point_light_are_refused(entry, tmp_path, capsys):
+    from shadowopt.api.cli import main, validate_rig
+    from shadowopt.service.tune import TuneError, tune
+
+    rig = validate_rig({"camera": {"usd_path": "/World/Camera", "resolution": [160, 90]},
+                        "lights": [{"usd_path": "/World/Sun"}], "shadow": {"resolution": [512, 512]},
+                        "coarse_long_side": 64})
+    res = tune(entry, rig, "three", sun_arc={"azimuth_deg": [30, 60], "elevation_deg": 40, "samples": 2},
+               fixed={"cascades": 1, "mode": "practical", "shadowNormalBias": 0.0})
+    assert res["poses"] == 2 and len(res["predicted"]["per_pose"]) == 2
+    # the arc's first sun: azimuth 30, elevation 40 (service.interpolation.sun_arc), the light travelling away
+    e, a = math.radians(40), math.radians(30)
+    assert res["light_direction"] == pytest.approx([-math.cos(e) * math.sin(a), -math.sin(e), -math.cos(e) * math.cos(a)])
+    with pytest.raises(TuneError) as err:
+        tune(entry, rig, "three", sun_arc={"elevation_deg": 40, "samples": 17})
+    assert err.value.field == "poses" and "accepted: 1-16" in err.value.message
+    point = dict(rig, lights=[{"type": "point", "position": [0.0, 5.0, 0.0]}])
+    (tmp_path / "rig.json").write_text(json.dumps(point))
+    assert main(["tune", str(DEMO), "--rig", str(tmp_path / "rig.json")]) == 2
+    assert "error: rig.lights: tune fits an engine's cascades for one directional light" in capsys.readouterr().err

@@ -1,6 +1,7 @@
-"""The scene's triangles as the browser engines' tests draw them (tests/three_page.py's vertex stream for three.js,
-tests/test_filament_module.py's binary glTF, the form Filament's web build loads with its built-in materials): split
-into small coplanar pieces, each with its flat normal turned to the light's side."""
+"""The scene's triangles as Filament's web build loads them in tests/test_filament_module.py: a binary glTF (the form
+its glTF loader draws with its built-in materials) of the same triangles three.js draws
+(shadowopt.service.bench.three_page.scene_geometry: split into small coplanar pieces, flat normals on the light's
+side)."""
 from __future__ import annotations
 
 import json
@@ -8,34 +9,13 @@ import struct
 
 import numpy as np
 
-MAX_EDGE = 4.0  # metres
+from shadowopt.service.bench.three_page import scene_geometry
 
 
 def scene_triangles(entry, sun_direction) -> tuple[np.ndarray, np.ndarray]:
-    """(triangles (n, 3, 3), flat unit normals (n, 3)) of the scene, each normal turned to the light's side: the normal
-    a closed, consistently wound mesh has on its lit side. Triangles longer than MAX_EDGE are split into coplanar
-    pieces (the same surfaces): SwiftShader interpolates the varyings of a huge triangle clipped by the near plane
-    (the demo's 300 m ground) a few tenths of a percent off (view depth 69.06 against the exact 68.90 m), which moved
-    three's shadow lookups and added ~20 wrongly lit pixels per sun."""
-    g = entry.loaded.geometry
-    tri = split_long_triangles(np.asarray(g.vertices, np.float64)[np.asarray(g.faces)])  # (n, 3, 3)
-    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
-    nrm *= np.where(nrm @ -np.asarray(sun_direction) < 0, -1.0, 1.0)[:, None]
-    return tri, nrm
-
-
-def split_long_triangles(tri: np.ndarray) -> np.ndarray:
-    """Each triangle in four at its edge midpoints until no edge is longer than MAX_EDGE."""
-    done = []
-    while len(tri):
-        edge = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
-        done.append(tri[edge <= MAX_EDGE])
-        t = tri[edge > MAX_EDGE]
-        a, b, c = t[:, 0], t[:, 1], t[:, 2]
-        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
-        tri = np.concatenate([np.stack(q, axis=1) for q in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
-    return np.concatenate(done)
+    """(triangles (n, 3, 3), flat unit normals (n, 3)), float64 from three_page.scene_geometry's float32 stream."""
+    v = np.frombuffer(scene_geometry(entry, sun_direction), np.float32).reshape(-1, 3, 6).astype(np.float64)
+    return v[:, :, :3], v[:, 0, 3:]
 
 
 def glb(tri: np.ndarray, nrm: np.ndarray, ids: bool = False) -> bytes:
