@@ -40,7 +40,7 @@ import json
 from pathlib import Path
 
 from ..solvers.engine_fits import filament as filament_fit
-from .emit_three import EmitError, one_light
+from .emit_three import EmitError, check_one_light
 
 FILAMENT_VERSION = "1.53.4"  # the Filament.js release the module is written and tested for (Makefile: make setup)
 TEMPLATE = Path(__file__).with_name("emit_filament.js")
@@ -65,7 +65,7 @@ def filament_module(solution: dict) -> str:
         raise EmitError("--emit", f"the solution was not solved for output.engine 'filament' (accepted: filament), "
                         f"its output is {output.get('engine')!r}")
     lights = solution.get("lights") or []
-    one_light(lights, "solution")
+    check_one_light(lights, "solution")
     light = lights[0]
     if light.get("type") != "directional":
         raise EmitError("rig lights[0]", f"--emit writes Filament settings for a directional light (accepted: "

@@ -34,10 +34,11 @@ def check_engine(rig: dict) -> None:
     if engine not in EMIT_ENGINES:
         raise EmitError("--emit", f"writes code for output.engine {' or '.join(map(repr, EMIT_ENGINES))} only "
                         f"(accepted: {', '.join(EMIT_ENGINES)}); the rig's output.engine is {engine!r}")
-    one_light(rig.get("lights") or [], "rig")
+    check_one_light(rig.get("lights") or [], "rig")
 
 
-def one_light(lights: list, what: str) -> None:
+def check_one_light(lights: list, what: str) -> None:
+    """The rig's or the solution's lights: --emit writes a module for one light (ctx.light)."""
     if len(lights) != 1:
         raise EmitError("rig lights", f"--emit writes a module for one light (ctx.light; accepted: 1), the {what} "
                         f"has {len(lights)}")
@@ -50,7 +51,7 @@ def three_module(solution: dict) -> str:
         raise EmitError("--emit", f"the solution was not solved for output.engine 'three' (accepted: three), its "
                         f"output is {output.get('engine')!r}")
     lights = solution.get("lights") or []
-    one_light(lights, "solution")
+    check_one_light(lights, "solution")
     light = lights[0]
     if light.get("type") != "directional":
         raise EmitError("rig lights[0]", f"--emit writes a module for a directional light (accepted: directional), "
