@@ -17,34 +17,30 @@ export DRJIT_LIBLLVM_PATH ?= $(firstword $(wildcard /usr/lib/*-linux-gnu/libLLVM
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-# three.js, pinned, for the emitted module's browser test (tests/test_three_module.py): npm's package into out/web,
-# outside git; no binary is downloaded. Re-run only when the pin changes (the stamp names the version).
+# The web engines, pinned, for the emitted modules' browser tests (tests/test_three_module.py, test_babylon_module.py,
+# test_filament_module.py, test_tune_three.py) and `shadowopt bench engines`: npm's packages into out/web, outside
+# git, in one npm install (one resolution of the prefix instead of three); no install script runs and no binary is
+# downloaded (three.js with its CSM addon; @babylonjs/core: ES modules, no dependencies; filament: filament.js,
+# filament.wasm and filament.d.ts as npm ships them, its one dependency gl-matrix along). Re-run only when a pin
+# changes: the stamp names the versions.
 THREE_VERSION := 0.187.0
-WEB := out/web
-THREE_STAMP := $(WEB)/.three-$(THREE_VERSION)
-# Babylon.js, pinned, for the emitted Babylon module's browser test (tests/test_babylon_module.py): npm's
-# @babylonjs/core (ES modules, no dependencies, no install script) into the same out/web; its stamp names the version.
-# After three's rule (order-only), so that two npm installs never run in the same prefix at once under make -j.
 BABYLON_VERSION := 9.35.0
-BABYLON_STAMP := $(WEB)/.babylon-$(BABYLON_VERSION)
+FILAMENT_VERSION := 1.53.4
+WEB := out/web
+WEB_PACKAGES := three@$(THREE_VERSION) @babylonjs/core@$(BABYLON_VERSION) filament@$(FILAMENT_VERSION)
+WEB_STAMP := $(WEB)/.web-three-$(THREE_VERSION)-babylon-$(BABYLON_VERSION)-filament-$(FILAMENT_VERSION)
 
 .PHONY: setup serve test test-fast bench demo clean mutate
 
-setup: $(STAMP) $(THREE_STAMP) $(BABYLON_STAMP)
+setup: $(STAMP) $(WEB_STAMP)
 
-$(THREE_STAMP):
+$(WEB_STAMP):
 	@command -v npm >/dev/null 2>&1 || { echo "setup: apt-get install nodejs npm"; \
 	  $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq nodejs npm >/dev/null; }
-	@echo "setup: npm install three@$(THREE_VERSION) into $(WEB)"
+	@echo "setup: npm install $(WEB_PACKAGES) into $(WEB)"
 	@mkdir -p $(WEB)
-	@npm install --prefix $(WEB) --save-exact --no-audit --no-fund --ignore-scripts three@$(THREE_VERSION) >$(WEB)/npm.log 2>&1 || { cat $(WEB)/npm.log; exit 1; }
-	@rm -f $(WEB)/.three-*
-	@touch $@
-
-$(BABYLON_STAMP): | $(THREE_STAMP)
-	@echo "setup: npm install @babylonjs/core@$(BABYLON_VERSION) into $(WEB)"
-	@npm install --prefix $(WEB) --save-exact --no-audit --no-fund --ignore-scripts @babylonjs/core@$(BABYLON_VERSION) >$(WEB)/npm-babylon.log 2>&1 || { cat $(WEB)/npm-babylon.log; exit 1; }
-	@rm -f $(WEB)/.babylon-*
+	@npm install --prefix $(WEB) --save-exact --no-audit --no-fund --ignore-scripts $(WEB_PACKAGES) >$(WEB)/npm.log 2>&1 || { cat $(WEB)/npm.log; exit 1; }
+	@rm -f $(WEB)/.web-* $(WEB)/.three-* $(WEB)/.babylon-* $(WEB)/.filament-*
 	@touch $@
 
 $(STAMP): requirements.lock pyproject.toml

@@ -697,7 +697,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--emit", default=None, metavar="FILE.js", help="also write an ES module that installs the "
                     "solution in the engine as it is (the rig's output.engine \"three\": three.js r187, one "
                     "directional light, one map or cascades through three's CSM addon; \"babylon\": Babylon.js "
-                    "9.35, one directional light, one map; docs/engines.md)")
+                    "9.35, one directional light, one map; \"filament\": the light's ShadowOptions for Filament's "
+                    "web build, which takes no matrix; docs/engines.md)")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_optimize)
 
