@@ -7,6 +7,7 @@ import contextlib
 import hmac
 import json
 import logging
+import os
 import threading
 import time
 from collections import OrderedDict
@@ -21,6 +22,7 @@ from ..service.evaluation import evaluate_solution
 from ..service.scenes import SCENES
 from ..service.request import SolveRequest
 from ..service.solve import solve
+from ..service.rig_bounds import DISTANCE_ENV
 from ..service.store import Store
 from .admission import Admission, Refused
 from .errors import ApiError
@@ -66,6 +68,8 @@ class Service:
 
     # lifecycle
     def start(self) -> None:
+        # the distance bound of rigs (service.rig_bounds), for this process and the batch workers it starts
+        os.environ[DISTANCE_ENV] = repr(float(self.settings.max_rig_distance_m))
         import_native_stack()
         configure_scene_cache(self.settings)
         Path(self.settings.data_dir).mkdir(parents=True, exist_ok=True)
