@@ -262,16 +262,34 @@ def zip_declared_bytes(data: bytes, name: str, max_unpacked: int = MAX_UNPACKED_
         return sum(i.file_size for i in files)
 
 
+USDZ_ALIGN = 64  # a usdz entry's data starts at a multiple of 64 bytes (Pixar, "Usdz File Format Specification")
+USDZ_PADDING_ID = 0x1986  # the extra-field header id usd-core's own writer pads with (pxr/usd/sdf/zipFile.cpp)
+
+
+def write_usdz(out, entries: list[tuple[str, str]]) -> None:
+    """A .usdz at `out` holding `entries` [(name inside, file), ...] in that order (the root layer first), as
+    the usdz specification wants them: stored uncompressed, each entry's data at a multiple of 64 bytes (the
+    local header's extra field pads it, as usd-core's Sdf.ZipFileWriter does). Copied 1 MiB at a time:
+    Sdf.ZipFileWriter reads each file whole into memory (+256 MB in the server for a 250 MB entry)."""
+    with open(out, "wb") as f, zipfile.ZipFile(f, "w", zipfile.ZIP_STORED) as z:
+        for inner, src in entries:
+            info = zipfile.ZipInfo(inner, date_time=(1980, 1, 1, 0, 0, 0))  # fixed: the same zip, the same package
+            info.compress_type = zipfile.ZIP_STORED
+            info.file_size = os.path.getsize(src)
+            start = f.tell() + 30 + len(inner.encode("utf-8")) + 4  # local header (APPNOTE 4.3.7), name, pad header
+            pad = -start % USDZ_ALIGN
+            info.extra = struct.pack("<HH", USDZ_PADDING_ID, pad) + b"\0" * pad
+            with open(src, "rb") as s, z.open(info, "w") as d:
+                shutil.copyfileobj(s, d, 1 << 20)
+
+
 def zip_to_usdz_file(data: bytes, name: str, work_dir, max_unpacked: int = MAX_UNPACKED_BYTES) -> tuple[Path, str]:
     """An uploaded .zip of a scene's folder as a .usdz file in `work_dir` (an empty folder the caller owns and
-    removes: the entries are unpacked below it, the package written beside them; usd-core's Sdf.ZipFileWriter,
-    which stores entries uncompressed and aligned as a usdz needs) and the package's name. The entries' sizes as
+    removes: the entries are unpacked below it, the package written beside them) and the package's name. The entries' sizes as
     the zip declares them add up to at most `max_unpacked` bytes, and the bytes actually written are counted
     while they stream out: no entry is written past its declared size (declared sizes can lie), so nothing
-    past the declared total reaches the disk. A damaged entry (bad CRC, unknown compression) is refused naming
+    past the declared total reaches the disk. The package is written by `write_usdz`, a chunk at a time. A damaged entry (bad CRC, unknown compression) is refused naming
     it."""
-    from pxr import Sdf  # lazy: usd-core is the server extra; api.client imports this module
-
     with _open_zip(data, name) as z:
         files = _checked_entries(z, max_unpacked)
         prefix, inside = _inside_names(files)
@@ -303,13 +321,11 @@ def zip_to_usdz_file(data: bytes, name: str, work_dir, max_unpacked: int = MAX_U
         if inside[root].file_size == 0:
             raise SceneError("empty_stage", f"the zip's root layer {root!r} is empty")
         out = os.path.join(os.fspath(work_dir), "out.usdz")
+        # an empty file is left out: usd-core cannot map it, and an empty file holds no layer or texel
+        order = [root] + sorted(n for n in inside if n != root and inside[n].file_size > 0)
         try:
-            writer = Sdf.ZipFileWriter.CreateNew(out)
-            # an empty file is left out: usd-core cannot map it, and an empty file holds no layer or texel
-            for inner in [root] + sorted(n for n in inside if n != root and inside[n].file_size > 0):
-                writer.AddFile(os.path.join(files_dir, *inner.split("/")), inner)
-            writer.Save()
-        except Exception as e:  # pxr.Tf.ErrorException
+            write_usdz(out, [(inner, os.path.join(files_dir, *inner.split("/"))) for inner in order])
+        except (OSError, ValueError, zipfile.LargeZipFile) as e:
             raise SceneError("corrupt", f"{os.path.basename(name)}: the package could not be written "
                              f"({type(e).__name__})") from e
         shutil.rmtree(files_dir, ignore_errors=True)  # the package holds them now
