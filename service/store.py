@@ -1,7 +1,8 @@
 """Persistence: a data directory with uploaded scene files and one SQLite database.
 
-Layout: `<data_dir>/scenes/<tenant hash>/<scene_id>/<sanitised file name>` and `<data_dir>/shadowopt.db`
-(WAL mode). Tables: scenes, batches, configurations, results, errors. An uploaded scene's row holds its
+Layout: `<data_dir>/scenes/<tenant hash>/<scene_id>/<sanitised file name>`, `<data_dir>/shadowopt.db`
+(WAL mode) and `<data_dir>/tmp/` (uploads' scratch folders while a zip is unpacked: Store.work_dir; swept at
+start). Tables: scenes, batches, configurations, results, errors. An uploaded scene's row holds its
 path relative to `<data_dir>/scenes` (`<tenant hash>/<scene_id>/<name>`), so the data directory can be opened
 from any working directory, under any absolute path, or after it was moved or restored; rows written before
 (absolute or working-directory-relative paths) are migrated when the store opens. Every write of a configuration's
