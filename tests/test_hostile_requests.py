@@ -148,3 +148,15 @@ def test_absurd_numbers_are_refused_naming_the_field(served, change, field):
     err = r.json()["error"]
     assert err["field"] is not None and err["field"].startswith(field), err
     assert "nan" not in r.text.lower() and "infinity" not in r.text.lower()
+
+
+def test_an_evaluation_over_the_work_limit_is_refused_before_admission(served):
+    """8192^2 texels looked up from a 3840x2160 screen: 8.3 M pixels + 2.1 M texel units, over MAX_EVAL_WORK. It is
+    refused before a slot is taken or a scene loaded: even for a scene id that does not exist."""
+    cascade = {"view_matrix": [0.0] * 16, "projection_matrix": [0.0] * 16, "resolution": [8192, 8192]}
+    solution = {"lights": [{"type": "directional", "cascades": [cascade]}]}
+    r = httpx.post(served.base + "/v1/evaluate", timeout=60, json={"scene_id": "0" * 16, "rig": RIG,
+                                                                   "solution": solution, "screen": [3840, 2160]})
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert err["code"] == "too_costly" and err["field"] == "screen" and "8,294,400 screen pixels" in err["message"]
