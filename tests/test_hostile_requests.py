@@ -114,6 +114,7 @@ def test_a_zip_is_unpacked_in_the_data_dir_never_the_system_temp_dir(served):
             tmp = served.data_dir / "tmp"
             if tmp.is_dir():
                 seen.update(f"data/{p.name}" for p in tmp.iterdir())
+            time.sleep(0.002)
 
     t = threading.Thread(target=watch)
     t.start()
