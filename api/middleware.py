@@ -9,6 +9,7 @@ import traceback
 import uuid
 
 from .errors import error_json
+from .host_guard import refusal
 from .responses import finite
 from .service_state import Service
 
@@ -17,7 +18,8 @@ log = logging.getLogger("shadowopt.server")
 
 class RequestContext:
     """ASGI middleware: X-Request-ID (echoed; generated when absent), a JSON log line and metrics per
-    request, and the body-size limit (413 before the body is read when Content-Length says so)."""
+    request, local mode's Host and Origin check (host_guard), and the body-size limit (413 before the body is
+    read when Content-Length says so)."""
 
     def __init__(self, app, service: Service):
         self.app, self.service = app, service
@@ -38,7 +40,11 @@ class RequestContext:
 
         try:
             too_big = self._too_big(scope)
-            if too_big is not None:
+            refused = refusal(scope, self.service.settings)  # no tokens: a foreign Host or Origin
+            if refused is not None:
+                scope["state"]["error_code"] = refused[1]
+                await error_json(*refused)(scope, receive, send_with_id)
+            elif too_big is not None:
                 await too_big(scope, receive, send_with_id)
             elif self._uncounted(scope):  # a JSON body without Content-Length (chunked): read it within the limit
                 replay = await self._buffered(receive, self.service.settings.max_body_bytes)

@@ -3,6 +3,7 @@ per-tenant storage quota of uploads."""
 
 import contextlib
 import os
+from pathlib import Path
 from typing import Annotated
 
 from fastapi import FastAPI, Header, Query, Request
@@ -10,7 +11,7 @@ from starlette.concurrency import run_in_threadpool
 
 from . import schemas as S
 from ..renderers.scene_data import SceneError
-from ..service.packing import MAX_UNPACKED_BYTES, zip_to_usdz
+from ..service.packing import MAX_UNPACKED_BYTES, zip_declared_bytes, zip_to_usdz_file
 from ..service.store import scene_id_for
 from .errors import AUTHED, ApiError, error_responses
 from .responses import finite, json_response, redact
@@ -44,8 +45,9 @@ def add_scene_routes(app: FastAPI, svc: Service, Tenant) -> None:
             data, name = await read_upload(request, svc.settings.max_upload_bytes, filename or x_filename)
             ticket.watch(request.receive)
             if name.lower().endswith(".zip"):  # a scene's folder: checked entry by entry, stored as a .usdz
-                data, name = await run_in_threadpool(zip_upload, data, name, svc.settings.max_upload_bytes)
-            info, created = await store_and_load(svc, ticket, data, name)
+                info, created = await store_zip(svc, ticket, data, name)
+            else:
+                info, created = await store_and_load(svc, ticket, data, name)
         return json_response({**info, "created": created}, status=201 if created else 200)
 
     @app.get("/v1/scenes", summary="This tenant's scenes", response_model=S.SceneList, tags=["scenes"],
@@ -115,33 +117,62 @@ async def read_upload(request: Request, limit: int, name: str | None) -> tuple[b
     return body, name
 
 
-def zip_upload(data: bytes, name: str, max_upload_bytes: int) -> tuple[bytes, str]:
-    """service.packing.zip_to_usdz, unpacking at most 4 x max_upload_bytes (and the packing module's own cap);
-    a refused entry, limit or damaged zip is a 422 naming the entry as the zip names it (413 over the
-    unpacked-size limit)."""
+def zip_limit(svc: Service) -> int:
+    """The most bytes a zip upload may unpack to: 4 x max_upload_bytes, within the packing module's own cap."""
+    return min(MAX_UNPACKED_BYTES, 4 * svc.settings.max_upload_bytes)
+
+
+def zip_error(e: SceneError) -> ApiError:
+    """A refused entry, limit or damaged zip: 422 naming the entry as the zip names it (413 over a limit)."""
+    status = 413 if e.code == "sandbox_limit" else 422
+    return ApiError(status, e.code, f"file: {redact(e.message)}", "file")
+
+
+async def store_zip(svc: Service, ticket, data: bytes, name: str) -> tuple[dict, bool]:
+    """A .zip of a scene's folder, stored as a .usdz. Before anything is unpacked, the bytes its entries declare
+    are checked against the server's limit and reserved against the tenant's quota (413/429 as an upload of that
+    size); unpacking then runs in a scene-load slot (one of `load_threads`: concurrent zips unpack one after
+    another), counting the bytes it writes (never past the declared total), into a scratch folder of the data
+    directory (Store.work_dir, swept at start), and the package is moved into the store, never read into
+    memory."""
+    limit = zip_limit(svc)
     try:
-        return zip_to_usdz(data, name, max_unpacked=min(MAX_UNPACKED_BYTES, 4 * max_upload_bytes))
+        declared = await run_in_threadpool(zip_declared_bytes, data, name, limit)
     except SceneError as e:
-        status = 413 if e.code == "sandbox_limit" else 422
-        raise ApiError(status, e.code, f"file: {redact(e.message)}", "file") from e
+        raise zip_error(e) from e
+    await run_in_threadpool(reserve_upload, svc, ticket.tenant, declared, "declared by the zip's files")
+    try:
+        with svc.store.work_dir() as work:
+            try:
+                package, pkg_name = await svc.in_slot(svc.admission.load, ticket, zip_to_usdz_file, data, name,
+                                                      work, limit)
+            except SceneError as e:
+                raise zip_error(e) from e
+            unreserve_upload(svc, ticket.tenant, declared)
+            declared = 0
+            return await store_and_load(svc, ticket, package, pkg_name)
+    finally:
+        unreserve_upload(svc, ticket.tenant, declared)
 
 
-async def store_and_load(svc: Service, ticket, data: bytes, name: str) -> tuple[dict, bool]:
-    """Store the file, load it in upload mode (nothing outside the upload is read, limits enforced while
-    loading), then record it with what was found in one transaction; a load that fails leaves nothing.
-    Runs under the request's admission: the write in a worker thread, the load in a scene-load slot."""
+async def store_and_load(svc: Service, ticket, data: bytes | Path, name: str) -> tuple[dict, bool]:
+    """Store the file (`data`: its bytes, or a package in the data directory, which is moved into the store),
+    load it in upload mode (nothing outside the upload is read, limits enforced while loading), then record it
+    with what was found in one transaction; a load that fails leaves nothing. Runs under the request's
+    admission: the write in a worker thread, the load in a scene-load slot."""
     tenant = ticket.tenant
+    nbytes = len(data) if isinstance(data, bytes) else os.path.getsize(data)
 
     def prepare():
         scene_id = scene_id_for(data, name)
         rec = svc.store.scene_record(tenant, scene_id)
         if rec is not None and rec.get("info"):
             return scene_id, rec, None
-        reserve_upload(svc, tenant, len(data))
+        reserve_upload(svc, tenant, nbytes)
         try:
             _, path, _ = svc.store.write_upload(tenant, data, name)
         except BaseException:
-            unreserve_upload(svc, tenant, len(data))
+            unreserve_upload(svc, tenant, nbytes)
             raise
         return scene_id, None, path
 
@@ -156,13 +187,13 @@ async def store_and_load(svc: Service, ticket, data: bytes, name: str) -> tuple[
             if info["triangles"] > svc.settings.max_triangles:  # the loader stops at the limit; a safety net
                 raise ApiError(413, "too_many_triangles", f"file: the scene has {info['triangles']} triangles, "
                                f"over the limit of {svc.settings.max_triangles}", "file")
-            created = await run_in_threadpool(svc.store.register_upload, tenant, scene_id, path, len(data), info)
+            created = await run_in_threadpool(svc.store.register_upload, tenant, scene_id, path, nbytes, info)
         except BaseException:
             with contextlib.suppress(Exception):  # a database that fails here: the start-up sweep removes it
                 await run_in_threadpool(svc.store.discard_upload, tenant, scene_id, path)
             raise
     finally:
-        unreserve_upload(svc, tenant, len(data))
+        unreserve_upload(svc, tenant, nbytes)
     if not created:  # a concurrent upload of the same bytes was recorded first
         await run_in_threadpool(svc.store.discard_upload, tenant, scene_id, path)
         rec = await run_in_threadpool(svc.store.scene_record, tenant, scene_id)
@@ -170,16 +201,19 @@ async def store_and_load(svc: Service, ticket, data: bytes, name: str) -> tuple[
     return scene_info({"info": info, "filename": path.name}, scene_id), True
 
 
-def reserve_upload(svc: Service, tenant: str, nbytes: int) -> None:
-    """Count an upload's bytes to the tenant's quota (stored plus being stored); 413/429 when over it."""
+def reserve_upload(svc: Service, tenant: str, nbytes: int, what: str = "") -> None:
+    """Count an upload's bytes to the tenant's quota (stored plus being stored); 413/429 when over it. `what`
+    says where the count comes from in the message (a zip's declared size). Reads the database: a worker
+    thread's call."""
     quota = svc.settings.tenant_max_stored_bytes
     if nbytes > quota:
-        raise ApiError(413, "tenant_quota", f"file: {nbytes} bytes is over the per-tenant storage quota "
-                       f"tenant_max_stored_bytes = {quota}", "file")
+        raise ApiError(413, "tenant_quota", f"file: {nbytes} bytes{' unpacked, ' + what + ',' if what else ''} "
+                       f"over the per-tenant storage quota tenant_max_stored_bytes = {quota}", "file")
     with svc.reserved_lock:
         stored = svc.store.tenant_stored_bytes(tenant) + svc.reserved.get(tenant, 0)
         if stored + nbytes > quota:
             raise ApiError(429, "tenant_quota", f"file: this token stores {stored} bytes of scenes; {nbytes} more "
+                           f"{'(unpacked, ' + what + ') ' if what else ''}"
                            f"would be over the per-tenant quota tenant_max_stored_bytes = {quota}; delete scenes "
                            f"to make room", "file", headers={"Retry-After": "60"})
         svc.reserved[tenant] = svc.reserved.get(tenant, 0) + nbytes

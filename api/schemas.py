@@ -12,6 +12,16 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = tuple[Finite, Finite, Finite]
+# The bounds of a rig's numbers (service/rig_bounds.py states them for resolved rigs, USD cameras and lights
+# included; tests/test_rig_bounds.py checks that the two agree): wide enough for every shipped and open-world rig
+FOV_Y_DEG = (0.01, 179.0)
+CONE_DEG = (0.01, 180.0)
+NEAR_M = (1e-6, 1e8)
+MAX_FAR = 1e9
+MAX_FAR_OVER_NEAR = 1e7
+MAX_COORDINATE = 1e9  # the distance from the scene's bounds is checked once the scene is known (max_rig_distance_m)
+Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE, le=MAX_COORDINATE, allow_inf_nan=False)]
+Point3 = tuple[Coordinate, Coordinate, Coordinate]
 Resolution = tuple[Annotated[int, Field(gt=0, le=16384)], Annotated[int, Field(gt=0, le=16384)]]
 
 
@@ -25,13 +35,15 @@ class CameraSpec(_Strict):
     the intrinsics (field of view, near, far, up) are the USD camera's unless given too."""
 
     usd_path: str | None = Field(None, description="a UsdGeom.Camera in the scene, e.g. /World/Camera")
-    position: Vec3 | None = None
-    target: Vec3 | None = Field(None, description="a point the camera looks at")
+    position: Point3 | None = None
+    target: Point3 | None = Field(None, description="a point the camera looks at")
     forward: Vec3 | None = Field(None, description="the view direction (instead of target)")
     up: Vec3 | None = Field(None, description="default +Y (a USD camera: its own up)")
-    fov_y_deg: Annotated[float, Field(gt=0, lt=180)] | None = Field(None, description="vertical field of view; default 60")
-    near: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
-    far: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    fov_y_deg: Annotated[float, Field(ge=FOV_Y_DEG[0], le=FOV_Y_DEG[1], allow_inf_nan=False)] | None = Field(
+        None, description="vertical field of view, degrees; default 60")
+    near: Annotated[float, Field(ge=NEAR_M[0], le=NEAR_M[1], allow_inf_nan=False)] | None = None
+    far: Annotated[float, Field(gt=0, le=MAX_FAR, allow_inf_nan=False)] | None = Field(
+        None, description=f"at most {MAX_FAR_OVER_NEAR:g} x near")
     resolution: Resolution = (1280, 720)
 
     @model_validator(mode="after")
@@ -44,6 +56,9 @@ class CameraSpec(_Strict):
             raise ValueError("target and forward need a position (a usd_path camera's own pose is used whole)")
         if self.near is not None and self.far is not None and not self.near < self.far:
             raise ValueError(f"near ({self.near}) must be less than far ({self.far})")
+        if self.near is not None and self.far is not None and self.far / self.near > MAX_FAR_OVER_NEAR:
+            raise ValueError(f"far / near = {self.far / self.near:.3g} (near {self.near:g}, far {self.far:g}) is over "
+                             f"{MAX_FAR_OVER_NEAR:g}: no depth buffer resolves such a range; raise near or lower far")
         return self
 
 
@@ -54,8 +69,9 @@ class LightSpec(_Strict):
     type: Literal["directional", "spot", "point"] | None = None
     usd_path: str | None = None
     direction: Vec3 | None = None
-    position: Vec3 | None = None
-    cone_deg: Annotated[float, Field(gt=0, le=180)] | None = Field(None, description="spot half-angle")
+    position: Point3 | None = None
+    cone_deg: Annotated[float, Field(ge=CONE_DEG[0], le=CONE_DEG[1], allow_inf_nan=False)] | None = Field(
+        None, description="spot half-angle, degrees")
 
     @model_validator(mode="after")
     def _complete(self):
@@ -100,7 +116,7 @@ class ShadowSpec(_Strict):
         "the solution's texel_budget_split reports it"))
     cascades: Annotated[int, Field(ge=1, le=16)] | Literal["auto"] = 1
     max_cascades: Annotated[int, Field(ge=1, le=16)] = 4
-    target_p95_m: Annotated[float, Field(gt=0)] | None = Field(None, description=(
+    target_p95_m: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] | None = Field(None, description=(
         "p95 texel footprint in pixels to meet: cascades auto takes the fewest cascades meeting it; when the "
         "maps meet it with fewer texels than allowed, a smaller resolution is returned (unless fixed_resolution)"))
     fixed_resolution: bool = Field(False, description="keep the given resolution or texel budget even when "

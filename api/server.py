@@ -103,9 +103,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
 def check_host(settings: Settings) -> str | None:
     """Why the server must not start on this host, or None."""
-    if not settings.auth_enabled and not is_loopback(settings.host):
+    if not settings.auth_enabled and not is_loopback(settings.host) and not settings.allowed_hosts:
         return (f"--host {settings.host}: no tokens are configured (SHADOWOPT_TOKENS or `tokens` in the config "
-                f"file), so the server only listens on 127.0.0.1; configure tokens to serve on other addresses")
+                f"file), so the server only listens on 127.0.0.1; configure tokens to serve on other addresses "
+                f"(or, to serve them without authentication, list the names clients reach it by in allowed_hosts)")
     return None
 
 
@@ -116,8 +117,10 @@ def serve(settings: Settings) -> int:
         print(f"shadowopt: error: {refusal}", file=sys.stderr)
         return 2
     if not settings.auth_enabled:
-        log.warning("no tokens configured: authentication is off and the server listens on loopback only",
-                    extra={"fields": {"host": settings.host}})
+        log.warning("no tokens configured: authentication is off; only loopback names and allowed_hosts are "
+                    "answered, and only requests without a foreign Origin",
+                    extra={"fields": {"host": settings.host, "allowed_hosts": settings.allowed_hosts,
+                                      "allowed_origins": settings.allowed_origins}})
     app = create_app(settings)
     log.info("serving", extra={"fields": {"url": f"http://{settings.host}:{settings.port}", "health": "/healthz",
                                           "docs": "/docs", "auth": settings.auth_enabled}})

@@ -7,6 +7,7 @@ import contextlib
 import hmac
 import json
 import logging
+import os
 import threading
 import time
 from collections import OrderedDict
@@ -21,6 +22,8 @@ from ..service.evaluation import evaluate_solution
 from ..service.scenes import SCENES
 from ..service.request import SolveRequest
 from ..service.solve import solve
+from ..service.packing import sweep_system_temp
+from ..service.rig_bounds import DISTANCE_ENV
 from ..service.store import Store
 from .admission import Admission, Refused
 from .errors import ApiError
@@ -66,15 +69,19 @@ class Service:
 
     # lifecycle
     def start(self) -> None:
+        # the distance bound of rigs (service.rig_bounds), for this process and the batch workers it starts
+        os.environ[DISTANCE_ENV] = repr(float(self.settings.max_rig_distance_m))
         import_native_stack()
         configure_scene_cache(self.settings)
         Path(self.settings.data_dir).mkdir(parents=True, exist_ok=True)
         self.store = Store(self.settings.data_dir, retention_days=self.settings.retention_days,
                            max_bytes=self.settings.max_data_bytes)
         swept = self.store.sweep_partial_uploads()  # before any request: what a killed upload left behind
-        if swept["rows"] or swept["files"]:
+        old_temp = sweep_system_temp()  # and what older servers' killed zip uploads left in the system temp dir
+        if swept["rows"] or swept["files"] or old_temp:
             log.warning("swept partial uploads", extra={"fields": {"rows": len(swept["rows"]),
-                                                                   "files": len(swept["files"])}})
+                                                                   "files": len(swept["files"]),
+                                                                   "system_temp_folders": old_temp}})
         limits = load_limits(self.settings)  # also a path frame's load of an upload at its time code
         self.runner = BatchRunner(self.store, backend=self.settings.batch_backend,
                                   workers=self.settings.batch_workers, ray_address=self.settings.ray_address,

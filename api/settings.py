@@ -33,6 +33,7 @@ class Settings:
     max_time_budget_ms: float = 10_000.0
     max_eval_pixels: int = 3840 * 2160 * 2  # evaluate/compare: screen pixels
     max_eval_texels: int = 8192 * 8192  # evaluate/compare: texels per shadow map
+    max_rig_distance_m: float = 1e6  # how far from the scene's bounds a camera or light may stand (world metres)
     max_queue: int = 100_000  # configurations waiting or running over all batches
     max_inflight: int = 64  # heavy requests (uploads, optimize, evaluate, compare, batch creation) admitted at
     # once, running or waiting for a slot; one more is refused at once with 503 busy, except for a tenant with
@@ -60,6 +61,10 @@ class Settings:
     max_data_bytes: int | None = None
     retention_interval_s: float = 600.0  # how often retention_days / max_data_bytes are applied
     warm_scenes: list[str] = field(default_factory=list)  # loaded and solved once before /healthz is 200
+    allowed_hosts: list[str] = field(default_factory=list)  # no tokens: Host names (no port) accepted besides
+    # the loopback ones (localhost, 127.0.0.1, [::1]); needed to serve on another address without tokens
+    allowed_origins: list[str] = field(default_factory=list)  # no tokens: Origin values (scheme://host[:port])
+    # accepted besides the server's own; a request with any other Origin (a web page's) is refused 403
     log_level: str = "INFO"
 
     @property
@@ -84,6 +89,8 @@ class Settings:
                      "tenant_max_stored_bytes", "batch_workers", "rate_limit_burst"):
             if getattr(self, name) < 1:
                 raise SettingsError(f"{name}: must be at least 1, got {getattr(self, name)}")
+        if not (math.isfinite(self.max_rig_distance_m) and self.max_rig_distance_m > 0):
+            raise SettingsError(f"max_rig_distance_m: must be a finite number > 0, got {self.max_rig_distance_m}")
         for name in ("max_time_budget_ms", "rate_limit_per_s", "retention_interval_s", "tenant_cache_share",
                      "retention_days"):  # load_timeout_s: LoadLimits checks it (below)
             value = getattr(self, name)
@@ -101,6 +108,11 @@ class Settings:
         for name, tok in self.tokens.items():
             if not name or not tok or len(tok) < 8:
                 raise SettingsError(f"tokens: {name or '(empty name)'!r} needs a token of at least 8 characters")
+        for name in ("allowed_hosts", "allowed_origins"):
+            for item in getattr(self, name):
+                bad = host_entry_problem(item) if name == "allowed_hosts" else origin_entry_problem(item)
+                if bad:
+                    raise SettingsError(f"{name}: {item!r} {bad}")
         if len(set(self.tokens.values())) != len(self.tokens):
             raise SettingsError("tokens: two tenants share a token")
         return self
@@ -148,8 +160,9 @@ def _coerce(name: str, value, kind):
             raise ValueError("a value is required")
         if name == "tokens":
             return parse_tokens(value) if isinstance(value, str) else {str(k): str(v) for k, v in dict(value).items()}
-        if name == "warm_scenes":
-            return [s for s in value.split(",") if s] if isinstance(value, str) else [str(s) for s in value]
+        if kind.startswith("list"):  # warm_scenes, allowed_hosts, allowed_origins
+            items = value.split(",") if isinstance(value, str) else [str(s) for s in value]
+            return [s.strip() for s in items if s.strip()]
         if kind.startswith("int"):
             return int(value)
         if kind.startswith("float"):
@@ -179,3 +192,18 @@ def load_settings(config: str | os.PathLike | None = None, env: dict | None = No
 
 def is_loopback(host: str) -> bool:
     return host in LOOPBACK_HOSTS or host.startswith("127.")
+
+
+def host_entry_problem(item: str) -> str | None:
+    """Why an allowed_hosts entry is not a bare host name or address (no scheme, port or path), or None."""
+    if not item or any(c in item for c in "/:@ ") and not (item.startswith("[") and item.endswith("]")):
+        return "is not a bare host name or address (no scheme, port or path; an IPv6 address in [brackets])"
+    return None
+
+
+def origin_entry_problem(item: str) -> str | None:
+    """Why an allowed_origins entry is not an origin (scheme://host[:port], as browsers send it), or None."""
+    scheme, sep, rest = item.partition("://")
+    if scheme not in ("http", "https") or not sep or not rest or "/" in rest or "@" in rest:
+        return "is not an origin: http(s)://host[:port], no path"
+    return None

@@ -199,14 +199,21 @@ def load_stage(path, time_code, asset_root, sandbox, max_triangles, max_prims=No
     return scene
 
 
+def _hash_file(h, path):
+    """`h` updated with the file's bytes, read 1 MiB at a time (the same digest as one read of the whole)."""
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h
+
+
 def _scene_hash(stage, path, layers=None) -> str:
     """sha256 of the root file's bytes, then of every file-backed layer the stage composed, sorted by
     identifier (each as its name inside the scene folder and its own digest). Anonymous layers (the
     session layer, sandboxed copies) are derived from those files and left out, so the hash does not
     depend on memory addresses; in the restricted modes `layers` are the checked originals."""
     h = hashlib.sha256()
-    with open(path, "rb") as f:
-        h.update(f.read())
+    _hash_file(h, path)  # in chunks: a package may be hundreds of MB
     base = os.path.dirname(os.path.abspath(path))
     for layer in sorted(stage.GetUsedLayers() if layers is None else layers, key=lambda l: l.identifier):
         if layer.anonymous:
@@ -216,8 +223,7 @@ def _scene_hash(stage, path, layers=None) -> str:
         rel = os.path.relpath(real, base) if real and os.path.isabs(real) else ident.rsplit("/", 1)[-1]
         h.update(b"\0" + rel.encode("utf-8", "replace") + b"\0")
         if real and os.path.isfile(real):
-            with open(real, "rb") as f:
-                h.update(hashlib.sha256(f.read()).digest())
+            h.update(_hash_file(hashlib.sha256(), real).digest())
         else:  # a layer inside a .usdz (its bytes are in the root file) or one USD made in memory
             h.update(hashlib.sha256(layer.ExportToString().encode()).digest())
     return h.hexdigest()

@@ -6,8 +6,9 @@
   out) is refused naming those files unless `allow_outside`: a downloaded stage could otherwise pull
   ~/.ssh/... into a package that is then uploaded. `shadowopt pack` and the client use it.
 - `needs_package(scene)`: whether a local stage names other files (UsdUtils.ComputeAllDependencies).
-- `zip_to_usdz(data, name)`: an uploaded .zip of a scene's folder turned into a .usdz the sandboxed
-  loader reads like any package (its internal paths resolve inside it and nowhere else). Fail closed:
+- `zip_to_usdz(data, name)` (bytes) / `zip_to_usdz_file(data, name, work_dir)` (a file; what the server uses,
+  after `zip_declared_bytes` told it what unpacking will write): an uploaded .zip of a scene's folder turned
+  into a .usdz the sandboxed loader reads like any package (its internal paths resolve inside it and nowhere else). Fail closed:
   an entry that is absolute, climbs out with '..', names a drive, is a symbolic link, is encrypted, names
   the folder itself ('a/..') or is also the folder of another entry, or a zip over MAX_ZIP_ENTRIES entries
   (counted from its end records before zipfile reads the central directory) or MAX_UNPACKED_BYTES unpacked
@@ -21,9 +22,11 @@ from __future__ import annotations
 import os
 import posixpath
 import re
+import shutil
 import stat
 import struct
 import tempfile
+import time
 import zipfile
 import zlib
 from io import BytesIO
@@ -237,60 +240,121 @@ def _root_layer(names: list[str], zip_name: str, prefix: str) -> str:
                      "keep only the scene's root layer at the top, or name the zip after it")
 
 
-def zip_to_usdz(data: bytes, name: str, max_unpacked: int = MAX_UNPACKED_BYTES) -> tuple[bytes, str]:
-    """An uploaded .zip of a scene's folder as .usdz bytes (root layer first; usd-core's Sdf.ZipFileWriter,
-    which stores entries uncompressed and aligned as a usdz needs) and the package's name. The entries'
-    sizes as the zip declares them add up to at most `max_unpacked` bytes, and no entry is read past its
-    declared size; a damaged entry (bad CRC, unknown compression) is refused naming it."""
-    from pxr import Sdf  # lazy: usd-core is the server extra; api.client imports this module
-
+def _open_zip(data: bytes, name: str) -> zipfile.ZipFile:
     count = _declared_entries(data)
     if count is not None and count > MAX_ZIP_ENTRIES:
         least = "at least " if count == MAX_ZIP_ENTRIES + 1 else ""  # the walk stops one record past the limit
         raise SceneError("sandbox_limit", f"zip entries: {least}{count} entries, over the limit of {MAX_ZIP_ENTRIES}; "
                          "refused")
     try:
-        z = zipfile.ZipFile(BytesIO(data))
+        return zipfile.ZipFile(BytesIO(data))
     except (zipfile.BadZipFile, OSError, ValueError) as e:
         raise SceneError("corrupt", f"{os.path.basename(name)}: the zip archive is damaged ({type(e).__name__})") from e
-    with z:
+
+
+def zip_declared_bytes(data: bytes, name: str, max_unpacked: int = MAX_UNPACKED_BYTES) -> int:
+    """The bytes an uploaded zip's files declare unpacked (its central directory: nothing is unpacked), after
+    the checks of zip_to_usdz that need no unpacking (entry count, names, links, the `max_unpacked` bound): what
+    a server counts against a tenant's quota before it unpacks anything."""
+    with _open_zip(data, name) as z:
+        files = _checked_entries(z, max_unpacked)
+        prefix, inside = _inside_names(files)
+        _root_layer(list(inside), name, prefix)
+        return sum(i.file_size for i in files)
+
+
+USDZ_ALIGN = 64  # a usdz entry's data starts at a multiple of 64 bytes (Pixar, "Usdz File Format Specification")
+USDZ_PADDING_ID = 0x1986  # the extra-field header id usd-core's own writer pads with (pxr/usd/sdf/zipFile.cpp)
+
+
+def write_usdz(out, entries: list[tuple[str, str]]) -> None:
+    """A .usdz at `out` holding `entries` [(name inside, file), ...] in that order (the root layer first), as
+    the usdz specification wants them: stored uncompressed, each entry's data at a multiple of 64 bytes (the
+    local header's extra field pads it, as usd-core's Sdf.ZipFileWriter does). Copied 1 MiB at a time:
+    Sdf.ZipFileWriter reads each file whole into memory (+256 MB in the server for a 250 MB entry)."""
+    with open(out, "wb") as f, zipfile.ZipFile(f, "w", zipfile.ZIP_STORED) as z:
+        for inner, src in entries:
+            info = zipfile.ZipInfo(inner, date_time=(1980, 1, 1, 0, 0, 0))  # fixed: the same zip, the same package
+            info.compress_type = zipfile.ZIP_STORED
+            info.file_size = os.path.getsize(src)
+            start = f.tell() + 30 + len(inner.encode("utf-8")) + 4  # local header (APPNOTE 4.3.7), name, pad header
+            pad = -start % USDZ_ALIGN
+            info.extra = struct.pack("<HH", USDZ_PADDING_ID, pad) + b"\0" * pad
+            with open(src, "rb") as s, z.open(info, "w") as d:
+                shutil.copyfileobj(s, d, 1 << 20)
+
+
+def zip_to_usdz_file(data: bytes, name: str, work_dir, max_unpacked: int = MAX_UNPACKED_BYTES) -> tuple[Path, str]:
+    """An uploaded .zip of a scene's folder as a .usdz file in `work_dir` (an empty folder the caller owns and
+    removes: the entries are unpacked below it, the package written beside them) and the package's name. The
+    entries' sizes as the zip declares them add up to at most `max_unpacked` bytes, and the bytes actually
+    written are counted while they stream out: no entry is written past its declared size (declared sizes can
+    lie), so nothing past the declared total reaches the disk. The package is written by `write_usdz`, a chunk
+    at a time. A damaged entry (bad CRC, unknown compression) is refused naming it."""
+    with _open_zip(data, name) as z:
         files = _checked_entries(z, max_unpacked)
         prefix, inside = _inside_names(files)
         root = _root_layer(list(inside), name, prefix)
-        with tempfile.TemporaryDirectory(prefix="shadowopt-zip-") as tmp:
-            files_dir = os.path.join(tmp, "files")  # the entries; the package is written beside, not among them
-            for inner, info in inside.items():
-                target = os.path.join(files_dir, *inner.split("/"))
-                try:
-                    os.makedirs(os.path.dirname(target), exist_ok=True)
-                    with z.open(info) as src, open(target, "wb") as dst:
-                        left = info.file_size
-                        while True:
-                            chunk = src.read(min(1 << 20, left + 1))
-                            if not chunk:
-                                break
-                            left -= len(chunk)
-                            if left < 0:
-                                raise _refuse(info.filename, "more bytes than its header says")
-                            dst.write(chunk)
-                except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError) as e:
-                    raise SceneError("corrupt", f"zip entry {info.filename.lstrip('/')!r} is damaged or cannot be "
-                                     f"unpacked ({type(e).__name__})") from e
-                except OSError as e:  # a name the file system refuses (too long, ...): no server path shown
-                    raise _refuse(info.filename, f"cannot be unpacked ({type(e).__name__}: "
-                                  f"{e.strerror or 'refused by the file system'})") from e
-            if inside[root].file_size == 0:
-                raise SceneError("empty_stage", f"the zip's root layer {root!r} is empty")
-            out = os.path.join(tmp, "out.usdz")
+        declared = sum(i.file_size for i in files)
+        written = 0
+        files_dir = os.path.join(os.fspath(work_dir), "files")  # the entries; the package is written beside them
+        for inner, info in inside.items():
+            target = os.path.join(files_dir, *inner.split("/"))
             try:
-                writer = Sdf.ZipFileWriter.CreateNew(out)
-                # an empty file is left out: usd-core cannot map it, and an empty file holds no layer or texel
-                for inner in [root] + sorted(n for n in inside if n != root and inside[n].file_size > 0):
-                    writer.AddFile(os.path.join(files_dir, *inner.split("/")), inner)
-                writer.Save()
-            except Exception as e:  # pxr.Tf.ErrorException
-                raise SceneError("corrupt", f"{os.path.basename(name)}: the package could not be written "
-                                 f"({type(e).__name__})") from e
-            with open(out, "rb") as f:
-                package = f.read()
-    return package, Path(root).stem + ".usdz"
+                os.makedirs(os.path.dirname(target), exist_ok=True)
+                with z.open(info) as src, open(target, "wb") as dst:
+                    left = info.file_size
+                    while True:
+                        chunk = src.read(min(1 << 20, left + 1))
+                        if not chunk:
+                            break
+                        left -= len(chunk)
+                        written += len(chunk)
+                        if left < 0 or written > declared:
+                            raise _refuse(info.filename, "more bytes than its header says")
+                        dst.write(chunk)
+            except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError) as e:
+                raise SceneError("corrupt", f"zip entry {info.filename.lstrip('/')!r} is damaged or cannot be "
+                                 f"unpacked ({type(e).__name__})") from e
+            except OSError as e:  # a name the file system refuses (too long, ...): no server path shown
+                raise _refuse(info.filename, f"cannot be unpacked ({type(e).__name__}: "
+                              f"{e.strerror or 'refused by the file system'})") from e
+        if inside[root].file_size == 0:
+            raise SceneError("empty_stage", f"the zip's root layer {root!r} is empty")
+        out = os.path.join(os.fspath(work_dir), "out.usdz")
+        # an empty file is left out: usd-core cannot map it, and an empty file holds no layer or texel
+        order = [root] + sorted(n for n in inside if n != root and inside[n].file_size > 0)
+        try:
+            write_usdz(out, [(inner, os.path.join(files_dir, *inner.split("/"))) for inner in order])
+        except (OSError, ValueError, zipfile.LargeZipFile) as e:
+            raise SceneError("corrupt", f"{os.path.basename(name)}: the package could not be written "
+                             f"({type(e).__name__})") from e
+        shutil.rmtree(files_dir, ignore_errors=True)  # the package holds them now
+    return Path(out), Path(root).stem + ".usdz"
+
+
+ZIP_TEMP_PREFIX = "shadowopt-zip-"
+
+
+def sweep_system_temp(grace_s: float = 3600.0) -> int:
+    """Remove the `shadowopt-zip-*` folders older than `grace_s` from the system temp dir (servers before issue 27
+    unpacked zips there, and a killed one left them); how many. A server calls it at start."""
+    removed, now = 0, time.time()
+    root = Path(tempfile.gettempdir())
+    for d in root.glob(ZIP_TEMP_PREFIX + "*"):
+        try:
+            st = d.lstat()
+        except OSError:
+            continue
+        if stat.S_ISDIR(st.st_mode) and st.st_uid == os.getuid() and now - st.st_mtime >= grace_s:
+            shutil.rmtree(d, ignore_errors=True)
+            removed += 1
+    return removed
+
+
+def zip_to_usdz(data: bytes, name: str, max_unpacked: int = MAX_UNPACKED_BYTES, work_dir=None) -> tuple[bytes, str]:
+    """zip_to_usdz_file's package as bytes, unpacked in a scratch folder under `work_dir` (default: the system
+    temp dir; a server passes its data dir's, see service.store.Store.work_dir)."""
+    with tempfile.TemporaryDirectory(prefix=ZIP_TEMP_PREFIX, dir=work_dir) as tmp:
+        out, pkg = zip_to_usdz_file(data, name, tmp, max_unpacked)
+        return out.read_bytes(), pkg

@@ -10,6 +10,7 @@ from ..solvers.cameras import Camera
 from ..solvers.frames import transform_directions, transform_points
 from ..solvers.lights import DirectionalLight, Light, PointLight, SpotLight
 from .request_cost import WorkLimit, check_solve_work
+from .rig_bounds import BoundError, check_camera, check_cone, check_near_scene
 
 DEFAULT_FOV_Y_DEG = 60.0
 DEFAULT_NEAR = 0.1
@@ -85,8 +86,16 @@ def resolve_camera(spec: dict, scene: LoadedScene, to_world: np.ndarray | None) 
         near = spec["near"] * length
     if spec.get("far") is not None:
         far = spec["far"] * length
+    _near_scene(position, scene, "camera.position" if spec.get("position") is not None else "camera.usd_path",
+                "camera")
     if far is None:
         far = max(_far_default(position, scene), near * 10.0)
+    own = "camera.usd_path" if spec.get("usd_path") else "camera"  # where a value not given comes from
+    try:
+        check_camera(float(fov), float(near), float(far),
+                     {k: f"camera.{k}" if spec.get(k) is not None else own for k in ("fov_y_deg", "near", "far")})
+    except BoundError as e:
+        raise RigError(e.field, e.message) from None
     try:
         return Camera.look(position, forward, up, fov, near, far, res, usd_path=spec.get("usd_path"))
     except ValueError as e:
@@ -106,6 +115,7 @@ def resolve_light(k: int, spec: dict, scene: LoadedScene, to_world: np.ndarray |
         if u.type == "point":
             return PointLight.make(u.position, usd_path=u.usd_path)
         if u.type == "spot":
+            _cone(u.cone_deg, f"{field}.usd_path")
             return SpotLight.make(u.position, u.direction, u.cone_deg, usd_path=u.usd_path)
         raise RigError(f"{field}.usd_path", f"{u.usd_path} is a {u.usd_type}, which casts no shadow map ({u.note})")
     pt = (lambda v: transform_points(to_world, v)) if to_world is not None else (lambda v: v)
@@ -115,9 +125,30 @@ def resolve_light(k: int, spec: dict, scene: LoadedScene, to_world: np.ndarray |
             return DirectionalLight.make(dr(spec["direction"]))
         if spec["type"] == "point":
             return PointLight.make(pt(spec["position"]))
+        _cone(spec["cone_deg"], f"{field}.cone_deg")
         return SpotLight.make(pt(spec["position"]), dr(spec["direction"]), spec["cone_deg"])
+    except RigError:
+        raise
     except ValueError as e:
         raise RigError(field, str(e)) from e
+
+
+def _cone(cone_deg, field: str) -> None:
+    try:
+        check_cone(float(cone_deg), field)
+    except BoundError as e:
+        raise RigError(e.field, e.message) from None
+
+
+def _near_scene(point, scene: LoadedScene, field: str, what: str) -> None:
+    """RigError when `point` (world) stands farther from the scene's bounds than the server allows
+    (service.rig_bounds.max_distance_m); nothing to measure from in a scene without geometry."""
+    lo, hi = scene.geometry.bounds()
+    if np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)):
+        try:
+            check_near_scene(point, lo, hi, field, what)
+        except BoundError as e:
+            raise RigError(e.field, e.message) from None
 
 
 def resolve_rig(rig: dict, scene: LoadedScene) -> ResolvedRig:
@@ -125,6 +156,10 @@ def resolve_rig(rig: dict, scene: LoadedScene) -> ResolvedRig:
     to_world = scene.stage_to_world if rig.get("frame") == "stage" else None
     camera = resolve_camera(rig["camera"], scene, to_world)
     lights = [resolve_light(k, l, scene, to_world) for k, l in enumerate(rig["lights"])]
+    for k, (spec, light) in enumerate(zip(rig["lights"], lights)):
+        if getattr(light, "position", None) is not None:
+            _near_scene(light.position, scene, f"lights.{k}.usd_path" if spec.get("usd_path") else
+                        f"lights.{k}.position", f"{light.kind} light")
     try:  # the work bound (the Rig model checks it too; here with the lights' real types, for every rig dict)
         check_solve_work(rig, kinds=[l.kind for l in lights], prefix="")
     except WorkLimit as e:

@@ -1,7 +1,8 @@
 """Persistence: a data directory with uploaded scene files and one SQLite database.
 
-Layout: `<data_dir>/scenes/<tenant hash>/<scene_id>/<sanitised file name>` and `<data_dir>/shadowopt.db`
-(WAL mode). Tables: scenes, batches, configurations, results, errors. An uploaded scene's row holds its
+Layout: `<data_dir>/scenes/<tenant hash>/<scene_id>/<sanitised file name>`, `<data_dir>/shadowopt.db`
+(WAL mode) and `<data_dir>/tmp/` (uploads' scratch folders while a zip is unpacked: Store.work_dir; swept at
+start). Tables: scenes, batches, configurations, results, errors. An uploaded scene's row holds its
 path relative to `<data_dir>/scenes` (`<tenant hash>/<scene_id>/<name>`), so the data directory can be opened
 from any working directory, under any absolute path, or after it was moved or restored; rows written before
 (absolute or working-directory-relative paths) are migrated when the store opens. Every write of a configuration's
@@ -21,6 +22,7 @@ import os
 import re
 import shutil
 import sqlite3
+import tempfile
 import threading
 import time
 import uuid
@@ -44,9 +46,16 @@ def iso(t: float | None) -> str | None:
     return None if t is None else time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t))
 
 
-def scene_id_for(data: bytes, filename: str) -> str:
-    """First 16 hex digits of sha256 over the bytes followed by the lower-case extension."""
-    h = hashlib.sha256(data)
+def scene_id_for(data: bytes | Path, filename: str) -> str:
+    """First 16 hex digits of sha256 over the bytes (or a file's bytes, read in chunks) followed by the
+    lower-case extension."""
+    if isinstance(data, (bytes, bytearray, memoryview)):
+        h = hashlib.sha256(data)
+    else:
+        h = hashlib.sha256()
+        with open(data, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
     h.update(Path(filename).suffix.lower().encode())
     return h.hexdigest()[:16]
 
@@ -106,24 +115,46 @@ class Store(Database):
             self._inflight.pop(k, None)
         return max(left, 0)
 
-    def write_upload(self, tenant: str, data: bytes, filename: str) -> tuple[str, Path, bool]:
-        """Write an upload's bytes to their final path, not yet recorded: (scene_id, path, wrote). `wrote` is
-        False when the same file is already there (same content hash and name), which is then left as is.
-        The request counts on the file until register_upload records it or discard_upload lets it go."""
+    @contextlib.contextmanager
+    def work_dir(self, prefix: str = "zip-"):
+        """A scratch folder in `<data_dir>/tmp` (an upload's unpacking: never the system temp dir, which may be
+        memory and is nobody's quota), removed on leaving; sweep_partial_uploads removes one a killed server
+        left."""
+        self.tmp_dir.mkdir(parents=True, exist_ok=True)
+        path = Path(tempfile.mkdtemp(prefix=prefix, dir=self.tmp_dir))
+        self._own_tmp.add(str(path))
+        try:
+            yield path
+        finally:
+            shutil.rmtree(path, ignore_errors=True)
+            self._own_tmp.discard(str(path))
+
+    def write_upload(self, tenant: str, data: bytes | Path, filename: str) -> tuple[str, Path, bool]:
+        """Write an upload's bytes to their final path, not yet recorded: (scene_id, path, wrote). `data` is the
+        bytes, or a file in this data directory (a package made from a zip in work_dir), which is moved, not
+        read into memory. `wrote` is False when the same file is already there (same content hash and name),
+        which is then left as is. The request counts on the file until register_upload records it or
+        discard_upload lets it go."""
         scene_id = scene_id_for(data, filename)
+        size = len(data) if isinstance(data, (bytes, bytearray, memoryview)) else os.path.getsize(data)
         folder = self.scene_folder(tenant, scene_id)
         path = folder / sanitise_filename(filename)
         with self._stripe(tenant, scene_id):
             wrote = False
-            if not (path.is_file() and path.stat().st_size == len(data)):
+            if not (path.is_file() and path.stat().st_size == size):
                 folder.mkdir(parents=True, exist_ok=True)
                 tmp = folder / f".{path.name}.{uuid.uuid4().hex}.tmp"
                 self._own_tmp.add(str(tmp))
                 try:
-                    with open(tmp, "wb") as f:
-                        f.write(data)
-                        f.flush()
-                        os.fsync(f.fileno())
+                    if isinstance(data, (bytes, bytearray, memoryview)):
+                        with open(tmp, "wb") as f:
+                            f.write(data)
+                            f.flush()
+                            os.fsync(f.fileno())
+                    else:  # a file of this data directory: renamed (same file system), flushed first
+                        with open(data, "rb+") as f:
+                            os.fsync(f.fileno())
+                        os.replace(data, tmp)
                     os.replace(tmp, path)
                 except BaseException:
                     tmp.unlink(missing_ok=True)
@@ -177,7 +208,8 @@ class Store(Database):
     def sweep_partial_uploads(self, grace_s: float = SWEEP_GRACE_S) -> dict:
         """Remove what interrupted uploads left, and nothing else. For a server's start.
 
-        Removed: write_upload's temporary files; files in a scene folder that no row holds (written, never
+        Removed: write_upload's temporary files; what work_dir holds in `<data_dir>/tmp` (a zip being unpacked);
+        files in a scene folder that no row holds (written, never
         recorded: the upload was killed while loading); rows without info (from before uploads were
         recorded with their info) with their files. When no other Store holds the data directory (their
         .locks files, see other_live_stores) all of these belong to dead processes and go at once; while
@@ -237,6 +269,19 @@ class Store(Database):
                     folder.rmdir()  # only when empty
             with contextlib.suppress(OSError):
                 tenant_dir.rmdir()
+        if self.tmp_dir.is_dir():  # unpacked zips (work_dir) of uploads a killed server left
+            for d in sorted(self.tmp_dir.iterdir()):
+                try:
+                    st = d.lstat()
+                except OSError:
+                    continue
+                if str(d) in self._own_tmp or not old_enough(st.st_mtime):
+                    continue
+                if d.is_dir() and not d.is_symlink():
+                    shutil.rmtree(d, ignore_errors=True)
+                else:
+                    d.unlink(missing_ok=True)
+                removed["files"].append(f"tmp/{d.name}")
         if removed["rows"] or removed["files"]:
             log.warning("swept %d partial upload records and %d stray files (%d other live stores)",
                         len(removed["rows"]), len(removed["files"]), others)

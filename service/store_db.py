@@ -52,6 +52,7 @@ class Database:
         self.data_dir = Path(os.path.abspath(data_dir))  # pinned: a later chdir changes nothing
         self.scenes_dir = self.data_dir / "scenes"
         self.scenes_dir.mkdir(parents=True, exist_ok=True)
+        self.tmp_dir = self.data_dir / "tmp"  # uploads' scratch folders (Store.work_dir), swept at start
         self.db_path = self.data_dir / DB_NAME
         self._local = threading.local()
         self._conns: list[sqlite3.Connection] = []

@@ -354,7 +354,7 @@ def test_the_rest_api_answers_422_naming_the_fields(tmp_path):
 
     rig = json.loads((REPO / "configs" / "demo_rig.json").read_text())
     rig["output"] = {"engine": "unity", "reversed_z": False}
-    client = TestClient(create_app(Settings(data_dir=str(tmp_path / "data"))))
+    client = TestClient(create_app(Settings(data_dir=str(tmp_path / "data"))), base_url="http://localhost")
     r = client.post("/v1/optimize", json={"scene_id": "0" * 16, "rig": rig})
     assert r.status_code == 422, r.text
     err = r.json()["error"]

@@ -240,7 +240,7 @@ def test_the_animation_is_read_once_in_a_load_slot_not_a_solver_slot(tmp_path, m
     monkeypatch.setattr(routes_paths, "read_animation_for", spy)
     app = server_mod.create_app(Settings(data_dir=str(tmp_path / "data"), warm_scenes=[str(warm)], max_triangles=1000))
     svc = app.state.service
-    with TestClient(app) as client:
+    with TestClient(app, base_url="http://localhost") as client:  # no tokens: a loopback Host
         assert svc.ready.wait(120)
         svc.runner.submit = lambda *a, **k: None  # the frames are not solved here: only the POST is looked at
         moving = tmp_path / "moving.usda"  # an operator's file (read in this process: the uploads' isolated read

@@ -75,7 +75,7 @@ def test_stage_frame_positions_are_converted():
      "lights.0", "direction, cone_deg"),
     ({"camera": {"position": [0, 0, "nan"], "target": [1, 0, 0]}, "lights": [{"usd_path": "/S"}]}, "camera.position.2", "finite"),
     ({"camera": {"position": [0, 0, 0], "target": [1, 0, 0], "fov_y_deg": 200}, "lights": [{"usd_path": "/S"}]},
-     "camera.fov_y_deg", "less than 180"),
+     "camera.fov_y_deg", "less than or equal to 179"),
     ({"camera": {"position": [0, 0, 0], "target": [1, 0, 0]}, "lights": [{"usd_path": "/S"}], "shadow": {"cascade": 2}},
      "shadow.cascade", "Extra inputs"),
     ({"camera": {"position": [0, 0, 0], "target": [1, 0, 0]}, "lights": [{"usd_path": "/S"}],

@@ -183,7 +183,7 @@ def test_health_is_503_with_retry_after_until_warm(tmp_path):
     app = create_app(Settings(data_dir=str(tmp_path / "d")))  # in process, no lifespan: nothing has warmed up
 
     async def health():
-        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://t") as c:
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://localhost") as c:  # no tokens: a loopback Host
             return await c.get("/healthz")
 
     r = asyncio.run(health())
@@ -213,7 +213,7 @@ def test_a_bug_under_a_previous_solution_is_a_500_with_the_request_id_not_a_422(
     app = create_app(Settings(data_dir=str(tmp_path / "d")))
 
     async def optimize():
-        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://t") as c:
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://localhost") as c:  # no tokens: a loopback Host
             return await c.post("/v1/optimize", json={"scene_id": "0123456789abcdef", "rig": TINY_RIG,
                                                       "previous": {"lights": []}}, headers={"X-Request-ID": "bug-1"})
 

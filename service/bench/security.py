@@ -8,17 +8,21 @@ measures, from the outside:
   time to the answer, the peak resident memory of the server and all its child processes while it
   ran (sampled every 20 ms from /proc), and the server's own memory before and after;
 - /healthz and /metrics latency while 48 heavy requests (/v1/compare) are queued or running;
+- eight zips of ~250 KB, each declaring 250 MB unpacked, uploaded at once (issue 27): answers, time to the
+  refusals, the process tree's peak memory growth, folders left in the system temp dir;
 - another tenant's /v1/optimize latency, idle and while one tenant floods with back-to-back optimize,
   compare and upload requests.
 """
 from __future__ import annotations
 
+import io
 import json
 import os
 import secrets
 import tempfile
 import threading
 import time
+import zipfile
 from pathlib import Path
 
 import httpx
@@ -115,6 +119,64 @@ def hostile_uploads(http: httpx.Client, pid: int, bob_path: str | None, outside:
         if r.status_code < 300 and body.get("scene_id"):
             http.delete(f"/v1/scenes/{body['scene_id']}")
     return rows
+
+
+ZIPS = 8  # concurrent zip uploads of the zip attack (issue 27)
+ZIP_FILLER_MB = 250  # zeros in each: ~250 KB deflated, 1000:1
+
+
+def zip_bomb(filler_mb: int = ZIP_FILLER_MB) -> bytes:
+    """The demo scene and `filler_mb` MiB of zeros, zipped: ~1000:1."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as z:
+        z.writestr("scene.usda", DEMO_SCENE.read_bytes())
+        z.writestr("tex/filler.bin", bytes(filler_mb * 2**20))
+    return buf.getvalue()
+
+
+def zip_uploads(base: str, token: str, pid: int, n: int = ZIPS) -> dict:
+    """`n` identical zip bombs uploaded at once by one tenant: answers, seconds to the refusals and to the last
+    answer, the server tree's peak memory (a scene load's child alone is ~270 MB: usd-core), and whether
+    anything appeared in the system temp dir while they ran."""
+    data = zip_bomb()
+    before = rss_bytes(pid) + sum(rss_bytes(c) for c in _children(pid))
+    answers: list = [None] * n
+    temp = Path(tempfile.gettempdir())
+    seen, done = set(), threading.Event()
+
+    def one(k: int):
+        t0 = time.perf_counter()
+        r = httpx.post(f"{base}/v1/scenes", params={"filename": f"bomb{k}.zip"}, content=data, timeout=600,
+                       headers={"Authorization": f"Bearer {token}"})
+        body = r.json() if r.headers.get("content-type", "").startswith("application/json") else {}
+        answers[k] = (r.status_code, (body.get("error") or {}).get("code") or "accepted",
+                      time.perf_counter() - t0, body.get("scene_id"))
+
+    def watch():  # the server is started with this process's environment: the same system temp dir
+        while not done.is_set():
+            seen.update(p.name for p in temp.glob("shadowopt-zip-*"))
+            time.sleep(0.01)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    with PeakMemory(pid) as mem:
+        threads = [threading.Thread(target=one, args=(k,)) for k in range(n)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    done.set()
+    watcher.join()
+    refused = [a for a in answers if a[0] >= 400]
+    for sid in {a[3] for a in answers if a[3]}:
+        httpx.delete(f"{base}/v1/scenes/{sid}", headers={"Authorization": f"Bearer {token}"})
+    codes: dict = {}
+    for a in answers:
+        codes[f"{a[0]} {a[1]}"] = codes.get(f"{a[0]} {a[1]}", 0) + 1
+    return {"n": n, "zip_bytes": len(data), "declared_mb": ZIP_FILLER_MB, "answers": codes,
+            "refused_max_s": round(max((a[2] for a in refused), default=0.0), 2),
+            "last_s": round(max(a[2] for a in answers), 1), "growth_mb": round((mem.peak - before) / 2**20),
+            "system_temp_dirs": len(seen)}
 
 
 def probe(http: httpx.Client, path: str, n: int, every: float) -> list[float]:
@@ -239,6 +301,8 @@ def bench_security(write: bool = True, log=print) -> dict:
             log("security: hostile uploads")
             out["uploads"] = hostile_uploads(clients["mallory"], proc.pid, str(stored[0]) if stored else None,
                                              str(outside))
+            log(f"security: {ZIPS} zip uploads at once, {ZIP_FILLER_MB} MB unpacked each")
+            out["zips"] = zip_uploads(base, tokens["mallory"], proc.pid)
             log(f"security: /healthz under {QUEUED} queued compare requests")
             out["queue"] = health_under_queue(base, {n: tokens[n] for n in ("alice", "mallory")},
                                               {n: scene_ids[n] for n in ("alice", "mallory")})
@@ -279,6 +343,13 @@ def security_table(out: dict) -> str:
                      f"{r['peak_mb']:,} | {r['server_before_mb']:,} → {r['server_after_mb']:,} | "
                      f"{'LEAKED' if r['leaked'] else 'no'} |")
     q, f = out["queue"], out["flood"]
+    z = out.get("zips")
+    if z:
+        lines += ["", f"{z['n']} identical {z['zip_bytes']:,}-byte zips (each declaring {z['declared_mb']} MB unpacked) "
+                  f"uploaded at once by one tenant: {z['answers']} (the refusals within {z['refused_max_s']} s, before "
+                  f"anything was unpacked; the last answer after {z['last_s']} s); the server tree's memory grew by "
+                  f"{z['growth_mb']} MB at the peak (a scene load's child alone is ~270 MB); "
+                  f"{z['system_temp_dirs']} folders in the system temp dir."]
     lines += ["", f"| while {QUEUED} /v1/compare requests are queued or running | p50 ms | p95 ms | p99 ms | max ms |",
               "|---|---:|---:|---:|---:|",
               f"| GET /healthz (40 probes, 50 ms apart) | {q['healthz_p50_ms']} | {q['healthz_p95_ms']} | "
