@@ -140,7 +140,7 @@ def _app(tmp_path, monkeypatch, entry):
 
 def _post(app, body):
     async def go():
-        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://t") as c:
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://localhost") as c:
             return await c.post("/v1/tune", json=body)
 
     return asyncio.run(go())
@@ -233,7 +233,7 @@ def test_the_client_tunes_and_names_a_bad_knob(tmp_path, monkeypatch, entry):
            "shadow": {"resolution": [512, 512]}, "coarse_long_side": 64}
 
     async def go():
-        async with AsyncClient("http://t", transport=httpx.ASGITransport(app=app)) as c:
+        async with AsyncClient("http://localhost", transport=httpx.ASGITransport(app=app)) as c:
             res = await c.tune("0123456789abcdef", rig, settings={"cascades": 2, "mode": "uniform"})
             with pytest.raises(ClientError) as e:
                 await c.tune("0123456789abcdef", rig, settings={"lightMargin": -1})
