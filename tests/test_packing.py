@@ -24,7 +24,15 @@ from shadowopt.service import packing
 from shadowopt.service.packing import MAX_ZIP_ENTRIES, needs_package, zip_to_usdz
 
 CHESS = REPO.parent / "shared" / "usd-assets" / "full_assets" / "OpenChessSet" / "chess_set.usda"  # read in place
-CLI = [sys.executable, "-m", "shadowopt.api.cli"]
+def cli(capsys, *argv: str):
+    """`shadowopt ARGV` in process (`main(argv)`, what the installed script calls; the process boundary is crossed
+    by test_cli.py): (exit code, stdout, stderr). An exception escaping main fails the test as a traceback would."""
+    from shadowopt.api.cli import main
+
+    capsys.readouterr()
+    code = main(list(argv))
+    out = capsys.readouterr()
+    return code, out.out, out.err
 
 PART = """#usda 1.0
 (
@@ -143,23 +151,20 @@ def test_a_zip_of_a_folder_becomes_a_package_with_its_root_layer_first(tmp_path)
     assert zip_to_usdz(two, "b.zip")[1] == "b.usdz"  # the zip's name says which
 
 
-@pytest.mark.server
-def test_cli_pack_writes_a_usdz_the_sandbox_loads_whole(tmp_path):
+def test_cli_pack_writes_a_usdz_the_sandbox_loads_whole(tmp_path, capsys):
     from shadowopt.renderers.usd_loader import load_scene
 
     stage = multi_file_stage(tmp_path / "site")
     out = tmp_path / "site.usdz"
-    r = subprocess.run(CLI + ["pack", str(stage), "--out", str(out), "--json"], capture_output=True, text=True,
-                       cwd=REPO, timeout=120)
-    assert r.returncode == 0, r.stderr
-    res = json.loads(r.stdout)
+    code, stdout, stderr = cli(capsys, "pack", str(stage), "--out", str(out), "--json")
+    assert code == 0, stderr
+    res = json.loads(stdout)
     assert res["entries"] == 2 and res["layers"] == 2 and res["unresolved"] == []
     assert load_scene(out, sandbox=True).info()["triangles"] == TRIANGLES
     alone = load_scene(stage).info()["triangles"]  # the same stage read from its folder
     assert alone == TRIANGLES
-    bad = subprocess.run(CLI + ["pack", str(stage), "--out", str(tmp_path / "x.zip")], capture_output=True,
-                         text=True, cwd=REPO, timeout=120)
-    assert bad.returncode == 2 and "--out" in bad.stderr and "Traceback" not in bad.stderr
+    code, _, stderr = cli(capsys, "pack", str(stage), "--out", str(tmp_path / "x.zip"))
+    assert code == 2 and "--out" in stderr and "Traceback" not in stderr
 
 
 # -- over a real server ----------------------------------------------------------------------------
@@ -200,16 +205,15 @@ def test_server_refuses_a_symlink_zip_entry(server):
 
 @pytest.mark.server
 @pytest.mark.skipif(not CHESS.exists(), reason="the OpenChessSet asset is not on this machine")
-def test_the_chess_set_packs_uploads_and_optimizes(server, tmp_path):
+def test_the_chess_set_packs_uploads_and_optimizes(server, tmp_path, capsys):
     """The chess set (references and payloads over 29 layers) packed by `shadowopt pack`, uploaded and
     optimized with an explicit camera and sun: every one of its triangles is read in the sandbox (the same
     count as reading it from its folder) and the solution is for that camera."""
     from shadowopt.renderers.usd_loader import load_scene
 
     out = tmp_path / "chess.usdz"
-    r = subprocess.run(CLI + ["pack", str(CHESS), "--out", str(out)], capture_output=True, text=True, cwd=REPO,
-                       timeout=300)
-    assert r.returncode == 0, r.stderr
+    code, _, stderr = cli(capsys, "pack", str(CHESS), "--out", str(out))
+    assert code == 0, stderr
     local = load_scene(CHESS).info()["triangles"]
     with Client(server.base, token=TOKENS["alice"], timeout=300) as c:
         info = c.upload_scene(out)
@@ -282,18 +286,15 @@ def test_client_does_not_pack_a_file_outside_the_stage_folder_unless_asked(tmp_p
     assert alone == stage.read_bytes()
 
 
-@pytest.mark.server
-def test_cli_pack_refuses_a_file_outside_the_stage_folder_unless_allowed(tmp_path):
+def test_cli_pack_refuses_a_file_outside_the_stage_folder_unless_allowed(tmp_path, capsys):
     secret = secret_file(tmp_path)
     stage = stage_naming(tmp_path / "site", str(secret))
     out = tmp_path / "site.usdz"
-    r = subprocess.run(CLI + ["pack", str(stage), "--out", str(out)], capture_output=True, text=True, cwd=REPO,
-                       timeout=120)
-    assert r.returncode == 2 and str(secret) in r.stderr and "--allow-outside" in r.stderr, r.stderr
-    assert "Traceback" not in r.stderr and not out.exists()
-    r = subprocess.run(CLI + ["pack", str(stage), "--out", str(out), "--allow-outside"], capture_output=True,
-                       text=True, cwd=REPO, timeout=120)
-    assert r.returncode == 0, r.stderr
+    code, _, stderr = cli(capsys, "pack", str(stage), "--out", str(out))
+    assert code == 2 and str(secret) in stderr and "--allow-outside" in stderr, stderr
+    assert "Traceback" not in stderr and not out.exists()
+    code, _, stderr = cli(capsys, "pack", str(stage), "--out", str(out), "--allow-outside")
+    assert code == 0, stderr
     assert package_holds(out.read_bytes(), "PRIVATE KEY")
 
 
