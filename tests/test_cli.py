@@ -1,27 +1,20 @@
-"""The `shadowopt` command line, run as a user runs it (a subprocess of the installed script); the two benchmark
-runs in process (`main(argv)`: their figures are the point, not the process boundary)."""
+"""The `shadowopt` command line, run as a user runs it (a subprocess of the installed script: `run`); the refusals
+that come before any work, the commands a test runs several times to compare their answers and the benchmarks run
+in process (`run_here`: the answers are the point, and a process start costs ~5 s: tests/clikit.py)."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from clikit import run, run_here
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO = REPO / "configs" / "demo_scene.usda"
 DEMO_RIG = REPO / "configs" / "demo_rig.json"
-
-
-def run(*args, check=None):
-    exe = Path(sys.executable).with_name("shadowopt")
-    p = subprocess.run([str(exe), *map(str, args)], capture_output=True, text=True, timeout=300, cwd=REPO)
-    if check is not None:
-        assert p.returncode == check, (p.returncode, p.stdout, p.stderr)
-    return p
 
 
 @pytest.mark.server
@@ -56,7 +49,6 @@ def test_cli_flags_override_the_rig_and_bad_flags_exit_2(tmp_path):
     assert "shadow.lambda" in p.stderr
 
 
-@pytest.mark.server
 @pytest.mark.parametrize("content, words", [
     ("not json", "not valid JSON"),
     ('{"camera": {"position": [0, 1, 0], "target": [0, 0, 5]}, "lights": [{"type": "sun"}]}', "lights.0.type"),
@@ -64,10 +56,10 @@ def test_cli_flags_override_the_rig_and_bad_flags_exit_2(tmp_path):
     ('{"camera": {"usd_path": "/World/Camera", "target": [0, 0, 5]}, "lights": [{"usd_path": "/World/Sun"}]}',
      "camera: target and forward need a position"),
 ])
-def test_bad_rigs_exit_2_naming_the_field(tmp_path, content, words):
+def test_bad_rigs_exit_2_naming_the_field(tmp_path, capsys, content, words):
     rig = tmp_path / "rig.json"
     rig.write_text(content)
-    p = run("coarse", DEMO, "--rig", rig, "--out", tmp_path / "o", check=2)
+    p = run_here(capsys, "coarse", DEMO, "--rig", rig, "--out", tmp_path / "o", check=2)
     assert words in p.stderr and "Traceback" not in p.stderr
 
 
@@ -81,9 +73,8 @@ def test_malformed_scene_exits_2(tmp_path):
     assert "No such file" in p.stderr and "[not_found]" in p.stderr
 
 
-@pytest.mark.server
-def test_bench_coarse_json_on_the_demo_scene():
-    res = json.loads(run("bench", "coarse", "--scenes", "demo", "--runs", "3", "--no-write", "--json", check=0).stdout)
+def test_bench_coarse_json_on_the_demo_scene(capsys):
+    res = json.loads(run_here(capsys, "bench", "coarse", "--scenes", "demo", "--runs", "3", "--no-write", "--json", check=0).stdout)
     demo = res["scenes"]["demo"]
     assert demo["triangles"] > 1000 and demo["runs"] == 3 and demo["coarse_ms_p50"] > 0
     assert "| demo |" in res["table"]
@@ -123,17 +114,16 @@ def test_optimize_writes_the_solution_schema_and_evaluate_reads_it(tmp_path, met
     assert heat.stat().st_size > 1000
 
 
-@pytest.mark.server
-def test_evaluate_refuses_a_solution_for_another_scene(tmp_path):
+def test_evaluate_refuses_a_solution_for_another_scene(tmp_path, capsys):
     sol_path = tmp_path / "sol.json"
-    run("optimize", DEMO, "--rig", DEMO_RIG, "--out", sol_path, check=0)
+    run_here(capsys, "optimize", DEMO, "--rig", DEMO_RIG, "--out", sol_path, check=0)
     sol = json.loads(sol_path.read_text())
     sol["provenance"]["scene_hash"] = "0" * 64
     sol_path.write_text(json.dumps(sol))
-    p = run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, check=2)
+    p = run_here(capsys, "evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, check=2)
     assert "scene_hash" in p.stderr and "another scene" in p.stderr
     sol_path.write_text("{}")
-    p = run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, check=2)
+    p = run_here(capsys, "evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, check=2)
     assert "not a shadowopt solution" in p.stderr
 
 
@@ -183,36 +173,34 @@ def _coloured(png: Path, w: int, h: int) -> tuple[int, int]:
     return tuple(int(np.all(img == np.array(c), axis=-1).sum()) for c in (WRONGLY_SHADOWED, WRONGLY_LIT))
 
 
-@pytest.mark.server
-def test_evaluate_errors_heatmap_and_a_bad_mode(tmp_path):
+def test_evaluate_errors_heatmap_and_a_bad_mode(tmp_path, capsys):
     sol_path, heat = tmp_path / "sol.json", tmp_path / "errors.png"
-    run("optimize", DEMO, "--rig", DEMO_RIG, "--method", "lispsm", "--shadow-resolution", "128x128", "--out", sol_path,
+    run_here(capsys, "optimize", DEMO, "--rig", DEMO_RIG, "--method", "lispsm", "--shadow-resolution", "128x128", "--out", sol_path,
         check=0)
-    ev = json.loads(run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, "--screen", "320x180",
+    ev = json.loads(run_here(capsys, "evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, "--screen", "320x180",
                         "--heatmap", heat, "--heatmap-mode", "errors", "--json", check=0).stdout)
     shadowed, lit = _coloured(heat, 320, 180)
     assert shadowed > 0 and lit > 0 and shadowed + lit == ev["misclassified_pixels"]
     assert (shadowed, lit) == (ev["wrongly_shadowed_pixels"], ev["wrongly_lit_pixels"])
     assert ev["screen"] == [320, 180] and ev["rig_resolution"] == [1280, 720]
-    text = run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, "--screen", "320x180", check=0).stdout
+    text = run_here(capsys, "evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, "--screen", "320x180", check=0).stdout
     assert f"wrongly shadowed {shadowed}, wrongly lit {lit}" in text and "at the 320x180 screen" in text
     assert "in 320x180 pixels" in text and "in the rig's 1280x720 pixels" in text
-    p = run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, "--heatmap", heat, "--heatmap-mode", "aliasing",
+    p = run_here(capsys, "evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, "--heatmap", heat, "--heatmap-mode", "aliasing",
             check=2)
     assert "--heatmap-mode" in p.stderr and "errors" in p.stderr and "Traceback" not in p.stderr
 
 
-@pytest.mark.server
-def test_compare_with_a_screen_predicts_exactly_what_optimize_predicts(tmp_path):
+def test_compare_with_a_screen_predicts_exactly_what_optimize_predicts(tmp_path, capsys):
     """The predicted error is in the rig's own pixels whatever --screen the evaluation uses (issue 10, item 6)."""
-    res = json.loads(run("compare", DEMO, "--rig", DEMO_RIG, "--methods", "lispsm,optimized", "--screen", "320x180",
+    res = json.loads(run_here(capsys, "compare", DEMO, "--rig", DEMO_RIG, "--methods", "lispsm,optimized", "--screen", "320x180",
                          "--json", check=0).stdout)
     assert res["screen"] == [320, 180] and res["rig_resolution"] == [1280, 720]
     for name, r in res["methods"].items():
-        sol = json.loads(run("optimize", DEMO, "--rig", DEMO_RIG, "--method", name, "--json", check=0).stdout)
+        sol = json.loads(run_here(capsys, "optimize", DEMO, "--rig", DEMO_RIG, "--method", name, "--json", check=0).stdout)
         assert r["predicted_error"] == sol["lights"][0]["predicted_error"], name
         assert r["evaluation"]["screen"] == [320, 180] and "320x180 screen's pixels" in r["evaluation"]["pixels"]
-    table = run("compare", DEMO, "--rig", DEMO_RIG, "--methods", "lispsm", "--screen", "320x180", check=0).stdout
+    table = run_here(capsys, "compare", DEMO, "--rig", DEMO_RIG, "--methods", "lispsm", "--screen", "320x180", check=0).stdout
     assert "predicted p95 m (1280x720)" in table and "measured p95 m (320x180)" in table
     assert "misclassified (320x180)" in table
 
@@ -252,13 +240,12 @@ def _strict_json(text: str):
     return json.loads(text, parse_constant=refuse)
 
 
-@pytest.mark.server
-def test_cli_json_is_standard_json_with_null_for_an_infinite_candidate_score(tmp_path):
+def test_cli_json_is_standard_json_with_null_for_an_infinite_candidate_score(tmp_path, capsys):
     """issue 25: with 4 cascades on the demo a candidate that leaves a receiver outside its map scores inf,
     and the CLI printed `"uniform": Infinity` (solver.cascades[].receiver_h), which strict parsers refuse.
     stdout and the --out file parse strictly; the score is null, as the schema's `solver` field says."""
     out = tmp_path / "sol.json"
-    p = run("optimize", DEMO, "--rig", DEMO_RIG, "--cascades", "4", "--json", "--out", out, check=0)
+    p = run_here(capsys, "optimize", DEMO, "--rig", DEMO_RIG, "--cascades", "4", "--json", "--out", out, check=0)
     sol = _strict_json(p.stdout)
     assert _strict_json(out.read_text()) == sol
     report = sol["solver"].get("lights", [sol["solver"]])[0]  # one light: its report is the solver block
@@ -266,30 +253,28 @@ def test_cli_json_is_standard_json_with_null_for_an_infinite_candidate_score(tmp
     assert None in scores and all(v is None or v >= 0 for v in scores)
 
 
-@pytest.mark.server
-def test_compare_accepts_every_method_optimize_accepts():
+def test_compare_accepts_every_method_optimize_accepts(capsys):
     """issue 25: `compare --methods stable_csm` exited 2 ("unknown stable_csm") although optimize accepts it.
     Every choice of `optimize --method` (read from its --help) is accepted by compare; an unknown name still
     exits 2 naming the known ones."""
-    help_text = " ".join(run("optimize", "--help", check=0).stdout.split())
+    help_text = " ".join(run_here(capsys, "optimize", "--help", check=0).stdout.split())
     choices = help_text.split("--method {", 1)[1].split("}", 1)[0].split(",")
     assert {"stable_csm", "path", "optimized"} <= set(choices)
-    res = json.loads(run("compare", DEMO, "--rig", DEMO_RIG, "--methods", "stable_csm,path", "--screen", "160x90",
+    res = json.loads(run_here(capsys, "compare", DEMO, "--rig", DEMO_RIG, "--methods", "stable_csm,path", "--screen", "160x90",
                          "--shadow-resolution", "256x256", "--cascades", "2", "--json", check=0).stdout)
     assert set(res["methods"]) == {"stable_csm", "path"}
     assert all(r["evaluation"]["receiver_pixels"] > 0 for r in res["methods"].values())
-    p = run("compare", DEMO, "--rig", DEMO_RIG, "--methods", "focused,nosuch", check=2)
+    p = run_here(capsys, "compare", DEMO, "--rig", DEMO_RIG, "--methods", "focused,nosuch", check=2)
     known = p.stderr.split("(known: ", 1)[1].split(")", 1)[0].split(", ")
     assert "nosuch" in p.stderr and sorted(known) == sorted(choices)
 
 
-@pytest.mark.server
-def test_stable_csm_honours_optimized_splits():
+def test_stable_csm_honours_optimized_splits(capsys):
     """issue 25: `--method stable_csm --splits optimized` returned the practical splits (the search ran and its
     splits were dropped). Its inner splits are now the split search's: the same ones focused gets from the
     same search (an unwarped map's search), and not the practical ones."""
     def splits(method, kind):
-        sol = json.loads(run("optimize", DEMO, "--rig", DEMO_RIG, "--method", method, "--cascades", "3", "--splits",
+        sol = json.loads(run_here(capsys, "optimize", DEMO, "--rig", DEMO_RIG, "--method", method, "--cascades", "3", "--splits",
                              kind, "--shadow-resolution", "512x512", "--json", check=0).stdout)
         return [c["split"] for c in sol["lights"][0]["cascades"]]
     practical, searched = splits("stable_csm", "practical"), splits("stable_csm", "optimized")
@@ -299,7 +284,6 @@ def test_stable_csm_honours_optimized_splits():
     assert searched[0][0] == practical[0][0] and searched[-1][1] == practical[-1][1]
 
 
-@pytest.mark.server
 @pytest.mark.parametrize("args, flag", [
     (["--method", "focused", "--solver", "nlopt:LN_BOBYQA"], "--solver"),
     (["--method", "lispsm", "--time-budget-ms", "50"], "--time-budget-ms"),
@@ -308,9 +292,9 @@ def test_stable_csm_honours_optimized_splits():
     (["--method", "path", "--previous", "prev.json", "--hysteresis", "0.5"], "--hysteresis"),
     (["--method", "lispsm", "--cascades", "2", "--splits", "log", "--lambda", "0.9"], "--lambda"),
 ])
-def test_an_option_the_method_would_ignore_exits_2_naming_it(args, flag):
+def test_an_option_the_method_would_ignore_exits_2_naming_it(capsys, args, flag):
     """issue 25: options a method does not read were dropped silently (stable_csm and --splits optimized, a
     baseline and --solver ...); now exit 2 naming the flag and why, before any work."""
-    p = run("optimize", DEMO, "--rig", DEMO_RIG, *args, check=2)
+    p = run_here(capsys, "optimize", DEMO, "--rig", DEMO_RIG, *args, check=2)
     assert p.stderr.startswith(f"shadowopt: error: {flag}") and "not used by --method" in p.stderr, p.stderr
     assert p.stdout == ""

@@ -4,12 +4,11 @@ re-measurements of the bias requirement and the idealized rule where both must a
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from clikit import run_here
 
 from shadowopt.renderers.depth_tests import engine_depth, engine_splits, texel_world_size_at
 from shadowopt.renderers.ground_truth import evaluate
@@ -217,34 +216,25 @@ def test_engine_modes_equal_ideal_for_an_orthographic_map_and_are_reported_for_a
 
 # --- the command line -------------------------------------------------------------------------------
 
-def run(*args, check=None):
-    exe = Path(sys.executable).with_name("shadowopt")
-    p = subprocess.run([str(exe), *map(str, args)], capture_output=True, text=True, timeout=300, cwd=REPO)
-    if check is not None:
-        assert p.returncode == check, (p.returncode, p.stdout, p.stderr)
-    return p
-
-
-@pytest.mark.server
-def test_cli_depth_flag(tmp_path):
+def test_cli_depth_flag(tmp_path, capsys):
     sol = tmp_path / "sol.json"
-    run("optimize", DEMO, "--rig", DEMO_RIG, "--method", "focused", "--shadow-resolution", "512x512", "--out", sol,
+    run_here(capsys, "optimize", DEMO, "--rig", DEMO_RIG, "--method", "focused", "--shadow-resolution", "512x512", "--out", sol,
         check=0)
-    ev = json.loads(run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol, "--screen", "160x90", "--depth",
+    ev = json.loads(run_here(capsys, "evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol, "--screen", "160x90", "--depth",
                         "hardware", "--json", check=0).stdout)
     assert ev["depth"] == "hardware" and ev["depth_rule"].startswith("hardware:")
-    p = run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol, "--screen", "160x90", check=0)
+    p = run_here(capsys, "evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol, "--screen", "160x90", check=0)
     assert p.stdout.startswith("depth test: solution")
-    p = run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol, "--depth", "window", check=2)
+    p = run_here(capsys, "evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol, "--depth", "window", check=2)
     assert "--depth" in p.stderr and "window" in p.stderr
     # a solution without depth blocks (an older one) is refused naming the map, unless evaluated as ideal
     d = json.loads(sol.read_text())
     for c in d["lights"][0]["cascades"]:
         c.pop("depth")
     sol.write_text(json.dumps(d))
-    p = run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol, "--screen", "160x90", check=2)
+    p = run_here(capsys, "evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol, "--screen", "160x90", check=2)
     assert "cascades.0" in p.stderr and "depth" in p.stderr
-    run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol, "--screen", "160x90", "--depth", "ideal", check=0)
+    run_here(capsys, "evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol, "--screen", "160x90", "--depth", "ideal", check=0)
 
 
 # --- round 2: the caster-side slope-scaled bias and the blend-band rule -------------------------------
