@@ -84,6 +84,8 @@ def search(mod, poses, fixed: dict, budget_s: float | None = None) -> dict:
     def candidate(**knobs) -> dict:
         s = {**base, "lightMargin": diag, **knobs}
         s = {**s, **fixed}
+        if "shadowMapSize" not in fixed:  # the budget shared by the cascades the candidate has (pinned or not)
+            s["shadowMapSize"] = budget_size(s["cascades"], budget)
         if "lightFar" not in fixed:
             need = max(mod.light_depth_reach(p.camera, p.light, {**s, "lightFar": 1e7}) for p in poses)
             s["lightFar"] = float(min(mod.KNOBS["lightFar"].domain[1], math.ceil(need * 1.02 + s["lightNear"])))
@@ -93,6 +95,7 @@ def search(mod, poses, fixed: dict, budget_s: float | None = None) -> dict:
 
     def run(s: dict) -> None:
         key = json.dumps(s, sort_keys=True)
+        planned.append(key)
         if key in seen or (tried and budget_s is not None and time.perf_counter() - t0 > budget_s):
             return
         seen.add(key)
@@ -101,8 +104,7 @@ def search(mod, poses, fixed: dict, budget_s: float | None = None) -> dict:
 
     for n in STAGE1_CASCADES:  # CSM's own count first, for a search the budget cuts short
         for frac in FAR_FRACTIONS:
-            run(candidate(cascades=n, mode=MODES[0], maxFar=max(reach * frac, 0.02),
-                          shadowMapSize=budget_size(n, budget)))
+            run(candidate(cascades=n, mode=MODES[0], maxFar=max(reach * frac, 0.02)))
     if "mode" not in fixed:
         for _, _, s, _ in sorted(tried, key=lambda t: t[0])[:KEEP]:
             for mode in MODES[1:]:

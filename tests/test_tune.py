@@ -210,8 +210,13 @@ def test_a_sun_arc_scores_each_sun_and_too_many_poses_or_a_point_light_are_refus
                         "lights": [{"usd_path": "/World/Sun"}], "shadow": {"resolution": [512, 512]},
                         "coarse_long_side": 64})
     res = tune(entry, rig, "three", sun_arc={"azimuth_deg": [30, 60], "elevation_deg": 40, "samples": 2},
-               fixed={"cascades": 1, "mode": "practical", "shadowNormalBias": 0.0})
+               fixed={"cascades": 1, "mode": "practical", "shadowNormalBias": 0.0}, time_budget_ms=600_000)
     assert res["poses"] == 2 and len(res["predicted"]["per_pose"]) == 2
+    # with cascades, mode and normal bias pinned, only maxFar's three fractions are left to score, all of them
+    assert res["search"]["candidates"] == 3 and res["search"]["complete"], res["search"]
+    assert res["settings"]["maxFar"] == pytest.approx(res["defaults"]["settings"]["maxFar"] * np.array(
+        [1.0, 0.5, 0.25])[np.argmin(np.abs(np.array([1.0, 0.5, 0.25]) - res["settings"]["maxFar"]
+                                             / res["defaults"]["settings"]["maxFar"]))])
     # the arc's first sun: azimuth 30, elevation 40 (service.interpolation.sun_arc), the light travelling away
     e, a = math.radians(40), math.radians(30)
     assert res["light_direction"] == pytest.approx([-math.cos(e) * math.sin(a), -math.sin(e), -math.cos(e) * math.cos(a)])

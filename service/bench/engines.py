@@ -36,7 +36,7 @@ from .three_page import chromium, render_modules, scene_geometry
 
 # the default scenes: SwiftShader draws the street canyon's ~361,000 triangles (split to MAX_EDGE for its precision,
 # three_page.scene_geometry) ~10x slower than the demo's 38,000 (about 10 min per sun); --scenes picks others
-SCENES = ("demo", "terrain")
+SCENES = ("demo", "terrain", "mcusd")  # mcusd: ../shared/usd-assets (skipped when absent)
 GRID_BIASES = (0.000001, -0.0001, -0.0005, -0.002, -0.01)  # CSM's default, then what users try against acne
 GRID = [{"cascades": n, "shadowBias": b} for n in (1, 2, 3, 4) for b in GRID_BIASES]  # 20 settings
 MAP = 1024
