@@ -51,9 +51,11 @@ $(STAMP): requirements.lock pyproject.toml
 	@echo "setup: installing pinned Python dependencies into $(VENV) (first time: a few minutes)"
 	@$(PY) -m pip install -q --upgrade pip >>$(LOG) 2>&1 || { cat $(LOG); exit 1; }
 	@# The CPU build of torch, asked for by its local version; TORCH_FIND_LINKS may name a folder of wheels.
-	@$(PY) -m pip install -q $(if $(TORCH_FIND_LINKS),--find-links $(TORCH_FIND_LINKS)) \
+	@# --no-compile: Python compiles what is imported when it is first imported; byte-compiling all of torch at
+	@# install took 12 s of a 27 s install (TESTING.md).
+	@$(PY) -m pip install -q --no-compile $(if $(TORCH_FIND_LINKS),--find-links $(TORCH_FIND_LINKS)) \
 	  $(if $(wildcard /opt/wheels),--find-links /opt/wheels) "torch==2.13.0+cpu" >>$(LOG) 2>&1 || { cat $(LOG); exit 1; }
-	@$(PY) -m pip install -q -r requirements.lock >>$(LOG) 2>&1 || { cat $(LOG); exit 1; }
+	@$(PY) -m pip install -q --no-compile -r requirements.lock >>$(LOG) 2>&1 || { cat $(LOG); exit 1; }
 	@$(PY) -m pip install -q --no-deps -e . >>$(LOG) 2>&1 || { cat $(LOG); exit 1; }
 	@touch $(STAMP)
 	@echo "setup: done"
@@ -71,10 +73,11 @@ TEST_JOBS ?= 2
 test: setup
 	$(PY) -m pytest -q --durations=20 $(if $(filter-out 0 1,$(TEST_JOBS)),-n $(TEST_JOBS) --dist loadfile --no-loadscope-reorder)
 
-# The unit layer without its slow tests: no server, browser or OpenGL (1,053 tests, 142 s on a quiet 2-core machine at 9df4b40). One layer:
+# The unit layer without its slow tests: no server, browser or OpenGL, on the same TEST_JOBS workers as `make test`
+# (1,053 tests: 93 s on two workers against 142 s in one process, quiet 2-core machine, TESTING.md). One layer:
 # `$(PY) -m pytest -m server`; schemathesis' plugin is left out (only the server layer's fuzzing needs it).
 test-fast: setup
-	$(PY) -m pytest -q -m "unit and not slow" -p no:schemathesis
+	$(PY) -m pytest -q -m "unit and not slow" -p no:schemathesis $(if $(filter-out 0 1,$(TEST_JOBS)),-n $(TEST_JOBS) --dist loadfile --no-loadscope-reorder)
 
 # Sampled mutation testing with cosmic-ray's operators (tests/mutation/run.py; the sample, the module -> tests map
 # and the time budget in tests/mutation/config.json): scores per folder into TESTING.md, survivors into
