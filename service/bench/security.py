@@ -71,14 +71,14 @@ def rss_bytes(pid: int) -> int:
 class PeakMemory:
     """Samples the RSS of a process tree every `every` seconds in a thread; `.peak` in bytes."""
 
-    def __init__(self, pid: int, every: float = 0.02):
-        self.pid, self.every, self.peak = pid, every, 0
+    def __init__(self, pid: int, every: float = 0.02, tree: bool = True):
+        self.pid, self.every, self.peak, self.tree = pid, every, 0, tree
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
     def _run(self):
         while not self._stop.is_set():
-            total = rss_bytes(self.pid) + sum(rss_bytes(c) for c in _children(self.pid))
+            total = rss_bytes(self.pid) + (sum(rss_bytes(c) for c in _children(self.pid)) if self.tree else 0)
             self.peak = max(self.peak, total)
             self._stop.wait(self.every)
 
@@ -177,6 +177,93 @@ def zip_uploads(base: str, token: str, pid: int, n: int = ZIPS) -> dict:
             "refused_max_s": round(max((a[2] for a in refused), default=0.0), 2),
             "last_s": round(max(a[2] for a in answers), 1), "growth_mb": round((mem.peak - before) / 2**20),
             "system_temp_dirs": len(seen)}
+
+
+def geometry_exports(http: httpx.Client, pid: int, cases=((5200, 300_000), (1000, 300_000))) -> list[dict]:
+    """GET /v1/scenes/{id}/geometry.glb of instanced-sphere scenes (issue 27: 5,200 spheres, a 121 KB file of
+    4.95 M triangles, took 21.6 s and +2.66 GB in the server): answer, seconds, the tree's and the server
+    process's own peak growth; then the same request again (the geometry cache)."""
+    rows = []
+    for n, budget in cases:
+        up = http.post("/v1/scenes", params={"filename": f"spheres{n}.usda"}, content=H.instanced_spheres(n).encode())
+        if up.status_code >= 300:
+            rows.append({"spheres": n, "upload": up.status_code})
+            continue
+        body = up.json()
+        for attempt in ("first", "again"):
+            before_tree = rss_bytes(pid) + sum(rss_bytes(c) for c in _children(pid))
+            before_own = rss_bytes(pid)
+            with PeakMemory(pid) as mem, PeakMemory(pid, tree=False) as own:
+                t0 = time.perf_counter()
+                r = http.get(f"/v1/scenes/{body['scene_id']}/geometry.glb", params={"max_triangles": budget})
+                seconds = time.perf_counter() - t0
+            err = (r.json().get("error") or {}).get("code") if r.status_code >= 400 else None
+            rows.append({"spheres": n, "file_bytes": len(H.instanced_spheres(n)), "triangles": body["triangles"],
+                         "attempt": attempt, "status": r.status_code, "code": err or r.headers.get("X-Geometry-Cache"),
+                         "seconds": round(seconds, 2), "tree_growth_mb": round((mem.peak - before_tree) / 2**20),
+                         "server_growth_mb": round((own.peak - before_own) / 2**20)})
+        http.delete(f"/v1/scenes/{body['scene_id']}")
+    return rows
+
+
+def results_downloads(base: str, tokens: dict, scene_ids: dict, pid: int, data_dir: Path, lines: int = 6000,
+                      pad: int = 16_000, n: int = 4) -> dict:
+    """`n` downloads at once of one tenant's finished batch of `lines` result lines of ~`pad` bytes (issue 27: a
+    95 MB batch, four at once: +1.66 GB, /healthz 503, another tenant's optimize 0.05 -> 24.6 s). The batch is
+    written into the store directly (solving it would take an hour). The tree's peak growth, the seconds to the
+    last line, /healthz meanwhile and another tenant's optimize latency meanwhile."""
+    from ..store import Store  # lazy: only this measurement writes into the server's store
+
+    who, other = list(tokens)[:2]
+    store = Store(data_dir)
+    try:
+        batch_id = store.create_batch(who, scene_ids[who], [{"rig": rig(light_direction(0))}] * lines, {})
+        for start in range(0, lines, 500):
+            store.put_outcomes(batch_id, [(i, {"result": {"method": "optimized", "lights": [], "pad": "x" * pad}})
+                                          for i in range(start, min(lines, start + 500))])
+        store.finish_batch(batch_id)
+    finally:
+        store.close()
+    before = rss_bytes(pid) + sum(rss_bytes(c) for c in _children(pid))
+    got: list = []
+
+    def one():
+        t0 = time.perf_counter()
+        size = count = 0
+        with httpx.stream("GET", f"{base}/v1/batches/{batch_id}/results", timeout=600,
+                          headers={"Authorization": f"Bearer {tokens[who]}"}) as r:
+            for chunk in r.iter_bytes():
+                size += len(chunk)
+                count += chunk.count(b"\n")
+        got.append((r.status_code, count, size, time.perf_counter() - t0))
+
+    health, opt = [], []
+    with PeakMemory(pid) as mem:
+        threads = [threading.Thread(target=one) for _ in range(n)]
+        for t in threads:
+            t.start()
+        with httpx.Client(base_url=base, timeout=600, headers={"Authorization": f"Bearer {tokens[other]}"}) as c:
+            k = 0
+            while any(t.is_alive() for t in threads):
+                t0 = time.perf_counter()
+                s = c.get("/healthz").status_code
+                health.append(((time.perf_counter() - t0) * 1e3, s))
+                if k % 3 == 0:
+                    t0 = time.perf_counter()
+                    c.post("/v1/optimize", json={"scene_id": scene_ids[other], "rig": rig(light_direction(300 + k))})
+                    opt.append((time.perf_counter() - t0) * 1e3)
+                k += 1
+                time.sleep(0.05)
+        for t in threads:
+            t.join()
+    statuses: dict = {}
+    for _, s in health:
+        statuses[str(s)] = statuses.get(str(s), 0) + 1
+    return {"n": n, "lines": lines, "batch_mb": round(got[0][2] / 2**20, 1), "answers": sorted({g[0] for g in got}),
+            "complete": all(g[1] == lines for g in got), "last_s": round(max(g[3] for g in got), 1),
+            "growth_mb": round((mem.peak - before) / 2**20), "healthz": statuses,
+            "healthz_max_ms": round(max(h[0] for h in health), 1) if health else None,
+            "optimize_p50_ms": percentile(sorted(opt), 50) if opt else None}
 
 
 def probe(http: httpx.Client, path: str, n: int, every: float) -> list[float]:
