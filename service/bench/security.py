@@ -10,6 +10,9 @@ measures, from the outside:
 - /healthz and /metrics latency while 48 heavy requests (/v1/compare) are queued or running;
 - eight zips of ~250 KB, each declaring 250 MB unpacked, uploaded at once (issue 27): answers, time to the
   refusals, the process tree's peak memory growth, folders left in the system temp dir;
+- geometry.glb of a 121 KB scene of 4.95 M triangles and of a 0.95 M one, twice each (issue 27): answer, time,
+  the tree's and the server process's peak growth; four downloads at once of a 92 MB batch's results: the
+  tree's growth, /healthz and another tenant's optimize meanwhile;
 - another tenant's /v1/optimize latency, idle and while one tenant floods with back-to-back optimize,
   compare and upload requests.
 """
@@ -390,6 +393,11 @@ def bench_security(write: bool = True, log=print) -> dict:
                                              str(outside))
             log(f"security: {ZIPS} zip uploads at once, {ZIP_FILLER_MB} MB unpacked each")
             out["zips"] = zip_uploads(base, tokens["mallory"], proc.pid)
+            log("security: geometry exports of instanced-sphere scenes")
+            out["geometry"] = geometry_exports(clients["mallory"], proc.pid)
+            log("security: four downloads at once of a 92 MB batch's results")
+            out["downloads"] = results_downloads(base, {n: tokens[n] for n in ("mallory", "bob")},
+                                                 {n: scene_ids[n] for n in ("mallory", "bob")}, proc.pid, data_dir)
             log(f"security: /healthz under {QUEUED} queued compare requests")
             out["queue"] = health_under_queue(base, {n: tokens[n] for n in ("alice", "mallory")},
                                               {n: scene_ids[n] for n in ("alice", "mallory")})
@@ -437,6 +445,20 @@ def security_table(out: dict) -> str:
                   f"anything was unpacked; the last answer after {z['last_s']} s); the server tree's memory grew by "
                   f"{z['growth_mb']} MB at the peak (a scene load's child alone is ~270 MB); "
                   f"{z['system_temp_dirs']} folders in the system temp dir."]
+    if out.get("geometry"):
+        lines += ["", "| GET geometry.glb of | triangles | answer | seconds | tree growth MB | server growth MB |",
+                  "|---|---:|---|---:|---:|---:|"]
+        for g in out["geometry"]:
+            if "status" in g:
+                lines.append(f"| {g['spheres']:,} instanced spheres ({g['file_bytes']:,} bytes), {g['attempt']} | "
+                             f"{g['triangles']:,} | {g['status']} {g['code']} | {g['seconds']} | {g['tree_growth_mb']:,} | "
+                             f"{g['server_growth_mb']:,} |")
+    d = out.get("downloads")
+    if d:
+        lines += ["", f"{d['n']} downloads at once of one tenant's {d['lines']:,}-line batch ({d['batch_mb']} MB of results): "
+                  f"answers {d['answers']}, complete: {d['complete']}, the last after {d['last_s']} s; the server tree grew by "
+                  f"{d['growth_mb']} MB at the peak; /healthz meanwhile {d['healthz']} (max {d['healthz_max_ms']} ms); "
+                  f"another tenant's optimize p50 {d['optimize_p50_ms']} ms meanwhile."]
     lines += ["", f"| while {QUEUED} /v1/compare requests are queued or running | p50 ms | p95 ms | p99 ms | max ms |",
               "|---|---:|---:|---:|---:|",
               f"| GET /healthz (40 probes, 50 ms apart) | {q['healthz_p50_ms']} | {q['healthz_p95_ms']} | "
