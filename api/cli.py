@@ -746,7 +746,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_pack)
 
     sp = sub.add_parser("serve", help="start the REST service")
-    sp.add_argument("--host", default=None, help="default 127.0.0.1; another address needs tokens configured")
+    sp.add_argument("--host", default=None, help="default 127.0.0.1; another address needs tokens configured "
+                    "(or, without them, allowed_hosts)")
     sp.add_argument("--port", type=int, default=None, help="default 8000")
     sp.add_argument("--data-dir", default=None, help="scene files and the SQLite database (default ./data)")
     sp.add_argument("--config", default=None, help="settings file (TOML or JSON): tokens, limits, batch backend")

@@ -18,7 +18,8 @@ log = logging.getLogger("shadowopt.server")
 
 class RequestContext:
     """ASGI middleware: X-Request-ID (echoed; generated when absent), a JSON log line and metrics per
-    request, local mode's Host and Origin check (host_guard), and the body-size limit (413 before the body is read when Content-Length says so)."""
+    request, local mode's Host and Origin check (host_guard), and the body-size limit (413 before the body is
+    read when Content-Length says so)."""
 
     def __init__(self, app, service: Service):
         self.app, self.service = app, service
@@ -39,7 +40,7 @@ class RequestContext:
 
         try:
             too_big = self._too_big(scope)
-            refused = refusal(scope, self.service.settings)  # no tokens: a foreign Host or Origin (host_guard)
+            refused = refusal(scope, self.service.settings)  # no tokens: a foreign Host or Origin
             if refused is not None:
                 scope["state"]["error_code"] = refused[1]
                 await error_json(*refused)(scope, receive, send_with_id)

@@ -140,7 +140,7 @@ async def store_zip(svc: Service, ticket, data: bytes, name: str) -> tuple[dict,
         declared = await run_in_threadpool(zip_declared_bytes, data, name, limit)
     except SceneError as e:
         raise zip_error(e) from e
-    reserve_upload(svc, ticket.tenant, declared, "the zip's files declare")
+    await run_in_threadpool(reserve_upload, svc, ticket.tenant, declared, "declared by the zip's files")
     try:
         with svc.store.work_dir() as work:
             try:
@@ -156,9 +156,10 @@ async def store_zip(svc: Service, ticket, data: bytes, name: str) -> tuple[dict,
 
 
 async def store_and_load(svc: Service, ticket, data: bytes | Path, name: str) -> tuple[dict, bool]:
-    """Store the file (`data`: its bytes, or a package in the data directory, moved into the store), load it in upload mode (nothing outside the upload is read, limits enforced while
-    loading), then record it with what was found in one transaction; a load that fails leaves nothing.
-    Runs under the request's admission: the write in a worker thread, the load in a scene-load slot."""
+    """Store the file (`data`: its bytes, or a package in the data directory, which is moved into the store),
+    load it in upload mode (nothing outside the upload is read, limits enforced while loading), then record it
+    with what was found in one transaction; a load that fails leaves nothing. Runs under the request's
+    admission: the write in a worker thread, the load in a scene-load slot."""
     tenant = ticket.tenant
     nbytes = len(data) if isinstance(data, bytes) else os.path.getsize(data)
 
@@ -202,17 +203,17 @@ async def store_and_load(svc: Service, ticket, data: bytes | Path, name: str) ->
 
 def reserve_upload(svc: Service, tenant: str, nbytes: int, what: str = "") -> None:
     """Count an upload's bytes to the tenant's quota (stored plus being stored); 413/429 when over it. `what`
-    says whose bytes they are in the message (a zip's declared size)."""
+    says where the count comes from in the message (a zip's declared size). Reads the database: a worker
+    thread's call."""
     quota = svc.settings.tenant_max_stored_bytes
     if nbytes > quota:
-        raise ApiError(413, "tenant_quota", f"file: {what + ' ' if what else ''}{nbytes} bytes"
-                       f"{' unpacked' if what else ''}, over the per-tenant storage quota "
-                       f"tenant_max_stored_bytes = {quota}", "file")
+        raise ApiError(413, "tenant_quota", f"file: {nbytes} bytes{' unpacked, ' + what + ',' if what else ''} "
+                       f"over the per-tenant storage quota tenant_max_stored_bytes = {quota}", "file")
     with svc.reserved_lock:
         stored = svc.store.tenant_stored_bytes(tenant) + svc.reserved.get(tenant, 0)
         if stored + nbytes > quota:
             raise ApiError(429, "tenant_quota", f"file: this token stores {stored} bytes of scenes; {nbytes} more "
-                           f"{'(' + what + ' unpacked) ' if what else ''}"
+                           f"{'(unpacked, ' + what + ') ' if what else ''}"
                            f"would be over the per-tenant quota tenant_max_stored_bytes = {quota}; delete scenes "
                            f"to make room", "file", headers={"Retry-After": "60"})
         svc.reserved[tenant] = svc.reserved.get(tenant, 0) + nbytes

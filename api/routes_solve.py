@@ -13,6 +13,7 @@ from ..service.compare import compare as compare_methods
 from ..service.evaluation import evaluate_solution
 from ..service.method_options import check_options
 from ..service.request import SolveRequest
+from ..service.request_cost import WorkLimit, check_eval_work, eval_screen_pixels, map_texels
 from ..service.solve import solve
 from ..solvers.analysis import analyze as lloyd
 from .errors import AUTHED, ApiError, error_responses, solver_errors
@@ -53,6 +54,30 @@ def check_eval_size(svc: Service, rig: dict, screen, solution: dict | None) -> N
                                f"limit of {limit}", field)
 
 
+def check_eval_cost(rig: dict, screen, texels: list[int], what: str) -> None:
+    """422 too_costly before the request is admitted (no slot taken, no scene loaded): its ground-truth
+    evaluations (screen pixels and the texels of the maps each one looks up, service.request_cost.eval_work)
+    over MAX_EVAL_WORK. `texels`: one entry per evaluation. service.evaluation and service.compare check the
+    same again with the lights' real types."""
+    field = "screen" if screen else "rig.camera.resolution"
+    px = eval_screen_pixels(rig["camera"]["resolution"], screen)
+    try:
+        check_eval_work([(px, t) for t in texels], field, what)
+    except WorkLimit as e:
+        raise ApiError(422, "too_costly", e.message, e.field) from None
+
+
+def solution_texels(rig: dict, solution: dict) -> list[int]:
+    """The texels of each light's maps as `solution` gives them (check_eval_size checked their resolutions)."""
+    lights = solution.get("lights") if isinstance(solution, dict) else None
+    out = []
+    for light in (lights if isinstance(lights, list) else [])[:len(rig["lights"])]:
+        cascades = light.get("cascades") if isinstance(light, dict) else None
+        out.append(sum(c["resolution"][0] * c["resolution"][1] for c in cascades or []
+                       if isinstance(c, dict) and isinstance(c.get("resolution"), (list, tuple))))
+    return out
+
+
 def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
     @app.post("/v1/optimize", summary="Shadow setup for a scene and rig: matrices, warp, cascades, predicted error",
               response_model=S.Solution, responses=error_responses(*AUTHED, 404, 413, 422, 503), tags=["solve"])
@@ -78,6 +103,7 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
     async def evaluate(req: S.EvaluateRequest, tenant: Tenant, request: Request):
         rig = rig_dict(req.rig)
         check_eval_size(svc, rig, req.screen, req.solution)
+        check_eval_cost(rig, req.screen, solution_texels(rig, req.solution), "evaluate")
 
         def run(entry):
             with tempfile.TemporaryDirectory(prefix="shadowopt-heatmap-") as tmp:
@@ -103,6 +129,10 @@ def add_solve_routes(app: FastAPI, svc: Service, Tenant) -> None:
         check_eval_size(svc, rig, req.screen, {"lights": [{"cascades": [{"resolution": resolution}]}]}
                         if resolution is not None else None)
         methods = list(dict.fromkeys(req.methods))
+        # one ground truth per method of the first light's maps, counted as one face (its type is known once the
+        # scene is loaded: service.compare checks again)
+        check_eval_cost(rig, req.screen, [map_texels(rig.get("shadow") or {})] * len(methods),
+                        f"compare of {len(methods)} methods")
         with solver_errors():
             for m in methods:
                 check_options(m, rig.get("shadow"))

@@ -24,6 +24,7 @@ from ..service.scene_export import GLB_CACHE
 from ..service.scenes import SCENES
 from ..service.request import SolveRequest
 from ..service.solve import solve
+from ..service.packing import sweep_system_temp
 from ..service.rig_bounds import DISTANCE_ENV
 from ..service.store import Store
 from .admission import Admission, Refused
@@ -78,9 +79,11 @@ class Service:
         self.store = Store(self.settings.data_dir, retention_days=self.settings.retention_days,
                            max_bytes=self.settings.max_data_bytes)
         swept = self.store.sweep_partial_uploads()  # before any request: what a killed upload left behind
-        if swept["rows"] or swept["files"]:
+        old_temp = sweep_system_temp()  # and what older servers' killed zip uploads left in the system temp dir
+        if swept["rows"] or swept["files"] or old_temp:
             log.warning("swept partial uploads", extra={"fields": {"rows": len(swept["rows"]),
-                                                                   "files": len(swept["files"])}})
+                                                                   "files": len(swept["files"]),
+                                                                   "system_temp_folders": old_temp}})
         limits = load_limits(self.settings)  # also a path frame's load of an upload at its time code
         self.runner = BatchRunner(self.store, backend=self.settings.batch_backend,
                                   workers=self.settings.batch_workers, ray_address=self.settings.ray_address,

@@ -7,8 +7,8 @@
   ~/.ssh/... into a package that is then uploaded. `shadowopt pack` and the client use it.
 - `needs_package(scene)`: whether a local stage names other files (UsdUtils.ComputeAllDependencies).
 - `zip_to_usdz(data, name)` (bytes) / `zip_to_usdz_file(data, name, work_dir)` (a file; what the server uses,
-  after `zip_declared_bytes` told it what unpacking will write): an uploaded .zip of a scene's folder turned into a .usdz the sandboxed
-  loader reads like any package (its internal paths resolve inside it and nowhere else). Fail closed:
+  after `zip_declared_bytes` told it what unpacking will write): an uploaded .zip of a scene's folder turned
+  into a .usdz the sandboxed loader reads like any package (its internal paths resolve inside it and nowhere else). Fail closed:
   an entry that is absolute, climbs out with '..', names a drive, is a symbolic link, is encrypted, names
   the folder itself ('a/..') or is also the folder of another entry, or a zip over MAX_ZIP_ENTRIES entries
   (counted from its end records before zipfile reads the central directory) or MAX_UNPACKED_BYTES unpacked
@@ -26,6 +26,7 @@ import shutil
 import stat
 import struct
 import tempfile
+import time
 import zipfile
 import zlib
 from io import BytesIO
@@ -285,11 +286,11 @@ def write_usdz(out, entries: list[tuple[str, str]]) -> None:
 
 def zip_to_usdz_file(data: bytes, name: str, work_dir, max_unpacked: int = MAX_UNPACKED_BYTES) -> tuple[Path, str]:
     """An uploaded .zip of a scene's folder as a .usdz file in `work_dir` (an empty folder the caller owns and
-    removes: the entries are unpacked below it, the package written beside them) and the package's name. The entries' sizes as
-    the zip declares them add up to at most `max_unpacked` bytes, and the bytes actually written are counted
-    while they stream out: no entry is written past its declared size (declared sizes can lie), so nothing
-    past the declared total reaches the disk. The package is written by `write_usdz`, a chunk at a time. A damaged entry (bad CRC, unknown compression) is refused naming
-    it."""
+    removes: the entries are unpacked below it, the package written beside them) and the package's name. The
+    entries' sizes as the zip declares them add up to at most `max_unpacked` bytes, and the bytes actually
+    written are counted while they stream out: no entry is written past its declared size (declared sizes can
+    lie), so nothing past the declared total reaches the disk. The package is written by `write_usdz`, a chunk
+    at a time. A damaged entry (bad CRC, unknown compression) is refused naming it."""
     with _open_zip(data, name) as z:
         files = _checked_entries(z, max_unpacked)
         prefix, inside = _inside_names(files)
@@ -332,9 +333,28 @@ def zip_to_usdz_file(data: bytes, name: str, work_dir, max_unpacked: int = MAX_U
     return Path(out), Path(root).stem + ".usdz"
 
 
+ZIP_TEMP_PREFIX = "shadowopt-zip-"
+
+
+def sweep_system_temp(grace_s: float = 3600.0) -> int:
+    """Remove the `shadowopt-zip-*` folders older than `grace_s` from the system temp dir (servers before issue 27
+    unpacked zips there, and a killed one left them); how many. A server calls it at start."""
+    removed, now = 0, time.time()
+    root = Path(tempfile.gettempdir())
+    for d in root.glob(ZIP_TEMP_PREFIX + "*"):
+        try:
+            st = d.lstat()
+        except OSError:
+            continue
+        if stat.S_ISDIR(st.st_mode) and st.st_uid == os.getuid() and now - st.st_mtime >= grace_s:
+            shutil.rmtree(d, ignore_errors=True)
+            removed += 1
+    return removed
+
+
 def zip_to_usdz(data: bytes, name: str, max_unpacked: int = MAX_UNPACKED_BYTES, work_dir=None) -> tuple[bytes, str]:
     """zip_to_usdz_file's package as bytes, unpacked in a scratch folder under `work_dir` (default: the system
     temp dir; a server passes its data dir's, see service.store.Store.work_dir)."""
-    with tempfile.TemporaryDirectory(prefix="shadowopt-zip-", dir=work_dir) as tmp:
+    with tempfile.TemporaryDirectory(prefix=ZIP_TEMP_PREFIX, dir=work_dir) as tmp:
         out, pkg = zip_to_usdz_file(data, name, tmp, max_unpacked)
         return out.read_bytes(), pkg

@@ -140,6 +140,18 @@ def map_texels(shadow) -> int:
     return int(w) * int(h) * maps_per_light(shadow)
 
 
+def eval_screen_pixels(resolution, screen=None) -> int:
+    """The ground truth's screen pixels: `screen`, or the camera's `resolution` without one; a screen of
+    another aspect keeps the camera's (long side = max(screen)), as renderers.ground_truth.screen_camera does."""
+    w, h = (int(v) for v in (screen or resolution))
+    cw, ch = (int(v) for v in resolution)
+    if screen is not None and abs(w / h - cw / ch) > 1e-3 * cw / ch:
+        long_side = max(w, h)
+        short = max(1, round(long_side * min(cw, ch) / max(cw, ch)))  # solvers.cameras.Camera.coarse_resolution
+        return long_side * short
+    return w * h
+
+
 def eval_work(screen_pixels: int, texels: int) -> int:
     return int(screen_pixels) + math.ceil(int(texels) / TEXELS_PER_PIXEL)
 

@@ -9,6 +9,7 @@ import io
 import json
 import os
 import threading
+import time
 import zipfile
 
 import httpx
@@ -33,6 +34,10 @@ def served(tmp_path_factory):
     left = data / "tmp" / "zip-killed" / "files"
     left.mkdir(parents=True)
     (left / "big.bin").write_bytes(b"\0" * 4096)
+    old = systmp / "shadowopt-zip-abcd1234"  # what an older server's killed zip upload left in the system temp dir
+    (old / "files").mkdir(parents=True)
+    (old / "files" / "big.bin").write_bytes(b"\0" * 4096)
+    os.utime(old, (time.time() - 7200, time.time() - 7200))
     server = launch(data, tokens=None, env={
         "TMPDIR": str(systmp), "SHADOWOPT_TENANT_MAX_STORED_BYTES": str(QUOTA),
         "SHADOWOPT_ALLOWED_HOSTS": "shadow.lan", "SHADOWOPT_ALLOWED_ORIGINS": "http://tool.lan:3000"})
@@ -81,9 +86,11 @@ def test_a_foreign_host_or_origin_is_refused_and_local_requests_pass(served):
 
 # -- items 2 and 8: zips against the quota, unpacked in the data directory, leftovers swept ------------
 
-def test_what_a_killed_upload_left_in_the_data_dir_is_swept_at_start(served):
+def test_what_a_killed_upload_left_is_swept_at_start(served):
     assert not (served.data_dir / "tmp" / "zip-killed").exists()
-    assert "swept" in served.log()
+    assert not (served.systmp / "shadowopt-zip-abcd1234").exists()
+    swept = [json.loads(l) for l in served.log().splitlines() if l.startswith("{") and "swept" in l]
+    assert any(e.get("system_temp_folders") == 1 and e.get("files", 0) >= 1 for e in swept), swept
 
 
 def test_a_zip_declaring_more_than_the_quota_is_refused_before_unpacking(served):
@@ -107,6 +114,7 @@ def test_a_zip_is_unpacked_in_the_data_dir_never_the_system_temp_dir(served):
             tmp = served.data_dir / "tmp"
             if tmp.is_dir():
                 seen.update(f"data/{p.name}" for p in tmp.iterdir())
+            time.sleep(0.002)
 
     t = threading.Thread(target=watch)
     t.start()
@@ -141,3 +149,15 @@ def test_absurd_numbers_are_refused_naming_the_field(served, change, field):
     err = r.json()["error"]
     assert err["field"] is not None and err["field"].startswith(field), err
     assert "nan" not in r.text.lower() and "infinity" not in r.text.lower()
+
+
+def test_an_evaluation_over_the_work_limit_is_refused_before_admission(served):
+    """8192^2 texels looked up from a 3840x2160 screen: 8.3 M pixels + 2.1 M texel units, over MAX_EVAL_WORK. It is
+    refused before a slot is taken or a scene loaded: even for a scene id that does not exist."""
+    cascade = {"view_matrix": [0.0] * 16, "projection_matrix": [0.0] * 16, "resolution": [8192, 8192]}
+    solution = {"lights": [{"type": "directional", "cascades": [cascade]}]}
+    r = httpx.post(served.base + "/v1/evaluate", timeout=60, json={"scene_id": "0" * 16, "rig": RIG,
+                                                                   "solution": solution, "screen": [3840, 2160]})
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert err["code"] == "too_costly" and err["field"] == "screen" and "8,294,400 screen pixels" in err["message"]

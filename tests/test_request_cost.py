@@ -261,3 +261,15 @@ def test_map_texels_is_the_resolution_times_the_maps_or_the_budget():
     assert map_texels({"texel_budget": 1_000_000, "cascades": 3}) == 1_000_000  # a budget is the light's total
     assert map_texels({"texel_budget": 1_000_000, "cascades": "auto", "max_cascades": 3}) == 6_000_000  # per try
     assert isinstance(map_texels({"resolution": [7, 3], "cascades": 2}), int)
+
+
+@pytest.mark.parametrize("screen", [None, (1280, 720), (1000, 1000), (90, 1600), (1921, 1080)])
+def test_eval_screen_pixels_are_the_ground_truths_screen(screen):
+    """The pixels the API counts before admission (request_cost.eval_screen_pixels) are those of the camera the
+    ground truth renders (renderers.ground_truth.screen_camera: a screen of another aspect keeps the camera's)."""
+    from shadowopt.renderers.ground_truth import screen_camera
+    from shadowopt.solvers.cameras import Camera
+
+    cam = Camera.look((0, 1, 0), (0, 0, -1), fov_y_deg=60, near=0.1, far=100, resolution=(1600, 900))
+    w, h = screen_camera(cam, screen).resolution
+    assert request_cost.eval_screen_pixels((1600, 900), screen) == w * h
