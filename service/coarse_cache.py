@@ -164,8 +164,9 @@ def camera_key(camera, long_side: int, boundary_radius: int) -> tuple:
 
 def pass_bytes(cp: CameraPass) -> int:
     """What a camera pass holds: its arrays' bytes (the receivers' memo is counted as it grows)."""
-    arrays = (cp.hit, cp.position, cp.normal, cp.depth, cp.prim_id, cp.p32, cp.n32, cp.fine_p32, cp.fine_n32, cp.fine_ok)
-    fine = cp.fine
+    arrays = tuple(getattr(cp, k, None) for k in ("hit", "position", "normal", "depth", "prim_id", "p32", "n32",
+                                                  "fine_p32", "fine_n32", "fine_ok"))
+    fine = getattr(cp, "fine", None)
     if fine is not None:
         arrays += tuple(getattr(fine, k, None) for k in ("position", "normal", "depth", "flat", "traced"))
     return sum(int(getattr(a, "nbytes", 0)) for a in arrays) + 4096
@@ -199,6 +200,10 @@ class CoarseCache:
     def clear(self) -> None:
         self._lru.clear()
 
+    def passes(self) -> list[CameraPass]:
+        """The camera passes held, least recently used first."""
+        return [cp for _, cp in self._lru.values()]
+
     def __len__(self) -> int:
         return len(self._lru)
 
@@ -209,7 +214,7 @@ class CoarseCache:
             self.hits += 1
             return got[1]
         cp = camera_pass(entry.rays, camera, long_side)
-        cp.cache_key = (tenant, key)
+        cp.cache_key = (tenant, key)  # the receivers' memo counts what it adds against this entry
         self.misses += 1
         self._lru.put(tenant, key, (weakref.ref(entry), cp), pass_bytes(cp))
         self._lru.drop(lambda v: v[0]() is None)  # entries of dropped scenes
@@ -242,7 +247,7 @@ class CoarseCache:
             grown += _memo_bytes(out)
             while len(cp.receivers) > MAX_RECEIVER_MASKS:
                 grown -= _memo_bytes(cp.receivers.popitem(last=False)[1])
-        if cp.cache_key is not None:
+        if getattr(cp, "cache_key", None) is not None:  # a pass of this cache's (not one made elsewhere)
             self._lru.grow(*cp.cache_key, grown)
         return out
 

@@ -34,7 +34,7 @@ from .isolation import DEFAULT_MEMORY_BYTES, DEFAULT_TIMEOUT_S, run_isolated
 from .tenant_lru import TenantLRU
 
 __all__ = ["DEFAULT_TRIANGLE_BUDGET", "MAX_TRIANGLE_BUDGET", "GLB_CACHE", "ExportInfo", "export_estimate",
-           "glb_arrays", "glb_isolated", "scene_glb"]
+           "glb_arrays", "glb_isolated"]
 
 DEFAULT_TRIANGLE_BUDGET = 300_000
 MAX_TRIANGLE_BUDGET = 2_000_000
@@ -68,15 +68,6 @@ def export_estimate(loaded: LoadedScene, max_triangles: int) -> tuple[int, int]:
 def _check_budget(max_triangles) -> None:
     if isinstance(max_triangles, bool) or not isinstance(max_triangles, int) or max_triangles < 1:
         raise ValueError(f"max_triangles must be a positive integer, got {max_triangles!r}")
-
-
-def scene_glb(loaded: LoadedScene, max_triangles: int = DEFAULT_TRIANGLE_BUDGET) -> tuple[bytes, ExportInfo]:
-    """(GLB bytes, ExportInfo) of the scene's triangles, decimated to at most `max_triangles`, in this
-    process (the CLI and the tests; the server uses glb_isolated)."""
-    _check_budget(max_triangles)
-    g = loaded.geometry
-    lo, hi = g.bounds()
-    return glb_arrays(g.vertices, g.faces, (lo + hi) / 2.0, max_triangles)
 
 
 def glb_isolated(loaded: LoadedScene, max_triangles: int, *, tenant, max_export_triangles: int,

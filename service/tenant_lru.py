@@ -86,6 +86,11 @@ class TenantLRU:
             for k in [k for k, (v, _) in self._d.items() if predicate(v)]:
                 del self._d[k]
 
+    def values(self) -> list:
+        """The values held, least recently used first."""
+        with self._lock:
+            return [v for v, _ in self._d.values()]
+
     def clear(self) -> None:
         with self._lock:
             self._d.clear()

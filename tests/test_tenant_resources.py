@@ -197,3 +197,16 @@ def test_a_batch_workers_scene_cache_is_a_tenants_share_in_bytes(monkeypatch):
     st = cache.stats()
     assert cache.max_bytes == 64 << 20 and cache.tenant_share == 0.5
     assert list(st["owners"]) == ["alice"] and st["bytes"] <= 32 << 20
+
+
+def test_a_tenant_past_its_share_loses_its_own_entries_first():
+    from shadowopt.service.tenant_lru import TenantLRU
+
+    lru = TenantLRU(100, 0.5)  # 50 bytes per tenant
+    assert lru.put("b", "kept", "B", 30)
+    for k in range(10):  # a flood of 20-byte entries: only its own two newest stay
+        assert lru.put("a", k, k, 20)
+    assert lru.get("b", "kept") == "B"
+    assert [lru.get("a", k) for k in range(10)] == [None] * 8 + [8, 9]
+    assert not lru.put("a", "huge", "H", 51)  # over one tenant's share: not kept, nothing evicted for it
+    assert lru.stats()["owners"] == {"b": 30, "a": 40} and lru.stats()["bytes"] <= 100
