@@ -20,7 +20,8 @@ from fastapi.responses import FileResponse, Response
 from fastapi.staticfiles import StaticFiles
 
 from . import schemas as S
-from ..service.scene_export import DEFAULT_TRIANGLE_BUDGET, MAX_TRIANGLE_BUDGET, export_estimate, glb_isolated
+from ..service.scene_export import (DEFAULT_TRIANGLE_BUDGET, MAX_TRIANGLE_BUDGET, cached_glb, export_estimate,
+                                    glb_isolated)
 from .errors import AUTHED, ApiError, error_responses, solver_errors
 from .scene_loading import scene_entry_for
 
@@ -63,8 +64,9 @@ def add_inspect_routes(app: FastAPI, svc, Tenant) -> None:
                 raise ApiError(413, "export_too_large", f"max_triangles: the GLB at max_triangles {max_triangles} "
                                f"could take {size} bytes, more than the limit of {st.max_export_bytes} "
                                "(max_export_bytes); ask for a smaller max_triangles", "max_triangles")
+            got = cached_glb(entry.loaded, max_triangles, tenant)  # a hit takes no solver slot
             with solver_errors():
-                data, info, hit = await svc.in_slot(
+                data, info, hit = (*got, True) if got is not None else await svc.in_slot(
                     svc.admission.solve, ticket, glb_isolated, entry.loaded, max_triangles, tenant=tenant,
                     max_export_triangles=st.max_export_triangles, max_export_bytes=st.max_export_bytes,
                     memory_bytes=st.load_memory_bytes, timeout_s=st.load_timeout_s, what=f"scene {scene_id!r}")

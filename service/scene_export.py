@@ -33,8 +33,8 @@ from ..renderers.scene_data import LoadedScene, SceneError
 from .isolation import DEFAULT_MEMORY_BYTES, DEFAULT_TIMEOUT_S, run_isolated
 from .tenant_lru import TenantLRU
 
-__all__ = ["DEFAULT_TRIANGLE_BUDGET", "MAX_TRIANGLE_BUDGET", "GLB_CACHE", "ExportInfo", "export_estimate",
-           "glb_arrays", "glb_isolated"]
+__all__ = ["DEFAULT_TRIANGLE_BUDGET", "MAX_TRIANGLE_BUDGET", "GLB_CACHE", "ExportInfo", "cached_glb",
+           "export_estimate", "glb_arrays", "glb_isolated"]
 
 DEFAULT_TRIANGLE_BUDGET = 300_000
 MAX_TRIANGLE_BUDGET = 2_000_000
@@ -70,6 +70,15 @@ def _check_budget(max_triangles) -> None:
         raise ValueError(f"max_triangles must be a positive integer, got {max_triangles!r}")
 
 
+def _cache_key(loaded: LoadedScene, max_triangles: int) -> tuple:
+    return (loaded.scene_hash, loaded.time_code, loaded.geometry.triangle_count, max_triangles)
+
+
+def cached_glb(loaded: LoadedScene, max_triangles: int, tenant) -> tuple[bytes, ExportInfo] | None:
+    """The tenant's GLB of this scene and budget from GLB_CACHE, or None (nothing is made)."""
+    return GLB_CACHE.get(tenant, _cache_key(loaded, max_triangles))
+
+
 def glb_isolated(loaded: LoadedScene, max_triangles: int, *, tenant, max_export_triangles: int,
                  max_export_bytes: int, memory_bytes: int = DEFAULT_MEMORY_BYTES,
                  timeout_s: float = DEFAULT_TIMEOUT_S, what: str = "the scene") -> tuple[bytes, ExportInfo, bool]:
@@ -77,10 +86,10 @@ def glb_isolated(loaded: LoadedScene, max_triangles: int, *, tenant, max_export_
     (SceneError too_many_triangles / too_large, before any work), else made in a child process with
     `memory_bytes` of address space and `timeout_s` of wall clock, and kept in GLB_CACHE."""
     _check_budget(max_triangles)
-    key = (loaded.scene_hash, loaded.time_code, loaded.geometry.triangle_count, max_triangles)
-    hit = GLB_CACHE.get(tenant, key)
+    hit = cached_glb(loaded, max_triangles, tenant)
     if hit is not None:
         return hit[0], hit[1], True
+    key = _cache_key(loaded, max_triangles)
     n, size = export_estimate(loaded, max_triangles)
     if n > max_export_triangles:
         raise SceneError("too_many_triangles", f"the scene has {n} triangles, more than the geometry export's "

@@ -22,6 +22,7 @@ from shadowopt.service.store import Store
 
 COARSE_BYTES = 8 << 20  # ~4 camera passes of TINY_RIG (1.8 MB each): 2 per tenant
 EXPORT_TRIANGLES = 200_000
+EXPORT_BYTES = 2_000_000
 LINES, PAD = 3000, 16_000  # a batch of ~48 MB of result lines
 
 
@@ -30,7 +31,8 @@ def served(tmp_path_factory):
     root = tmp_path_factory.mktemp("tenant-resources")
     server = launch(root / "data", env={
         "SHADOWOPT_RATE_LIMIT_PER_S": "0", "SHADOWOPT_BATCH_WORKERS": "1",
-        "SHADOWOPT_COARSE_CACHE_BYTES": str(COARSE_BYTES), "SHADOWOPT_MAX_EXPORT_TRIANGLES": str(EXPORT_TRIANGLES)})
+        "SHADOWOPT_COARSE_CACHE_BYTES": str(COARSE_BYTES), "SHADOWOPT_MAX_EXPORT_TRIANGLES": str(EXPORT_TRIANGLES),
+        "SHADOWOPT_MAX_EXPORT_BYTES": str(EXPORT_BYTES)})
     try:
         wait_ready(server)
         yield server
@@ -64,6 +66,15 @@ def test_geometry_export_over_its_bounds_is_refused_before_any_work(served):
     err = r.json()["error"]
     assert err["code"] == "too_many_triangles" and "max_export_triangles" in err["message"]
     assert str(big["triangles"]) in err["message"]
+    # 150 spheres (~144,000 triangles): under the triangle bound, but its GLB at a 200,000 budget could be larger
+    # than max_export_bytes: refused naming max_triangles; at a budget of 1,000 it is served
+    mid = upload_text(served.base, "alice", H.instanced_spheres(150), "mid.usda")
+    url = f"{served.base}/v1/scenes/{mid['scene_id']}/geometry.glb"
+    r = httpx.get(url, params={"max_triangles": 200_000}, headers=auth("alice"), timeout=60)
+    assert r.status_code == 413 and r.json()["error"]["code"] == "export_too_large", r.text
+    assert r.json()["error"]["field"] == "max_triangles" and "max_export_bytes" in r.json()["error"]["message"]
+    r = httpx.get(url, params={"max_triangles": 1000}, headers=auth("alice"), timeout=120)
+    assert r.status_code == 200 and r.headers["X-Decimated"] == "true" and len(r.content) < EXPORT_BYTES
 
 
 @pytest.mark.server
@@ -93,7 +104,7 @@ def optimize(base: str, who: str, scene_id: str, width: int) -> None:
 def test_one_tenants_cameras_do_not_evict_anothers_coarse_pass(served):
     ids = {who: upload(served.base, who).json()["scene_id"] for who in ("alice", "carol")}
     optimize(served.base, "carol", ids["carol"], 160)
-    for k in range(20):  # alice: 20 distinct cameras, more than the cache holds in bytes (and in entries)
+    for k in range(8):  # alice: 8 distinct cameras, twice what the whole cache holds in bytes
         optimize(served.base, "alice", ids["alice"], 161 + k)
     assert metric(served.base, "shadowopt_coarse_cache_bytes") <= COARSE_BYTES
     hits = metric(served.base, "shadowopt_coarse_cache_hits_total")
