@@ -20,6 +20,13 @@ log = logging.getLogger("shadowopt.batches")
 BACKENDS = ("local", "ray")
 RUNNER_RETRIES, RUNNER_RETRY_S = 3, 1.0  # a batch whose run fails as a whole is re-queued this often first
 SLICE = 64  # configurations a batch runs before it lets a batch that arrived meanwhile take a turn
+TURN_S = 5.0  # or seconds, whichever comes first: fair share by time, not by turns (issue 27); tasks in flight
+# finish first, so a waiting batch starts within TURN_S plus one task (one frame of a path over moving geometry)
+
+
+def turn_over(done: int, seconds: float) -> bool:
+    """Whether a batch's turn is over (when another batch waits): SLICE configurations or TURN_S seconds."""
+    return done >= SLICE or seconds >= TURN_S
 
 
 class BatchRunner:
@@ -180,9 +187,10 @@ class BatchRunner:
         job = SceneJob(str(path), rec["filename"], self.store.scene_sandboxed(tenant, st["scene_id"]))
         items = [(i, configs[i]) for i in pending]
         self._turn_done = 0
+        started = time.monotonic()
 
-        def pause():  # take turns: after a slice, a batch that arrived meanwhile goes first
-            return self._turn_done >= SLICE and self._others_waiting()
+        def pause():  # take turns: after a slice or TURN_S, a batch that arrived meanwhile goes first
+            return turn_over(self._turn_done, time.monotonic() - started) and self._others_waiting()
 
         self._run_slice(batch_id, job, items, st["settings"], pause, total=st["total"], tenant=tenant)
         if self._stop:
