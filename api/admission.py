@@ -4,11 +4,12 @@ Everything here runs on the event loop and never blocks a thread:
 - `Admission.admit(tenant)` answers at once: a refusal (429 when this tenant has `tenant_max_inflight` in;
   503 when `max_inflight` heavy requests are in and this tenant has one of them) or a ticket that counts
   the request as in flight until it is released (queued and running requests alike:
-  `shadowopt_inflight_requests`). Headroom: a tenant with no request in flight is always admitted, so two
-  tenants at their quota cannot lock a third out; the total can exceed `max_inflight` by at most the
-  number of tenants (one request each);
+  `shadowopt_inflight_requests`; a batch results download too, while it streams). Headroom: a tenant
+  with no request in flight is always admitted, so two tenants at their quota cannot lock a third out;
+  the total can exceed `max_inflight` by at most the number of tenants (one request each);
 - a ticket then waits for a slot of a `FairPool` (solver slots, `solve_threads`; scene-load slots,
-  `load_threads`) as an asyncio future. A freed slot goes to the waiting tenant that holds the fewest slots
+  `load_threads`; batch result downloads, `download_threads`, held while the response streams) as an
+  asyncio future. A freed slot goes to the waiting tenant that holds the fewest slots
   of the pool, ties taken in turn (round robin over the tenants with waiting requests, FIFO within a
   tenant): one tenant's 40 waiting requests do not all go before another tenant's one, and a tenant that
   arrives while another holds every slot gets the next one; while another tenant is active, no tenant holds
@@ -222,12 +223,14 @@ class Ticket:
 class Admission:
     """Counts heavy requests in flight (total and per tenant) and owns the slot pools."""
 
-    def __init__(self, max_inflight: int, tenant_max_inflight: int, solve_threads: int, load_threads: int):
+    def __init__(self, max_inflight: int, tenant_max_inflight: int, solve_threads: int, load_threads: int,
+                 download_threads: int = 2):
         self.max_inflight, self.tenant_max_inflight = max_inflight, tenant_max_inflight
         self.inflight = 0
         self.by_tenant: dict[str, int] = {}
         self.solve = FairPool("solve", solve_threads)
         self.load = FairPool("load", load_threads)
+        self.download = FairPool("download", download_threads)  # batch result streams (held while they stream)
 
     def admit(self, tenant: str) -> Ticket:
         """A ticket, or Refused at once (nothing waits here). A tenant with nothing in flight is always

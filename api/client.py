@@ -46,6 +46,7 @@ __all__ = ["Client", "AsyncClient", "SceneInfo", "Solution", "BatchResultLine", 
 TERMINAL_STATES = ("done", "failed", "cancelled")
 RETRY_STATUSES = (429, 503)
 MAX_RETRY_AFTER_S = 60.0
+RESULTS_PAGE = 1000  # result lines per GET .../results request when iterating a batch's results
 DEFAULT_URL = "http://127.0.0.1:8000"  # `shadowopt serve`'s default; SHADOWOPT_URL overrides it
 
 
@@ -295,8 +296,9 @@ class _Calls:
                      parse=lambda r: BatchStatus.model_validate(r.json()))
 
     @staticmethod
-    def results(batch, offset):
-        return _Call("GET", f"/v1/batches/{batch_id_of(batch)}/results", params={"offset": offset})
+    def results(batch, offset, limit=None):
+        params = {"offset": offset} if limit is None else {"offset": offset, "limit": limit}
+        return _Call("GET", f"/v1/batches/{batch_id_of(batch)}/results", params=params)
 
 
 # ---------------------------------------------------------------- transport policy (shared)
@@ -560,15 +562,17 @@ class Client(_Base):
                 bar.close()
 
     def iter_results(self, batch, offset: int = 0, follow: bool = False,
-                     poll_s: float = 0.5) -> Iterator[BatchResultLine]:
+                     poll_s: float = 0.5, page: int = RESULTS_PAGE) -> Iterator[BatchResultLine]:
         """Result lines (`BatchResultLine`: `index` and the solution's fields, or `error`; in configuration
         order) from `offset` on; `line.solution()` gives a line as a `Solution`. A connection that
         breaks mid-stream is resumed after the last line received. With `follow`, keeps going until
-        the batch has finished and every result has been read."""
-        call_at = lambda off: _Calls.results(batch, off)  # noqa: E731
+        the batch has finished and every result has been read. Read `page` lines per request (the next
+        page from the last index + 1): neither side holds more than a page, whatever the batch's size."""
+        call_at = lambda off: _Calls.results(batch, off, page)  # noqa: E731
         nxt, failures = offset, 0
         while True:
             final = self.batch(batch).state in TERMINAL_STATES if follow else True
+            got = 0
             try:
                 resp = self._send(call_at(nxt), stream=True)
                 try:
@@ -577,6 +581,7 @@ class Client(_Base):
                             item = BatchResultLine.model_validate(json.loads(line))
                             nxt = item.index + 1
                             failures = 0
+                            got += 1
                             yield item
                 finally:
                     resp.close()
@@ -585,6 +590,8 @@ class Client(_Base):
                 if failures > self.retries:
                     raise self._connection_failed(call_at(nxt), e) from e
                 time.sleep(self._delay(failures - 1))
+                continue
+            if got >= page:  # a full page: the next one at once
                 continue
             if final:
                 return
@@ -707,11 +714,12 @@ class AsyncClient(_Base):
                 bar.close()
 
     async def iter_results(self, batch, offset: int = 0, follow: bool = False,
-                           poll_s: float = 0.5) -> AsyncIterator[BatchResultLine]:
-        call_at = lambda off: _Calls.results(batch, off)  # noqa: E731
+                           poll_s: float = 0.5, page: int = RESULTS_PAGE) -> AsyncIterator[BatchResultLine]:
+        call_at = lambda off: _Calls.results(batch, off, page)  # noqa: E731
         nxt, failures = offset, 0
         while True:
             final = (await self.batch(batch)).state in TERMINAL_STATES if follow else True
+            got = 0
             try:
                 resp = await self._send(call_at(nxt), stream=True)
                 try:
@@ -720,6 +728,7 @@ class AsyncClient(_Base):
                             item = BatchResultLine.model_validate(json.loads(line))
                             nxt = item.index + 1
                             failures = 0
+                            got += 1
                             yield item
                 finally:
                     await resp.aclose()
@@ -728,6 +737,8 @@ class AsyncClient(_Base):
                 if failures > self.retries:
                     raise self._connection_failed(call_at(nxt), e) from e
                 await asyncio.sleep(self._delay(failures - 1))
+                continue
+            if got >= page:  # a full page: the next one at once
                 continue
             if final:
                 return

@@ -137,7 +137,8 @@ def database_message(exc: BaseException) -> str:
 
 # over a resource limit: too large (too_large_for_cache: one scene's estimated bytes over the tenant's share of
 # the scene cache, scene_cache_bytes * tenant_cache_share)
-SCENE_413 = ("too_many_triangles", "too_many_prims", "memory_limit", "load_timeout", "too_large_for_cache")
+SCENE_413 = ("too_many_triangles", "too_many_prims", "memory_limit", "load_timeout", "too_large_for_cache",
+             "export_too_large")
 
 
 def scene_error(e, field: str) -> ApiError:

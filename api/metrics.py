@@ -111,7 +111,8 @@ class ServerMetrics:
     """The metrics the REST service exports."""
 
     def __init__(self, queue_length: Callable[[], float], inflight: Callable[[], float], admission=None,
-                 scene_stats: Callable[[], dict] | None = None):
+                 scene_stats: Callable[[], dict] | None = None,
+                 cache_stats: Callable[[], dict[str, dict]] | None = None):
         self.registry = r = Registry()
         self.requests = r.add(Counter("shadowopt_requests_total", "HTTP requests by route, method and status",
                                       ("route", "method", "status")))
@@ -132,7 +133,7 @@ class ServerMetrics:
         self.load_followers = r.add(Counter("shadowopt_scene_load_followers_total", "requests that waited for "
                                             "another request's load of their scene without holding a load slot"))
         if admission is not None:
-            for pool in (admission.solve, admission.load):
+            for pool in (admission.solve, admission.load, admission.download):
                 r.add(Gauge(f"shadowopt_{pool.name}_slots_busy", f"{pool.name} slots in use",
                             lambda p=pool: p.busy))
                 r.add(Gauge(f"shadowopt_{pool.name}_waiting", f"admitted requests waiting for a {pool.name} slot",
@@ -146,6 +147,16 @@ class ServerMetrics:
                                     ("evictions", "counter", "scenes evicted from memory")):
                 name = f"shadowopt_scene_cache_{key}" + ("_total" if kind == "counter" else "")
                 r.add(_StatMetric(name, help, kind, lambda k=key: scene_stats()[k]))
+        if cache_stats is not None:  # the other caches of tenant data (service.tenant_lru): coarse, geometry
+            for cache in ("coarse", "geometry"):
+                for key, kind, help in (("bytes", "gauge", f"bytes held by the {cache} cache (estimated)"),
+                                        ("max_bytes", "gauge", f"the {cache} cache's bound in bytes"),
+                                        ("entries", "gauge", f"entries held by the {cache} cache"),
+                                        ("hits", "counter", f"{cache} cache hits"),
+                                        ("misses", "counter", f"{cache} cache misses"),
+                                        ("evictions", "counter", f"{cache} cache evictions")):
+                    name = f"shadowopt_{cache}_cache_{key}" + ("_total" if kind == "counter" else "")
+                    r.add(_StatMetric(name, help, kind, lambda c=cache, k=key: cache_stats()[c][k]))
 
     def render(self, skip_slow: bool = False) -> str:
         """The exposition text; `skip_slow` leaves out the gauges that query the database."""

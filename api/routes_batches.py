@@ -6,7 +6,8 @@ from collections import OrderedDict
 from typing import Annotated
 
 from fastapi import FastAPI, Query, Request
-from fastapi.responses import Response
+from fastapi.responses import Response, StreamingResponse
+from starlette.concurrency import run_in_threadpool
 
 from . import schemas as S
 from ..renderers.json_text import dumps
@@ -59,18 +60,49 @@ def add_batch_routes(app: FastAPI, svc: Service, Tenant) -> None:
         return json_response(status_json(svc, tenant, b))
 
     @app.get("/v1/batches/{batch_id}/results", summary="Results as JSON lines, one per configuration, in index "
-             "order from `offset`", response_class=Response, tags=["batches"],
-             responses={200: {"description": "one JSON object per line, each with its configuration `index`",
+             "order from `offset`, streamed a page at a time (at most `limit` lines)", response_class=Response,
+             tags=["batches"],
+             responses={200: {"description": "one JSON object per line, each with its configuration `index`; "
+                              "a page of `limit` lines is full when more may follow: ask again from the last "
+                              "index + 1",
                               "content": {"application/x-ndjson": {"schema": {"type": "string"}}}},
-                        **error_responses(*AUTHED, 404, 422)})
-    def batch_results(batch_id: S.ObjectId, tenant: Tenant,
-                      offset: Annotated[int, Query(ge=0, le=10**9, description="first index to return")] = 0,
-                      limit: Annotated[int | None, Query(ge=1, le=100_000)] = None):
-        if svc.store.batch(tenant, batch_id) is None:
-            raise batch_not_found(batch_id)
-        rows = svc.store.results(tenant, batch_id, offset=offset, limit=limit)
-        body = "".join(dumps(REDACT.obj(finite(r)), separators=(",", ":")) + "\n" for r in rows)
-        return Response(body, media_type="application/x-ndjson")
+                        **error_responses(*AUTHED, 404, 422, 429, 503)})
+    async def batch_results(batch_id: S.ObjectId, tenant: Tenant,
+                            offset: Annotated[int, Query(ge=0, le=10**9, description="first index to return")] = 0,
+                            limit: Annotated[int | None, Query(ge=1, le=100_000, description=(
+                                "at most this many lines (default: every line from offset, streamed)"))] = None):
+        # A heavy request of its own (issue 27: four whole-batch reads at once took +1.66 GB and starved the
+        # others): admitted like one (429/503 at once), then a download slot held while the body streams, read
+        # and written RESULTS_PAGE lines at a time in a worker thread (the memory of one page, whatever the batch).
+        ticket = svc.admit(tenant)
+        slot = False
+        try:
+            if await run_in_threadpool(svc.store.batch, tenant, batch_id, max_errors=0) is None:
+                raise batch_not_found(batch_id)
+            await svc.admission.download.acquire(tenant)
+            slot = True
+        except BaseException:
+            ticket.release()
+            raise
+
+        async def lines():
+            try:
+                nxt, left = offset, limit
+                while left is None or left > 0:
+                    n = RESULTS_PAGE if left is None else min(RESULTS_PAGE, left)
+                    body, count, last = await run_in_threadpool(results_page, svc, tenant, batch_id, nxt, n)
+                    if body:
+                        yield body
+                    if count < n:
+                        return
+                    nxt = last + 1
+                    left = None if left is None else left - count
+            finally:
+                if slot:
+                    svc.admission.download.release(tenant)
+                ticket.release()
+
+        return StreamingResponse(lines(), media_type="application/x-ndjson")
 
     @app.delete("/v1/batches/{batch_id}", summary="Cancel a batch (results so far are kept)",
                 response_model=S.BatchStatus, responses=error_responses(*AUTHED, 404, 422), tags=["batches"])
@@ -127,6 +159,16 @@ def check_tenant_queue(svc: Service, tenant: str, n: int) -> None:
         raise ApiError(429, "tenant_quota", f"configurations: this token has {mine} batch configurations queued; "
                        f"{n} more would be over the per-tenant quota tenant_max_queued = {quota}", "configurations",
                        headers={"Retry-After": str(retry_after(mine))})
+
+
+RESULTS_PAGE = 64  # result lines read from the store and written at a time by GET .../results
+
+
+def results_page(svc: Service, tenant: str, batch_id: str, offset: int, limit: int) -> tuple[bytes, int, int]:
+    """(NDJSON of up to `limit` result lines from `offset`, how many, the last one's index)."""
+    rows = svc.store.results(tenant, batch_id, offset=offset, limit=limit)
+    body = "".join(dumps(REDACT.obj(finite(r)), separators=(",", ":")) + "\n" for r in rows).encode()
+    return body, len(rows), rows[-1]["index"] if rows else offset - 1
 
 
 def batch_not_found(batch_id: str) -> ApiError:

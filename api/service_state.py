@@ -19,6 +19,8 @@ from starlette.concurrency import run_in_threadpool
 from ..renderers.mitsuba_setup import mitsuba
 from ..service.job_runner import BatchRunner
 from ..service.evaluation import evaluate_solution
+from ..service.coarse_cache import COARSE
+from ..service.scene_export import GLB_CACHE
 from ..service.scenes import SCENES
 from ..service.request import SolveRequest
 from ..service.solve import solve
@@ -53,9 +55,9 @@ class Service:
         self.warm_s: float | None = None
         self.limiter = RateLimiter(settings.rate_limit_per_s, settings.rate_limit_burst)
         self.admission = Admission(settings.max_inflight, settings.tenant_max_inflight, settings.solve_threads,
-                                   settings.load_threads)
+                                   settings.load_threads, settings.download_threads)
         self.metrics = ServerMetrics(self.queue_length, lambda: self.admission.inflight, admission=self.admission,
-                                     scene_stats=scene_cache_stats)
+                                     scene_stats=scene_cache_stats, cache_stats=tenant_cache_stats)
         self.tokens = dict(settings.tokens)
         self.batch_lock = threading.Lock()
         # /healthz and /metrics read the database here, never on the event loop nor in the request threadpool
@@ -87,7 +89,9 @@ class Service:
                                   workers=self.settings.batch_workers, ray_address=self.settings.ray_address,
                                   max_triangles=self.settings.max_triangles,
                                   load_limits={"max_triangles": limits.max_triangles,
-                                               "memory_bytes": limits.memory_bytes, "timeout_s": limits.timeout_s})
+                                               "memory_bytes": limits.memory_bytes, "timeout_s": limits.timeout_s},
+                                  worker_cache={"max_bytes": self.settings.worker_cache_bytes,
+                                                "tenant_share": self.settings.tenant_cache_share})
         log.info("store ready", extra={"fields": {"data_dir": str(self.settings.data_dir)}})
         threading.Thread(target=self.warm_up_then_resume, daemon=True, name="warm-up").start()
 
@@ -155,6 +159,15 @@ class Service:
         finally:
             ticket.release()
 
+    def admit(self, tenant: str):
+        """A ticket for a heavy request that outlives its route (a streamed response releases it when the
+        stream ends), or the 429/503 refusal at once (as `heavy`)."""
+        try:
+            return self.admission.admit(tenant)
+        except Refused as e:
+            self.metrics.refusals.inc(e.code)
+            raise ApiError(e.status, e.code, e.message, headers={"Retry-After": str(e.retry_after)}) from None
+
     async def in_slot(self, pool, ticket, fn, *args, **kwargs):
         """`fn(*args, **kwargs)` in a worker thread once `pool` (admission.solve or .load) gives the ticket's
         tenant a slot; ClientGone (never run) when the client left while it waited."""
@@ -203,10 +216,18 @@ def scene_cache_stats() -> dict:
     return SCENES.stats()
 
 
+def tenant_cache_stats() -> dict[str, dict]:
+    return {"coarse": COARSE.stats(), "geometry": GLB_CACHE.stats()}
+
+
 def configure_scene_cache(settings: Settings) -> None:
-    """Size the process-wide scene cache from the settings (entries, bytes, one tenant's share)."""
+    """Size the process-wide caches of tenant data from the settings (bytes, one tenant's share): the scene
+    cache (also in entries), the coarse cache and the geometry cache; the batch workers' scene caches get
+    theirs from the runner (worker_cache). Settings.check bounds their sum by cache_bytes."""
     SCENES.configure(capacity=settings.scene_cache_entries, max_bytes=settings.scene_cache_bytes,
                      tenant_share=settings.tenant_cache_share)
+    COARSE.configure(max_bytes=settings.coarse_cache_bytes, tenant_share=settings.tenant_cache_share)
+    GLB_CACHE.configure(max_bytes=settings.geometry_cache_bytes, tenant_share=settings.tenant_cache_share)
 
 
 def import_native_stack() -> None:

@@ -47,7 +47,15 @@ class Settings:
     load_timeout_s: float = 20.0  # wall-clock limit of one uploaded scene's load (finite, > 0)
     scene_cache_entries: int = 8  # loaded scenes kept in memory
     scene_cache_bytes: int = 2 * 1024 ** 3  # bytes of loaded scenes kept in memory
-    tenant_cache_share: float = 0.5  # fraction of the scene cache (entries and bytes) one tenant's scenes may hold
+    tenant_cache_share: float = 0.5  # fraction of each cache of tenant data (entries and bytes) one tenant may hold
+    coarse_cache_bytes: int = 256 * 1024 ** 2  # camera passes kept for light-only changes (service.coarse_cache)
+    geometry_cache_bytes: int = 256 * 1024 ** 2  # GLB files of GET /v1/scenes/{id}/geometry.glb kept in memory
+    worker_cache_bytes: int = 512 * 1024 ** 2  # loaded scenes kept by each batch worker
+    cache_bytes: int = 4 * 1024 ** 3  # the one total of tenant data held by every cache: scene_cache_bytes +
+    # coarse_cache_bytes + geometry_cache_bytes + batch_workers x worker_cache_bytes must fit in it (checked at start)
+    max_export_triangles: int = 2_000_000  # geometry.glb: a scene with more triangles is refused (413) before any work
+    max_export_bytes: int = 64 * 1024 ** 2  # geometry.glb: an export whose GLB could be larger is refused (413)
+    download_threads: int = 2  # GET /v1/batches/{id}/results streams at the same time (own slots); more wait
     tenant_max_inflight: int = 32  # one tenant's heavy requests admitted at once (half of max_inflight); more get 429
     tenant_max_queued: int = 25_000  # one tenant's batch configurations waiting or running; more get 429
     tenant_max_stored_bytes: int = 1024 ** 3  # bytes of uploaded files one tenant may keep; more get 429 (413 when
@@ -82,10 +90,19 @@ class Settings:
                 raise SettingsError(f"{name}: {e}") from None
         return LoadLimits(self.max_triangles, self.load_memory_bytes, self.load_timeout_s)
 
+    def cache_parts(self) -> dict[str, int]:
+        """The bytes of tenant data each cache may hold; their sum is bounded by cache_bytes."""
+        return {"scene_cache_bytes": self.scene_cache_bytes, "coarse_cache_bytes": self.coarse_cache_bytes,
+                "geometry_cache_bytes": self.geometry_cache_bytes,
+                f"batch_workers x worker_cache_bytes ({self.batch_workers} x {self.worker_cache_bytes})":
+                    self.batch_workers * self.worker_cache_bytes}
+
     def check(self) -> "Settings":
         for name in ("max_upload_bytes", "max_body_bytes", "max_triangles", "max_eval_pixels", "max_eval_texels",
                      "max_queue", "max_inflight", "solve_threads", "load_threads", "load_memory_bytes",
-                     "scene_cache_entries", "scene_cache_bytes", "tenant_max_inflight", "tenant_max_queued",
+                     "scene_cache_entries", "scene_cache_bytes", "coarse_cache_bytes", "geometry_cache_bytes",
+                     "worker_cache_bytes", "cache_bytes", "max_export_triangles", "max_export_bytes",
+                     "download_threads", "tenant_max_inflight", "tenant_max_queued",
                      "tenant_max_stored_bytes", "batch_workers", "rate_limit_burst"):
             if getattr(self, name) < 1:
                 raise SettingsError(f"{name}: must be at least 1, got {getattr(self, name)}")
@@ -101,6 +118,11 @@ class Settings:
         self.load_limits()  # the floors and bounds of the loader's limits live in one place: LoadLimits
         if not 0 < self.tenant_cache_share <= 1:
             raise SettingsError(f"tenant_cache_share: must be in (0, 1], got {self.tenant_cache_share}")
+        parts = self.cache_parts()
+        if sum(parts.values()) > self.cache_bytes:
+            raise SettingsError(f"cache_bytes: the caches of tenant data need {sum(parts.values())} bytes ("
+                                + " + ".join(f"{k} {v}" for k, v in parts.items())
+                                + f"), more than cache_bytes = {self.cache_bytes}; raise it or lower a part")
         if self.batch_backend not in ("local", "ray"):
             raise SettingsError(f"batch_backend: 'local' or 'ray', got {self.batch_backend!r}")
         if not 0 < self.port < 65536:

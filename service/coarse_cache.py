@@ -12,7 +12,8 @@ renderers.coarse.render_coarse's bit for bit (tests/test_coarse_cache.py compare
 
 Keyed by (tenant, the scene entry, coarse size, boundary radius, the camera's every parameter): one
 tenant's entries are never another's, and a re-uploaded or reloaded scene is a new entry object (the
-cache holds only a weak reference to it, so a changed scene can never hit). Bounded LRU.
+cache holds only a weak reference to it, so a changed scene can never hit). An LRU bounded in bytes with a
+per-tenant share (service.tenant_lru.TenantLRU; issue 27: bounded by count only and shared, it kept +0.82 GB).
 """
 from __future__ import annotations
 
@@ -29,9 +30,12 @@ from ..renderers.coarse import (DEFAULT_BOUNDARY_RADIUS, CoarseBuffers, FinePoin
 from ..renderers.mitsuba_setup import mitsuba
 from .receivers import receiver_prep
 from .rigs import resolve_rig
+from .tenant_lru import TenantLRU
 
 MAX_CAMERAS = 16  # camera entries kept (each ~8 MB at the 180 px default, ~4 MB more with a receiver prep, ~2-4 MB per receiver mask memo)
 MAX_RECEIVER_MASKS = 8  # receiver sets kept per camera entry (one per distinct receiver mask)
+DEFAULT_BYTES = 256 << 20  # the server sizes it from coarse_cache_bytes (api.service_state)
+DEFAULT_TENANT_SHARE = 0.5
 
 
 @dataclass
@@ -57,6 +61,7 @@ class CameraPass:
     receiver_prep: object = None  # service.receivers.ReceiverPrep: receiver_points' camera-only part, made on a second mask
     receiver_misses: int = 0
     lock: threading.Lock = field(default_factory=threading.Lock)
+    cache_key: tuple | None = None  # (tenant, key) in the CoarseCache that holds it
 
 
 def _readonly(*arrays):
@@ -157,49 +162,69 @@ def camera_key(camera, long_side: int, boundary_radius: int) -> tuple:
                   float(camera.tan_half_fov_y), float(camera.aspect), int(long_side), int(boundary_radius))
 
 
-class CoarseCache:
-    """Bounded LRU of camera passes, keyed per tenant and scene entry (held weakly)."""
+def pass_bytes(cp: CameraPass) -> int:
+    """What a camera pass holds: its arrays' bytes (the receivers' memo is counted as it grows)."""
+    arrays = tuple(getattr(cp, k, None) for k in ("hit", "position", "normal", "depth", "prim_id", "p32", "n32",
+                                                  "fine_p32", "fine_n32", "fine_ok"))
+    fine = getattr(cp, "fine", None)
+    if fine is not None:
+        arrays += tuple(getattr(fine, k, None) for k in ("position", "normal", "depth", "flat", "traced"))
+    return sum(int(getattr(a, "nbytes", 0)) for a in arrays) + 4096
 
-    def __init__(self, max_cameras: int = MAX_CAMERAS):
+
+def _memo_bytes(out) -> int:
+    return sum(int(getattr(a, "nbytes", 0)) for a in (out if isinstance(out, tuple) else (out,))) + 256
+
+
+class CoarseCache:
+    """LRU of camera passes, keyed per tenant and scene entry (held weakly), bounded in bytes (`max_bytes`,
+    the server's coarse_cache_bytes) with a per-tenant share (service.tenant_lru: one tenant's cameras never
+    push out another's) and in entries (`max_cameras`)."""
+
+    def __init__(self, max_cameras: int = MAX_CAMERAS, max_bytes: int = DEFAULT_BYTES,
+                 tenant_share: float = DEFAULT_TENANT_SHARE):
         self.max_cameras = int(max_cameras)
-        self._d: OrderedDict = OrderedDict()
-        self._lock = threading.Lock()
+        self._lru = TenantLRU(max_bytes, tenant_share, name="coarse cache", max_entries=self.max_cameras)
         self.hits = 0
         self.misses = 0
         self.receiver_hits = 0
         self.receiver_misses = 0
 
+    def configure(self, *, max_bytes: int | None = None, tenant_share: float | None = None) -> None:
+        self._lru.configure(max_bytes=max_bytes, tenant_share=tenant_share)
+
+    def stats(self) -> dict:
+        """The byte accounting (service.tenant_lru) with this cache's camera-pass hits and misses."""
+        return {**self._lru.stats(), "hits": self.hits, "misses": self.misses}
+
     def clear(self) -> None:
-        with self._lock:
-            self._d.clear()
+        self._lru.clear()
+
+    def passes(self) -> list[CameraPass]:
+        """The camera passes held, least recently used first."""
+        return [cp for _, cp in self._lru.values()]
 
     def __len__(self) -> int:
-        return len(self._d)
+        return len(self._lru)
 
     def camera_pass(self, tenant, entry, camera, long_side: int, boundary_radius: int) -> CameraPass:
-        key = (tenant, id(entry)) + camera_key(camera, long_side, boundary_radius)
-        with self._lock:
-            got = self._d.get(key)
-            if got is not None and got[0]() is entry:  # the same live entry object (an id can be reused)
-                self._d.move_to_end(key)
-                self.hits += 1
-                return got[1]
+        key = (id(entry),) + camera_key(camera, long_side, boundary_radius)
+        got = self._lru.get(tenant, key)
+        if got is not None and got[0]() is entry:  # the same live entry object (an id can be reused)
+            self.hits += 1
+            return got[1]
         cp = camera_pass(entry.rays, camera, long_side)
-        with self._lock:
-            self.misses += 1
-            self._d[key] = (weakref.ref(entry), cp)
-            self._d.move_to_end(key)
-            while len(self._d) > self.max_cameras:
-                self._d.popitem(last=False)
-            for k in [k for k, (ref, _) in self._d.items() if ref() is None]:  # entries of dropped scenes
-                del self._d[k]
+        cp.cache_key = (tenant, key)  # the receivers' memo counts what it adds against this entry
+        self.misses += 1
+        self._lru.put(tenant, key, (weakref.ref(entry), cp), pass_bytes(cp))
+        self._lru.drop(lambda v: v[0]() is None)  # entries of dropped scenes
         return cp
 
     def receivers(self, cp: CameraPass, compute, camera, buffers, mask, bounds, fine_receivers):
         """service.receivers.receiver_points(camera, buffers, mask, bounds, fine_receivers) of this camera pass,
         memoized per (mask, fine receivers): a function of those and of the camera pass alone. A miss
         computes only the mask's share: the camera-only part (service.receivers.receiver_prep) is kept with
-        the camera pass."""
+        the camera pass. What the memo adds is counted in the pass's bytes."""
         fr = None if fine_receivers is None else np.packbits(np.asarray(fine_receivers, bool)).tobytes()
         key = (np.packbits(mask).tobytes(), fr, None if fine_receivers is None else len(fine_receivers))
         with cp.lock:
@@ -209,16 +234,21 @@ class CoarseCache:
                 self.receiver_hits += 1
                 return got
         prep = cp.receiver_prep
+        grown = 0
         if prep is None and cp.receiver_misses:  # a second mask (a light moved): once per camera pass (two
             prep = cp.receiver_prep = receiver_prep(camera, buffers)  # threads may both make it: the same values)
+            grown += sum(int(getattr(v, "nbytes", 0)) for v in vars(prep).values()) if hasattr(prep, "__dict__") else 0
         cp.receiver_misses += 1  # a camera seen once (an orbit or fly step) never pays for the prep
         out = compute(camera, buffers, mask, bounds, fine_receivers, prep=prep)
         _readonly(*out)
         with cp.lock:
             self.receiver_misses += 1
             cp.receivers[key] = out
+            grown += _memo_bytes(out)
             while len(cp.receivers) > MAX_RECEIVER_MASKS:
-                cp.receivers.popitem(last=False)
+                grown -= _memo_bytes(cp.receivers.popitem(last=False)[1])
+        if getattr(cp, "cache_key", None) is not None:  # a pass of this cache's (not one made elsewhere)
+            self._lru.grow(*cp.cache_key, grown)
         return out
 
 

@@ -106,9 +106,15 @@ def coherent_tasks(store: Store, batch_id: str, items: list, settings: dict, pau
         st = store.batch(owner, batch_id, max_errors=0) if owner is not None else None
         total = st["total"] if st else max((i for i, _ in items), default=-1) + 1
     starts = chunk_starts(total, settings.get("coherent_chunks"))
-    # tasks of up to CHUNK frames, at least 8 per chunk (a short path streams, and is stored, frame by frame)
-    chunk = max(1, min(CHUNK, total // len(starts) // 8))
+    # tasks of up to CHUNK frames, at least 8 per chunk (a short path streams, and is stored, frame by frame);
+    # over moving geometry one frame per task (each frame loads the stage at its time code, seconds each)
+    chunk = 1 if moving(items) else max(1, min(CHUNK, total // len(starts) // 8))
     return _Chains(store, batch_id, items, starts, pause, chunk)
+
+
+def moving(items: list) -> bool:
+    """A path over moving geometry: its frames load the stage at their own time code ("scene_time")."""
+    return any(c.get("scene_time") is not None for _, c in items)
 
 
 def _batch_tasks(store: Store, batch_id: str, items: list, settings: dict, workers: int, pause=None,
@@ -123,6 +129,10 @@ def _path_tasks(store: Store, batch_id: str, items: list, settings: dict, worker
     (settings["whole_path"]) in runs of consecutive frames solved together; otherwise as a batch's."""
     if settings.get("coherent"):  # a coherent path: frames in order, each given the previous one's solution
         return coherent_tasks(store, batch_id, items, settings, pause=pause, total=total)
+    if settings.get("whole_path") and moving(items):  # a stage per frame: solved frame by frame anyway
+        # (job_workers.solve_group), so one frame per task: a run of 48 stage loads held a worker for 823 s
+        # while another tenant's batch waited (issue 27); the runner's turns now come between frames
+        return TaskQueue([[ic] for ic in sorted(items, key=lambda ic: ic[0])], pause)
     if settings.get("whole_path"):  # method path: runs of consecutive frames solved together, cut at fixed
         # multiples of WHOLE_PATH_FRAMES so that a resumed path solves the same runs
         runs = collections.defaultdict(list)

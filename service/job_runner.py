@@ -20,16 +20,26 @@ log = logging.getLogger("shadowopt.batches")
 BACKENDS = ("local", "ray")
 RUNNER_RETRIES, RUNNER_RETRY_S = 3, 1.0  # a batch whose run fails as a whole is re-queued this often first
 SLICE = 64  # configurations a batch runs before it lets a batch that arrived meanwhile take a turn
+TURN_S = 5.0  # or seconds, whichever comes first: fair share by time, not by turns (issue 27); tasks in flight
+# finish first, so a waiting batch starts within TURN_S plus one task (one frame of a path over moving geometry)
+
+
+def turn_over(done: int, seconds: float) -> bool:
+    """Whether a batch's turn is over (when another batch waits): SLICE configurations or TURN_S seconds."""
+    return done >= SLICE or seconds >= TURN_S
 
 
 class BatchRunner:
     """Runs queued batches one after another on a local spawn pool or Ray, writing each outcome to the store."""
 
     def __init__(self, store: Store, backend: str = "local", workers: int = 2, ray_address: str | None = None,
-                 max_triangles: int | None = None, load_limits: dict | None = None):
+                 max_triangles: int | None = None, load_limits: dict | None = None,
+                 worker_cache: dict | None = None):
         """max_triangles: the server's triangle limit, applied to every scene a worker loads (None: none,
         the CLI's own files). load_limits: the server's upload load limits {max_triangles, memory_bytes,
-        timeout_s}, applied to an upload's load at a path frame's time code (_worker_entry)."""
+        timeout_s}, applied to an upload's load at a path frame's time code (worker_entry). worker_cache:
+        {max_bytes, tenant_share} of each worker's scene cache (the server's worker_cache_bytes and
+        tenant_cache_share; None: the worker keeps isolation's defaults, one owner)."""
         if backend not in BACKENDS:
             raise BatchError("backend", f"unknown backend {backend!r} (known: {', '.join(BACKENDS)})")
         if not isinstance(workers, int) or workers < 1:
@@ -43,6 +53,7 @@ class BatchRunner:
             raise BatchError("max_triangles", f"expected a positive integer, got {max_triangles!r}")
         self.max_triangles = max_triangles
         self.load_limits = dict(load_limits) if load_limits else None
+        self.worker_cache = dict(worker_cache) if worker_cache else None
         self.stats = {"submitted": 0, "results": 0, "errors": 0}
         self._impl = None
         self._queue: collections.deque[tuple[str, str]] = collections.deque()
@@ -176,11 +187,12 @@ class BatchRunner:
         job = SceneJob(str(path), rec["filename"], self.store.scene_sandboxed(tenant, st["scene_id"]))
         items = [(i, configs[i]) for i in pending]
         self._turn_done = 0
+        started = time.monotonic()
 
-        def pause():  # take turns: after a slice, a batch that arrived meanwhile goes first
-            return self._turn_done >= SLICE and self._others_waiting()
+        def pause():  # take turns: after a slice or TURN_S, a batch that arrived meanwhile goes first
+            return turn_over(self._turn_done, time.monotonic() - started) and self._others_waiting()
 
-        self._run_slice(batch_id, job, items, st["settings"], pause, total=st["total"])
+        self._run_slice(batch_id, job, items, st["settings"], pause, total=st["total"], tenant=tenant)
         if self._stop:
             return
         if not self._should_stop(batch_id) and self.store.pending_indices(batch_id):
@@ -193,13 +205,16 @@ class BatchRunner:
         with self._cv:
             return bool(self._queue)
 
-    def _run_slice(self, batch_id: str, job, items: list, settings: dict, pause=None, total: int | None = None) -> None:
+    def _run_slice(self, batch_id: str, job, items: list, settings: dict, pause=None, total: int | None = None,
+                   tenant: str | None = None) -> None:
         """Run a batch's pending configurations (until `pause()`), storing each task's outcomes in one
         commit as they arrive: in the tasks its kind makes of them (service.job_kinds: independent
         configurations in tasks of chunk_size, a coherent path's in chains)."""
         self.stats["submitted"] += len(items)
         settings = {**(settings or {}), "max_triangles": self.max_triangles,  # this server's, not the stored ones
                     "load_limits": self.load_limits or (settings or {}).get("load_limits")}
+        if self.worker_cache:  # the worker's scene cache: bounded in bytes, the batch's tenant its owner
+            settings.update(worker_cache=self.worker_cache, tenant=tenant)
         stop = lambda: self._should_stop(batch_id)  # noqa: E731
         backend = self._backend()
         tasks = kind_of(settings).tasks(self.store, batch_id, items, settings, self.workers, pause, total)

@@ -104,7 +104,7 @@ def _solve_with(get_entry, config: dict, settings: dict) -> dict:
         return {"error": {"code": "internal_error", "message": f"{type(e).__name__}: {e}"}}
 
 
-def _worker_entry(scene_path: str, sandbox: bool, settings: dict, time_code: float | None = None):
+def worker_entry(scene_path: str, sandbox: bool, settings: dict, time_code: float | None = None):
     """The scene in a worker, loaded once per process by the SCENES cache, in-process (the worker is its
     own process already) but under the server's triangle limit (settings["max_triangles"], set by the
     runner from its own max_triangles, never from what was stored with the batch): a scene stored before
@@ -117,13 +117,22 @@ def _worker_entry(scene_path: str, sandbox: bool, settings: dict, time_code: flo
     from .scenes import SCENES  # lazy: the renderers load after worker_init set the threads and LLVM
 
     global _WORKER_CACHE_SET
-    if not _WORKER_CACHE_SET:  # a worker's cache has one owner (None): all of it, not a tenant's share, so a
-        SCENES.configure(tenant_share=1.0)  # scene over half of it is still kept rather than reloaded per item
-        _WORKER_CACHE_SET = True
+    cache = settings.get("worker_cache")
+    if _WORKER_CACHE_SET != cache:  # the server's worker_cache_bytes and tenant_cache_share (issue 27: the
+        # workers' caches held +2.57 GB outside scene_cache_bytes); without them, one owner and all of it
+        if cache:
+            SCENES.configure(max_bytes=int(cache["max_bytes"]), tenant_share=float(cache["tenant_share"]))
+        else:
+            SCENES.configure(tenant_share=1.0)
+        _WORKER_CACHE_SET = cache
+    # the batch's tenant owns its entries: it loses its own least recently used scenes first, never another
+    # tenant's; a scene over its share is served uncached (reloaded per task), not refused (owner, not tenant)
+    owner = {"owner": settings.get("tenant")} if cache else {}
     if time_code is not None and sandbox:
-        return SCENES.get(scene_path, time_code=time_code, sandbox=sandbox, limits=frame_load_limits(settings))
+        return SCENES.get(scene_path, time_code=time_code, sandbox=sandbox, limits=frame_load_limits(settings), **owner)
     # time_code: a path frame over moving geometry (service.paths: "scene_time"), the stage read at that time
-    return SCENES.get(scene_path, time_code=time_code, sandbox=sandbox, max_triangles=settings.get("max_triangles"))
+    return SCENES.get(scene_path, time_code=time_code, sandbox=sandbox, max_triangles=settings.get("max_triangles"),
+                      **owner)
 
 
 def frame_load_limits(settings: dict):
@@ -135,12 +144,12 @@ def frame_load_limits(settings: dict):
     return LoadLimits(**{k: v for k, v in given.items() if k in ("max_triangles", "memory_bytes", "timeout_s")})
 
 
-_WORKER_CACHE_SET = False
+_WORKER_CACHE_SET = False  # the worker_cache settings the worker's SCENES was sized from
 
 
 def solve_configuration(scene_path: str, sandbox: bool, config: dict, settings: dict) -> dict:
     """Worker entry point (local pool)."""
-    return _solve_with(lambda: _worker_entry(scene_path, sandbox, settings, config.get("scene_time")), config, settings)
+    return _solve_with(lambda: worker_entry(scene_path, sandbox, settings, config.get("scene_time")), config, settings)
 
 
 def _solve_whole_with(get_entry, group: list[tuple[int, dict]], settings: dict) -> list[tuple[int, dict]]:
@@ -183,7 +192,7 @@ def solve_group(solve_one, group: list[tuple[int, dict]], settings: dict, solve_
 def solve_chunk(scene_path: str, sandbox: bool, group: list[tuple[int, dict]], settings: dict) -> list[tuple[int, dict]]:
     """Worker entry point (local pool) for a task of several configurations (solve_group)."""
     return solve_group(lambda c: solve_configuration(scene_path, sandbox, c, settings), group, settings,
-                       lambda g: _solve_whole_with(lambda: _worker_entry(scene_path, sandbox, settings), g, settings))
+                       lambda g: _solve_whole_with(lambda: worker_entry(scene_path, sandbox, settings), g, settings))
 
 
 class SceneSolver:
@@ -205,12 +214,12 @@ class SceneSolver:
         self.sandbox = sandbox
 
     def solve(self, config: dict, settings: dict) -> dict:
-        return _solve_with(lambda: _worker_entry(self.path, self.sandbox, settings, config.get("scene_time")), config,
+        return _solve_with(lambda: worker_entry(self.path, self.sandbox, settings, config.get("scene_time")), config,
                            settings)
 
     def solve_chunk(self, group: list, settings: dict) -> list:
         return solve_group(lambda c: self.solve(c, settings), group, settings,
-                           lambda g: _solve_whole_with(lambda: _worker_entry(self.path, self.sandbox, settings), g,
+                           lambda g: _solve_whole_with(lambda: worker_entry(self.path, self.sandbox, settings), g,
                                                        settings))
 
     def pid(self) -> int:

@@ -49,6 +49,9 @@ def local_job(scene_path, items: list[dict], settings: dict, what: str, backend:
             store.close()
 
 
+RESULTS_PAGE = 1000  # result lines read from the store at a time
+
+
 def follow(runner: BatchRunner, store: Store, batch_id: str, bar, on_lines, show_failed: bool = False) -> None:
     """Until the job is finished: the bar counts its done and failed items (and, with show_failed, says how many
     failed), and `on_lines(lines)` gets the result lines stored since, in index order."""
@@ -59,10 +62,13 @@ def follow(runner: BatchRunner, store: Store, batch_id: str, bar, on_lines, show
         bar.update(st["done"] + st["failed"] - bar.n)
         if show_failed and st["failed"]:
             bar.set_postfix(failed=st["failed"])
-        lines = store.results("local", batch_id, offset=next_index)
-        if lines:
-            on_lines(lines)
-            next_index = lines[-1]["index"] + 1
+        while True:  # a page at a time: a big batch's lines never sit in memory together
+            lines = store.results("local", batch_id, offset=next_index, limit=RESULTS_PAGE)
+            if lines:
+                on_lines(lines)
+                next_index = lines[-1]["index"] + 1
+            if len(lines) < RESULTS_PAGE:
+                break
         if state not in UNFINISHED:
             break
 

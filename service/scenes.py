@@ -4,7 +4,7 @@
   cached, and the next get tries again.
 - Bounded in entries and in bytes (an entry's bytes: its geometry arrays' nbytes times BYTES_FACTOR,
   which covers the Mitsuba copy of the mesh and its acceleration structure; measured below), and each
-  owner (a tenant; None is the CLI, warm-up and the batch workers) holds at most `tenant_share` of
+  owner (a tenant; None is the CLI and warm-up; in a batch worker, the batch's tenant) holds at most `tenant_share` of
   either: an owner inserting past its share loses its own least recently used entries first, so one
   tenant's many small uploads cannot push out another tenant's scene. A tenant's scene whose entry
   would exceed that share is refused, SceneError("too_large_for_cache") (the server answers 413), before
@@ -184,12 +184,13 @@ class SceneCache:
 
     def get(self, path, *, time_code: float | None = None, asset_root: str | None = None, sandbox: bool = False,
             tenant: str | None = None, limits: LoadLimits | None = None,
-            max_triangles: int | None = None) -> SceneEntry:
+            max_triangles: int | None = None, owner: str | None = None) -> SceneEntry:
         """The entry for (path, options), loaded once. `limits`: the load runs isolated (see the module
         docstring). `max_triangles` (without limits: an in-process load, as in a batch worker, which is its
         own process already): the loader refuses the scene while counting; with limits, theirs applies.
         A cached entry over the triangle limit of this get (loaded before the limit was lowered) is
-        refused too, SceneError("too_many_triangles")."""
+        refused too, SceneError("too_many_triangles"). `owner` (without `tenant`: a batch worker's) owns the
+        entry in the cache's per-owner share without the tenant's refusal: over the share it is served uncached."""
         if limits is not None:
             max_triangles = limits.max_triangles
         key = self._key(path, time_code, asset_root, sandbox)
@@ -237,7 +238,7 @@ class SceneCache:
         with self._lock:
             flight.entry = entry
             del self._inflight[key]
-            self._insert(key, entry, tenant)
+            self._insert(key, entry, tenant if tenant is not None else owner)
         flight.done.set()
         return entry
 
@@ -306,7 +307,7 @@ class SceneCache:
         nbytes = entry.nbytes or entry_bytes(entry.loaded)
         _, max_b = self.owner_limits()
         if nbytes > max_b:
-            # the CLI, warm-up and batch workers only (a tenant's is refused in _load): kept by the caller
+            # the CLI, warm-up and batch workers only (a tenant's is refused in _load): served to the caller
             # for this request, as caching it would push out everything else
             log.info("scene not cached: %d estimated bytes over the per-owner cache share of %d", nbytes, max_b)
             return

@@ -58,6 +58,8 @@ class Database:
         self._conns: list[sqlite3.Connection] = []
         self._conns_lock = threading.Lock()
         self._write_lock = threading.Lock()  # one writer at a time within this process
+        self._header_fds: list[int] = []  # descriptors _check_file reads the header through (closed by close())
+        self._fd_lock = threading.Lock()
         self._lock_file = None
         self._hold_instance_lock()
         self._init_schema()
@@ -176,10 +178,21 @@ class Database:
 
     def _check_file(self) -> None:
         """sqlite3.DatabaseError when the database file's header is not SQLite's: an open connection keeps
-        answering from its page cache after the file was damaged, a new one would fail (16 bytes read)."""
+        answering from its page cache after the file was damaged, a new one would fail (16 bytes read).
+
+        Read through a descriptor kept open until close(), never one opened and closed per check: closing
+        any descriptor of a file drops every POSIX lock this process holds on it (fcntl semantics), SQLite's
+        included, and another process's Store then took itself for the last one, checkpointed and deleted
+        the WAL and its index under this process's open connections ("file is not a database" on every
+        read of theirs afterwards; seen with two concurrent results downloads, issue 27)."""
         try:
-            with open(self.db_path, "rb") as f:
-                head = f.read(16)
+            st = os.stat(self.db_path)
+            with self._fd_lock:
+                fd = self._header_fds[-1] if self._header_fds else None
+                if fd is None or os.fstat(fd).st_ino != st.st_ino:  # a new file at the path: keep the old fd open
+                    fd = os.open(self.db_path, os.O_RDONLY | os.O_CLOEXEC)
+                    self._header_fds.append(fd)
+            head = os.pread(fd, 16, 0)
         except OSError as e:
             raise sqlite3.DatabaseError(f"cannot read the database file ({e.strerror})") from e
         if head != b"SQLite format 3\x00":
@@ -214,6 +227,10 @@ class Database:
                 except sqlite3.ProgrammingError:
                     pass
             self._conns.clear()
+        with self._fd_lock:  # after the connections: nothing of SQLite's is left to lose its locks
+            for fd in self._header_fds:
+                os.close(fd)
+            self._header_fds.clear()
         self._local = threading.local()
 
     def check_database(self) -> None:

@@ -254,7 +254,9 @@ def test_iter_results_resumes_after_a_cut_stream():
     try:
         with Client(stand_in.url, retries=2, backoff_s=0.01) as c:
             assert [r["index"] for r in c.iter_results("b1")] == [0, 1, 2, 3]
-        assert stand_in.paths == ["/v1/batches/b1/results?offset=0", "/v1/batches/b1/results?offset=2"]
+        # read a page at a time (api.client.RESULTS_PAGE lines), the cut page resumed after its last line
+        assert stand_in.paths == ["/v1/batches/b1/results?offset=0&limit=1000",
+                                  "/v1/batches/b1/results?offset=2&limit=1000"]
     finally:
         stand_in.close()
 

@@ -144,14 +144,14 @@ def test_cached_receivers_equal_the_plain_ones_over_sun_moves(demo, monkeypatch)
             got = light_problems(res, buf, demo.loaded.geometry.bounds())
             res2, buf2 = coarse_pass(demo, rig)
             ref = light_problems(res2, buf2, demo.loaded.geometry.bounds())
-            cp = next(iter(c._d.values()))[1]
+            cp = c.passes()[0]
             assert (cp.receiver_prep is None) == (light is lights[0])  # a camera seen once: the plain path
             for g, r in zip(got, ref, strict=True):
                 assert len(r.receivers) > len(r.samples) > 0
                 for k in ("receivers", "receiver_slack", "sample_rows"):
                     assert np.array_equal(getattr(g, k), getattr(r, k)), (coarse, light, k)
             if light["type"] == "spot":  # a cone ends where no directional light's receivers can: computed then
-                prep = next(iter(c._d.values()))[1].receiver_prep
+                prep = c.passes()[0].receiver_prep
                 edge, _ = buf.fine.edges(buf.fine.receiver[0])
                 assert (edge & (prep.fine_row < 0)).sum() > 0 and (edge & (prep.fine_row >= 0)).sum() > 0
         assert (c.misses, c.hits) == (1, len(lights) - 1) and c.receiver_misses == len(lights)

@@ -10,6 +10,9 @@ measures, from the outside:
 - /healthz and /metrics latency while 48 heavy requests (/v1/compare) are queued or running;
 - eight zips of ~250 KB, each declaring 250 MB unpacked, uploaded at once (issue 27): answers, time to the
   refusals, the process tree's peak memory growth, folders left in the system temp dir;
+- geometry.glb of a 121 KB scene of 4.95 M triangles and of a 0.95 M one, twice each (issue 27): answer, time,
+  the tree's and the server process's peak growth; four downloads at once of a 92 MB batch's results: the
+  tree's growth, /healthz and another tenant's optimize meanwhile;
 - another tenant's /v1/optimize latency, idle and while one tenant floods with back-to-back optimize,
   compare and upload requests.
 """
@@ -71,14 +74,14 @@ def rss_bytes(pid: int) -> int:
 class PeakMemory:
     """Samples the RSS of a process tree every `every` seconds in a thread; `.peak` in bytes."""
 
-    def __init__(self, pid: int, every: float = 0.02):
-        self.pid, self.every, self.peak = pid, every, 0
+    def __init__(self, pid: int, every: float = 0.02, tree: bool = True):
+        self.pid, self.every, self.peak, self.tree = pid, every, 0, tree
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
     def _run(self):
         while not self._stop.is_set():
-            total = rss_bytes(self.pid) + sum(rss_bytes(c) for c in _children(self.pid))
+            total = rss_bytes(self.pid) + (sum(rss_bytes(c) for c in _children(self.pid)) if self.tree else 0)
             self.peak = max(self.peak, total)
             self._stop.wait(self.every)
 
@@ -177,6 +180,93 @@ def zip_uploads(base: str, token: str, pid: int, n: int = ZIPS) -> dict:
             "refused_max_s": round(max((a[2] for a in refused), default=0.0), 2),
             "last_s": round(max(a[2] for a in answers), 1), "growth_mb": round((mem.peak - before) / 2**20),
             "system_temp_dirs": len(seen)}
+
+
+def geometry_exports(http: httpx.Client, pid: int, cases=((5200, 300_000), (1000, 300_000))) -> list[dict]:
+    """GET /v1/scenes/{id}/geometry.glb of instanced-sphere scenes (issue 27: 5,200 spheres, a 121 KB file of
+    4.95 M triangles, took 21.6 s and +2.66 GB in the server): answer, seconds, the tree's and the server
+    process's own peak growth; then the same request again (the geometry cache)."""
+    rows = []
+    for n, budget in cases:
+        up = http.post("/v1/scenes", params={"filename": f"spheres{n}.usda"}, content=H.instanced_spheres(n).encode())
+        if up.status_code >= 300:
+            rows.append({"spheres": n, "upload": up.status_code})
+            continue
+        body = up.json()
+        for attempt in ("first", "again"):
+            before_tree = rss_bytes(pid) + sum(rss_bytes(c) for c in _children(pid))
+            before_own = rss_bytes(pid)
+            with PeakMemory(pid) as mem, PeakMemory(pid, tree=False) as own:
+                t0 = time.perf_counter()
+                r = http.get(f"/v1/scenes/{body['scene_id']}/geometry.glb", params={"max_triangles": budget})
+                seconds = time.perf_counter() - t0
+            err = (r.json().get("error") or {}).get("code") if r.status_code >= 400 else None
+            rows.append({"spheres": n, "file_bytes": len(H.instanced_spheres(n)), "triangles": body["triangles"],
+                         "attempt": attempt, "status": r.status_code, "code": err or r.headers.get("X-Geometry-Cache"),
+                         "seconds": round(seconds, 2), "tree_growth_mb": round((mem.peak - before_tree) / 2**20),
+                         "server_growth_mb": round((own.peak - before_own) / 2**20)})
+        http.delete(f"/v1/scenes/{body['scene_id']}")
+    return rows
+
+
+def results_downloads(base: str, tokens: dict, scene_ids: dict, pid: int, data_dir: Path, lines: int = 6000,
+                      pad: int = 16_000, n: int = 4) -> dict:
+    """`n` downloads at once of one tenant's finished batch of `lines` result lines of ~`pad` bytes (issue 27: a
+    95 MB batch, four at once: +1.66 GB, /healthz 503, another tenant's optimize 0.05 -> 24.6 s). The batch is
+    written into the store directly (solving it would take an hour). The tree's peak growth, the seconds to the
+    last line, /healthz meanwhile and another tenant's optimize latency meanwhile."""
+    from ..store import Store  # lazy: only this measurement writes into the server's store
+
+    who, other = list(tokens)[:2]
+    store = Store(data_dir)
+    try:
+        batch_id = store.create_batch(who, scene_ids[who], [{"rig": rig(light_direction(0))}] * lines, {})
+        for start in range(0, lines, 500):
+            store.put_outcomes(batch_id, [(i, {"result": {"method": "optimized", "lights": [], "pad": "x" * pad}})
+                                          for i in range(start, min(lines, start + 500))])
+        store.finish_batch(batch_id)
+    finally:
+        store.close()
+    before = rss_bytes(pid) + sum(rss_bytes(c) for c in _children(pid))
+    got: list = []
+
+    def one():
+        t0 = time.perf_counter()
+        size = count = 0
+        with httpx.stream("GET", f"{base}/v1/batches/{batch_id}/results", timeout=600,
+                          headers={"Authorization": f"Bearer {tokens[who]}"}) as r:
+            for chunk in r.iter_bytes():
+                size += len(chunk)
+                count += chunk.count(b"\n")
+        got.append((r.status_code, count, size, time.perf_counter() - t0))
+
+    health, opt = [], []
+    with PeakMemory(pid) as mem:
+        threads = [threading.Thread(target=one) for _ in range(n)]
+        for t in threads:
+            t.start()
+        with httpx.Client(base_url=base, timeout=600, headers={"Authorization": f"Bearer {tokens[other]}"}) as c:
+            k = 0
+            while any(t.is_alive() for t in threads):
+                t0 = time.perf_counter()
+                s = c.get("/healthz").status_code
+                health.append(((time.perf_counter() - t0) * 1e3, s))
+                if k % 3 == 0:
+                    t0 = time.perf_counter()
+                    c.post("/v1/optimize", json={"scene_id": scene_ids[other], "rig": rig(light_direction(300 + k))})
+                    opt.append((time.perf_counter() - t0) * 1e3)
+                k += 1
+                time.sleep(0.05)
+        for t in threads:
+            t.join()
+    statuses: dict = {}
+    for _, s in health:
+        statuses[str(s)] = statuses.get(str(s), 0) + 1
+    return {"n": n, "lines": lines, "batch_mb": round(got[0][2] / 2**20, 1), "answers": sorted({g[0] for g in got}),
+            "complete": all(g[1] == lines for g in got), "last_s": round(max(g[3] for g in got), 1),
+            "growth_mb": round((mem.peak - before) / 2**20), "healthz": statuses,
+            "healthz_max_ms": round(max(h[0] for h in health), 1) if health else None,
+            "optimize_p50_ms": percentile(sorted(opt), 50) if opt else None}
 
 
 def probe(http: httpx.Client, path: str, n: int, every: float) -> list[float]:
@@ -303,6 +393,11 @@ def bench_security(write: bool = True, log=print) -> dict:
                                              str(outside))
             log(f"security: {ZIPS} zip uploads at once, {ZIP_FILLER_MB} MB unpacked each")
             out["zips"] = zip_uploads(base, tokens["mallory"], proc.pid)
+            log("security: geometry exports of instanced-sphere scenes")
+            out["geometry"] = geometry_exports(clients["mallory"], proc.pid)
+            log("security: four downloads at once of a 92 MB batch's results")
+            out["downloads"] = results_downloads(base, {n: tokens[n] for n in ("mallory", "bob")},
+                                                 {n: scene_ids[n] for n in ("mallory", "bob")}, proc.pid, data_dir)
             log(f"security: /healthz under {QUEUED} queued compare requests")
             out["queue"] = health_under_queue(base, {n: tokens[n] for n in ("alice", "mallory")},
                                               {n: scene_ids[n] for n in ("alice", "mallory")})
@@ -350,6 +445,20 @@ def security_table(out: dict) -> str:
                   f"anything was unpacked; the last answer after {z['last_s']} s); the server tree's memory grew by "
                   f"{z['growth_mb']} MB at the peak (a scene load's child alone is ~270 MB); "
                   f"{z['system_temp_dirs']} folders in the system temp dir."]
+    if out.get("geometry"):
+        lines += ["", "| GET geometry.glb of | triangles | answer | seconds | tree growth MB | server growth MB |",
+                  "|---|---:|---|---:|---:|---:|"]
+        for g in out["geometry"]:
+            if "status" in g:
+                lines.append(f"| {g['spheres']:,} instanced spheres ({g['file_bytes']:,} bytes), {g['attempt']} | "
+                             f"{g['triangles']:,} | {g['status']} {g['code']} | {g['seconds']} | {g['tree_growth_mb']:,} | "
+                             f"{g['server_growth_mb']:,} |")
+    d = out.get("downloads")
+    if d:
+        lines += ["", f"{d['n']} downloads at once of one tenant's {d['lines']:,}-line batch ({d['batch_mb']} MB of results): "
+                  f"answers {d['answers']}, complete: {d['complete']}, the last after {d['last_s']} s; the server tree grew by "
+                  f"{d['growth_mb']} MB at the peak; /healthz meanwhile {d['healthz']} (max {d['healthz_max_ms']} ms); "
+                  f"another tenant's optimize p50 {d['optimize_p50_ms']} ms meanwhile."]
     lines += ["", f"| while {QUEUED} /v1/compare requests are queued or running | p50 ms | p95 ms | p99 ms | max ms |",
               "|---|---:|---:|---:|---:|",
               f"| GET /healthz (40 probes, 50 ms apart) | {q['healthz_p50_ms']} | {q['healthz_p95_ms']} | "
