@@ -137,6 +137,9 @@ def test_demo_and_largest_accepted_rig_solve_and_only_the_large_one_flushes_dr_j
     print(f"the largest accepted rig (16 lights x 4 cascades, uniform): {elapsed:.1f} s")
 
 
+SLACK_MS = 50.0
+
+
 @pytest.mark.slow
 def test_time_budget_is_shared_by_all_lights_of_a_solve(demo_entry, monkeypatch):
     """Each light's search gets what is left of the solve's budget (it used to get the whole budget each:
@@ -163,8 +166,11 @@ def test_time_budget_is_shared_by_all_lights_of_a_solve(demo_entry, monkeypatch)
     sol = solve_mod.solve(demo_entry, rig, SolveRequest(method="optimized", time_budget_ms=budget))
     elapsed = time.perf_counter() - t0
     assert len(sol["lights"]) == 16 and len(calls) == 16
-    for t, given in calls:  # never more than what is left of the whole budget
-        assert given <= max(1.0, budget - (t - t0) * 1e3) + 1.0, (given, (t - t0) * 1e3)
+    # never more than what is left of the whole budget: the solve's clock starts a little after t0 and each light's
+    # remainder is taken a little before the spy reads its clock (~1 ms on a quiet machine, more under load: SLACK
+    # still tells a shared budget from the old whole budget per light, which gave the sixth light 5x what was left)
+    for t, given in calls:
+        assert given <= max(1.0, budget - (t - t0) * 1e3) + SLACK_MS, (given, (t - t0) * 1e3)
     assert calls[-1][1] < calls[0][1] and calls[-1][1] == 1.0  # the last lights get what is left: 1 ms
     print(f"16 lights within a {budget:.0f} ms budget: {elapsed * 1e3:.0f} ms")
 
