@@ -168,7 +168,7 @@ def test_time_budget_is_shared_by_all_lights_of_a_solve(demo_entry, monkeypatch)
     assert len(sol["lights"]) == 16 and len(calls) == 16
     # never more than what is left of the whole budget: the solve's clock starts a little after t0 and each light's
     # remainder is taken a little before the spy reads its clock (~1 ms on a quiet machine, more under load: SLACK
-    # still tells a shared budget from the old whole budget per light, which gave the sixth light 5x what was left)
+    # still tells a shared budget from the old whole budget per light: the last lights got seconds where 1 ms was left)
     for t, given in calls:
         assert given <= max(1.0, budget - (t - t0) * 1e3) + SLACK_MS, (given, (t - t0) * 1e3)
     assert calls[-1][1] < calls[0][1] and calls[-1][1] == 1.0  # the last lights get what is left: 1 ms
