@@ -23,7 +23,7 @@ import { Constants } from "@babylonjs/core/Engines/constants.js";
 import { CascadedShadowGenerator } from "@babylonjs/core/Lights/Shadows/cascadedShadowGenerator.js";
 import { MeshBuilder } from "@babylonjs/core/Meshes/meshBuilder.js";
 
-const BABYLON = { Matrix, Vector3, ShadowGenerator, Constants };
+const BABYLON = { Matrix, Vector3, ShadowGenerator, CascadedShadowGenerator, Constants };
 
 function babylonCamera(scene, cam) {  // the rig's camera, already in Babylon's frame
 	const camera = new FreeCamera("camera", new Vector3(...cam.position), scene);
