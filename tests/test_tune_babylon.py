@@ -79,3 +79,78 @@ def test_tuned_cascades_in_babylon_js_show_what_the_emulation_predicts(browser, 
     assert inst["filter"] == 0 and inst["mapSize"] == s["mapSize"] and inst["receive"], inst  # FILTER_NONE
     assert inst["bias"] == pytest.approx(s["bias"]) and inst["normalBias"] == 0, inst
     assert page["restored"] == {"builder": True, "receive": False, "generator": False}, page["restored"]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--set", "cascades=3"], "error: settings.cascades: not a knob of babylon (accepted: numCascades, lambda"),
+    (["--set", "numCascades=9"], "error: settings.numCascades: expected an integer in [1, 8]"),
+    (["--set", "lambda=1.5"], "error: settings.lambda: expected a number in [0, 1]"),
+    (["--set", "normalBias=0.1"], "error: settings.normalBias: expected a number in [0, 0]"),
+    (["--set", "filter=PCSS"], "error: settings.filter: expected one of 'PCF', 'NONE'"),
+])
+def test_cli_exits_2_naming_the_knob(tmp_path, argv, message, capsys):
+    from shadowopt.api.cli import main
+
+    (tmp_path / "rig.json").write_text(json.dumps(RIG))
+    js = tmp_path / "apply.js"
+    assert main(["tune", str(DEMO), "--rig", str(tmp_path / "rig.json"), "--engine", "babylon", "--emit", str(js),
+                 *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err, err
+    assert not js.exists()
+
+
+def test_rest_answers_422_naming_the_knob(tmp_path, monkeypatch):
+    import asyncio
+
+    import httpx
+
+    import shadowopt.api.routes_solve as routes_solve
+    from shadowopt.api.server import create_app
+    from shadowopt.api.settings import Settings
+
+    async def no_scene(svc, ticket, scene_id):  # validation answers before the scene is loaded
+        raise AssertionError("the scene was loaded before the settings were checked")
+
+    monkeypatch.setattr(routes_solve, "scene_entry_for", no_scene)
+    app = create_app(Settings(data_dir=str(tmp_path / "d")))
+
+    async def go(body):
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://localhost") as c:
+            return await c.post("/v1/tune", json=body)
+
+    r = asyncio.run(go({"scene_id": "0123456789abcdef", "rig": RIG, "engine": "babylon",
+                        "settings": {"stabilizeCascades": "yes"}}))
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert err["field"] == "settings.stabilizeCascades" and "one of false, true" in err["message"], err
+
+
+def test_pinned_knobs_hold_and_the_bias_reaches_babylons_depth_test_as_fitted(tmp_path):
+    """A search with numCascades and lambda pinned keeps them, spends the defaults' texels (4 maps of the rig's side)
+    on its cascades, and its bias, times Babylon's factor for the filter (babylon.bias_factor), is the constant the
+    emulated maps carry; the module holds the same settings and refuses a three.js result."""
+    from shadowopt.service.emit_tune_babylon import tune_module
+    from shadowopt.service.pipeline import scene_entry
+    from shadowopt.service.tune import tune
+    from shadowopt.solvers.engine_fits import babylon
+
+    res = tune(scene_entry(str(DEMO)), RIG, "babylon", fixed={"numCascades": 2, "lambda": 0.9, "filter": "PCF"})
+    s = res["settings"]
+    assert s["numCascades"] == 2 and s["lambda"] == 0.9 and s["filter"] == "PCF" and s["normalBias"] == 0
+    assert s["mapSize"] == 720 and len(res["emulated"]["cascades"]) == 2  # 2 x 720^2 <= 4 x 512^2, a multiple of 16
+    assert res["defaults"]["settings"]["numCascades"] == 4 and res["defaults"]["settings"]["mapSize"] == 512
+    maps = babylon.fit(*_pose(), s)
+    assert maps[0].depth["hardware"]["constant"] == pytest.approx(1.5 * s["bias"])  # PCF with depthClamp
+    data = json.loads(tune_module(res).split("const TUNED = ", 1)[1].split(";\n", 1)[0])
+    assert data["settings"] == s and data["babylon"] == "9.35.0"
+    with pytest.raises(ValueError, match="^engine: .*accepted: babylon"):
+        tune_module({**res, "engine": "three"})
+
+
+def _pose():
+    from shadowopt.solvers.cameras import Camera
+    from shadowopt.solvers.lights import DirectionalLight
+
+    return (Camera.look([3.0, 4.0, 20.0], [0.2, -0.3, -1.0], near=0.5, far=300.0, fov_y_deg=50.0,
+                        resolution=(640, 360)), DirectionalLight.make([0.4, -1.0, 0.3]))
