@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shadowopt.service.bench import three_page
+from shadowopt.service.bench import babylon_page, three_page
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "configs" / "demo_scene.usda"
@@ -91,20 +91,15 @@ def render_page(browser, files: dict, fallback, params: dict, call: str = "rende
     return out
 
 
-BABYLON = ROOT / "out" / "web" / "node_modules" / "@babylonjs" / "core"
-BABYLON_HARNESS = Path(__file__).with_name("babylon_harness")
+BABYLON = babylon_page.BABYLON
 
 
 def babylon_files(**extra: bytes) -> dict:
-    """The Babylon.js page's own files (tests/babylon_harness/) and `extra` ("/apply.js": ..., "/scene.bin": ...)."""
-    return {"/index.html": (BABYLON_HARNESS / "index.html").read_bytes(),
-            "/harness.js": (BABYLON_HARNESS / "harness.js").read_bytes(), **extra}
+    """The Babylon.js page's own files (service/bench/babylon_harness/) and `extra` ("/apply.js": ..., ...)."""
+    return babylon_page.page_files(**extra)
 
 
-def babylon_fallback(path: str):
-    """@babylonjs/core's ES modules under /babylon/ (the page's import map), and the shaders they import on demand."""
-    f = BABYLON / path.removeprefix("/babylon/")
-    return f.read_bytes() if path.startswith("/babylon/") and path.endswith(".js") and f.is_file() else None
+babylon_fallback = babylon_page.fallback  # @babylonjs/core's ES modules under /babylon/
 
 
 def score(entry, rig: dict, solution: dict, rendered: dict, screen=SCREEN) -> dict:
