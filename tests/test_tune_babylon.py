@@ -156,3 +156,26 @@ def _pose():
 
     return (Camera.look([3.0, 4.0, 20.0], [0.2, -0.3, -1.0], near=0.5, far=300.0, fov_y_deg=50.0,
                         resolution=(640, 360)), DirectionalLight.make([0.4, -1.0, 0.3]))
+
+
+def test_the_docs_babylon_example_runs_verbatim(tmp_path, monkeypatch, capsys):
+    """docs/tune.md's Babylon.js command, run as it is written there (in the repository's folder)."""
+    import re
+    import shlex
+    from pathlib import Path
+
+    from shadowopt.api.cli import main
+
+    repo = Path(__file__).resolve().parents[1]
+    text = (repo / "docs" / "tune.md").read_text()
+    argv = shlex.split(re.search(r"```sh\n(shadowopt tune [^\n]+--engine babylon[^\n]*)\n```", text).group(1))[1:]
+    monkeypatch.chdir(tmp_path)
+    argv = [str(repo / a) if a.startswith("configs/") else a for a in argv]
+    assert main(argv) == 0
+    res = json.loads(capsys.readouterr().out)
+    module = (tmp_path / "babylon_tuned.js").read_text()
+    assert "export default function apply(BABYLON, ctx)" in module
+    data = json.loads(module.split("const TUNED = ", 1)[1].split(";\n", 1)[0])
+    assert data["settings"] == res["settings"] and data["babylon"] == "9.35.0" and res["engine"] == "babylon"
+    assert res["predicted"]["misclassified_pixels"] <= 0.7 * res["defaults"]["predicted"]["misclassified_pixels"]
+    assert res["defaults"]["settings"]["mapSize"] == 2048 and res["defaults"]["settings"]["numCascades"] == 4
