@@ -5,8 +5,8 @@ own fit from those knobs (solvers.engine_fits: one module per engine) and scores
 metric, exactly as a solve's prediction does (service.bias): the engine's depth test (renderers.depth_probe) at the
 coarse pass's light-facing receivers (service.bias.receivers_of), each standing for its share of the rig's
 full-resolution pixels, wrong answers counted by solvers.bias_fit.probe_wrong. The bias constant is found exactly
-by solvers.bias_fit.fit_constant over one value for every cascade (CSM sets one shadowBias for all its lights) and
-scored cross-fitted (bias_fit.cross_fitted), as the solve's fitted constant is. One setting serves every pose (a
+by solvers.bias_fit.fit_constant over one value for every cascade (three's CSM sets one shadowBias for all its
+lights, Babylon's CascadedShadowGenerator one bias) and scored cross-fitted (bias_fit.cross_fitted), as the solve's fitted constant is. One setting serves every pose (a
 setting holds for a whole level): the score is the sum over the poses. The search itself: service.tune_search.
 """
 from __future__ import annotations
