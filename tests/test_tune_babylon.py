@@ -13,10 +13,10 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from web_engine_kit import (BABYLON, DEMO, DEPTH_TOLERANCE, SCREEN, babylon_fallback, babylon_files, geometry,
-                            launch_browser, render_page)
+from shadowopt.service.bench import babylon_page
+from web_engine_kit import (BABYLON, DEMO, DEPTH_TOLERANCE, SCREEN, babylon_fallback, babylon_files, launch_browser,
+                            render_page)
 
-TO_BABYLON = (-1.0, 1.0, 1.0)  # solvers.conventions.ENGINE_PRESETS["babylon"] axes ("-x", "y", "z")
 RIG = {"camera": {"usd_path": "/World/Camera", "resolution": list(SCREEN)}, "lights": [{"usd_path": "/World/Sun"}],
        "shadow": {"resolution": [512, 512]}}
 
@@ -24,10 +24,6 @@ RIG = {"camera": {"usd_path": "/World/Camera", "resolution": list(SCREEN)}, "lig
 @pytest.fixture(scope="module")
 def browser():
     yield from launch_browser(BABYLON / "index.js", "Babylon.js (npm install --prefix out/web @babylonjs/core@9.35.0)")
-
-
-def _to_babylon(v) -> list:
-    return [float(a) * s for a, s in zip(v, TO_BABYLON)]
 
 
 @pytest.mark.browser
@@ -47,13 +43,12 @@ def test_tuned_cascades_in_babylon_js_show_what_the_emulation_predicts(browser, 
     s = res["settings"]
     resolved = resolve_rig(RIG, entry.loaded)
     camera, light = resolved.camera, resolved.lights[0]
-    cam = {"position": _to_babylon(camera.position), "forward": _to_babylon(camera.forward),
-           "up": _to_babylon(camera.up), "fov_y_deg": camera.fov_y_deg, "near": camera.near, "far": camera.far}
     sun = res["light_direction"]
-    files = babylon_files(**{"/apply.js": js.read_bytes(), "/scene.bin": geometry(entry, sun, TO_BABYLON)})
+    files = babylon_files(**{"/apply.js": js.read_bytes(), "/scene.bin": babylon_page.scene_geometry(entry, sun)})
     page = render_page(browser, files, babylon_fallback, {"screen": list(SCREEN), "geometry": "/scene.bin",
-                                                          "module": "/apply.js", "sun_direction": _to_babylon(sun),
-                                                          "camera": cam})
+                                                          "module": "/apply.js",
+                                                          "sun_direction": babylon_page.to_babylon(sun),
+                                                          "camera": babylon_page.camera_json(camera)})
 
     # the pixels where Babylon's rasterizer and the ray caster see the same surface, scored against exact visibility
     maps = babylon.fit(camera, light, s, casters_box=entry.loaded.geometry.bounds())

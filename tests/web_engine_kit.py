@@ -38,9 +38,11 @@ def launch_browser(engine_file: Path, what: str):
 
 def geometry(entry, sun_direction, axes=(1.0, 1.0, 1.0)) -> bytes:
     """three_page.scene_geometry (the scene's split triangles with their lit-side flat normals, x y z nx ny nz per
-    vertex, float32) in an engine frame whose coordinates are the world's times `axes` (Babylon: (-1, 1, 1))."""
-    data = np.frombuffer(three_page.scene_geometry(entry, sun_direction), np.float32).reshape(-1, 6)
-    return (data * np.tile(np.asarray(axes, np.float32), 2)).astype(np.float32).tobytes()
+    vertex, float32) in the world's frame, or in Babylon's (axes (-1, 1, 1): babylon_page.scene_geometry)."""
+    if tuple(axes) == babylon_page.TO_BABYLON:
+        return babylon_page.scene_geometry(entry, sun_direction)
+    assert tuple(axes) == (1.0, 1.0, 1.0), axes
+    return three_page.scene_geometry(entry, sun_direction)
 
 
 def solve_and_emit(tmp_path, rig: dict, *extra: str) -> tuple[dict, str]:

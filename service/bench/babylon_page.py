@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from .three_page import ORIGIN, ROOT
+from .three_page import scene_geometry as world_geometry
 
 BABYLON = ROOT / "out" / "web" / "node_modules" / "@babylonjs" / "core"
 HARNESS = Path(__file__).with_name("babylon_harness")
@@ -23,6 +24,13 @@ TYPES = {".html": "text/html", ".js": "text/javascript", ".bin": "application/oc
 def to_babylon(v) -> list:
     """A world vector (position, direction) in Babylon's frame."""
     return [float(a) * s for a, s in zip(v, TO_BABYLON)]
+
+
+def scene_geometry(entry, sun_direction) -> bytes:
+    """three_page.scene_geometry (the scene's split triangles with their lit-side flat normals, x y z nx ny nz per
+    vertex, float32) in Babylon's frame."""
+    data = np.frombuffer(world_geometry(entry, sun_direction), np.float32).reshape(-1, 6)
+    return (data * np.tile(np.asarray(TO_BABYLON, np.float32), 2)).astype(np.float32).tobytes()
 
 
 def camera_json(camera) -> dict:

@@ -93,9 +93,8 @@ def measure_sun(browser, validate_rig, entry, camera: dict, direction, screen, l
     cam, light = resolved.camera, resolved.lights[0]
     sun = tuned["light_direction"]
     if engine == "babylon":
-        geometry = (np.frombuffer(scene_geometry(entry, sun), np.float32).reshape(-1, 6)
-                    * np.tile(np.asarray(babylon_page.TO_BABYLON, np.float32), 2)).astype(np.float32).tobytes()
-        outs = babylon_page.render_modules(browser, modules, geometry, babylon_page.camera_json(cam),
+        outs = babylon_page.render_modules(browser, modules, babylon_page.scene_geometry(entry, sun),
+                                           babylon_page.camera_json(cam),
                                            babylon_page.to_babylon(sun), tuple(screen))
     else:
         cam_json = {"position": cam.position.tolist(), "forward": cam.forward.tolist(), "up": cam.up.tolist(),
