@@ -202,13 +202,15 @@ def cmd_tune(args) -> int:
                     + f"; predicted {p['misclassified_pixels']:.0f} wrong pixels (defaults: "
                     f"{d['misclassified_pixels']:.0f}); {res['timings_ms']['total']:.0f} ms\n{res['snippet']}")
     if args.emit:
-        from ..service.emit_tune_three import tune_module  # lazy: only with --emit
+        from ..service import emit_tune_babylon, emit_tune_three  # lazy: only with --emit
 
+        emitter = {"three": emit_tune_three, "babylon": emit_tune_babylon}[res["engine"]]
         try:
-            Path(args.emit).write_text(tune_module(res))
+            Path(args.emit).write_text(emitter.tune_module(res))
         except OSError as e:
             raise CliError(f"--emit: cannot write {args.emit!r}: {e.strerror}") from e
-        print(f"three.js module written to {args.emit}", file=sys.stderr)
+        print(f"{'three.js' if res['engine'] == 'three' else 'Babylon.js'} module written to {args.emit}",
+              file=sys.stderr)
     return 0
 
 
@@ -573,11 +575,12 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_optimize)
 
-    sp = sub.add_parser("tune", help="an engine's own cascade settings (three.js CSM) that predict the fewest wrong "
+    sp = sub.add_parser("tune", help="an engine's own cascade settings (three.js CSM, Babylon.js) that predict the fewest wrong "
                         "pixels, against the engine's defaults (docs/tune.md)")
     scene_args(sp)
     rig_args(sp)
-    sp.add_argument("--engine", default="three", help="the engine whose cascades to tune (accepted: three)")
+    sp.add_argument("--engine", default="three", help="the engine whose cascades to tune (accepted: three, "
+                    "babylon)")
     sp.add_argument("--poses", default=None, metavar="FILE.json", help="more camera poses (a JSON list of camera "
                     "objects like the rig's): one setting for all of them")
     sp.add_argument("--camera-path", default=None, metavar="FILE.json", help="more poses along a camera path "
@@ -590,7 +593,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "cascades=4); repeatable")
     sp.add_argument("--out", default=None, help="also write the result JSON to this file")
     sp.add_argument("--emit", default=None, metavar="FILE.js", help="also write an ES module that builds the tuned "
-                    "CSM instance from ctx.CSM (export default function apply(THREE, ctx))")
+                    "cascades (three: a CSM instance from ctx.CSM, export default function apply(THREE, ctx); babylon: a "
+                    "CascadedShadowGenerator, apply(BABYLON, ctx))")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_tune)
 

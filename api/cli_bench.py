@@ -43,11 +43,12 @@ def cmd_bench(args) -> int:
 
         result = bench_engine_truth(validate_rig, lights=args.lights, scenes=args.scenes, screen=args.screen,
                                     write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
-    elif args.bench == "engines":  # tune's settings, the defaults and a hand grid in real three.js
+    elif args.bench == "engines":  # tune's settings, the defaults and a hand grid in real three.js or Babylon.js
         from ..service.bench.engines import bench_engines  # lazy: the server stack loads only for the command that runs
 
         result = bench_engines(validate_rig, lights=args.lights, scenes=args.scenes, screen=args.screen,
-                               write=not args.no_write, log=lambda m: print(m, file=sys.stderr))
+                               write=not args.no_write, log=lambda m: print(m, file=sys.stderr),
+                               engine=args.engine)
     elif args.bench == "solve-time":  # optimize's time per light, fitted bias against the rule
         from ..service.bench.solve_time import bench_solve_time  # lazy: the server stack loads only for the command that runs
 
@@ -152,6 +153,8 @@ def add_bench_parser(sub) -> None:
     sp.add_argument("--reuse", nargs="?", const="same", choices=["same", "any"], default=None,
                     help="quality --corpus: take a scene's stored result (out/bench/quality-corpus/) when scene, rig, "
                     "settings and code are unchanged; `any`: whatever code measured it (named in the section)")
+    sp.add_argument("--engine", choices=["three", "babylon"], default="three",
+                    help="engines: the real engine tune's settings are rendered in (default three)")
     sp.add_argument("--no-write", action="store_true", help="do not update BENCHMARKS.md")
     sp.add_argument("--json", action="store_true", help="print the results as one JSON object")
     sp.set_defaults(func=cmd_bench)

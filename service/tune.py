@@ -5,8 +5,8 @@ own fit from those knobs (solvers.engine_fits: one module per engine) and scores
 metric, exactly as a solve's prediction does (service.bias): the engine's depth test (renderers.depth_probe) at the
 coarse pass's light-facing receivers (service.bias.receivers_of), each standing for its share of the rig's
 full-resolution pixels, wrong answers counted by solvers.bias_fit.probe_wrong. The bias constant is found exactly
-by solvers.bias_fit.fit_constant over one value for every cascade (CSM sets one shadowBias for all its lights) and
-scored cross-fitted (bias_fit.cross_fitted), as the solve's fitted constant is. One setting serves every pose (a
+by solvers.bias_fit.fit_constant over one value for every cascade (three's CSM sets one shadowBias for all its
+lights, Babylon's CascadedShadowGenerator one bias) and scored cross-fitted (bias_fit.cross_fitted), as the solve's fitted constant is. One setting serves every pose (a
 setting holds for a whole level): the score is the sum over the poses. The search itself: service.tune_search.
 """
 from __future__ import annotations
@@ -58,7 +58,7 @@ def tune(entry, rig: dict, engine: str, poses: list[dict] | None = None, fixed: 
         mod = engine_module(engine)
     except ValueError as e:
         raise TuneError("engine", str(e).split(": ", 1)[1]) from None
-    if mod.ENGINE not in SEARCH_ENGINES:  # an emulation without a search yet (solvers.engine_fits.babylon)
+    if mod.ENGINE not in SEARCH_ENGINES:  # an emulation without a search yet
         raise TuneError("engine", f"{engine!r} has an emulation of its cascade fit but no search yet (accepted: "
                         f"{', '.join(SEARCH_ENGINES)})")
     try:
@@ -73,11 +73,11 @@ def tune(entry, rig: dict, engine: str, poses: list[dict] | None = None, fixed: 
     budget = time_budget_ms / 1e3 if time_budget_ms is not None else SEARCH_BUDGET_S * len(ps) - (t1 - t0)
     result = search(mod, ps, fixed_settings, budget)
     t2 = time.perf_counter()
-    maps = mod.fit(ps[0].camera, ps[0].light, result["settings"])
+    maps = mod.fit(ps[0].camera, ps[0].light, result["settings"], casters_box=ps[0].scene_box)
     emulated = {"cascades": cascades_json(maps), "shadow_map_type": mod.SHADOW_MAP_TYPE,
                 "faces": mod.faces(result["settings"])}
     if len(ps) > 1:
-        emulated["poses"] = [{"cascades": cascades_json(mod.fit(p.camera, p.light, result["settings"]))} for p in ps]
+        emulated["poses"] = [{"cascades": cascades_json(mod.fit(p.camera, p.light, result["settings"], casters_box=p.scene_box))} for p in ps]
     direction = [float(v) for v in ps[0].light.direction]
     return {"engine": mod.ENGINE, "engine_version": mod.VERSION, "settings": result["settings"],
             "predicted": result["predicted"], "defaults": result["defaults"], "emulated": emulated,
@@ -90,10 +90,23 @@ def tune(entry, rig: dict, engine: str, poses: list[dict] | None = None, fixed: 
 
 
 def snippet(mod, settings: dict, direction: list[float]) -> str:
-    """A few lines of JS that set the engine's knobs (three.js: a CSM instance)."""
-    if mod.ENGINE != "three":  # pragma: no cover - one engine so far
-        return ""
+    """A few lines of JS that set the engine's knobs (three.js: a CSM instance; Babylon.js: a
+    CascadedShadowGenerator)."""
     s = settings
+    if mod.ENGINE == "babylon":
+        return "\n".join([
+            "import { CascadedShadowGenerator, ShadowGenerator } from '@babylonjs/core';",
+            f"const csm = new CascadedShadowGenerator({s['mapSize']}, light, undefined, camera);",
+            f"csm.numCascades = {s['numCascades']}; csm.lambda = {s['lambda']:.6g}; "
+            f"csm.stabilizeCascades = {str(s['stabilizeCascades']).lower()}; "
+            f"csm.depthClamp = {str(s['depthClamp']).lower()}; csm.cascadeBlendPercentage = 0;",
+            f"csm.shadowMaxZ = {s['shadowMaxZ']:.6g}; csm.filter = ShadowGenerator.FILTER_{s['filter']}; "
+            f"csm.bias = {s['bias']:.6g}; csm.normalBias = {s['normalBias']:.6g};",
+            "for (const m of meshes) { csm.addShadowCaster(m); m.receiveShadows = true; "
+            "if (m.material) m.material.backFaceCulling = false; }",
+        ])
+    if mod.ENGINE != "three":  # pragma: no cover - two engines so far
+        return ""
     d = ", ".join(f"{v:.6g}" for v in direction)
     return "\n".join([
         "import { CSM } from 'three/addons/csm/CSM.js';",

@@ -42,22 +42,39 @@ class Pose:
         corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
         # the camera's distance to the farthest point of the scene (its bounding box), capped by its far plane
         self.scene_far = float(min(np.linalg.norm(corners - self.camera.position, axis=1).max(), self.camera.far))
+        self.scene_box = (np.asarray(lo, float), np.asarray(hi, float))  # the casters' box (Babylon's render list)
         self.scene_diagonal = float(np.linalg.norm(np.asarray(hi) - np.asarray(lo)))
 
 
 def probe_pose(mod, pose: Pose, settings: dict):
-    """(maps, probe) of one candidate at one pose: the engine's maps (mod.fit) and its depth test's inputs at the
-    pose's receivers (no pancaking: casters in front of the light camera's near plane are clipped, as in three.js)."""
+    """(maps, probe) of one candidate at one pose: the engine's maps (mod.fit, the scene's box as the casters' box)
+    and its depth test's inputs at the pose's receivers, casters in front of the light camera's near plane pancaked
+    where the engine clamps depth (mod.pancakes: Babylon's depthClamp), clipped otherwise (three.js)."""
     pos, nrm, depth, lit, a = pose.receivers
-    maps = mod.fit(pose.camera, pose.light, settings)
+    maps = mod.fit(pose.camera, pose.light, settings, casters_box=pose.scene_box)
     offset = float(maps[0].depth["hardware"]["normal_offset"]) if maps else 0.0
-    probe = depth_probe(pose.rays, pose.light, maps, pos, nrm, depth, "hardware", offset, pancake=False)
+    probe = depth_probe(pose.rays, pose.light, maps, pos, nrm, depth, "hardware", offset,
+                        pancake=mod.pancakes(settings))
+    probe.depth_block = maps[0].depth if maps else {"format": mod.DEPTH_FORMAT, "hardware": {}}
     return maps, probe
 
 
+def depth_format(mod, probe) -> str:
+    """The format of the candidate's maps (Babylon's depends on its filter), the module's own without maps."""
+    return getattr(probe, "depth_block", {}).get("format", mod.DEPTH_FORMAT)
+
+
+def constant_side(probe) -> str:
+    """Where the candidate's engine adds its constant (engine_depth_test.CONSTANT_SIDES): receiver (three.js) or
+    caster (Babylon.js, before the map's rounding)."""
+    return getattr(probe, "depth_block", {}).get("hardware", {}).get("constant_side", "receiver")
+
+
 def margins(mod, probe, pose: Pose):
-    """Per receiver D_rec - stored (the engine's caster term, none for three) and whether a map serves it."""
-    stored = probe.stored(0.0, np.inf, mod.DEPTH_FORMAT)
+    """Per receiver D_rec - stored (the engine's caster term, none for three) and whether a map serves it. A
+    caster-side constant is rounded with the stored depth: the margin is exact up to that rounding (predict scores
+    the chosen constant exactly)."""
+    stored = probe.stored(0.0, np.inf, depth_format(mod, probe))
     return probe.d_rec - stored, probe.inside
 
 
@@ -85,9 +102,10 @@ def predict(mod, probes: list, poses: list[Pose], constant: float, cross_fit: bo
     per_pose = []
     for probe, pose in zip(probes, poses):
         _, _, _, lit, a = pose.receivers
-        terms = [{"constant": constant, "slope": 0.0, "slope_scaled": 0.0, "slope_clamp": 1.0}] * max(
+        terms = [{"constant": constant, "slope": 0.0, "slope_scaled": 0.0, "slope_clamp": 1.0,
+                  "constant_side": constant_side(probe)}] * max(
             1, int(probe.map_index.max()) + 1 if len(probe.map_index) else 1)
-        w = probe_wrong(probe, lit, a, terms, mod.DEPTH_FORMAT)
+        w = probe_wrong(probe, lit, a, terms, depth_format(mod, probe))
         if cross_fit:
             mg, inside = margins(mod, probe, pose)
             cl, cs = cross_fitted(mg[inside], lit[inside], a[inside])

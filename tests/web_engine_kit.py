@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shadowopt.service.bench import three_page
+from shadowopt.service.bench import babylon_page, three_page
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "configs" / "demo_scene.usda"
@@ -38,9 +38,11 @@ def launch_browser(engine_file: Path, what: str):
 
 def geometry(entry, sun_direction, axes=(1.0, 1.0, 1.0)) -> bytes:
     """three_page.scene_geometry (the scene's split triangles with their lit-side flat normals, x y z nx ny nz per
-    vertex, float32) in an engine frame whose coordinates are the world's times `axes` (Babylon: (-1, 1, 1))."""
-    data = np.frombuffer(three_page.scene_geometry(entry, sun_direction), np.float32).reshape(-1, 6)
-    return (data * np.tile(np.asarray(axes, np.float32), 2)).astype(np.float32).tobytes()
+    vertex, float32) in the world's frame, or in Babylon's (axes (-1, 1, 1): babylon_page.scene_geometry)."""
+    if tuple(axes) == babylon_page.TO_BABYLON:
+        return babylon_page.scene_geometry(entry, sun_direction)
+    assert tuple(axes) == (1.0, 1.0, 1.0), axes
+    return three_page.scene_geometry(entry, sun_direction)
 
 
 def solve_and_emit(tmp_path, rig: dict, *extra: str) -> tuple[dict, str]:
@@ -91,20 +93,15 @@ def render_page(browser, files: dict, fallback, params: dict, call: str = "rende
     return out
 
 
-BABYLON = ROOT / "out" / "web" / "node_modules" / "@babylonjs" / "core"
-BABYLON_HARNESS = Path(__file__).with_name("babylon_harness")
+BABYLON = babylon_page.BABYLON
 
 
 def babylon_files(**extra: bytes) -> dict:
-    """The Babylon.js page's own files (tests/babylon_harness/) and `extra` ("/apply.js": ..., "/scene.bin": ...)."""
-    return {"/index.html": (BABYLON_HARNESS / "index.html").read_bytes(),
-            "/harness.js": (BABYLON_HARNESS / "harness.js").read_bytes(), **extra}
+    """The Babylon.js page's own files (service/bench/babylon_harness/) and `extra` ("/apply.js": ..., ...)."""
+    return babylon_page.page_files(**extra)
 
 
-def babylon_fallback(path: str):
-    """@babylonjs/core's ES modules under /babylon/ (the page's import map), and the shaders they import on demand."""
-    f = BABYLON / path.removeprefix("/babylon/")
-    return f.read_bytes() if path.startswith("/babylon/") and path.endswith(".js") and f.is_file() else None
+babylon_fallback = babylon_page.fallback  # @babylonjs/core's ES modules under /babylon/
 
 
 def score(entry, rig: dict, solution: dict, rendered: dict, screen=SCREEN) -> dict:

@@ -22,6 +22,9 @@ exactly this interface, which service.tune relies on:
    "<mode>": {"constant", "slope", "normal_offset", "slope_scaled", "slope_clamp"}} with the product's
   conventions (receiver shadowed iff D_rec - constant > stored + min(slope_scaled DZ, slope_clamp);
   normal_offset in metres along the receiver's normal).
+- `fit(..., casters_box=None)`: the casters' world (min, max) box where the engine fits depth to its render list
+  (Babylon.js); other engines ignore it. `pancakes(settings) -> bool`: whether casters in front of a map's near
+  plane are pancaked onto it (the engine clamps depth) or clipped.
 - `faces(settings) -> "both" | "back"`: the faces the engine draws into its maps with these settings (the
   scoring casts double-sided rays: "both" only, so far).
 - `DEPTH_FORMAT` (the depth block's format) and `SHADOW_MAP_TYPE` (the engine's filter the module sets, the one
@@ -37,8 +40,7 @@ from __future__ import annotations
 from . import babylon, three_csm
 from .knobs import Knob, validate_settings
 
-# --engine name -> module; a new engine's module is imported above and added here (filament: to come). babylon: the
-# emulation (fit, KNOBS) is here; service.tune_search has no search for it yet (tune refuses it, naming the engine)
+# --engine name -> module; a new engine's module is imported above and added here (filament: to come)
 ENGINE_MODULES = {three_csm.ENGINE: three_csm, babylon.ENGINE: babylon}
 ENGINES = tuple(ENGINE_MODULES)
 

@@ -95,6 +95,11 @@ def faces(settings: dict) -> str:
     return "both"
 
 
+def pancakes(settings: dict) -> bool:
+    """Whether casters in front of a cascade's near plane are pancaked onto it: with depthClamp (_computeMatrices)."""
+    return bool(settings["depthClamp"])
+
+
 def bias_factor(settings: dict) -> float:
     """How many times `bias` reaches the stored depth (module doc, step 6)."""
     if settings["filter"] == "PCF":

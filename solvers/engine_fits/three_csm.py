@@ -183,8 +183,14 @@ def orthographic(half: float, near: float, far: float) -> np.ndarray:
     return p
 
 
-def fit(camera: Camera, light: DirectionalLight, settings: dict) -> list[ShadowMap]:
-    """The CSM addon's cascades for this camera pose and light (module doc), with validated settings."""
+def pancakes(settings: dict) -> bool:
+    """Whether casters in front of a light camera's near plane are pancaked onto it: no (three has no depth clamp)."""
+    return False
+
+
+def fit(camera: Camera, light: DirectionalLight, settings: dict, casters_box: tuple | None = None) -> list[ShadowMap]:
+    """The CSM addon's cascades for this camera pose and light (module doc), with validated settings; casters_box
+    is not used (CSM fits the camera's slices only)."""
     s = effective(validate(settings))
     size = int(s["shadowMapSize"])
     R = look_at_rotation(light.direction)

@@ -1,5 +1,6 @@
-// The test's Babylon.js page (tests/test_babylon_module.py): the scene's triangles (already in Babylon's left-handed
-// frame), the rig's camera and sun, the emitted module imported as it is, then three renders read back:
+// The Babylon.js page of `shadowopt bench engines` and the browser tests (service/bench/babylon_page.py): the scene's
+// triangles (already in Babylon's left-handed frame), the rig's camera and sun, the emitted module imported as it is,
+// then three renders read back:
 // - lit, twice: a white StandardMaterial (no ambient, no specular, both faces) lit by the sun alone, with the
 //   module's shadows and with light.shadowEnabled = false; FILTER_NONE makes the shadow term 0 or 1, so "shadowed"
 //   is a ratio under one half;
@@ -23,7 +24,7 @@ import { Constants } from "@babylonjs/core/Engines/constants.js";
 import { CascadedShadowGenerator } from "@babylonjs/core/Lights/Shadows/cascadedShadowGenerator.js";
 import { MeshBuilder } from "@babylonjs/core/Meshes/meshBuilder.js";
 
-const BABYLON = { Matrix, Vector3, ShadowGenerator, Constants };
+const BABYLON = { Matrix, Vector3, ShadowGenerator, CascadedShadowGenerator, Constants };
 
 function babylonCamera(scene, cam) {  // the rig's camera, already in Babylon's frame
 	const camera = new FreeCamera("camera", new Vector3(...cam.position), scene);
