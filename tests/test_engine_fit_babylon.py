@@ -84,7 +84,7 @@ RUNS = [{"numCascades": 8, "shadowMaxZ": 1e5, "mapSize": 1024},  # clamped to 4;
 
 @pytest.mark.browser
 def test_the_fit_matches_babylon_js_own_cascade_matrices():
-    """Babylon.js 9.35 in Chromium (tests/babylon_harness/ fitCascades): its CascadedShadowGenerator with the same
+    """Babylon.js 9.35 in Chromium (service/bench/babylon_harness/ fitCascades): its CascadedShadowGenerator with the same
     camera, sun, settings (RUNS) and caster box; each cascade's transform (projection . view, world -> clip) equals
     the emulation's in Babylon's frame, to float32 precision."""
     from web_engine_kit import BABYLON, SCREEN, babylon_fallback, babylon_files, launch_browser, render_page

@@ -12,12 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shadowopt.service.bench import three_page
+from shadowopt.service.bench import babylon_page, three_page
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "configs" / "demo_scene.usda"
 SCREEN = (320, 180)
-DEPTH_TOLERANCE = 0.01  # relative view-depth difference under which both renderers hit the same surface
 ORIGIN = three_page.ORIGIN
 TYPES = {".html": "text/html", ".js": "text/javascript", ".bin": "application/octet-stream"}
 
@@ -37,10 +36,9 @@ def launch_browser(engine_file: Path, what: str):
 
 
 def geometry(entry, sun_direction, axes=(1.0, 1.0, 1.0)) -> bytes:
-    """three_page.scene_geometry (the scene's split triangles with their lit-side flat normals, x y z nx ny nz per
-    vertex, float32) in an engine frame whose coordinates are the world's times `axes` (Babylon: (-1, 1, 1))."""
-    data = np.frombuffer(three_page.scene_geometry(entry, sun_direction), np.float32).reshape(-1, 6)
-    return (data * np.tile(np.asarray(axes, np.float32), 2)).astype(np.float32).tobytes()
+    """babylon_page.mirrored_geometry: the scene's triangles in an engine frame whose coordinates are the world's
+    times `axes` (Babylon: (-1, 1, 1))."""
+    return babylon_page.mirrored_geometry(entry, sun_direction, axes)
 
 
 def solve_and_emit(tmp_path, rig: dict, *extra: str) -> tuple[dict, str]:
@@ -91,43 +89,21 @@ def render_page(browser, files: dict, fallback, params: dict, call: str = "rende
     return out
 
 
-BABYLON = ROOT / "out" / "web" / "node_modules" / "@babylonjs" / "core"
-BABYLON_HARNESS = Path(__file__).with_name("babylon_harness")
-
-
-def babylon_files(**extra: bytes) -> dict:
-    """The Babylon.js page's own files (tests/babylon_harness/) and `extra` ("/apply.js": ..., "/scene.bin": ...)."""
-    return {"/index.html": (BABYLON_HARNESS / "index.html").read_bytes(),
-            "/harness.js": (BABYLON_HARNESS / "harness.js").read_bytes(), **extra}
-
-
-def babylon_fallback(path: str):
-    """@babylonjs/core's ES modules under /babylon/ (the page's import map), and the shaders they import on demand."""
-    f = BABYLON / path.removeprefix("/babylon/")
-    return f.read_bytes() if path.startswith("/babylon/") and path.endswith(".js") and f.is_file() else None
+BABYLON = babylon_page.BABYLON
+babylon_files = babylon_page.page_files  # the page's own files (service/bench/babylon_harness/) and extra ones
+babylon_fallback = babylon_page.fallback  # @babylonjs/core's ES modules under /babylon/
 
 
 def score(entry, rig: dict, solution: dict, rendered: dict, screen=SCREEN) -> dict:
     """evaluate's ground truth and verdicts of the screen, and the engine's verdicts, on the receivers both
-    renderers see the same surface at (engine_vs_evaluate: the pixels where the two verdicts differ)."""
+    renderers see the same surface at (service.bench.screen_score; engine_vs_evaluate: the pixels where the two
+    verdicts differ)."""
     from shadowopt.renderers.ground_truth import evaluate_buffers
+    from shadowopt.service.bench.screen_score import score_screen
     from shadowopt.service.rigs import resolve_rig
     from shadowopt.service.solution_json import maps_from_solution
 
     resolved = resolve_rig(rig, entry.loaded)
     gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps_from_solution(solution)[0],
                           screen=screen, depth="solution")
-    ze, zr = rendered["depth"].astype(np.float64), gt.screen.depth
-    with np.errstate(invalid="ignore"):
-        same = (ze > 0) & gt.screen.hit & (np.abs(ze - zr) <= DEPTH_TOLERANCE * zr)
-    keep = gt.receivers & same
-    shadowed = rendered["alpha"] > 127
-    exact = gt.exact_shadowed
-    wrong = keep & (shadowed != exact)
-    wrong_eval = keep & gt.misclassified
-    return {"receivers": int(gt.receivers.sum()), "compared": int(keep.sum()),
-            "exact_shadowed": int((keep & exact).sum()), "engine_shadowed": int((keep & shadowed).sum()),
-            "engine_wrong": int(wrong.sum()), "engine_wrongly_lit": int((wrong & exact).sum()),
-            "engine_wrongly_shadowed": int((wrong & ~exact).sum()),
-            "evaluate_wrong_compared": int(wrong_eval.sum()), "evaluate_wrong": gt.result["misclassified_pixels"],
-            "engine_vs_evaluate": int((keep & (shadowed != (exact ^ gt.misclassified))).sum())}
+    return score_screen(gt, rendered)

@@ -1,4 +1,5 @@
-"""`shadowopt bench engines`: `tune` in the real engine (issue 26 part 2; three.js r187's CSM addon so far).
+"""`shadowopt bench engines`: `tune` in the real engine (issue 26 part 2; three.js r187's CSM addon so far) and, with
+--part matrix (or all, the default), the custom-matrix modules in three.js and Babylon.js (engines_matrix.py).
 
 On corpus scenes (configs/corpus.json, their first rig's camera at a small screen) with N seeded suns each, per sun:
 `tune --engine three` (one pose), the engine's defaults (maxFar = the scene's reach, the rig's map size, as tune's
@@ -31,6 +32,7 @@ from ..scenes import SceneCache
 from ..tune import tune
 from ..tune_score import Pose, predict, probe_pose
 from .definitions import ROOT, corpus_scenes, hemisphere_directions
+from .engines_matrix import bench_matrix
 from .output import write_section
 from .three_page import chromium, render_modules, scene_geometry
 
@@ -134,13 +136,22 @@ def table(per_scene: dict) -> str:
 
 
 def bench_engines(validate_rig, lights: int | None = None, scenes: str | None = None, screen=None,
-                  write: bool = True, log=None) -> dict:
+                  write: bool = True, log=None, part: str = "all") -> dict:
+    """`part`: "tune" (tune in three.js, this module), "matrix" (the custom-matrix modules in three.js and
+    Babylon.js, service/bench/engines_matrix.py) or "all" (both)."""
     n = lights or 6
     screen = tuple(screen or (320, 180))
     names = scenes.split(",") if scenes else list(SCENES)
     found, skipped = corpus_scenes(names)
     dirs = hemisphere_directions(n, 15.0, 26)
     cache = SceneCache()
+    result = {}
+    if part in ("matrix", "all"):
+        cmd = (f"shadowopt bench engines --part matrix --lights {n} --scenes {','.join(found)} "
+               f"--screen {screen[0]}x{screen[1]}")
+        result["matrix"] = bench_matrix(validate_rig, found, dirs, screen, write, cmd, skipped, cache, log)
+        if part == "matrix":
+            return result["matrix"]
     per_scene, raw = {}, {}
     with chromium() as browser:
         for name, (path, spec) in found.items():
@@ -162,7 +173,9 @@ def bench_engines(validate_rig, lights: int | None = None, scenes: str | None = 
     if write:
         cmd = f"shadowopt bench engines --lights {n} --scenes {','.join(found)} --screen {screen[0]}x{screen[1]}"
         write_section("engines", text + "\n\n" + NOTE, cmd)
-    return {"per_scene": per_scene, "table": text}
+    if result:
+        text = result["matrix"]["table"] + "\n\n" + text
+    return {"per_scene": per_scene, "table": text, **result}
 
 
 NOTE = ("three.js r187's CSM addon with BasicShadowMap and DoubleSide shadows (what tune's module sets), fade off; "

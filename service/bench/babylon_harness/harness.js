@@ -1,4 +1,4 @@
-// The test's Babylon.js page (tests/test_babylon_module.py): the scene's triangles (already in Babylon's left-handed
+// The Babylon.js page (service/bench/babylon_page.py: shadowopt bench engines, tests/test_babylon_module.py): the scene's triangles (already in Babylon's left-handed
 // frame), the rig's camera and sun, the emitted module imported as it is, then three renders read back:
 // - lit, twice: a white StandardMaterial (no ambient, no specular, both faces) lit by the sun alone, with the
 //   module's shadows and with light.shadowEnabled = false; FILTER_NONE makes the shadow term 0 or 1, so "shadowed"
@@ -23,7 +23,7 @@ import { Constants } from "@babylonjs/core/Engines/constants.js";
 import { CascadedShadowGenerator } from "@babylonjs/core/Lights/Shadows/cascadedShadowGenerator.js";
 import { MeshBuilder } from "@babylonjs/core/Meshes/meshBuilder.js";
 
-const BABYLON = { Matrix, Vector3, ShadowGenerator, Constants };
+const BABYLON = { Matrix, Vector3, ShadowGenerator, CascadedShadowGenerator, Constants };  // what the modules use
 
 function babylonCamera(scene, cam) {  // the rig's camera, already in Babylon's frame
 	const camera = new FreeCamera("camera", new Vector3(...cam.position), scene);
@@ -143,7 +143,7 @@ export async function render(p) {
 	const installed = { filter: sg.filter, bias: sg.bias, normalBias: sg.normalBias, mapSize: sg.getShadowMap().getSize().width,
 		builder: typeof light.customProjectionMatrixBuilder === "function", receive: mesh.receiveShadows,
 		depthClamp: Boolean(handle.depthClamp), halfFloat: Boolean(handle.halfFloat),
-		transform: Array.from(sg.getTransformMatrix().m) };
+		transform: sg.getTransformMatrix ? Array.from(sg.getTransformMatrix().m) : null };
 	if (handle.dispose) handle.dispose();
 	const restored = { builder: light.customProjectionMatrixBuilder === undefined || light.customProjectionMatrixBuilder === null,
 		receive: mesh.receiveShadows, generator: Boolean(light.getShadowGenerator()) };

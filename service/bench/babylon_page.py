@@ -1,0 +1,98 @@
+"""A real Babylon.js page in Debian's Chromium headless through Playwright (SwiftShader WebGL2), the Babylon.js twin of
+service/bench/three_page.py: @babylonjs/core 9.35 (npm, `make setup` puts it in out/web/node_modules) and
+service/bench/babylon_harness/ drawing the scene's triangles in Babylon's left-handed frame (the `babylon` preset:
+x -> -x) with the rig's camera and sun, an emitted module imported as it is; `render_modules` returns, per module,
+Babylon's shadowed pixels and view depth of the screen. Used by `shadowopt bench engines` and the browser tests
+(tests/test_babylon_module.py, tests/test_engine_fit_babylon.py through tests/web_engine_kit.py)."""
+from __future__ import annotations
+
+import base64
+from pathlib import Path
+
+import numpy as np
+
+from .three_page import ORIGIN, ROOT, scene_geometry
+
+BABYLON = ROOT / "out" / "web" / "node_modules" / "@babylonjs" / "core"
+HARNESS = Path(__file__).with_name("babylon_harness")
+TO_BABYLON = (-1.0, 1.0, 1.0)  # solvers.conventions.ENGINE_PRESETS["babylon"] axes ("-x", "y", "z")
+TYPES = {".html": "text/html", ".js": "text/javascript", ".bin": "application/octet-stream"}
+
+
+def missing() -> str | None:
+    """Why the page cannot run here (None: it can; Chromium itself: three_page.missing)."""
+    if not (BABYLON / "index.js").exists():
+        return "Babylon.js is absent (make setup: npm install --prefix out/web @babylonjs/core@9.35.0)"
+    return None
+
+
+def to_babylon(v) -> list[float]:
+    """A world point or direction in Babylon's frame (a mirror: its own inverse)."""
+    return [float(a) * s for a, s in zip(v, TO_BABYLON)]
+
+
+def camera_json(cam: dict) -> dict:
+    """A camera {position, forward, up, fov_y_deg, near, far} in the world frame -> Babylon's frame."""
+    return {**cam, **{k: to_babylon(cam[k]) for k in ("position", "forward", "up")}}
+
+
+def mirrored_geometry(entry, sun_direction, axes=TO_BABYLON) -> bytes:
+    """three_page.scene_geometry (the scene's split triangles with their lit-side flat normals, x y z nx ny nz per
+    vertex, float32) in an engine frame whose coordinates are the world's times `axes`."""
+    data = np.frombuffer(scene_geometry(entry, sun_direction), np.float32).reshape(-1, 6)
+    return (data * np.tile(np.asarray(axes, np.float32), 2)).astype(np.float32).tobytes()
+
+
+def page_files(**extra: bytes) -> dict:
+    """The page's own files (babylon_harness/) and `extra` ("/apply.js": ..., "/scene.bin": ...)."""
+    return {"/index.html": (HARNESS / "index.html").read_bytes(), "/harness.js": (HARNESS / "harness.js").read_bytes(),
+            **extra}
+
+
+def fallback(path: str):
+    """@babylonjs/core's ES modules under /babylon/ (the page's import map), and the shaders they import on demand."""
+    f = BABYLON / path.removeprefix("/babylon/")
+    return f.read_bytes() if path.startswith("/babylon/") and path.endswith(".js") and f.is_file() else None
+
+
+def render_modules(browser, modules: list[str], geometry: bytes, camera: dict, sun_direction,
+                   screen: tuple[int, int] = (320, 180)) -> list[dict]:
+    """Each module imported as it is into one page and rendered in turn (a fresh engine each, disposed after), all
+    in Babylon's frame (camera_json, to_babylon, mirrored_geometry): per module {alpha (H, W) uint8, 255 where Babylon
+    shadows the pixel; depth (H, W) float32 view depth, 0 where nothing is hit; installed, restored}. A page error is
+    a RuntimeError."""
+    files = page_files(**{"/scene.bin": geometry}, **{f"/apply-{k}.js": t.encode() for k, t in enumerate(modules)})
+    ctx = browser.new_context()
+    page = ctx.new_page()
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+
+    def serve(route):
+        path = route.request.url.removeprefix(ORIGIN).split("?")[0]
+        body = files.get(path)
+        if body is None and ".." not in path:
+            body = fallback(path)
+        if body is None:
+            route.fulfill(status=404, body="")
+        else:
+            route.fulfill(status=200, body=body, content_type=TYPES.get(Path(path).suffix, "text/plain"))
+
+    page.route(ORIGIN + "/**", serve)
+    outs = []
+    try:
+        page.goto(ORIGIN + "/index.html")
+        page.wait_for_function("() => window.harnessReady === true", timeout=30000)
+        for k in range(len(modules)):
+            outs.append(page.evaluate("(p) => window.harness.render(p)", {
+                "screen": list(screen), "geometry": "/scene.bin", "module": f"/apply-{k}.js",
+                "sun_direction": list(sun_direction), "camera": camera}))
+    finally:
+        ctx.close()
+    if errors:
+        raise RuntimeError(f"Babylon.js page: {errors}")
+    W, H = screen
+    for out in outs:
+        out["alpha"] = np.frombuffer(base64.b64decode(out["alpha"]), np.uint8).reshape(H, W)[::-1]
+        out["depth"] = np.frombuffer(base64.b64decode(out["depth"]), np.float32).reshape(H, W)[::-1]
+    return outs
