@@ -33,6 +33,8 @@ from ..tune_score import scene_far
 from . import babylon_page, three_page
 from .engine_baselines import (babylon_cascades_module, babylon_plain_module, grid, light_box,
                                three_plain_module)
+from .definitions import ROOT
+from .output import write_section
 from .screen_score import score_screen
 
 ENGINES = ("three", "babylon")
@@ -132,9 +134,6 @@ def table(per_scene: dict) -> str:
 
 def bench_matrix(validate_rig, found: dict, dirs, screen, write: bool, cmd: str, skipped: dict, cache, log=None) -> dict:
     """The part's rows over `found` scenes (definitions.corpus_scenes) and sun directions; writes its section."""
-    from .definitions import ROOT
-    from .output import write_section
-
     per_scene, raw = {}, {}
     with three_page.chromium() as browser:
         for name, (path, spec) in found.items():
