@@ -48,7 +48,7 @@ def cmd_bench(args) -> int:
 
         result = bench_engines(validate_rig, lights=args.lights, scenes=args.scenes, screen=args.screen,
                                write=not args.no_write, log=lambda m: print(m, file=sys.stderr),
-                               engine=args.engine)
+                               engine=args.engine, part={"single": "all", "cascades": "all"}.get(args.part, args.part))
     elif args.bench == "solve-time":  # optimize's time per light, fitted bias against the rule
         from ..service.bench.solve_time import bench_solve_time  # lazy: the server stack loads only for the command that runs
 
@@ -137,8 +137,9 @@ def add_bench_parser(sub) -> None:
     sp.add_argument("--map", type=int, default=1024, help="path: texels per side of one map (4 cascades share its budget)")
     sp.add_argument("--seconds", type=float, default=60.0, help="load: seconds of concurrent load per workload")
     sp.add_argument("--lights", type=int, default=None, help="quality, solvers, trust: number of light directions (rigs)")
-    sp.add_argument("--part", choices=["single", "cascades", "all"], default="all",
-                    help="quality: one map per method, 4 cascades under one budget, or both")
+    sp.add_argument("--part", choices=["single", "cascades", "all", "tune", "matrix"], default="all",
+                    help="quality: one map per method, 4 cascades under one budget, or both; engines: tune in three.js, "
+                    "the custom-matrix modules in three.js and Babylon.js (matrix), or both")
     sp.add_argument("--runs", type=int, default=None, help="coarse: warm runs per scene (default 20); limits: runs per rig (default 3); the median is reported")
     sp.add_argument("--scenes", default=None, help="comma-separated scene names from configs/benchmarks.json "
                     "(quality --corpus: from configs/corpus.json)")

@@ -39,11 +39,16 @@ class Pose:
         self.receivers = receivers_of(entry.rays, self.light, buffers, 0)
         self.coarse_ms = (time.perf_counter() - t0) * 1e3
         lo, hi = entry.loaded.geometry.bounds()
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        # the camera's distance to the farthest point of the scene (its bounding box), capped by its far plane
-        self.scene_far = float(min(np.linalg.norm(corners - self.camera.position, axis=1).max(), self.camera.far))
+        self.scene_far = scene_far(lo, hi, self.camera)
         self.scene_box = (np.asarray(lo, float), np.asarray(hi, float))  # the casters' box (Babylon's render list)
         self.scene_diagonal = float(np.linalg.norm(np.asarray(hi) - np.asarray(lo)))
+
+
+def scene_far(lo, hi, camera) -> float:
+    """The camera's distance to the farthest point of the scene (its bounding box lo..hi), capped by its far plane:
+    the shadow distance of the engines' defaults (issue 26)."""
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    return float(min(np.linalg.norm(corners - camera.position, axis=1).max(), camera.far))
 
 
 def probe_pose(mod, pose: Pose, settings: dict):

@@ -1,6 +1,6 @@
 """`optimize --emit`'s Babylon.js module in the real engine: @babylonjs/core 9.35.0 (npm, installed by `make setup`
 into out/web/node_modules) in Debian's Chromium headless through Playwright (SwiftShader WebGL2), the module imported
-as it is. The page (service/bench/babylon_harness/) draws the demo scene's own triangles in Babylon's left-handed frame (the
+as it is. The page (service/bench/babylon_harness/, babylon_page.py) draws the demo scene's own triangles in Babylon's left-handed frame (the
 `babylon` preset: x -> -x) with the rig's camera and sun, renders a white StandardMaterial lit by the sun with and
 without the module's shadows (FILTER_NONE: the shadow term is 0 or 1) and a view-depth pass, and the pixels are
 scored against the product's exact ray-traced visibility of the same screen (tests/web_engine_kit.py). On the

@@ -12,7 +12,7 @@ from shadowopt.service.bench.three_page import scene_geometry  # noqa: F401 (re-
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "configs" / "demo_scene.usda"
 SCREEN = (320, 180)
-DEPTH_TOLERANCE = 0.01  # relative view-depth difference under which both renderers hit the same surface
+from shadowopt.service.bench.screen_score import DEPTH_TOLERANCE  # noqa: F401 (the tests compare where both renderers see the same surface)
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,7 @@ from shadowopt.service.bench import babylon_page, three_page
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "configs" / "demo_scene.usda"
 SCREEN = (320, 180)
-DEPTH_TOLERANCE = 0.01  # relative view-depth difference under which both renderers hit the same surface
+from shadowopt.service.bench.screen_score import DEPTH_TOLERANCE  # noqa: F401 (the tests compare where both renderers see the same surface)
 ORIGIN = three_page.ORIGIN
 TYPES = {".html": "text/html", ".js": "text/javascript", ".bin": "application/octet-stream"}
 
@@ -106,25 +106,14 @@ babylon_fallback = babylon_page.fallback  # @babylonjs/core's ES modules under /
 
 def score(entry, rig: dict, solution: dict, rendered: dict, screen=SCREEN) -> dict:
     """evaluate's ground truth and verdicts of the screen, and the engine's verdicts, on the receivers both
-    renderers see the same surface at (engine_vs_evaluate: the pixels where the two verdicts differ)."""
+    renderers see the same surface at (service.bench.screen_score; engine_vs_evaluate: the pixels where the two
+    verdicts differ)."""
     from shadowopt.renderers.ground_truth import evaluate_buffers
+    from shadowopt.service.bench.screen_score import score_screen
     from shadowopt.service.rigs import resolve_rig
     from shadowopt.service.solution_json import maps_from_solution
 
     resolved = resolve_rig(rig, entry.loaded)
     gt = evaluate_buffers(entry.rays, resolved.camera, resolved.lights[0], maps_from_solution(solution)[0],
                           screen=screen, depth="solution")
-    ze, zr = rendered["depth"].astype(np.float64), gt.screen.depth
-    with np.errstate(invalid="ignore"):
-        same = (ze > 0) & gt.screen.hit & (np.abs(ze - zr) <= DEPTH_TOLERANCE * zr)
-    keep = gt.receivers & same
-    shadowed = rendered["alpha"] > 127
-    exact = gt.exact_shadowed
-    wrong = keep & (shadowed != exact)
-    wrong_eval = keep & gt.misclassified
-    return {"receivers": int(gt.receivers.sum()), "compared": int(keep.sum()),
-            "exact_shadowed": int((keep & exact).sum()), "engine_shadowed": int((keep & shadowed).sum()),
-            "engine_wrong": int(wrong.sum()), "engine_wrongly_lit": int((wrong & exact).sum()),
-            "engine_wrongly_shadowed": int((wrong & ~exact).sum()),
-            "evaluate_wrong_compared": int(wrong_eval.sum()), "evaluate_wrong": gt.result["misclassified_pixels"],
-            "engine_vs_evaluate": int((keep & (shadowed != (exact ^ gt.misclassified))).sum())}
+    return score_screen(gt, rendered)

@@ -21,6 +21,13 @@ TO_BABYLON = (-1.0, 1.0, 1.0)  # solvers.conventions.ENGINE_PRESETS["babylon"] a
 TYPES = {".html": "text/html", ".js": "text/javascript", ".bin": "application/octet-stream"}
 
 
+def missing() -> str | None:
+    """Why the page cannot run here (None: it can; Chromium itself: three_page.missing)."""
+    if not (BABYLON / "index.js").exists():
+        return "Babylon.js is absent (make setup: npm install --prefix out/web @babylonjs/core@9.35.0)"
+    return None
+
+
 def to_babylon(v) -> list:
     """A world vector (position, direction) in Babylon's frame."""
     return [float(a) * s for a, s in zip(v, TO_BABYLON)]

@@ -1,5 +1,6 @@
 """`shadowopt bench engines`: `tune` in the real engine (issue 26 part 2; three.js r187's CSM addon, and Babylon.js
-9.35's CascadedShadowGenerator with `--engine babylon`).
+9.35's CascadedShadowGenerator with `--engine babylon`) and, with --part matrix (or all, the default), the
+custom-matrix modules in three.js and Babylon.js (engines_matrix.py).
 
 On corpus scenes (configs/corpus.json, their first rig's camera at a small screen) with N seeded suns each, per sun:
 `tune --engine three` (one pose), the engine's defaults (maxFar = the scene's reach, the rig's map size, as tune's
@@ -37,6 +38,7 @@ from ..tune import tune
 from ..tune_score import Pose, predict, probe_pose
 from ..tune_search import SEARCHES
 from .definitions import ROOT, corpus_scenes, hemisphere_directions
+from .engines_matrix import bench_matrix
 from .output import write_section
 from . import babylon_page, three_page
 from .three_page import chromium, scene_geometry
@@ -161,13 +163,22 @@ def table(per_scene: dict, engine: str = "three") -> str:
 
 
 def bench_engines(validate_rig, lights: int | None = None, scenes: str | None = None, screen=None,
-                  write: bool = True, log=None, engine: str = "three") -> dict:
+                  write: bool = True, log=None, engine: str = "three", part: str = "all") -> dict:
+    """`part`: "tune" (tune in `engine`, this module), "matrix" (the custom-matrix modules in three.js and
+    Babylon.js, service/bench/engines_matrix.py) or "all" (both)."""
     n = lights or 6
     screen = tuple(screen or (320, 180))
     names = scenes.split(",") if scenes else list(SCENES)
     found, skipped = corpus_scenes(names)
     dirs = hemisphere_directions(n, 15.0, 26)
     cache = SceneCache()
+    result = {}
+    if part in ("matrix", "all"):
+        cmd = (f"shadowopt bench engines --part matrix --lights {n} --scenes {','.join(found)} "
+               f"--screen {screen[0]}x{screen[1]}")
+        result["matrix"] = bench_matrix(validate_rig, found, dirs, screen, write, cmd, skipped, cache, log)
+        if part == "matrix":
+            return result["matrix"]
     per_scene, raw = {}, {}
     with chromium() as browser:
         for name, (path, spec) in found.items():
@@ -188,10 +199,12 @@ def bench_engines(validate_rig, lights: int | None = None, scenes: str | None = 
     if skipped:
         text += "\n\nSkipped: " + "; ".join(f"{k} ({v})" for k, v in skipped.items())
     if write:
-        cmd = (f"shadowopt bench engines{'' if engine == 'three' else ' --engine ' + engine} --lights {n} "
+        cmd = (f"shadowopt bench engines{'' if engine == 'three' else ' --engine ' + engine} --part tune --lights {n} "
                f"--scenes {','.join(found)} --screen {screen[0]}x{screen[1]}")
         write_section(section, text + "\n\n" + NOTES[engine], cmd)
-    return {"per_scene": per_scene, "table": text}
+    if result:
+        text = result["matrix"]["table"] + "\n\n" + text
+    return {"per_scene": per_scene, "table": text, **result}
 
 
 NOTE = ("three.js r187's CSM addon with BasicShadowMap and DoubleSide shadows (what tune's module sets), fade off; "
