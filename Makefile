@@ -51,11 +51,12 @@ $(STAMP): requirements.lock pyproject.toml
 	@echo "setup: installing pinned Python dependencies into $(VENV) (first time: a few minutes)"
 	@$(PY) -m pip install -q --upgrade pip >>$(LOG) 2>&1 || { cat $(LOG); exit 1; }
 	@# The CPU build of torch, asked for by its local version; TORCH_FIND_LINKS may name a folder of wheels.
-	@# --no-compile: Python compiles what is imported when it is first imported; byte-compiling all of torch at
-	@# install took 12 s of a 27 s install (TESTING.md).
-	@$(PY) -m pip install -q --no-compile $(if $(TORCH_FIND_LINKS),--find-links $(TORCH_FIND_LINKS)) \
+	@# Byte-compiled at install (no --no-compile): with PYTHONDONTWRITEBYTECODE set, as on this project's machines,
+	@# Python never writes what it compiles, and every process (each xdist worker, server, loader child and CLI run)
+	@# would compile torch, NumPy and the rest from source again (TESTING.md).
+	@$(PY) -m pip install -q $(if $(TORCH_FIND_LINKS),--find-links $(TORCH_FIND_LINKS)) \
 	  $(if $(wildcard /opt/wheels),--find-links /opt/wheels) "torch==2.13.0+cpu" >>$(LOG) 2>&1 || { cat $(LOG); exit 1; }
-	@$(PY) -m pip install -q --no-compile -r requirements.lock >>$(LOG) 2>&1 || { cat $(LOG); exit 1; }
+	@$(PY) -m pip install -q -r requirements.lock >>$(LOG) 2>&1 || { cat $(LOG); exit 1; }
 	@$(PY) -m pip install -q --no-deps -e . >>$(LOG) 2>&1 || { cat $(LOG); exit 1; }
 	@touch $(STAMP)
 	@echo "setup: done"
