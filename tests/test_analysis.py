@@ -3,12 +3,10 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from clikit import run_here
 
 from shadowopt.solvers import warp
 from shadowopt.solvers.analysis import analyze, n_prime_from_eta
@@ -141,18 +139,16 @@ def test_eta_shaping_corner_values():
     assert eta_shaping(90, th, "p") == 0.0
 
 
-@pytest.mark.server
-def test_cli_analyze_json():
-    exe = Path(sys.executable).with_name("shadowopt")
-    out = subprocess.run([str(exe), "analyze", "--f-over-n", "1000", "--theta-deg", "30", "--gamma-deg", "90",
-                          "--method", "perspective", "--partitions", "5", "--json"], capture_output=True, text=True)
+def test_cli_analyze_json(capsys):
+    out = run_here(capsys, "analyze", "--f-over-n", "1000", "--theta-deg", "30", "--gamma-deg", "90",
+                   "--method", "perspective", "--partitions", "5", "--json")
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout)["S"] == pytest.approx(12.9, rel=0.005)
-    bad = subprocess.run([str(exe), "analyze", "--f-over-n", "1000", "--theta-deg", "30", "--gamma-deg", "200",
-                          "--method", "log"], capture_output=True, text=True)
+    bad = run_here(capsys, "analyze", "--f-over-n", "1000", "--theta-deg", "30", "--gamma-deg", "200",
+                   "--method", "log")
     assert bad.returncode == 2 and "--gamma-deg" in bad.stderr
-    fp = subprocess.run([str(exe), "analyze", "--f-over-n", "1000", "--theta-deg", "30", "--gamma-deg", "90",
-                         "--method", "fp+p"], capture_output=True, text=True)
+    fp = run_here(capsys, "analyze", "--f-over-n", "1000", "--theta-deg", "30", "--gamma-deg", "90",
+                  "--method", "fp+p")
     assert fp.returncode == 0 and fp.stdout.strip().endswith("S = 865.2, maps = 1"), fp.stdout + fp.stderr
 
 

@@ -41,11 +41,10 @@ def test_coarse_writes_buffers_and_previews(tmp_path):
         assert (out / png).stat().st_size > 100
 
 
-@pytest.mark.server
-def test_cli_flags_override_the_rig_and_bad_flags_exit_2(tmp_path):
-    p = run("coarse", DEMO, "--rig", DEMO_RIG, "--out", tmp_path, "--cascades", "x", check=2)
+def test_cli_flags_override_the_rig_and_bad_flags_exit_2(tmp_path, capsys):
+    p = run_here(capsys, "coarse", DEMO, "--rig", DEMO_RIG, "--out", tmp_path, "--cascades", "x", check=2)
     assert "--cascades" in p.stderr and "Traceback" not in p.stderr
-    p = run("coarse", DEMO, "--rig", DEMO_RIG, "--out", tmp_path, "--lambda", "2", check=2)
+    p = run_here(capsys, "coarse", DEMO, "--rig", DEMO_RIG, "--out", tmp_path, "--lambda", "2", check=2)
     assert "shadow.lambda" in p.stderr
 
 
@@ -63,13 +62,12 @@ def test_bad_rigs_exit_2_naming_the_field(tmp_path, capsys, content, words):
     assert words in p.stderr and "Traceback" not in p.stderr
 
 
-@pytest.mark.server
-def test_malformed_scene_exits_2(tmp_path):
+def test_malformed_scene_exits_2(tmp_path, capsys):
     bad = tmp_path / "bad.usdc"
     bad.write_bytes(b"PXR-USDC" + b"\0" * 40)
-    p = run("scene-info", bad, check=2)
+    p = run_here(capsys, "scene-info", bad, check=2)
     assert "bad.usdc" in p.stderr and "[corrupt]" in p.stderr and "Traceback" not in p.stderr
-    p = run("scene-info", tmp_path / "missing.usda", check=2)
+    p = run_here(capsys, "scene-info", tmp_path / "missing.usda", check=2)
     assert "No such file" in p.stderr and "[not_found]" in p.stderr
 
 
@@ -93,11 +91,10 @@ CASCADE_FIELDS = {"split", "light_depth", "view_matrix", "projection_matrix", "t
 ERROR_FIELDS = {"objective", "mean_m", "median_m", "p95_m", "max_m", "frac_m_gt_1", "samples"}
 
 
-@pytest.mark.server
 @pytest.mark.parametrize("method", ["uniform", "focused", "lispsm", "logpsm"])
-def test_optimize_writes_the_solution_schema_and_evaluate_reads_it(tmp_path, method):
+def test_optimize_writes_the_solution_schema_and_evaluate_reads_it(tmp_path, method, capsys):
     sol_path = tmp_path / "sol.json"
-    sol = json.loads(run("optimize", DEMO, "--rig", DEMO_RIG, "--method", method, "--shadow-resolution", "512x512",
+    sol = json.loads(run_here(capsys, "optimize", DEMO, "--rig", DEMO_RIG, "--method", method, "--shadow-resolution", "512x512",
                          "--out", sol_path, "--json", check=0).stdout)
     assert json.loads(sol_path.read_text()) == sol
     cas = sol["lights"][0]["cascades"][0]
@@ -107,7 +104,7 @@ def test_optimize_writes_the_solution_schema_and_evaluate_reads_it(tmp_path, met
     assert {"coarse", "optimize", "total"} <= set(sol["timings_ms"])
     assert sol["provenance"]["scene_hash"] and sol["provenance"]["software"].startswith("shadowopt")
     heat = tmp_path / "heat.png"
-    ev = json.loads(run("evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, "--screen", "320x180",
+    ev = json.loads(run_here(capsys, "evaluate", DEMO, "--rig", DEMO_RIG, "--solution", sol_path, "--screen", "320x180",
                         "--heatmap", heat, "--json", check=0).stdout)
     assert ev["outside_pixels"] == 0 and ev["receiver_pixels"] > 10000
     assert {"mean_m", "median_m", "p95_m", "max_m", "frac_m_gt_1", "samples"} <= set(ev["measured_error"])
