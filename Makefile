@@ -65,13 +65,13 @@ serve: setup
 	$(VENV)/bin/shadowopt serve --host $(HOST) --port $(PORT)
 
 # Every layer (TESTING.md: unit, server, browser, gl; slow ones included). Exit code 5 (no test collected) fails too.
-# The files run on three pytest-xdist workers on 2 cores (--dist loadfile: a file's module server is started once):
-# about a fifth of a two-worker run's time is spent waiting on servers, children and browsers, which a third worker
-# fills (TESTING.md: the times); TEST_JOBS=1 runs them in one process.
+# The files run on two pytest-xdist workers (--dist loadfile: a file's module server is started once); three on the
+# 2 cores were slower on a fresh clone (pytest 10 min 30 s against 9 min 52 s, TESTING.md); TEST_JOBS=1 runs them in
+# one process.
 # --no-loadscope-reorder: the files are handed out in tests/conftest.py's order (heavy_files_first: files with slow,
 # then server/browser/gl tests first), not xdist's most-tests-first, which left two of the longest files for the end.
 # The slowest 20 tests are printed at the end.
-TEST_JOBS ?= 3
+TEST_JOBS ?= 2
 test: setup
 	$(PY) -m pytest -q --durations=20 $(if $(filter-out 0 1,$(TEST_JOBS)),-n $(TEST_JOBS) --dist loadfile --no-loadscope-reorder)
 
