@@ -7,18 +7,16 @@ browser tests (tests/web_engine_kit.py: tests/test_babylon_module.py, tests/test
 tests/test_engine_fit_babylon.py)."""
 from __future__ import annotations
 
-import base64
 from pathlib import Path
 
 import numpy as np
 
-from .three_page import ORIGIN, ROOT
+from .three_page import ROOT, decode_screen, run_page
 from .three_page import scene_geometry as world_geometry
 
 BABYLON = ROOT / "out" / "web" / "node_modules" / "@babylonjs" / "core"
 HARNESS = Path(__file__).with_name("babylon_harness")
 TO_BABYLON = (-1.0, 1.0, 1.0)  # solvers.conventions.ENGINE_PRESETS["babylon"] axes ("-x", "y", "z")
-TYPES = {".html": "text/html", ".js": "text/javascript", ".bin": "application/octet-stream"}
 
 
 def missing() -> str | None:
@@ -65,37 +63,6 @@ def render_modules(browser, modules: list[str], geometry: bytes, camera: dict, s
     where nothing is hit; installed, restored: what the harness read}. `camera`, `sun_direction` and `geometry` in
     Babylon's frame. A page error is a RuntimeError."""
     files = page_files(**{"/scene.bin": geometry}, **{f"/apply-{k}.js": m.encode() for k, m in enumerate(modules)})
-    ctx = browser.new_context()
-    page = ctx.new_page()
-    errors = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-
-    def serve(route):
-        path = route.request.url.removeprefix(ORIGIN).split("?")[0]
-        body = files.get(path)
-        if body is None and ".." not in path:
-            body = fallback(path)
-        if body is None:
-            route.fulfill(status=404, body="")
-        else:
-            route.fulfill(status=200, body=body, content_type=TYPES.get(Path(path).suffix, "text/plain"))
-
-    page.route(ORIGIN + "/**", serve)
-    outs = []
-    try:
-        page.goto(ORIGIN + "/index.html")
-        page.wait_for_function("() => window.harnessReady === true", timeout=30000)
-        for k in range(len(modules)):
-            outs.append(page.evaluate("(p) => window.harness.render(p)", {
-                "screen": list(screen), "geometry": "/scene.bin", "module": f"/apply-{k}.js",
-                "sun_direction": list(sun_direction), "camera": camera}))
-    finally:
-        ctx.close()
-    if errors:
-        raise RuntimeError(f"Babylon.js page: {errors}")
-    W, H = screen
-    for out in outs:
-        out["alpha"] = np.frombuffer(base64.b64decode(out["alpha"]), np.uint8).reshape(H, W)[::-1]
-        out["depth"] = np.frombuffer(base64.b64decode(out["depth"]), np.float32).reshape(H, W)[::-1]
-    return outs
+    params = [{"screen": list(screen), "geometry": "/scene.bin", "module": f"/apply-{k}.js",
+               "sun_direction": list(sun_direction), "camera": camera} for k in range(len(modules))]
+    return [decode_screen(out, screen) for out in run_page(browser, files, fallback, params, "Babylon.js")]

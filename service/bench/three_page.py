@@ -93,7 +93,29 @@ def render_modules(browser, modules: list[str], geometry: bytes, camera: dict, s
              "/three.module.js": THREE_MODULE.read_bytes(), "/scene.bin": geometry}
     for k, text in enumerate(modules):
         files[f"/apply-{k}.js"] = text.encode()
-    types = {".html": "text/html", ".js": "text/javascript", ".bin": "application/octet-stream"}
+    params = [{"screen": list(screen), "geometry": "/scene.bin", "module": f"/apply-{k}.js",
+               "sun_direction": list(sun_direction), "camera": camera, "classify": classify} for k in range(len(modules))]
+    return [decode_screen(out, screen) for out in run_page(browser, files, _three_fallback, params, "three.js")]
+
+
+def _three_fallback(path: str):
+    """three's build files (three.module.js imports ./three.core.js) and the CSM addon under /addons/csm/."""
+    build = THREE_MODULE.parent / path.lstrip("/")
+    addon = ADDONS / path.removeprefix("/addons/")
+    if path.endswith(".js") and "/" not in path[1:] and build.is_file():
+        return build.read_bytes()
+    if path.startswith("/addons/csm/") and path.endswith(".js") and addon.is_file():
+        return addon.read_bytes()
+    return None
+
+
+TYPES = {".html": "text/html", ".js": "text/javascript", ".bin": "application/octet-stream"}
+
+
+def run_page(browser, files: dict, fallback, params: list[dict], what: str, call: str = "render") -> list:
+    """A harness page (index.html setting window.harnessReady, window.harness.<call>) served from `files` (path ->
+    bytes) and `fallback(path)` (bytes or None: 404; never for a path with ".."), `window.harness.<call>(p)` for each
+    p of `params` in turn; the answers. A page error or console error is a RuntimeError naming `what`."""
     ctx = browser.new_context()
     page = ctx.new_page()
     errors = []
@@ -102,32 +124,31 @@ def render_modules(browser, modules: list[str], geometry: bytes, camera: dict, s
 
     def serve(route):
         path = route.request.url.removeprefix(ORIGIN).split("?")[0]
-        build = THREE_MODULE.parent / path.lstrip("/")  # three.module.js imports ./three.core.js
-        addon = ADDONS / path.removeprefix("/addons/")
-        if path in files:
-            route.fulfill(status=200, body=files[path], content_type=types[Path(path).suffix])
-        elif path.endswith(".js") and "/" not in path[1:] and build.is_file():
-            route.fulfill(status=200, body=build.read_bytes(), content_type="text/javascript")
-        elif path.startswith("/addons/csm/") and path.endswith(".js") and ".." not in path and addon.is_file():
-            route.fulfill(status=200, body=addon.read_bytes(), content_type="text/javascript")
-        else:
+        body = files.get(path)
+        if body is None and ".." not in path:
+            body = fallback(path)
+        if body is None:
             route.fulfill(status=404, body="")
+        else:
+            route.fulfill(status=200, body=body, content_type=TYPES.get(Path(path).suffix, "text/plain"))
 
     page.route(ORIGIN + "/**", serve)
     outs = []
     try:
         page.goto(ORIGIN + "/index.html")
         page.wait_for_function("() => window.harnessReady === true", timeout=30000)
-        for k in range(len(modules)):
-            outs.append(page.evaluate("(p) => window.harness.render(p)", {
-                "screen": list(screen), "geometry": "/scene.bin", "module": f"/apply-{k}.js",
-                "sun_direction": list(sun_direction), "camera": camera, "classify": classify}))
+        for p in params:
+            outs.append(page.evaluate(f"(p) => window.harness.{call}(p)", p))
     finally:
         ctx.close()
     if errors:
-        raise RuntimeError(f"three.js page: {errors}")
-    W, H = screen
-    for out in outs:
-        out["alpha"] = np.frombuffer(base64.b64decode(out["alpha"]), np.uint8).reshape(H, W)[::-1]
-        out["depth"] = np.frombuffer(base64.b64decode(out["depth"]), np.float32).reshape(H, W)[::-1]
+        raise RuntimeError(f"{what} page: {errors}")
     return outs
+
+
+def decode_screen(out: dict, screen) -> dict:
+    """A harness answer's base64 screens as arrays, row 0 at the top: alpha (H, W) uint8, depth (H, W) float32."""
+    W, H = screen
+    out["alpha"] = np.frombuffer(base64.b64decode(out["alpha"]), np.uint8).reshape(H, W)[::-1]
+    out["depth"] = np.frombuffer(base64.b64decode(out["depth"]), np.float32).reshape(H, W)[::-1]
+    return out
