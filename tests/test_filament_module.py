@@ -27,6 +27,8 @@ import numpy as np
 import pytest
 from web_scene import glb, scene_triangles
 
+from shadowopt.service.bench.three_page import run_page
+
 ROOT = Path(__file__).resolve().parents[1]
 FILAMENT = ROOT / "out" / "web" / "node_modules" / "filament"
 HARNESS = Path(__file__).with_name("filament_harness")
@@ -36,7 +38,6 @@ CHROMIUM_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no
 SCREEN = (320, 180)
 PLANE_TOLERANCE = 0.01  # the ray caster's point within this fraction of its view depth of Filament's triangle's plane
 DARK = 8  # unshadowed shading (0-255, linear) under which a pixel is too dark to classify (the light grazes it)
-ORIGIN = "http://shadowopt.test"
 RIG = {"camera": {"usd_path": "/World/Camera", "resolution": list(SCREEN)}, "lights": [{"usd_path": "/World/Sun"}],
        "shadow": {"resolution": [1024, 1024], "cascades": 1}, "output": {"engine": "filament"}}
 
@@ -70,33 +71,12 @@ def _png(data_url: str) -> np.ndarray:
 
 
 def _render(browser, module_text: str, lit: bytes, ids: bytes, camera: dict, sun_direction) -> dict:
-    files = {"/index.html": ((HARNESS / "index.html").read_bytes(), "text/html"),
-             "/harness.js": ((HARNESS / "harness.js").read_bytes(), "text/javascript"),
-             "/filament.js": ((FILAMENT / "filament.js").read_bytes(), "text/javascript"),
-             "/filament.wasm": ((FILAMENT / "filament.wasm").read_bytes(), "application/wasm"),
-             "/apply.js": (module_text.encode(), "text/javascript"),
-             "/scene.glb": (lit, "model/gltf-binary"), "/ids.glb": (ids, "model/gltf-binary")}
-    ctx = browser.new_context()
-    page = ctx.new_page()
-    errors = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-
-    def serve(route):
-        path = route.request.url.removeprefix(ORIGIN).split("?")[0]
-        body, kind = files.get(path, (None, None))
-        route.fulfill(status=200, body=body, content_type=kind) if body is not None else route.fulfill(status=404, body="")
-
-    page.route(ORIGIN + "/**", serve)
-    try:
-        page.goto(ORIGIN + "/index.html")
-        page.wait_for_function("() => window.harnessReady === true", timeout=30000)
-        out = page.evaluate("(p) => window.harness.render(p)", {
-            "screen": list(SCREEN), "geometry": "/scene.glb", "ids": "/ids.glb", "module": "/apply.js",
-            "sun_direction": list(sun_direction), "camera": camera})
-    finally:
-        ctx.close()
-    assert not errors, errors
+    files = {"/index.html": (HARNESS / "index.html").read_bytes(), "/harness.js": (HARNESS / "harness.js").read_bytes(),
+             "/filament.js": (FILAMENT / "filament.js").read_bytes(), "/filament.wasm": (FILAMENT / "filament.wasm").read_bytes(),
+             "/apply.js": module_text.encode(), "/scene.glb": lit, "/ids.glb": ids}
+    out = run_page(browser, files, lambda path: None, [{
+        "screen": list(SCREEN), "geometry": "/scene.glb", "ids": "/ids.glb", "module": "/apply.js",
+        "sun_direction": list(sun_direction), "camera": camera}], "Filament")[0]
     on, off, idc = (_png(out[k]).astype(np.int64) for k in ("on", "off", "ids"))
     out["on"], out["off"] = on.mean(axis=2), off.mean(axis=2)
     out["ids"] = idc[..., 0] + 256 * idc[..., 1] + 65536 * idc[..., 2]  # triangle index + 1, 0 where nothing

@@ -5,11 +5,9 @@ of an engine's shadowed pixels against the product's exact ray-traced visibility
 tests/test_babylon_module.py use it; Chromium and the scene's triangles come from service.bench.three_page."""
 from __future__ import annotations
 
-import base64
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from shadowopt.service.bench import babylon_page, three_page
@@ -19,7 +17,6 @@ DEMO = ROOT / "configs" / "demo_scene.usda"
 SCREEN = (320, 180)
 from shadowopt.service.bench.screen_score import DEPTH_TOLERANCE  # noqa: F401 (the tests compare where both renderers see the same surface)
 ORIGIN = three_page.ORIGIN
-TYPES = {".html": "text/html", ".js": "text/javascript", ".bin": "application/octet-stream"}
 
 
 def launch_browser(engine_file: Path, what: str):
@@ -60,37 +57,9 @@ def render_page(browser, files: dict, fallback, params: dict, call: str = "rende
     """Open ORIGIN/index.html with `files` (path -> bytes) served and `fallback(path)` (bytes or None) for the rest,
     wait for window.harnessReady, run window.harness[call](params), and decode its `alpha` (uint8: 255 where the
     engine shadows) and `depth` (float32 view depth, 0 where nothing is hit), when it has them, into (H, W) arrays,
-    top row first. No page error or console error may occur."""
-    ctx = browser.new_context()
-    page = ctx.new_page()
-    errors = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-
-    def serve(route):
-        path = route.request.url.removeprefix(ORIGIN).split("?")[0]
-        body = files.get(path)
-        if body is None and ".." not in path:
-            body = fallback(path)
-        if body is None:
-            route.fulfill(status=404, body="")
-        else:
-            route.fulfill(status=200, body=body, content_type=TYPES.get(Path(path).suffix, "text/plain"))
-
-    page.route(ORIGIN + "/**", serve)
-    try:
-        page.goto(ORIGIN + "/index.html")
-        page.wait_for_function("() => window.harnessReady === true", timeout=30000)
-        out = page.evaluate("([c, p]) => window.harness[c](p)", [call, params])
-    finally:
-        ctx.close()
-    assert not errors, errors
-    if "alpha" not in out:
-        return out
-    W, H = params["screen"]
-    out["alpha"] = np.frombuffer(base64.b64decode(out["alpha"]), np.uint8).reshape(H, W)[::-1]
-    out["depth"] = np.frombuffer(base64.b64decode(out["depth"]), np.float32).reshape(H, W)[::-1]
-    return out
+    top row first. A page error or console error is a RuntimeError (three_page.run_page)."""
+    out = three_page.run_page(browser, files, fallback, [params], "engine", call)[0]
+    return three_page.decode_screen(out, params["screen"]) if "alpha" in out else out
 
 
 BABYLON = babylon_page.BABYLON

@@ -109,7 +109,8 @@ def _three_fallback(path: str):
     return None
 
 
-TYPES = {".html": "text/html", ".js": "text/javascript", ".bin": "application/octet-stream"}
+TYPES = {".html": "text/html", ".js": "text/javascript", ".bin": "application/octet-stream", ".wasm": "application/wasm",
+         ".glb": "model/gltf-binary"}
 
 
 def run_page(browser, files: dict, fallback, params: list[dict], what: str, call: str = "render") -> list:
